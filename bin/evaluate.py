@@ -1,0 +1,50 @@
+#!/usr/bin/env python
+"""Evaluate a run's output folder against ground truth and print a table.
+
+    python bin/evaluate.py --output_dir=outputs/demo
+    python bin/evaluate.py --output_dir=runs/canteen \
+        --gt_poses=/data/canteen/gt_poses.txt --gt_map=/data/canteen/gt_map.pcd
+
+Reads poses_*.txt and map_*.ply from the folder (see neld_jax/evaluate.py), writes plots and merges
+the numbers into OUTPUT_DIR/metrics.json under "evaluation".
+"""
+
+import logging
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from absl import app, flags  # noqa: E402
+
+from neld_jax.errors import NeldError  # noqa: E402
+
+OUTPUT_DIR = flags.DEFINE_string("output_dir", None, "Folder written by bin/train.py or bin/baseline.py.",
+                                 required=True)
+GT_POSES = flags.DEFINE_string("gt_poses", None, "Ground-truth trajectory (TUM, KITTI or Newer College CSV); "
+                               "default OUTPUT_DIR/poses_gt.txt if present.")
+GT_MAP = flags.DEFINE_string("gt_map", None, "Ground-truth map (.ply/.pcd); default OUTPUT_DIR/map_gt.ply if present.")
+THRESHOLD = flags.DEFINE_float("threshold", 0.2, "F1 / inlier distance threshold in metres.")
+RAW_CUTOFF = flags.DEFINE_float("raw_cutoff", 1.0, "Chamfer cutoff of raw maps in metres.")
+
+
+def main(argv):
+    if len(argv) > 1:
+        print(f"error: unexpected arguments: {' '.join(argv[1:])}", file=sys.stderr)
+        return 1
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", force=True)
+    from neld_jax.evaluate import evaluate_run, format_table
+
+    try:
+        result = evaluate_run(OUTPUT_DIR.value, gt_poses_path=GT_POSES.value, gt_map_path=GT_MAP.value,
+                              threshold=THRESHOLD.value, raw_cutoff=RAW_CUTOFF.value)
+    except NeldError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(format_table(result))
+    print(f"metrics written to {os.path.join(OUTPUT_DIR.value, 'metrics.json')}")
+    return 0
+
+
+if __name__ == "__main__":
+    app.run(main)

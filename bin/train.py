@@ -1,0 +1,20 @@
+#!/usr/bin/env python
+"""Neural LiDAR bundle adjustment of one sequence.
+
+    python bin/train.py --config=configs/demo.py                      # synthetic demo, no dataset needed
+    python bin/train.py --config=configs/fusionportable.py --config.data.root=/data/canteen_day
+    python bin/train.py --config=configs/generic.py:cpu --config.data.root=DIR --config.output_dir=OUT
+
+A rerun with the same output_dir resumes from its latest checkpoint.
+"""
+
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from neld_jax.cli import main_with_config  # noqa: E402
+from neld_jax.run import run  # noqa: E402
+
+if __name__ == "__main__":
+    main_with_config(run)

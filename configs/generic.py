@@ -1,0 +1,14 @@
+"""A dataset in the generic layout (DESIGN.md): ROOT/scans/*, ROOT/poses.txt (TUM), optional ground truth.
+
+    python bin/train.py --config=configs/generic.py --config.data.root=/data/seq --config.output_dir=runs/seq
+    python bin/train.py --config=configs/generic.py:cpu ...   # sized for 2 CPU cores, ~10 minutes
+"""
+
+from neld_jax.config import apply_budget, base_config
+
+
+def get_config(budget: str = "gpu"):
+    c = base_config()
+    c.data.format = "generic"
+    c.output_dir = "outputs/generic"
+    return apply_budget(c, budget)

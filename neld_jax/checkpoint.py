@@ -1,0 +1,66 @@
+"""Orbax checkpoints of a training run: the whole TrainState plus JSON metadata (normalisation, config hash).
+
+A rerun with the same output directory restores the latest checkpoint and continues from its step.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import jax
+import orbax.checkpoint as ocp
+
+from neld_jax.errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+
+def _as_tree(state) -> dict:
+    return {"step": state.step, "params": state.params, "opt_state": state.opt_state, "key": state.key}
+
+
+class Checkpointer:
+    """Saves and restores TrainStates under `directory` (kept: the `max_to_keep` latest)."""
+
+    def __init__(self, directory: str, max_to_keep: int = 2):
+        self.directory = os.path.abspath(directory)
+        options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True)
+        self._manager = ocp.CheckpointManager(self.directory, options=options)
+
+    def latest_step(self) -> int | None:
+        return self._manager.latest_step()
+
+    def save(self, state, metadata: dict) -> None:
+        step = int(state.step)
+        if self._manager.latest_step() == step:
+            return  # already saved (e.g. the periodic save coincided with the final one)
+        self._manager.save(
+            step,
+            args=ocp.args.Composite(state=ocp.args.StandardSave(_as_tree(state)), metadata=ocp.args.JsonSave(metadata)),
+        )
+        self._manager.wait_until_finished()
+        logger.info("checkpoint saved at step %d in %s", step, self.directory)
+
+    def restore(self, template_state, expected_config_hash: str | None = None):
+        """Restore the latest checkpoint into the structure of `template_state`; returns (state, metadata)."""
+        step = self._manager.latest_step()
+        if step is None:
+            raise FileNotFoundError(f"no checkpoint in {self.directory}")
+        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _as_tree(template_state))
+        restored = self._manager.restore(
+            step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract), metadata=ocp.args.JsonRestore())
+        )
+        metadata = dict(restored["metadata"])
+        if expected_config_hash is not None and metadata.get("config_hash") != expected_config_hash:
+            raise ConfigError(
+                f"the checkpoint in {self.directory} was written with a different configuration "
+                f"(hash {metadata.get('config_hash')} != {expected_config_hash}); use a new output_dir or delete it"
+            )
+        tree = restored["state"]
+        state = template_state.replace(step=tree["step"], params=tree["params"], opt_state=tree["opt_state"], key=tree["key"])
+        logger.info("resumed from the checkpoint at step %d in %s", step, self.directory)
+        return state, metadata
+
+    def close(self) -> None:
+        self._manager.close()

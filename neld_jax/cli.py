@@ -1,0 +1,59 @@
+"""Shared plumbing of the command-line entry points in bin/: absl flags with an ml_collections config file,
+logging set-up, and one clear error line (no traceback) for bad input or a bad config.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from typing import Callable
+
+from neld_jax.errors import NeldError
+
+
+def _fail(message: str) -> None:
+    print(f"error: {message}", file=sys.stderr)
+    sys.exit(1)
+
+
+def main_with_config(job: Callable) -> None:
+    """Parse `--config=FILE[:budget]` and overrides, then run job(config); errors become one line on stderr."""
+    from absl import app, flags
+    from ml_collections import config_flags
+
+    config_flags.DEFINE_config_file("config", None, "Config file (configs/*.py), optionally with ':budget'.",
+                                    lock_config=True)
+    flags.mark_flags_as_required(["config"])
+
+    def main(argv):
+        if len(argv) > 1:
+            _fail(f"unexpected arguments: {' '.join(argv[1:])}")
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                            datefmt="%H:%M:%S", force=True)
+        try:
+            job(flags.FLAGS.config)
+        except NeldError as e:
+            _fail(str(e))
+        except OSError as e:
+            _fail(str(e))
+        except KeyboardInterrupt:
+            _fail("interrupted; rerun the same command to resume from the last checkpoint")
+
+    app.run(main, flags_parser=_parse_flags)
+
+
+def _parse_flags(argv):
+    """absl's parser, but a bad flag or an unknown config field is one line, not a usage dump or traceback."""
+    from absl import flags
+
+    try:
+        return flags.FLAGS(argv)
+    except flags.Error as e:
+        _fail(_short(e))
+    except (KeyError, AttributeError, ValueError, TypeError, FileNotFoundError, NeldError) as e:
+        _fail(_short(e))
+
+
+def _short(e: Exception) -> str:
+    text = str(e).strip().splitlines()
+    return text[-1] if text else e.__class__.__name__

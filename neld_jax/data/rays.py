@@ -1,0 +1,85 @@
+"""LiDAR rays for training: one ray per scan point, in the sensor frame, with normalised ranges.
+
+The ray of point p (sensor frame) has direction p / |p| and measured range |p| * scale. The trainer
+turns it into a world ray with the current pose of its scan: origin t_s, direction R_s d.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from neld_jax.data.normalize import Normalization
+from neld_jax.data.sequence import Sequence
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class RaySet:
+    """All training rays of a sequence, concatenated scan after scan.
+
+    directions: [R, 3] float32 unit vectors in the SENSOR frame
+    ranges:     [R] float32 measured ranges in NORMALISED units (metres * scale)
+    scan_index: [R] int32 index of the scan each ray belongs to
+    """
+
+    directions: np.ndarray
+    ranges: np.ndarray
+    scan_index: np.ndarray
+
+    @property
+    def num_rays(self) -> int:
+        return int(self.ranges.shape[0])
+
+    def rays_of_scan(self, scan: int) -> np.ndarray:
+        """Indices [R_s] of the rays of one scan."""
+        return np.flatnonzero(self.scan_index == scan)
+
+
+def build_rays(
+    seq: Sequence, norm: Normalization, max_rays_per_scan: int | None = None, seed: int = 0
+) -> RaySet:
+    """Rays of all scans of `seq` (normally preprocessed). Zero-length points are dropped (counted in the log).
+
+    max_rays_per_scan: if set, each scan keeps a random subset of that many rays (seeded by `seed`)."""
+    rng = np.random.default_rng(seed)
+    directions, ranges, scan_index = [], [], []
+    num_zero = 0
+    for s, points in enumerate(seq.scans):
+        lengths = np.linalg.norm(points, axis=1)
+        valid = lengths > 0
+        num_zero += int((~valid).sum())
+        points, lengths = points[valid], lengths[valid]
+        if max_rays_per_scan is not None and len(points) > max_rays_per_scan:
+            chosen = np.sort(rng.choice(len(points), size=max_rays_per_scan, replace=False))
+            points, lengths = points[chosen], lengths[chosen]
+        directions.append((points / lengths[:, None]).astype(np.float32))
+        ranges.append(norm.ranges_to_normalized(lengths).astype(np.float32))
+        scan_index.append(np.full(len(points), s, dtype=np.int32))
+    if num_zero:
+        logger.warning("build_rays: dropped %d points at the sensor origin (no direction)", num_zero)
+    rays = RaySet(
+        directions=np.concatenate(directions) if directions else np.zeros((0, 3), np.float32),
+        ranges=np.concatenate(ranges) if ranges else np.zeros((0,), np.float32),
+        scan_index=np.concatenate(scan_index) if scan_index else np.zeros((0,), np.int32),
+    )
+    logger.info("build_rays: %d rays from %d scans", rays.num_rays, seq.num_scans)
+    return rays
+
+
+def sample_ray_indices(key: jax.Array, num_rays: int, batch_size: int) -> jax.Array:
+    """Uniform random ray indices [batch_size] int32 over all rays (num_rays, batch_size: static ints)."""
+    return jax.random.randint(key, (batch_size,), 0, num_rays, dtype=jnp.int32)
+
+
+def direction_angles(directions) -> jax.Array:
+    """directions: [..., 3] unit vectors -> [..., 2] (azimuth atan2(y, x), elevation asin(z)) in radians."""
+    directions = jnp.asarray(directions)
+    azimuth = jnp.arctan2(directions[..., 1], directions[..., 0])
+    elevation = jnp.arcsin(jnp.clip(directions[..., 2], -1.0, 1.0))
+    return jnp.stack([azimuth, elevation], axis=-1)

@@ -1,0 +1,265 @@
+"""Evaluate the outputs of a run against ground truth: pose errors, map errors, plots, metrics.json.
+
+Both `bin/evaluate.py` and the trainer call `evaluate_run`. It reads what a run wrote into OUTPUT_DIR:
+
+    poses_<method>.txt          TUM trajectories; <method> = initial, optimized, baseline, ...
+    map_raw.ply                 raw map of "optimized"; map_raw_<method>.ply for any other method
+    map_rendered.ply            rendered map of "optimized"; map_rendered_<method>.ply for others
+    poses_gt.txt, map_gt.ply    ground truth, used when no explicit path is given
+
+and computes, per method: ATE (SE(3) Umeyama alignment, as evo) and RPE against the GT poses, then the
+map metrics of its maps against the GT map -- raw maps with the paper's 1 m cutoff, rendered maps
+without -- after moving the maps into the GT frame with the ATE alignment of that trajectory (the
+odometry frame is not the GT frame on real data). The result is merged into
+`OUTPUT_DIR/metrics.json` under "evaluation"; plots go to trajectory.png, pose_error.png and
+error_histogram.png.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neld_jax import metrics, plots
+from neld_jax.data.poses import read_kitti, read_newer_college_csv, read_tum
+from neld_jax.data.scans import read_scan
+from neld_jax.errors import DataError
+from neld_jax.export import write_json
+
+logger = logging.getLogger(__name__)
+
+METRICS_FILE = "metrics.json"
+GT_POSES_FILE = "poses_gt.txt"
+GT_MAP_FILES = ("map_gt.ply", "map_gt.pcd")
+METHOD_ORDER = ("initial", "baseline", "optimized")  # table rows first in this order, then the rest
+PRIMARY_METHOD = "optimized"  # owns the unsuffixed map_raw.ply / map_rendered.ply
+
+
+# ---------------------------------------------------------------------------------------------
+# Finding and reading the files of a run
+# ---------------------------------------------------------------------------------------------
+
+
+def find_trajectories(output_dir: str | os.PathLike) -> dict[str, Path]:
+    """{method: path} of every `poses_<method>.txt` in output_dir except the GT, in table order."""
+    output_dir = Path(output_dir)
+    found = {path.name[len("poses_"):-len(".txt")]: path for path in output_dir.glob("poses_*.txt")
+             if path.name != GT_POSES_FILE}
+    ordered = [name for name in METHOD_ORDER if name in found] + sorted(set(found) - set(METHOD_ORDER))
+    return {name: found[name] for name in ordered}
+
+
+def map_files(output_dir: str | os.PathLike, method: str) -> dict[str, Path]:
+    """{"raw": path, "rendered": path} of the maps of a method that exist in output_dir."""
+    output_dir = Path(output_dir)
+    suffix = "" if method == PRIMARY_METHOD else f"_{method}"
+    candidates = {"raw": output_dir / f"map_raw{suffix}.ply", "rendered": output_dir / f"map_rendered{suffix}.ply"}
+    return {kind: path for kind, path in candidates.items() if path.is_file()}
+
+
+def read_trajectory(path: str | os.PathLike) -> tuple[np.ndarray | None, np.ndarray]:
+    """Read a trajectory in any format the field uses, chosen by its content.
+
+    TUM (8 columns), KITTI (12 columns, no timestamps) or Newer College CSV (.csv).
+    Returns (timestamps [S] or None, poses [S, 4, 4]).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: trajectory file does not exist")
+    if path.suffix.lower() == ".csv":
+        return read_newer_college_csv(path)
+    num_columns = 0
+    with path.open() as lines:
+        for line in lines:
+            text = line.strip()
+            if text and not text.startswith("#"):
+                num_columns = len(text.split())
+                break
+    if num_columns == 12:
+        return None, read_kitti(path)
+    return read_tum(path)  # names the file and the column count if it is neither
+
+
+def match_poses(stamps_est: np.ndarray | None, stamps_gt: np.ndarray | None, num_est: int, num_gt: int,
+                what: str, max_time_diff: float = 0.01) -> tuple[np.ndarray, np.ndarray, str]:
+    """Pair estimated and GT poses: by timestamp where both have them, else by order.
+
+    Timestamp matching is used when it pairs at least min(3, num_est) poses; otherwise equal counts
+    fall back to order. Returns (est indices [K], gt indices [K], "timestamp" | "order").
+    """
+    if stamps_est is not None and stamps_gt is not None:
+        est_idx, gt_idx = metrics.associate_timestamps(stamps_est, stamps_gt, max_time_diff)
+        if len(est_idx) >= min(3, num_est) and len(est_idx) > 0:
+            if len(est_idx) < num_est:
+                logger.info("%s: %d of %d poses have a GT pose within %.3g s", what, len(est_idx), num_est,
+                            max_time_diff)
+            return est_idx, gt_idx, "timestamp"
+    if num_est == num_gt:
+        if stamps_est is not None and stamps_gt is not None:
+            logger.warning("%s: timestamps do not match the ground truth; matching %d poses by order", what, num_est)
+        return np.arange(num_est), np.arange(num_gt), "order"
+    raise DataError(f"{what}: cannot match {num_est} poses to {num_gt} ground-truth poses "
+                    f"(no common timestamps within {max_time_diff} s and the counts differ)")
+
+
+def _resolve_gt_map(output_dir: Path, gt_map_path: str | os.PathLike | None) -> Path | None:
+    if gt_map_path:
+        return Path(gt_map_path)
+    return next((output_dir / name for name in GT_MAP_FILES if (output_dir / name).is_file()), None)
+
+
+# ---------------------------------------------------------------------------------------------
+# The evaluation
+# ---------------------------------------------------------------------------------------------
+
+
+def evaluate_run(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLike | None = None,
+                 gt_map_path: str | os.PathLike | None = None, threshold: float = 0.2,
+                 raw_cutoff: float = 1.0, max_time_diff: float = 0.01, write_plots: bool = True
+                 ) -> dict[str, Any]:
+    """Evaluate every trajectory and map in output_dir; merge the result into metrics.json.
+
+    gt_poses_path / gt_map_path default to OUTPUT_DIR/poses_gt.txt and OUTPUT_DIR/map_gt.ply when
+    those exist. threshold: F1 / inlier distance (m); raw_cutoff: Chamfer cutoff of raw maps (m).
+    Returns {"output_dir", "gt_poses", "gt_map", "threshold_m", "raw_cutoff_m", "methods": {method:
+    {"poses", "num_poses", ["matching", "matched_poses", "ate", "rpe"], ["raw_map", "rendered_map"]}},
+    "plots"}; a map entry holds `metrics.map_metrics` keys plus "file" and "aligned_to_gt".
+    """
+    output_dir = Path(output_dir)
+    if not output_dir.is_dir():
+        raise DataError(f"{output_dir}: output directory does not exist")
+    trajectory_files = find_trajectories(output_dir)
+    if not trajectory_files:
+        raise DataError(f"{output_dir}: no trajectory to evaluate (expected poses_initial.txt, "
+                        "poses_optimized.txt or another poses_<method>.txt)")
+
+    if gt_poses_path is None and (output_dir / GT_POSES_FILE).is_file():
+        gt_poses_path = output_dir / GT_POSES_FILE
+    gt_stamps, gt_poses = read_trajectory(gt_poses_path) if gt_poses_path else (None, None)
+    gt_map_file = _resolve_gt_map(output_dir, gt_map_path)
+    gt_map = read_scan(gt_map_file) if gt_map_file else None
+    logger.info("evaluating %s: %s; GT poses %s; GT map %s", output_dir, ", ".join(trajectory_files),
+                gt_poses_path or "none", gt_map_file or "none")
+
+    methods: dict[str, dict[str, Any]] = {}
+    aligned_trajectories: dict[str, np.ndarray] = {}
+    pose_errors: dict[str, np.ndarray] = {}
+    map_distances: dict[str, np.ndarray] = {}
+    for name, path in trajectory_files.items():
+        stamps, poses = read_tum(path)
+        entry: dict[str, Any] = {"poses": path.name, "num_poses": int(len(poses))}
+        alignment = None
+        aligned_trajectories[name] = poses
+        if gt_poses is not None:
+            est_idx, gt_idx, how = match_poses(stamps, gt_stamps, len(poses), len(gt_poses), f"{path}",
+                                               max_time_diff)
+            translation_errors, _, alignment, _ = metrics.ate_errors(poses[est_idx], gt_poses[gt_idx], "se3")
+            entry.update(matching=how, matched_poses=int(len(est_idx)),
+                         ate=metrics.ate(poses[est_idx], gt_poses[gt_idx], align="se3"),
+                         rpe=metrics.rpe(poses[est_idx], gt_poses[gt_idx], delta=1))
+            aligned_trajectories[name] = alignment @ poses
+            pose_errors[name] = translation_errors
+        if gt_map is not None:
+            for kind, map_path in map_files(output_dir, name).items():
+                points = read_scan(map_path)
+                if alignment is not None:
+                    points = metrics.align_points(points, alignment)
+                est_to_gt = metrics.nearest_neighbor_distances(points, gt_map)
+                gt_to_est = metrics.nearest_neighbor_distances(gt_map, points)
+                # Raw maps keep outliers from misregistered scans: the paper cuts their distances at 1 m.
+                cutoff = raw_cutoff if kind == "raw" else None
+                entry[f"{kind}_map"] = {
+                    "file": map_path.name, "aligned_to_gt": alignment is not None,
+                    **metrics.map_metrics_from_distances(est_to_gt, gt_to_est, threshold, cutoff, "paper")}
+                map_distances[f"{name} {kind}"] = est_to_gt
+        methods[name] = entry
+
+    result: dict[str, Any] = {
+        "output_dir": str(output_dir),
+        "gt_poses": None if gt_poses_path is None else str(gt_poses_path),
+        "gt_map": None if gt_map_file is None else str(gt_map_file),
+        "threshold_m": float(threshold),
+        "raw_cutoff_m": float(raw_cutoff),
+        "methods": methods,
+        "plots": [],
+    }
+    if write_plots:
+        result["plots"] = _write_plots(output_dir, aligned_trajectories, gt_poses, pose_errors, map_distances,
+                                       threshold, raw_cutoff)
+    write_json(output_dir / METRICS_FILE, {"evaluation": result})
+    return result
+
+
+def _write_plots(output_dir: Path, trajectories: dict[str, np.ndarray], gt_poses: np.ndarray | None,
+                 pose_errors: dict[str, np.ndarray], map_distances: dict[str, np.ndarray], threshold: float,
+                 raw_cutoff: float) -> list[str]:
+    written = [plots.plot_trajectories(output_dir / "trajectory.png", trajectories, gt_poses)]
+    if pose_errors:
+        written.append(plots.plot_pose_errors(output_dir / "pose_error.png", pose_errors))
+    if map_distances:
+        written.append(plots.plot_error_histogram(output_dir / "error_histogram.png", map_distances, threshold,
+                                                  max_distance=max(raw_cutoff, 2.0 * threshold)))
+    return [path.name for path in written]
+
+
+# ---------------------------------------------------------------------------------------------
+# The terminal table
+# ---------------------------------------------------------------------------------------------
+
+_COLUMNS = (  # header, path into a method entry, scale for display, format
+    ("ATE RMSE [m]", ("ate", "translation_rmse_m"), 1.0, "{:.4f}"),
+    ("ATE mean [m]", ("ate", "translation_mean_m"), 1.0, "{:.4f}"),
+    ("rot RMSE [deg]", ("ate", "rotation_rmse_deg"), 1.0, "{:.3f}"),
+    ("RPE [m]", ("rpe", "translation_rmse_m"), 1.0, "{:.4f}"),
+    ("raw L1-CD [cm]", ("raw_map", "chamfer_l1_m"), 100.0, "{:.2f}"),
+    ("rend. L1-CD [cm]", ("rendered_map", "chamfer_l1_m"), 100.0, "{:.2f}"),
+    ("rend. F1 [%]", ("rendered_map", "f1"), 100.0, "{:.2f}"),
+    ("rend. inlier RMSE [cm]", ("rendered_map", "inlier_rmse_m"), 100.0, "{:.2f}"),
+)
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """A plain-text table of `evaluate_run`'s result: one row per method, "-" where not measured."""
+    methods = result.get("methods", {})
+    columns = [column for column in _COLUMNS
+               if any(_lookup(entry, column[1]) is not None for entry in methods.values())]
+    header = ["method", "poses"] + [column[0] for column in columns]
+    rows = []
+    for name, entry in methods.items():
+        row = [name, str(entry.get("num_poses", "-"))]
+        for _, keys, scale, fmt in columns:
+            value = _lookup(entry, keys)
+            row.append("-" if value is None else fmt.format(value * scale))
+        rows.append(row)
+    widths = [max(len(line[i]) for line in [header] + rows) for i in range(len(header))]
+
+    def _line(cells: list[str]) -> str:
+        return "  ".join(cell.ljust(width) if i == 0 else cell.rjust(width)
+                         for i, (cell, width) in enumerate(zip(cells, widths)))
+
+    lines = [_line(header), "  ".join("-" * width for width in widths)] + [_line(row) for row in rows]
+    notes = []
+    if result.get("gt_poses") is None:
+        notes.append("no ground-truth poses: pose errors not measured")
+    if result.get("gt_map") is None:
+        notes.append("no ground-truth map: map errors not measured")
+    elif columns and any(column[1][0] == "raw_map" for column in columns):
+        notes.append(f"raw-map L1-CD drops distances beyond {result.get('raw_cutoff_m', 1.0):g} m; "
+                     f"F1 at {result.get('threshold_m', 0.2):g} m")
+    return "\n".join(lines + [f"({note})" for note in notes])
+
+
+def _lookup(entry: dict[str, Any], keys: tuple[str, ...]) -> float | None:
+    value: Any = entry
+    for key in keys:
+        if not isinstance(value, dict) or key not in value:
+            return None
+        value = value[key]
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return None
+    return float(value)

@@ -1,0 +1,156 @@
+"""Writing a run's outputs in the formats the field uses: TUM / KITTI poses, PLY / PCD maps, JSON reports.
+
+`register_scans` is pure; everything else writes files (creating parent folders) and raises
+`DataError` naming the file when it cannot.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+
+from neld_jax.data.poses import write_kitti, write_tum
+from neld_jax.errors import DataError
+
+logger = logging.getLogger(__name__)
+
+POINT_CLOUD_EXTENSIONS = (".ply", ".pcd")
+
+
+def write_poses(output_dir: str | os.PathLike, stem: str, timestamps: np.ndarray | None,
+                poses: np.ndarray) -> tuple[Path, Path]:
+    """Write poses: [S, 4, 4] as `<output_dir>/<stem>.txt` (TUM) and `<stem>.kitti` (KITTI 3x4).
+
+    timestamps: [S] seconds, or None for 0, 1, ..., S-1 (TUM needs a time column).
+    Returns (tum_path, kitti_path).
+    """
+    output_dir = Path(output_dir)
+    poses = np.asarray(poses, dtype=np.float64)
+    if timestamps is None:
+        timestamps = np.arange(len(poses), dtype=np.float64)
+    tum_path, kitti_path = output_dir / f"{stem}.txt", output_dir / f"{stem}.kitti"
+    write_tum(tum_path, timestamps, poses)
+    write_kitti(kitti_path, poses)
+    return tum_path, kitti_path
+
+
+def register_scans(scans: list[np.ndarray], poses: np.ndarray) -> np.ndarray:
+    """Transform each scan into the world frame and stack them: the raw map.
+
+    scans: list of S arrays [N_i, 3] (sensor frame), poses: [S, 4, 4] sensor -> world
+    -> points [sum N_i, 3] float64.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"poses must have shape [S, 4, 4], got {poses.shape}")
+    if len(scans) != len(poses):
+        raise ValueError(f"{len(scans)} scans but {len(poses)} poses")
+    if not scans:
+        return np.zeros((0, 3))
+    registered = [np.asarray(scan, dtype=np.float64).reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
+                  for scan, pose in zip(scans, poses)]
+    return np.concatenate(registered, axis=0)
+
+
+def write_point_cloud(path: str | os.PathLike, points: np.ndarray) -> Path:
+    """Write points: [N, 3] as a float32 .ply (binary) or .pcd (binary) through Open3D. Returns path."""
+    path = Path(path)
+    if path.suffix.lower() not in POINT_CLOUD_EXTENSIONS:
+        raise DataError(f"{path}: unsupported point-cloud extension '{path.suffix}' (use .ply or .pcd)")
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise DataError(f"{path}: points to write must have shape [N, 3], got {points.shape}")
+    if not np.all(np.isfinite(points)):
+        raise DataError(f"{path}: refusing to write {int(np.sum(~np.isfinite(points).all(axis=1)))} "
+                        "NaN or infinite points")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cloud = o3d.t.geometry.PointCloud()
+    # float32 halves the size of large maps; millimetre precision survives up to ~100 km coordinates.
+    cloud.point.positions = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
+    if not o3d.t.io.write_point_cloud(str(path), cloud, write_ascii=False):
+        raise DataError(f"{path}: Open3D could not write the point cloud")
+    return path
+
+
+def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """Average the points in each voxel (Open3D). points: [N, 3] -> [K, 3], K <= N; no-op if voxel_size <= 0."""
+    points = np.asarray(points, dtype=np.float64)
+    if voxel_size <= 0 or len(points) == 0:
+        return points
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    return np.asarray(cloud.voxel_down_sample(voxel_size).points, dtype=np.float64)
+
+
+def write_raw_map(path: str | os.PathLike, scans: list[np.ndarray], poses: np.ndarray,
+                  voxel_size: float = 0.0) -> np.ndarray:
+    """Register scans (list of [N_i, 3]) with poses [S, 4, 4], optionally voxel-downsample, write.
+
+    Returns the written points [K, 3].
+    """
+    points = voxel_downsample(register_scans(scans, poses), voxel_size)
+    write_point_cloud(path, points)
+    logger.info("wrote raw map %s (%d points, voxel %.3g m)", path, len(points), voxel_size)
+    return points
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Convert numpy scalars / arrays, paths, tuples and sets into plain JSON types.
+
+    Non-finite floats become None, so the file stays strict JSON that any parser reads.
+    """
+    if isinstance(obj, dict):
+        return {str(key): to_jsonable(value) for key, value in obj.items()}
+    if isinstance(obj, (list, tuple, set)):
+        return [to_jsonable(value) for value in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return to_jsonable(obj.item())
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if obj is None or isinstance(obj, (str, int, bool)):
+        return obj
+    if hasattr(obj, "to_dict"):  # ml_collections.ConfigDict and friends
+        return to_jsonable(obj.to_dict())
+    raise TypeError(f"cannot convert {type(obj).__name__} to JSON")
+
+
+def read_json(path: str | os.PathLike) -> dict[str, Any]:
+    """Read a JSON object; a missing file is an empty dict."""
+    path = Path(path)
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DataError(f"{path}: not a readable JSON file ({exc})") from exc
+    if not isinstance(data, dict):
+        raise DataError(f"{path}: expected a JSON object at the top level, got {type(data).__name__}")
+    return data
+
+
+def write_json(path: str | os.PathLike, obj: dict[str, Any], merge: bool = True) -> dict[str, Any]:
+    """Write a JSON object (indented, keys in insertion order); returns what was written.
+
+    merge=True keeps the top-level keys already in the file and replaces only the keys of `obj`,
+    so the trainer and the evaluator can each own a section of metrics.json. The file is replaced
+    atomically (write to a temporary file, then rename), so a killed run never leaves half a file.
+    """
+    path = Path(path)
+    content = to_jsonable(obj)
+    if merge:
+        content = {**read_json(path), **content}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(path.name + ".tmp")
+    temporary.write_text(json.dumps(content, indent=2, allow_nan=False) + "\n")
+    os.replace(temporary, path)
+    return content

@@ -1,0 +1,88 @@
+"""The density field: an MLP from (position, view direction) to a non-negative density sigma.
+
+Architecture after NeRF in the Wild (as NeLD-BA uses it): Fourier-encoded position -> `depth` dense ReLU
+layers of `width`, with the encoded position concatenated again to the input of each layer listed in
+`skip_layers` -> features; density head: concat(features, encoded view direction) -> dense ReLU of
+width // 2 -> dense 1 -> softplus or ReLU. Without view directions the density comes straight from the
+features. Both encodings use the surrogate gradient (eq. 9) unless `surrogate` is False.
+
+View directions are two angles (azimuth, elevation) in radians; they are divided by pi so they lie in
+[-1, 1] like the normalised positions.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from neld_jax.encoding import fourier_encode
+
+_ACTIVATIONS = {"softplus": jax.nn.softplus, "relu": jax.nn.relu}
+
+
+def _inverse_activation(name: str, value: float) -> float:
+    """Pre-activation b with activation(b) == value (value > 0)."""
+    if name == "softplus":
+        return math.log(math.expm1(value))
+    return value
+
+
+class DensityField(nn.Module):
+    """sigma(x, d). Call with positions [..., 3], view_dirs [..., 2] -> sigma [...] (>= 0).
+
+    pos_window: [pos_freqs] and dir_window: [dir_freqs] are BARF coarse-to-fine weights (None: all on).
+    `skip_layers` are the indices (0-based) of hidden layers whose input gets the encoded position again.
+    `initial_density` is the density the untrained field outputs, approximately (see the output bias).
+    """
+
+    width: int = 512
+    depth: int = 8
+    skip_layers: tuple = (4,)
+    pos_freqs: int = 15
+    dir_freqs: int = 4
+    surrogate: bool = True
+    use_view_dirs: bool = True
+    density_activation: str = "softplus"
+    dtype: Any = jnp.float32
+    initial_density: float = 0.1
+
+    @nn.compact
+    def __call__(
+        self,
+        positions: jax.Array,
+        view_dirs: jax.Array,
+        pos_window: jax.Array | None = None,
+        dir_window: jax.Array | None = None,
+    ) -> jax.Array:
+        if self.density_activation not in _ACTIVATIONS:
+            raise ValueError(f"density_activation must be one of {sorted(_ACTIVATIONS)}, got {self.density_activation!r}")
+        positions = positions.astype(self.dtype)
+        encoded = fourier_encode(positions, self.pos_freqs, pos_window, surrogate=self.surrogate)
+        hidden = encoded
+        for layer in range(self.depth):
+            if layer in self.skip_layers:
+                hidden = jnp.concatenate([hidden, encoded], axis=-1)
+            hidden = nn.relu(nn.Dense(self.width, dtype=self.dtype, name=f"hidden_{layer}")(hidden))
+
+        if self.use_view_dirs:
+            angles = view_dirs.astype(self.dtype) / jnp.pi
+            encoded_dir = fourier_encode(angles, self.dir_freqs, dir_window, surrogate=self.surrogate)
+            hidden = jnp.concatenate([hidden, encoded_dir], axis=-1)
+            hidden = nn.relu(nn.Dense(self.width // 2, dtype=self.dtype, name="density_hidden")(hidden))
+
+        # The untrained field should be nearly transparent but not empty: a zero density (a ReLU below 0)
+        # gives no termination weights and so no gradients, and a large one hides everything behind the
+        # first sample. A small output kernel and a bias at activation^-1(initial_density) start every
+        # point close to initial_density.
+        output = nn.Dense(
+            1,
+            dtype=self.dtype,
+            kernel_init=nn.initializers.variance_scaling(0.01, "fan_in", "truncated_normal"),
+            bias_init=nn.initializers.constant(_inverse_activation(self.density_activation, self.initial_density)),
+            name="density_out",
+        )(hidden)
+        return _ACTIVATIONS[self.density_activation](output[..., 0])

@@ -1,0 +1,368 @@
+"""Trajectory and map error metrics: ATE / RPE (as evo computes them) and Chamfer / F1 / inlier RMSE.
+
+Pure numpy functions (nearest-neighbour queries go through Open3D's KD-tree). Poses are 4x4
+homogeneous matrices `T_world_sensor`: [S, 4, 4]. Distances are in metres, angles in degrees.
+
+Trajectory conventions follow evo (`evo_ape tum gt.txt est.txt -a`):
+- The estimate is aligned to the ground truth by Umeyama's method on the positions only; the
+  alignment `T_align` is applied on the left (`T_align @ T_est[s]`).
+- The translation error of pose s is `|t_gt[s] - t_aligned[s]|`; the rotation error is the angle of
+  `R_gt[s]^T R_aligned[s]`.
+- RPE compares relative motions `T[i]^-1 T[i + delta]` of all overlapping pairs (evo's
+  `--all_pairs`): `E = (G_i^-1 G_j)^-1 (P_i^-1 P_j)`.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+
+logger = logging.getLogger(__name__)
+
+ALIGN_MODES = ("se3", "sim3", "none")
+MAP_MODES = ("paper", "clip", "sum")
+
+
+# ---------------------------------------------------------------------------------------------
+# Small geometry helpers
+# ---------------------------------------------------------------------------------------------
+
+
+def _check_poses(poses: np.ndarray, name: str) -> np.ndarray:
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"{name} must have shape [S, 4, 4], got {poses.shape}")
+    return poses
+
+
+def _check_points(points: np.ndarray, name: str) -> np.ndarray:
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"{name} must have shape [N, 3], got {points.shape}")
+    return points
+
+
+def rotation_angles_deg(rotations: np.ndarray) -> np.ndarray:
+    """Rotation angle of each matrix, robust near 0 and pi.
+
+    rotations: [..., 3, 3] -> [...] degrees in [0, 180].
+    """
+    rotations = np.asarray(rotations, dtype=np.float64)
+    trace = np.trace(rotations, axis1=-2, axis2=-1)
+    # |vee(R - R^T)| = 2 sin(theta); atan2 keeps precision where arccos of the trace would not.
+    skew = rotations - np.swapaxes(rotations, -1, -2)
+    sin2 = np.linalg.norm(np.stack([skew[..., 2, 1], skew[..., 0, 2], skew[..., 1, 0]], axis=-1), axis=-1)
+    return np.degrees(np.arctan2(sin2, trace - 1.0))
+
+
+def invert_poses(poses: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms. poses: [..., 4, 4] -> [..., 4, 4]."""
+    poses = np.asarray(poses, dtype=np.float64)
+    rot_t = np.swapaxes(poses[..., :3, :3], -1, -2)
+    inverse = np.zeros_like(poses)
+    inverse[..., :3, :3] = rot_t
+    inverse[..., :3, 3] = -np.einsum("...ij,...j->...i", rot_t, poses[..., :3, 3])
+    inverse[..., 3, 3] = 1.0
+    return inverse
+
+
+def align_points(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform (rigid or similarity, `[[sR, t], [0, 1]]`) to points.
+
+    points: [N, 3], transform: [4, 4] -> [N, 3].
+    """
+    points = _check_points(points, "points")
+    transform = np.asarray(transform, dtype=np.float64)
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def apply_alignment_to_poses(poses: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                             scale: float = 1.0) -> np.ndarray:
+    """Left-apply a similarity to poses as evo does: p -> s R p + t, R_pose -> R R_pose.
+
+    poses: [S, 4, 4], rotation: [3, 3], translation: [3] -> [S, 4, 4] (still rigid transforms).
+    """
+    poses = _check_poses(poses, "poses")
+    aligned = np.array(poses)
+    aligned[:, :3, :3] = np.einsum("ij,sjk->sik", rotation, poses[:, :3, :3])
+    aligned[:, :3, 3] = scale * poses[:, :3, 3] @ np.asarray(rotation).T + np.asarray(translation)
+    return aligned
+
+
+def similarity_matrix(rotation: np.ndarray, translation: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """[[s R, t], [0, 1]] as a [4, 4] array: maps estimate-frame points into the ground-truth frame."""
+    transform = np.eye(4)
+    transform[:3, :3] = scale * np.asarray(rotation)
+    transform[:3, 3] = translation
+    return transform
+
+
+# ---------------------------------------------------------------------------------------------
+# Trajectory metrics
+# ---------------------------------------------------------------------------------------------
+
+
+def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = False
+                      ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares similarity (Umeyama 1991) minimising sum |dst - (s R src + t)|^2.
+
+    src, dst: [N, 3] corresponding points -> (R [3, 3], t [3], s). s is 1.0 unless with_scale.
+    When the points do not determine a rotation (N < 3 or all collinear; evo refuses these), R is
+    the identity and only the translation (and scale) is estimated; a warning is logged.
+    """
+    src = _check_points(src, "src")
+    dst = _check_points(dst, "dst")
+    if src.shape != dst.shape or len(src) == 0:
+        raise ValueError(f"umeyama_alignment needs equal, non-empty point sets, got {src.shape} and {dst.shape}")
+    mean_src, mean_dst = src.mean(axis=0), dst.mean(axis=0)
+    src_c, dst_c = src - mean_src, dst - mean_dst
+    var_src = np.mean(np.sum(src_c**2, axis=1))
+    covariance = dst_c.T @ src_c / len(src)
+    if np.linalg.matrix_rank(covariance) < 2:
+        logger.warning("Umeyama alignment: %d positions do not determine a rotation (collinear or too few);"
+                       " aligning the translation only", len(src))
+        rotation = np.eye(3)
+        scale = 1.0
+        if with_scale and var_src > 0:
+            scale = float(np.sqrt(np.mean(np.sum(dst_c**2, axis=1)) / var_src))
+        return rotation, mean_dst - scale * mean_src, scale
+    u, singular_values, vt = np.linalg.svd(covariance)
+    sign = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:  # reflection -> nearest proper rotation
+        sign[2, 2] = -1.0
+    rotation = u @ sign @ vt
+    scale = float(np.trace(np.diag(singular_values) @ sign) / var_src) if with_scale else 1.0
+    translation = mean_dst - scale * rotation @ mean_src
+    return rotation, translation, scale
+
+
+def ate_errors(est: np.ndarray, gt: np.ndarray, align: str = "se3"
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Per-pose absolute errors after alignment.
+
+    est, gt: [S, 4, 4] matched poses -> (translation errors [S] m, rotation errors [S] deg,
+    alignment [4, 4] = [[s R, t], [0, 1]] taking estimate-frame points into the GT frame, scale s).
+    """
+    est = _check_poses(est, "est")
+    gt = _check_poses(gt, "gt")
+    if est.shape != gt.shape or len(est) == 0:
+        raise ValueError(f"ATE needs matched, non-empty trajectories, got {est.shape} and {gt.shape}")
+    if align not in ALIGN_MODES:
+        raise ValueError(f"align must be one of {ALIGN_MODES}, got {align!r}")
+    if align == "none":
+        rotation, translation, scale = np.eye(3), np.zeros(3), 1.0
+    else:
+        rotation, translation, scale = umeyama_alignment(est[:, :3, 3], gt[:, :3, 3], with_scale=align == "sim3")
+    aligned = apply_alignment_to_poses(est, rotation, translation, scale)
+    translation_errors = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)
+    relative_rotations = np.einsum("sji,sjk->sik", gt[:, :3, :3], aligned[:, :3, :3])
+    rotation_errors = rotation_angles_deg(relative_rotations)
+    return translation_errors, rotation_errors, similarity_matrix(rotation, translation, scale), scale
+
+
+def _rmse(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(values)))) if len(values) else float("nan")
+
+
+def ate(est: np.ndarray, gt: np.ndarray, align: str = "se3") -> dict[str, Any]:
+    """Absolute trajectory error, matching `evo_ape tum gt est -a` (se3) / `-as` (sim3).
+
+    est, gt: [S, 4, 4] poses matched by index. align: "se3" (rigid Umeyama on positions, the paper's
+    choice), "sim3" (with scale) or "none".
+    Returns translation_rmse/mean/median/max/std_m, rotation_rmse/mean_deg, align, alignment (4x4
+    nested list, estimate frame -> GT frame), scale and num_poses.
+    """
+    translation_errors, rotation_errors, alignment, scale = ate_errors(est, gt, align)
+    return {
+        "translation_rmse_m": _rmse(translation_errors),
+        "translation_mean_m": float(np.mean(translation_errors)),
+        "translation_median_m": float(np.median(translation_errors)),
+        "translation_max_m": float(np.max(translation_errors)),
+        "translation_std_m": float(np.std(translation_errors)),
+        "rotation_rmse_deg": _rmse(rotation_errors),
+        "rotation_mean_deg": float(np.mean(rotation_errors)),
+        "align": align,
+        "alignment": alignment.tolist(),
+        "scale": float(scale),
+        "num_poses": int(len(translation_errors)),
+    }
+
+
+def rpe_errors(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pair relative pose errors over all pairs (i, i + delta).
+
+    est, gt: [S, 4, 4] -> (translation errors [S - delta] m, rotation errors [S - delta] deg).
+    """
+    est = _check_poses(est, "est")
+    gt = _check_poses(gt, "gt")
+    if est.shape != gt.shape:
+        raise ValueError(f"RPE needs matched trajectories, got {est.shape} and {gt.shape}")
+    if delta < 1:
+        raise ValueError(f"RPE delta must be >= 1, got {delta}")
+    if len(est) <= delta:
+        return np.zeros(0), np.zeros(0)
+    est_motion = invert_poses(est[:-delta]) @ est[delta:]
+    gt_motion = invert_poses(gt[:-delta]) @ gt[delta:]
+    error = invert_poses(gt_motion) @ est_motion
+    return np.linalg.norm(error[:, :3, 3], axis=1), rotation_angles_deg(error[:, :3, :3])
+
+
+def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> dict[str, Any]:
+    """Relative pose error of motions over `delta` poses (evo_rpe with --all_pairs, delta in frames).
+
+    est, gt: [S, 4, 4] matched poses. Independent of any global alignment. Values are NaN when
+    S <= delta.
+    """
+    translation_errors, rotation_errors = rpe_errors(est, gt, delta)
+    empty = len(translation_errors) == 0
+    return {
+        "translation_rmse_m": _rmse(translation_errors),
+        "translation_mean_m": float("nan") if empty else float(np.mean(translation_errors)),
+        "rotation_rmse_deg": _rmse(rotation_errors),
+        "rotation_mean_deg": float("nan") if empty else float(np.mean(rotation_errors)),
+        "delta": int(delta),
+        "num_pairs": int(len(translation_errors)),
+    }
+
+
+def associate_timestamps(stamps_est: np.ndarray, stamps_gt: np.ndarray, max_diff: float = 0.01
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Match each estimate timestamp to the nearest ground-truth timestamp within max_diff seconds.
+
+    stamps_est: [S], stamps_gt: [G] -> (indices into est [K], indices into gt [K]), K <= S. A GT
+    stamp is used at most once (the closest estimate wins), so matched pose pairs are distinct.
+    """
+    stamps_est = np.asarray(stamps_est, dtype=np.float64)
+    stamps_gt = np.asarray(stamps_gt, dtype=np.float64)
+    if len(stamps_est) == 0 or len(stamps_gt) == 0:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    order = np.argsort(stamps_gt, kind="stable")
+    sorted_gt = stamps_gt[order]
+    right = np.clip(np.searchsorted(sorted_gt, stamps_est), 1, len(sorted_gt) - 1) if len(sorted_gt) > 1 \
+        else np.zeros(len(stamps_est), dtype=int)
+    left = np.maximum(right - 1, 0)
+    pick_left = np.abs(sorted_gt[left] - stamps_est) <= np.abs(sorted_gt[right] - stamps_est)
+    nearest = np.where(pick_left, left, right)
+    diffs = np.abs(sorted_gt[nearest] - stamps_est)
+    best_for_gt: dict[int, int] = {}
+    for est_index in np.argsort(diffs, kind="stable"):
+        if diffs[est_index] > max_diff:
+            break
+        best_for_gt.setdefault(int(nearest[est_index]), int(est_index))
+    est_indices = np.array(sorted(best_for_gt.values()), dtype=int)
+    gt_lookup = {est_index: gt_sorted for gt_sorted, est_index in best_for_gt.items()}
+    gt_indices = np.array([order[gt_lookup[i]] for i in est_indices], dtype=int)
+    return est_indices, gt_indices
+
+
+# ---------------------------------------------------------------------------------------------
+# Map metrics
+# ---------------------------------------------------------------------------------------------
+
+
+def _to_o3d(points: np.ndarray) -> o3d.geometry.PointCloud:
+    cloud = o3d.geometry.PointCloud()
+    cloud.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
+    return cloud
+
+
+def nearest_neighbor_distances(query: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Distance from each query point to its nearest reference point (Open3D KD-tree, multithreaded).
+
+    query: [N, 3], reference: [M, 3] with M > 0 -> [N].
+    """
+    query = _check_points(query, "query")
+    reference = _check_points(reference, "reference")
+    if len(reference) == 0:
+        raise ValueError("nearest_neighbor_distances: the reference point set is empty")
+    if len(query) == 0:
+        return np.zeros(0)
+    return np.asarray(_to_o3d(query).compute_point_cloud_distance(_to_o3d(reference)), dtype=np.float64)
+
+
+def map_metrics_from_distances(est_to_gt: np.ndarray, gt_to_est: np.ndarray, threshold: float = 0.2,
+                               cutoff: float | None = None, mode: str = "paper") -> dict[str, Any]:
+    """Map metrics from precomputed nearest-neighbour distances (see `map_metrics`).
+
+    est_to_gt: [N] distances of estimated points to the GT map; gt_to_est: [M] the reverse.
+    """
+    if mode not in MAP_MODES:
+        raise ValueError(f"map metrics mode must be one of {MAP_MODES}, got {mode!r}")
+    if threshold <= 0:
+        raise ValueError(f"threshold must be positive, got {threshold}")
+    if cutoff is not None and cutoff <= 0:
+        raise ValueError(f"cutoff must be positive or None, got {cutoff}")
+    est_to_gt = np.asarray(est_to_gt, dtype=np.float64)
+    gt_to_est = np.asarray(gt_to_est, dtype=np.float64)
+
+    def _cut(distances: np.ndarray) -> np.ndarray:
+        if cutoff is None:
+            return distances
+        if mode == "clip":
+            return np.minimum(distances, cutoff)
+        return distances[distances <= cutoff]  # "paper" and "sum": far points are outliers, dropped
+
+    accuracy_distances, completeness_distances = _cut(est_to_gt), _cut(gt_to_est)
+    accuracy = float(np.mean(accuracy_distances)) if len(accuracy_distances) else float("nan")
+    completeness = float(np.mean(completeness_distances)) if len(completeness_distances) else float("nan")
+    chamfer = accuracy + completeness if mode == "sum" else 0.5 * (accuracy + completeness)
+
+    precision = float(np.mean(est_to_gt <= threshold)) if len(est_to_gt) else 0.0
+    recall = float(np.mean(gt_to_est <= threshold)) if len(gt_to_est) else 0.0
+    f1 = 2.0 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    inliers = est_to_gt[est_to_gt <= threshold]
+    return {
+        "accuracy_m": accuracy,
+        "completeness_m": completeness,
+        "chamfer_l1_m": float(chamfer),
+        "precision": precision,
+        "recall": recall,
+        "f1": float(f1),
+        "inlier_rmse_m": _rmse(inliers),
+        "threshold_m": float(threshold),
+        "cutoff_m": None if cutoff is None else float(cutoff),
+        "mode": mode,
+        "num_est": int(len(est_to_gt)),
+        "num_gt": int(len(gt_to_est)),
+        "num_est_within_cutoff": int(len(est_to_gt) if cutoff is None else np.sum(est_to_gt <= cutoff)),
+        "num_gt_within_cutoff": int(len(gt_to_est) if cutoff is None else np.sum(gt_to_est <= cutoff)),
+        "num_inliers": int(len(inliers)),
+    }
+
+
+def map_metrics(est_points: np.ndarray, gt_points: np.ndarray, threshold: float = 0.2,
+                cutoff: float | None = None, mode: str = "paper") -> dict[str, Any]:
+    """Compare an estimated map with a ground-truth map (both already in the same frame).
+
+    est_points: [N, 3], gt_points: [M, 3], both non-empty.
+    d_acc(p) = distance of estimated point p to its nearest GT point ("accuracy" direction);
+    d_comp(q) = distance of GT point q to its nearest estimated point ("completeness" direction).
+
+    Chamfer conventions (`mode`), `cutoff` in metres (the paper uses 1 m for raw maps, none for
+    rendered maps):
+    - "paper" (default): L1-Chamfer = 1/2 mean(d_acc) + 1/2 mean(d_comp), as in the NeLD-BA paper and
+      the FusionPortable / MapEval tools; distances beyond `cutoff` are DROPPED from both means
+      (outliers do not count at all).
+    - "clip": the same halved mean, but distances beyond `cutoff` are CLIPPED to `cutoff` (outliers
+      count with the maximum penalty).
+    - "sum": mean(d_acc) + mean(d_comp), unhalved (as some FusionPortable scripts report), with the
+      cutoff dropping as in "paper".
+    With cutoff=None all three use every distance ("paper" and "clip" then agree).
+
+    Independent of mode and cutoff: precision = fraction of d_acc <= threshold, recall = fraction of
+    d_comp <= threshold, f1 = 2PR / (P + R), inlier_rmse = RMSE of the d_acc <= threshold.
+    Returned keys: accuracy_m, completeness_m, chamfer_l1_m, precision, recall, f1, inlier_rmse_m,
+    threshold_m, cutoff_m, mode, num_est, num_gt, num_est/gt_within_cutoff, num_inliers. A mean over
+    no points is NaN.
+    """
+    est_points = _check_points(est_points, "est_points")
+    gt_points = _check_points(gt_points, "gt_points")
+    if len(est_points) == 0 or len(gt_points) == 0:
+        raise ValueError(f"map metrics need non-empty maps, got {len(est_points)} estimated and "
+                         f"{len(gt_points)} ground-truth points")
+    return map_metrics_from_distances(nearest_neighbor_distances(est_points, gt_points),
+                                      nearest_neighbor_distances(gt_points, est_points),
+                                      threshold=threshold, cutoff=cutoff, mode=mode)

@@ -1,0 +1,153 @@
+"""One bundle-adjustment run end to end: load, preprocess, normalise, train (resumable), write outputs, evaluate.
+
+This is the effectful edge that `bin/train.py` calls; the maths lives in the pure modules.
+Outputs in config.output_dir (DESIGN.md): poses_initial/optimized (.txt TUM, .kitti), poses_gt.txt when ground
+truth exists, map_raw.ply, map_raw_initial.ply, map_rendered.ply, map_gt.ply, config.json, metrics.json,
+checkpoints/ and the evaluation plots.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from neld_jax import export, train
+from neld_jax.checkpoint import Checkpointer
+from neld_jax.data.datasets import load_sequence
+from neld_jax.data.normalize import fit_normalization
+from neld_jax.data.preprocess import preprocess
+from neld_jax.data.rays import build_rays
+from neld_jax.mapping import render_map
+from neld_jax.model import scan_poses
+
+logger = logging.getLogger(__name__)
+
+# Fields that do not change what is computed; a resumed run may change them.
+_HASH_EXCLUDED = ("output_dir", "train.max_minutes", "train.log_every", "train.checkpoint_every", "mapping", "eval")
+
+
+def config_hash(config: ml_collections.ConfigDict) -> str:
+    d = json.loads(config.to_json_best_effort())
+    for path in _HASH_EXCLUDED:
+        node, *rest = path.split(".")
+        if rest:
+            d.get(node, {}).pop(rest[0], None)
+        else:
+            d.pop(node, None)
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def load_and_prepare(config: ml_collections.ConfigDict):
+    """Load the sequence named by config.data, preprocess it and fit the normalisation."""
+    d = config.data
+    seq = load_sequence(d)
+    seq = preprocess(seq, keyframe_interval_s=d.keyframe_interval_s, min_range=d.min_range_m, max_range=d.max_range_m,
+                     voxel_size=d.voxel_size_m, max_scans=(d.max_scans or None))
+    norm = fit_normalization(seq.scans, seq.poses, margin=d.normalization_margin)
+    return seq, norm
+
+
+def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
+    """Run the bundle adjustment described by `config`; returns the summary written to metrics.json."""
+    t_start = time.perf_counter()
+    out_dir = os.path.abspath(config.output_dir)
+    os.makedirs(out_dir, exist_ok=True)
+    chash = config_hash(config)
+    export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
+
+    seq, norm = load_and_prepare(config)
+    raysets = build_rays(seq, norm, max_rays_per_scan=(config.data.max_rays_per_scan or None), seed=config.seed)
+    logger.info("%d scans, %d training rays, normalisation scale %.5f (1 normalised unit = %.2f m)",
+                seq.num_scans, raysets.num_rays, norm.scale, 1.0 / norm.scale)
+    rays = train.RayData(jnp.asarray(raysets.directions, jnp.float32), jnp.asarray(raysets.ranges, jnp.float32),
+                         jnp.asarray(raysets.scan_index, jnp.int32))
+    T_init = jnp.asarray(norm.poses_to_normalized(seq.poses), jnp.float32)
+
+    # Resume from the latest checkpoint of this output_dir, if any.
+    ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"))
+    state = None
+    if ckpt.latest_step() is not None:
+        schedules = train.make_schedules(config)
+        tx = train.make_optimizer(config, schedules, seq.num_scans)
+        c0, f0 = schedules.samples(0)
+        template = train.create_train_state(config, jax.random.PRNGKey(config.seed), seq.num_scans, tx,
+                                            train.render_settings(config, norm.scale, c0, f0))
+        state, _ = ckpt.restore(template, expected_config_hash=chash)
+    metadata = {"config_hash": chash, "normalization": norm.to_dict(), "num_scans": seq.num_scans}
+    t_train = time.perf_counter()
+    result = train.fit(config, rays, T_init, norm.scale, state=state,
+                       checkpoint_fn=lambda s: ckpt.save(s, metadata), progress=progress)
+    train_seconds = time.perf_counter() - t_train
+    ckpt.close()
+    state = result.state
+
+    # Poses back in the input's world frame and scale.
+    T_opt_n = np.asarray(scan_poses(state.params["poses"], T_init), np.float64)
+    T_opt = norm.poses_to_world(T_opt_n)
+    export.write_poses(out_dir, "poses_initial", seq.timestamps, seq.poses)
+    export.write_poses(out_dir, "poses_optimized", seq.timestamps, T_opt)
+    if seq.gt_poses is not None:
+        export.write_poses(out_dir, "poses_gt", seq.timestamps, seq.gt_poses)
+    if seq.gt_map is not None:
+        export.write_point_cloud(os.path.join(out_dir, "map_gt.ply"), seq.gt_map)
+    voxel = float(config.mapping.voxel_size_m)
+    export.write_raw_map(os.path.join(out_dir, "map_raw.ply"), seq.scans, T_opt, voxel_size=voxel)
+    export.write_raw_map(os.path.join(out_dir, "map_raw_initial.ply"), seq.scans, seq.poses, voxel_size=voxel)
+
+    if config.mapping.enabled:
+        _write_rendered_map(config, state, norm, seq, T_opt_n, out_dir, progress)
+
+    summary = {
+        "config_hash": chash,
+        "num_scans": seq.num_scans,
+        "num_rays": int(raysets.num_rays),
+        "steps": int(state.step),
+        "stopped_early": bool(result.stopped_early),
+        "train_seconds": round(train_seconds, 2),
+        "total_seconds": round(time.perf_counter() - t_start, 2),
+        "device": str(jax.devices()[0]),
+        "final": result.history[-1] if result.history else {},
+    }
+    export.write_json(os.path.join(out_dir, "metrics.json"), {"run": summary})
+    with open(os.path.join(out_dir, "history.json"), "w") as f:
+        json.dump(result.history, f)
+    if seq.gt_poses is not None or seq.gt_map is not None:
+        from neld_jax.evaluate import evaluate_run, format_table
+
+        evaluation = evaluate_run(out_dir, threshold=config.eval.f1_threshold_m, raw_cutoff=config.eval.raw_cutoff_m)
+        summary["evaluation"] = evaluation
+        print(format_table(evaluation))
+    return summary
+
+
+def _write_rendered_map(config, state, norm, seq, T_opt_n, out_dir, progress):
+    m = config.mapping
+    mapping_rays = build_rays(seq, norm, max_rays_per_scan=(m.max_rays_per_scan or None), seed=config.seed + 1)
+    settings = train.render_settings(config, norm.scale, m.num_coarse, m.num_fine)
+    # The map is rendered with the paper's sampler (no measured ranges), whatever the training options.
+    settings = dataclasses.replace(settings, guided_samples=0)
+    alpha = float(train.make_schedules(config).alpha(int(state.step)))  # the window the field was trained with
+    points_n = render_map(state.params["field"], settings, T_opt_n, mapping_rays.directions, mapping_rays.scan_index,
+                          alpha, rays_per_batch=int(m.rays_per_batch), min_opacity=float(m.min_opacity),
+                          progress=progress)
+    logger.info("rendered map: %d of %d rays end on a surface", len(points_n), mapping_rays.num_rays)
+    if len(points_n) == 0:
+        logger.warning("rendered map is empty: no ray reached opacity %.2f (train longer or lower "
+                       "mapping.min_opacity); map_rendered.ply not written", m.min_opacity)
+        return
+    points = norm.points_to_world(points_n)
+    path = os.path.join(out_dir, "map_rendered.ply")
+    if m.voxel_size_m > 0:
+        from neld_jax.data.preprocess import voxel_downsample
+
+        points = voxel_downsample(points, float(m.voxel_size_m))
+    export.write_point_cloud(path, points)

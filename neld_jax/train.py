@@ -1,0 +1,329 @@
+"""Training: the one parameter pytree, the optimiser, the schedules and the jitted step.
+
+params = {"field": <flax params of DensityField>, "poses": [S, 6] se(3) corrections (rho, omega)}.
+The pose of scan s is exp(poses[s]) @ T_init[s] in the normalised frame (neld_jax.lie.apply_correction).
+
+The optimiser is one optax transform over that pytree, partitioned by label: the field gets Adam with its
+own exponential decay; the poses get Adam with separate translation / rotation schedules that are exactly
+zero until the coarse-to-fine window activates frequency k* (BARF), and gauge-fixed rows are zeroed.
+The step is a single jitted function of (state, rays, T_init) with no Python branching on traced values;
+the only static argument is the sample-count stage, so it compiles once per stage.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from typing import Any, Callable, NamedTuple
+
+import flax
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+import optax
+
+from neld_jax import losses
+from neld_jax.model import RenderSettings, render_rays, scan_poses, world_rays
+
+logger = logging.getLogger(__name__)
+
+# Incremented by the Python body of the train step, which only runs while jax traces it: a test reads this
+# to check that the step compiles once per sample-count stage.
+TRACE_COUNT = {"train_step": 0}
+
+
+class RayData(NamedTuple):
+    """All training rays, resident on the device. R rays over S scans."""
+
+    directions: jax.Array  # [R, 3] unit, sensor frame
+    ranges: jax.Array  # [R] normalised measured ranges
+    scan_index: jax.Array  # [R] int32
+
+
+@flax.struct.dataclass
+class TrainState:
+    step: jax.Array  # scalar int32
+    params: Any  # {"field": ..., "poses": [S, 6]}
+    opt_state: Any
+    key: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class Schedules:
+    """Step -> value functions built from the config, shared by the optimiser, the step and the logs."""
+
+    total_steps: int
+    pos_freqs: int
+    c2f_end_step: int
+    pose_start_step: int
+    stage_starts: tuple  # first step of each sample-count stage
+    coarse_stages: tuple
+    fine_stages: tuple
+    field_lr: Callable
+    pose_lr_trans: Callable
+    pose_lr_rot: Callable
+
+    def alpha(self, step):
+        """Coarse-to-fine progress in [0, pos_freqs]; works on Python ints and traced scalars."""
+        frac = jnp.clip(jnp.asarray(step, jnp.float32) / max(self.c2f_end_step, 1), 0.0, 1.0)
+        return frac * self.pos_freqs
+
+    def stage(self, step: int) -> int:
+        return max(i for i, start in enumerate(self.stage_starts) if step >= start)
+
+    def samples(self, step: int) -> tuple[int, int]:
+        i = self.stage(step)
+        return self.coarse_stages[i], self.fine_stages[i]
+
+
+def make_schedules(config: ml_collections.ConfigDict) -> Schedules:
+    t = config.train
+    steps = int(t.steps)
+    c2f_end = int(round(t.c2f_end_fraction * steps))
+    L = int(config.model.pos_freqs)
+    # Frequency k is fully on once alpha >= k + 1 and starts at alpha = k; poses start when k* starts.
+    pose_start = int(math.ceil(min(t.pose_start_freq, L) / L * c2f_end))
+    pose_start = max(pose_start, int(t.pose_warmup_steps))
+    coarse = tuple(int(n) for n in config.sampling.coarse_stages)
+    fine = tuple(int(n) for n in config.sampling.fine_stages)
+    if len(coarse) != len(fine) or not coarse:
+        raise ValueError("sampling.coarse_stages and sampling.fine_stages must be non-empty and of equal length")
+    ramp_end = int(round(config.sampling.sample_ramp_fraction * steps))
+    n = len(coarse)
+    starts = tuple(0 if n == 1 else int(round(i / (n - 1) * ramp_end)) for i in range(n))
+
+    def decay(init, final, begin, end):
+        span = max(end - begin, 1)
+        ratio = final / init if init > 0 else 1.0
+        return optax.exponential_decay(init, transition_steps=span, decay_rate=ratio, transition_begin=0)
+
+    def delayed(init, final):
+        # Exactly zero before pose_start: Adam's update is then exactly zero, so poses stay put.
+        return optax.join_schedules(
+            [optax.constant_schedule(0.0), decay(init, final, pose_start, steps)], boundaries=[pose_start]
+        )
+
+    return Schedules(
+        total_steps=steps,
+        pos_freqs=L,
+        c2f_end_step=c2f_end,
+        pose_start_step=pose_start,
+        stage_starts=starts,
+        coarse_stages=coarse,
+        fine_stages=fine,
+        field_lr=decay(t.field_lr_init, t.field_lr_final, 0, steps),
+        pose_lr_trans=delayed(t.pose_lr_trans_init, t.pose_lr_trans_final),
+        pose_lr_rot=delayed(t.pose_lr_rot_init, t.pose_lr_rot_final),
+    )
+
+
+def scale_pose_columns(trans_lr: Callable, rot_lr: Callable) -> optax.GradientTransformation:
+    """Descent step for [S, 6] pose updates: columns 0:3 (rho) by -trans_lr(count), 3:6 (omega) by -rot_lr."""
+
+    def init_fn(params):
+        del params
+        return optax.ScaleByScheduleState(count=jnp.zeros([], jnp.int32))
+
+    def update_fn(updates, state, params=None):
+        del params
+        lr = jnp.concatenate([jnp.full((3,), trans_lr(state.count)), jnp.full((3,), rot_lr(state.count))])
+        # tree.map: inside multi_transform the field's leaves arrive as empty MaskedNodes and are skipped.
+        updates = jax.tree.map(lambda u: -u * lr.astype(u.dtype), updates)
+        return updates, optax.ScaleByScheduleState(count=optax.safe_increment(state.count))
+
+    return optax.GradientTransformation(init_fn, update_fn)
+
+
+def zero_rows(row_mask: np.ndarray) -> optax.GradientTransformation:
+    """Zero the updates of the rows where row_mask [S] is True (gauge-fixed scans never move)."""
+    keep = jnp.asarray(~np.asarray(row_mask, bool), jnp.float32)[:, None]
+    return optax.stateless(lambda updates, params: jax.tree.map(lambda u: u * keep.astype(u.dtype), updates))
+
+
+def make_optimizer(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int):
+    fixed = np.zeros(num_scans, bool)
+    for s in config.train.fixed_scans:
+        if not -num_scans <= int(s) < num_scans:
+            raise ValueError(f"train.fixed_scans names scan {s}, but the sequence has {num_scans} scans")
+        fixed[int(s)] = True
+    pose_tx = optax.chain(
+        optax.scale_by_adam(),
+        scale_pose_columns(schedules.pose_lr_trans, schedules.pose_lr_rot),
+        zero_rows(fixed),
+    )
+    field_tx = optax.adam(schedules.field_lr)
+
+    def labels(params):
+        return {"field": jax.tree.map(lambda _: "field", params["field"]), "poses": "poses"}
+
+    return optax.multi_transform({"field": field_tx, "poses": pose_tx}, labels)
+
+
+def render_settings(config: ml_collections.ConfigDict, scale: float, num_coarse: int, num_fine: int) -> RenderSettings:
+    """The static settings of one stage; metre-valued config fields are converted with the normalisation scale."""
+    m, s = config.model, config.sampling
+    return RenderSettings(
+        num_coarse=int(num_coarse),
+        num_fine=int(num_fine),
+        z_low=float(s.z_low_m * scale),
+        z_up=float(s.z_up_m * scale),
+        cube_bound=bool(s.cube_bound),
+        hierarchical=str(s.hierarchical),
+        guided_samples=int(s.guided_samples),
+        guided_width=float(s.guided_width_m * scale),
+        width=int(m.width),
+        depth=int(m.depth),
+        skip_layers=tuple(int(k) for k in m.skip_layers),
+        pos_freqs=int(m.pos_freqs),
+        dir_freqs=int(m.dir_freqs),
+        use_view_dirs=bool(m.use_view_dirs),
+        density_activation=str(m.density_activation),
+        surrogate_gradient=bool(m.surrogate_gradient),
+    )
+
+
+def create_train_state(config, key: jax.Array, num_scans: int, tx: optax.GradientTransformation, settings: RenderSettings):
+    key_init, key_state = jax.random.split(key)
+    field_params = settings.field().init(key_init, jnp.zeros((1, 3)), jnp.zeros((1, 2)))["params"]
+    params = {"field": field_params, "poses": jnp.zeros((num_scans, 6), jnp.float32)}
+    return TrainState(step=jnp.zeros([], jnp.int32), params=params, opt_state=tx.init(params), key=key_state)
+
+
+def _pass_losses(rendered, z: jax.Array, ranges: jax.Array, termination: bool) -> tuple[jax.Array, jax.Array]:
+    """L1 range loss and termination loss of one pass (coarse or fine)."""
+    l_range = losses.range_l1(rendered.depth, ranges)
+    l_term = losses.termination_loss(rendered.weights, z, ranges) if termination else jnp.zeros(())
+    return l_range, l_term
+
+
+def ray_losses(out, ranges: jax.Array, loss_cfg: dict) -> tuple[jax.Array, dict]:
+    """Eq. 13: lambda_coarse (l_d L_range^c + l_h L_term^c) + (l_d L_range^f + l_h L_term^f)."""
+    l_d, l_h = loss_cfg["lambda_range"], loss_cfg["lambda_termination"]
+    lc_range, lc_term = _pass_losses(out.coarse, out.z_coarse, ranges, loss_cfg["termination"])
+    total = loss_cfg["lambda_coarse"] * (l_d * lc_range + l_h * lc_term)
+    metrics = {"range_l1_coarse": lc_range, "term_coarse": lc_term}
+    if out.fine is not None:
+        lf_range, lf_term = _pass_losses(out.fine, out.z_fine, ranges, loss_cfg["termination"])
+        total = total + l_d * lf_range + l_h * lf_term
+        metrics.update(range_l1_fine=lf_range, term_fine=lf_term)
+    metrics["loss"] = total
+    return total, metrics
+
+
+def make_train_step(tx: optax.GradientTransformation, schedules: Schedules, loss_cfg: dict, batch_rays: int):
+    """Returns step(state, rays, T_init, settings) -> (state, metrics), jitted with `settings` static."""
+    loss_cfg = dict(loss_cfg)
+
+    def step(state: TrainState, rays: RayData, T_init: jax.Array, settings: RenderSettings):
+        TRACE_COUNT["train_step"] += 1
+        key, key_batch, key_render = jax.random.split(state.key, 3)
+        idx = jax.random.randint(key_batch, (batch_rays,), 0, rays.ranges.shape[0])
+        directions_local, ranges, scan = rays.directions[idx], rays.ranges[idx], rays.scan_index[idx]
+        alpha = schedules.alpha(state.step)
+
+        def loss_fn(params):
+            T = scan_poses(params["poses"], T_init)[scan]  # exp of S poses, then a gather: cheaper than exp per ray
+            origins, directions = world_rays(T, directions_local)
+            out = render_rays(params["field"], settings, origins, directions, alpha, key_render, ranges)
+            return ray_losses(out, ranges, loss_cfg)
+
+        (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+        updates, opt_state = tx.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        metrics = dict(metrics, alpha=alpha, pose_grad_norm=jnp.linalg.norm(grads["poses"]))
+        new_state = TrainState(step=state.step + 1, params=params, opt_state=opt_state, key=key)
+        return new_state, metrics
+
+    return jax.jit(step, static_argnames=("settings",), donate_argnums=(0,))
+
+
+def loss_settings(config) -> dict:
+    l = config.loss
+    return {
+        "lambda_coarse": float(l.lambda_coarse),
+        "lambda_range": float(l.lambda_range),
+        "lambda_termination": float(l.lambda_termination),
+        "termination": bool(l.termination),
+    }
+
+
+class FitResult(NamedTuple):
+    state: TrainState
+    history: list  # one dict of floats per logged step
+    stopped_early: bool
+
+
+def fit(
+    config: ml_collections.ConfigDict,
+    rays: RayData,
+    T_init: jax.Array,
+    scale: float,
+    state: TrainState | None = None,
+    checkpoint_fn: Callable[[TrainState], None] | None = None,
+    progress: bool = True,
+) -> FitResult:
+    """Run the bundle adjustment from `state` (or a fresh one) up to config.train.steps.
+
+    rays: all training rays on the device; T_init: [S, 4, 4] initial poses, normalised frame; scale: the
+    normalisation scale (metres -> normalised), used for settings and for the logs in metres.
+    checkpoint_fn(state) is called every config.train.checkpoint_every steps and at the end.
+    """
+    from tqdm.auto import tqdm  # an effect at the edge; the step itself is pure
+
+    num_scans = int(T_init.shape[0])
+    schedules = make_schedules(config)
+    tx = make_optimizer(config, schedules, num_scans)
+    c0, f0 = schedules.samples(0)
+    if state is None:
+        state = create_train_state(config, jax.random.PRNGKey(config.seed), num_scans, tx, render_settings(config, scale, c0, f0))
+    step_fn = make_train_step(tx, schedules, loss_settings(config), int(config.train.batch_rays))
+
+    start = int(state.step)
+    total = schedules.total_steps
+    log_every = max(int(config.train.log_every), 1)
+    ckpt_every = int(config.train.checkpoint_every)
+    max_seconds = float(config.train.max_minutes) * 60.0
+    history: list[dict] = []
+    stopped_early = False
+    t0 = time.perf_counter()
+    current_stage = None
+    bar = tqdm(total=total, initial=start, disable=not progress, unit="step", dynamic_ncols=True)
+    for step in range(start, total):
+        stage = schedules.stage(step)
+        if stage != current_stage:
+            current_stage = stage
+            nc, nf = schedules.samples(step)
+            settings = render_settings(config, scale, nc, nf)
+            logger.info("step %d: stage %d, %d coarse + %d fine (+%d guided) samples per ray, %d rays per step",
+                        step, stage, nc, nf, settings.guided_samples, config.train.batch_rays)
+        if step == schedules.pose_start_step and step > 0:
+            logger.info("step %d: frequency %d active, poses start moving", step, config.train.pose_start_freq)
+        state, metrics = step_fn(state, rays, T_init, settings)
+        done = step + 1
+        if done % log_every == 0 or done == total:
+            m = {k: float(v) for k, v in jax.device_get(metrics).items()}
+            poses = np.asarray(state.params["poses"])
+            m["step"] = done
+            m["range_err_m"] = m.get("range_l1_fine", m["range_l1_coarse"]) / scale
+            m["pose_trans_mean_m"] = float(np.linalg.norm(poses[:, :3], axis=1).mean() / scale)
+            m["pose_rot_mean_deg"] = float(np.degrees(np.linalg.norm(poses[:, 3:], axis=1)).mean())
+            m["elapsed_s"] = time.perf_counter() - t0
+            history.append(m)
+            if not np.isfinite(m["loss"]):
+                raise FloatingPointError(f"loss is {m['loss']} at step {done}; lower the learning rates")
+            bar.set_postfix(loss=f"{m['loss']:.4f}", range_err=f"{m['range_err_m']:.3f}m", freq=f"{m['alpha']:.1f}",
+                            dpose=f"{100 * m['pose_trans_mean_m']:.1f}cm/{m['pose_rot_mean_deg']:.2f}deg", refresh=False)
+        bar.update(1)
+        if checkpoint_fn is not None and ckpt_every > 0 and done % ckpt_every == 0 and done != total:
+            checkpoint_fn(state)
+        if max_seconds > 0 and time.perf_counter() - t0 > max_seconds and done != total:
+            logger.warning("stopping at step %d of %d: train.max_minutes=%.1f reached", done, total, config.train.max_minutes)
+            stopped_early = True
+            break
+    bar.close()
+    if checkpoint_fn is not None:
+        checkpoint_fn(state)
+    return FitResult(state, history, stopped_early)

@@ -1,0 +1,78 @@
+"""A whole run on a tiny synthetic sequence: outputs, kill-and-resume, command-line errors."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from neld_jax import checkpoint, run
+from neld_jax.data.poses import read_kitti, read_tum
+
+from conftest import make_tiny_config
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+class _Killed(Exception):
+    pass
+
+
+def test_run_writes_outputs_and_resumes_after_a_kill(tmp_path, monkeypatch):
+    # Reference: an uninterrupted run.
+    ref_cfg = make_tiny_config(str(tmp_path / "ref"), steps=12)
+    ref = run.run(ref_cfg, progress=False)
+    assert ref["steps"] == 12
+
+    out = tmp_path / "run"
+    for name in ("poses_initial.txt", "poses_initial.kitti", "poses_optimized.txt", "poses_optimized.kitti",
+                 "map_raw.ply", "map_rendered.ply", "metrics.json", "config.json"):
+        assert (tmp_path / "ref" / name).is_file(), name
+    t_opt, T_opt = read_tum(tmp_path / "ref" / "poses_optimized.txt")
+    np.testing.assert_allclose(read_kitti(tmp_path / "ref" / "poses_optimized.kitti")[:, :3], T_opt[:, :3], atol=1e-6)
+    metrics = json.loads((tmp_path / "ref" / "metrics.json").read_text())
+    assert metrics["run"]["steps"] == 12
+
+    # A run killed right after its first checkpoint (step 5) ...
+    cfg = make_tiny_config(str(out), steps=12)
+    real_save = checkpoint.Checkpointer.save
+
+    def save_then_die(self, state, metadata):
+        real_save(self, state, metadata)
+        raise _Killed()
+
+    monkeypatch.setattr(checkpoint.Checkpointer, "save", save_then_die)
+    with pytest.raises(_Killed):
+        run.run(cfg, progress=False)
+    monkeypatch.setattr(checkpoint.Checkpointer, "save", real_save)
+    assert checkpoint.Checkpointer(str(out / "checkpoints")).latest_step() == 5
+
+    # ... and rerun with the same output_dir resumes there and ends at the same final step and poses.
+    resumed = run.run(make_tiny_config(str(out), steps=12), progress=False)
+    assert resumed["steps"] == 12
+    _, T_resumed = read_tum(out / "poses_optimized.txt")
+    np.testing.assert_allclose(T_resumed, T_opt, atol=1e-6)
+
+
+def _train_cli(*args):
+    return subprocess.run([sys.executable, os.path.join(REPO, "bin", "train.py"), *args],
+                          capture_output=True, text=True, cwd=REPO, timeout=300)
+
+
+@pytest.mark.parametrize(
+    "args, expected",
+    [
+        (["--config=configs/generic.py", "--config.data.root=/nonexistent/dir"], "/nonexistent/dir"),
+        (["--config=configs/demo.py", "--config.train.no_such_field=3"], "no_such_field"),
+        (["--config=configs/demo.py:tpu"], "unknown budget"),
+    ],
+)
+def test_cli_bad_input_is_one_clear_line(args, expected, tmp_path):
+    proc = _train_cli(*args, f"--config.output_dir={tmp_path}")
+    assert proc.returncode != 0
+    err = proc.stderr.strip().splitlines()
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert expected in err[-1], proc.stderr
+    assert err[-1].startswith("error:"), proc.stderr

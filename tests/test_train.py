@@ -1,0 +1,100 @@
+"""The jitted train step: pose freezing before k*, the gauge, compiles per stage, schedules."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from neld_jax import lie, train
+from neld_jax.errors import ConfigError
+
+from conftest import make_tiny_config
+
+
+def _random_rays(num_scans=3, per_scan=64, seed=0):
+    """Rays of `num_scans` scans whose sensors sit inside the cube, looking at a sphere of radius 0.8."""
+    rng = np.random.default_rng(seed)
+    T = np.tile(np.eye(4), (num_scans, 1, 1))
+    T[:, :3, 3] = rng.uniform(-0.2, 0.2, (num_scans, 3))
+    T[:, :3, :3] = np.asarray(lie.so3_exp(jnp.asarray(rng.normal(0, 0.3, (num_scans, 3)))))
+    d = rng.normal(size=(num_scans * per_scan, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    scan = np.repeat(np.arange(num_scans), per_scan)
+    # Range to the sphere |o + r R d| = 0.8 from inside.
+    dw = np.einsum("rij,rj->ri", T[scan, :3, :3], d)
+    o = T[scan, :3, 3]
+    b = np.sum(o * dw, 1)
+    r = -b + np.sqrt(b**2 - (np.sum(o * o, 1) - 0.64))
+    rays = train.RayData(jnp.asarray(d, jnp.float32), jnp.asarray(r, jnp.float32), jnp.asarray(scan, jnp.int32))
+    return rays, jnp.asarray(T, jnp.float32)
+
+
+def test_poses_frozen_before_k_star_then_move_and_scan0_fixed():
+    config = make_tiny_config(steps=20)
+    schedules = train.make_schedules(config)
+    # pos_freqs 8, c2f over 10 steps: frequency 6 starts at step ceil(6/8*10) = 8.
+    assert schedules.pose_start_step == 8
+    rays, T_init = _random_rays()
+    tx = train.make_optimizer(config, schedules, 3)
+    settings = train.render_settings(config, 1.0, *schedules.samples(0))
+    state = train.create_train_state(config, jax.random.PRNGKey(0), 3, tx, settings)
+    step_fn = train.make_train_step(tx, schedules, train.loss_settings(config), config.train.batch_rays)
+    before = train.TRACE_COUNT["train_step"]
+    poses_per_step = []
+    stages_seen = set()
+    for step in range(config.train.steps):
+        stages_seen.add(schedules.samples(step))
+        settings = train.render_settings(config, 1.0, *schedules.samples(step))
+        state, metrics = step_fn(state, rays, T_init, settings)
+        assert np.isfinite(float(metrics["loss"]))
+        poses_per_step.append(np.asarray(state.params["poses"]))
+    poses_per_step = np.stack(poses_per_step)  # [steps, S, 6]; entry i is after step i+1
+    # Updates at steps 0..7 are exactly zero; the first move happens in step 8 (entry 8).
+    assert np.all(poses_per_step[:8] == 0.0)
+    assert np.abs(poses_per_step[-1, 1:]).max() > 0.0
+    assert np.all(poses_per_step[:, 0] == 0.0), "the gauge-fixed scan 0 moved"
+    # Two sample-count stages -> two traces, however many steps.
+    assert len(stages_seen) == 2
+    assert train.TRACE_COUNT["train_step"] - before == 2
+    assert int(state.step) == config.train.steps
+
+
+def test_field_learns_ranges():
+    """A few hundred steps on the sphere scene bring the range error well below its initial value."""
+    config = make_tiny_config(steps=300)
+    config.model.width, config.model.depth = 32, 2
+    config.train.batch_rays = 128
+    config.train.field_lr_init, config.train.field_lr_final = 5e-3, 1e-3
+    config.train.fixed_scans = (0, 1, 2)  # field only
+    rays, T_init = _random_rays()
+    result = train.fit(config, rays, T_init, scale=1.0, progress=False)
+    first, last = result.history[0]["range_l1_fine"], result.history[-1]["range_l1_fine"]
+    assert last < 0.5 * first, (first, last)
+    assert np.all(np.asarray(result.state.params["poses"]) == 0.0)
+
+
+def test_schedules_follow_the_paper_at_full_size():
+    from neld_jax.config import base_config
+
+    s = train.make_schedules(base_config())
+    assert s.total_steps == 160_000
+    assert s.c2f_end_step == 120_000
+    assert s.pose_start_step == 48_000  # frequency 6 of 15 at 6/15 of 120k
+    assert s.samples(0) == (32, 16) and s.samples(119_999) == (48, 24) and s.samples(120_000) == (64, 32)
+    assert float(s.alpha(60_000)) == pytest.approx(7.5)
+    assert float(s.field_lr(0)) == pytest.approx(5e-5) and float(s.field_lr(160_000)) == pytest.approx(2e-5)
+    assert float(s.pose_lr_trans(47_999)) == 0.0 and float(s.pose_lr_trans(48_000)) == pytest.approx(5e-5)
+
+
+def test_fixed_scan_out_of_range_is_an_error():
+    config = make_tiny_config()
+    config.train.fixed_scans = (5,)
+    with pytest.raises(ValueError, match="fixed_scans names scan 5"):
+        train.make_optimizer(config, train.make_schedules(config), 3)
+
+
+def test_unknown_budget_is_a_config_error():
+    from neld_jax.config import apply_budget, base_config
+
+    with pytest.raises(ConfigError, match="unknown budget"):
+        apply_budget(base_config(), "tpu")

@@ -30,6 +30,7 @@ def main_with_config(job: Callable) -> None:
             _fail(f"unexpected arguments: {' '.join(argv[1:])}")
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
                             datefmt="%H:%M:%S", force=True)
+        logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every file it writes at INFO
         try:
             job(flags.FLAGS.config)
         except NeldError as e:

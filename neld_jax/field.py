@@ -81,7 +81,7 @@ class DensityField(nn.Module):
         output = nn.Dense(
             1,
             dtype=self.dtype,
-            kernel_init=nn.initializers.variance_scaling(0.01, "fan_in", "truncated_normal"),
+            kernel_init=nn.initializers.variance_scaling(1e-4, "fan_in", "truncated_normal"),
             bias_init=nn.initializers.constant(_inverse_activation(self.density_activation, self.initial_density)),
             name="density_out",
         )(hidden)

@@ -1,0 +1,394 @@
+#!/usr/bin/env python
+"""Speed of the jitted NeLD-BA train step, and this machine's float32 matmul rate for comparison.
+
+    python benchmarks/train_step.py --preset=cpu                  # the CPU budget's step
+    python benchmarks/train_step.py --preset=gpu --stage=2        # the paper's step, last sample stage
+    python benchmarks/train_step.py --preset=cpu --matmul_peak    # GFLOP/s of plain matmuls, same backend
+    python benchmarks/train_step.py --rays 256 --coarse 16 --fine 8 --width 64 --depth 2
+
+Each run prints ONE JSON line on stdout (logs go to stderr). The train step runs on synthetic rays built in
+memory (a few scans inside the normalisation cube looking at a sphere), so no dataset is needed.
+
+Timing: the step is lowered and compiled once (compile_s), run once to warm up, then `--repeats` times
+`--steps` consecutive steps are timed up to jax.block_until_ready; the reported rates use the median repeat.
+The state is donated, as in the trainer, so every step feeds the previous step's output back in.
+
+FLOP count (mlp_flops_per_step) covers the dense layers of the density MLP only, counted analytically from
+the kernel shapes: a Dense layer with an [in, out] kernel costs 2 * in * out FLOPs per point forward (a
+multiply and an add per weight); the backward pass costs twice that (one matmul of the same size for the
+kernel gradient, one for the input gradient, which is needed because the pose gradient flows back through
+the positions), so 3 * 2 * in * out in all. The MLP runs on every sample of every ray once per step (the fine
+pass reuses the coarse densities), so
+
+    mlp_flops_per_step = 3 * rays * (coarse + guided + fine) * sum_layers 2 * in * out.
+
+achieved_gflops = mlp_flops_per_step * steps_per_s / 1e9; compare it with `--matmul_peak`'s peak_gflops.
+xla_flops_per_step is XLA's own count for the whole compiled step (all ops, for reference).
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import logging
+import os
+import re
+import statistics
+import sys
+import time
+from typing import Callable
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from absl import app, flags  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import ml_collections  # noqa: E402
+import numpy as np  # noqa: E402
+
+from neld_jax import lie, train  # noqa: E402
+from neld_jax.config import apply_budget, base_config  # noqa: E402
+
+logger = logging.getLogger(__name__)
+
+# Flag defaults are used as they are with --preset=none; a preset replaces every size flag that is not
+# given on the command line. These defaults are the CPU budget's sizes without range-guided samples.
+SIZE_FLAGS = ("rays", "coarse", "fine", "guided", "width", "depth", "skip_layers", "pos_freqs", "dir_freqs")
+
+FLAGS = flags.FLAGS
+flags.DEFINE_enum("preset", "none", ["cpu", "gpu", "none"],
+                  "cpu: apply_budget(base_config(), 'cpu') sizes; gpu: base_config() sizes; none: the flags only.")
+flags.DEFINE_integer("stage", 0, "Which sample-count stage of the preset (index into sampling.coarse_stages).")
+flags.DEFINE_integer("rays", 512, "Rays per step (train.batch_rays).")
+flags.DEFINE_integer("coarse", 32, "Stratified coarse samples per ray.")
+flags.DEFINE_integer("fine", 16, "Fine (hierarchical) samples per ray.")
+flags.DEFINE_integer("guided", 0, "Range-guided coarse samples per ray (sampling.guided_samples).")
+flags.DEFINE_integer("width", 128, "MLP width.")
+flags.DEFINE_integer("depth", 4, "Hidden layers of the MLP.")
+flags.DEFINE_list("skip_layers", ["2"], "Hidden layers whose input gets the encoded position again.")
+flags.DEFINE_integer("pos_freqs", 10, "Fourier frequencies of the position encoding.")
+flags.DEFINE_integer("dir_freqs", 2, "Fourier frequencies of the view-direction encoding.")
+flags.DEFINE_integer("steps", 20, "Timed steps per repeat.")
+flags.DEFINE_integer("repeats", 5, "Timed repeats; the median is reported.")
+flags.DEFINE_integer("scans", 8, "Scans in the synthetic ray set.")
+flags.DEFINE_integer("rays_per_scan", 4096, "Rays per scan in the synthetic ray set.")
+flags.DEFINE_integer("seed", 0, "Seed of the synthetic rays and the parameters.")
+flags.DEFINE_bool("matmul_peak", False, "Measure float32 matmul GFLOP/s instead of the train step.")
+flags.DEFINE_list("matmul_sizes", ["256", "512", "1024", "2048"], "Square matmul sizes for --matmul_peak.")
+flags.DEFINE_string("profile_dir", "", "If set, trace --profile_steps steps with jax.profiler.trace into it.")
+flags.DEFINE_integer("profile_steps", 5, "Steps inside the profiler trace.")
+flags.DEFINE_string("dump_hlo", "", "If set, write the optimized HLO text of the compiled step to this file.")
+
+# Normalised units per metre of the synthetic set: a scene of ~70 m fills the cube (as the real loaders do).
+SYNTHETIC_SCALE = 1.0 / 40.0
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Pure helpers
+
+
+def preset_sizes(preset: str, stage: int = 0) -> tuple[ml_collections.ConfigDict, dict]:
+    """(config, sizes) of a preset: the config supplies everything the size flags do not (losses, sampling)."""
+    config = base_config() if preset == "gpu" else apply_budget(base_config(), "cpu")
+    m, s = config.model, config.sampling
+    sizes = {
+        "rays": int(config.train.batch_rays),
+        "coarse": int(s.coarse_stages[stage]),
+        "fine": int(s.fine_stages[stage]),
+        "guided": int(s.guided_samples),
+        "width": int(m.width),
+        "depth": int(m.depth),
+        "skip_layers": tuple(int(k) for k in m.skip_layers),
+        "pos_freqs": int(m.pos_freqs),
+        "dir_freqs": int(m.dir_freqs),
+    }
+    return config, sizes
+
+
+def configure(config: ml_collections.ConfigDict, sizes: dict, train_steps: int) -> ml_collections.ConfigDict:
+    """A copy of `config` with the benchmark's sizes written in (one sample stage)."""
+    c = ml_collections.ConfigDict(config.to_dict())
+    c.model.width, c.model.depth = sizes["width"], sizes["depth"]
+    c.model.skip_layers = tuple(k for k in sizes["skip_layers"] if k < sizes["depth"])
+    c.model.pos_freqs, c.model.dir_freqs = sizes["pos_freqs"], sizes["dir_freqs"]
+    c.sampling.coarse_stages, c.sampling.fine_stages = (sizes["coarse"],), (sizes["fine"],)
+    c.sampling.guided_samples = sizes["guided"]
+    c.train.batch_rays = sizes["rays"]
+    c.train.steps = max(train_steps, 1)
+    return c
+
+
+def synthetic_rays(num_scans: int, rays_per_scan: int, seed: int = 0) -> tuple[train.RayData, jax.Array]:
+    """Rays of `num_scans` sensors inside the cube looking at a sphere of radius 0.8 around the origin.
+
+    Returns (RayData with R = num_scans * rays_per_scan rays, T_init [S, 4, 4]), float32, on the device.
+    """
+    rng = np.random.default_rng(seed)
+    T = np.tile(np.eye(4), (num_scans, 1, 1))
+    T[:, :3, 3] = rng.uniform(-0.3, 0.3, (num_scans, 3))
+    T[:, :3, :3] = np.asarray(lie.so3_exp(jnp.asarray(rng.normal(0.0, 0.3, (num_scans, 3)))))
+    d = rng.normal(size=(num_scans * rays_per_scan, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    scan = np.repeat(np.arange(num_scans), rays_per_scan)
+    # Range from inside to the sphere |o + r R d| = 0.8.
+    d_world = np.einsum("rij,rj->ri", T[scan, :3, :3], d)
+    o = T[scan, :3, 3]
+    b = np.sum(o * d_world, axis=1)
+    r = -b + np.sqrt(b**2 - (np.sum(o * o, axis=1) - 0.64))
+    rays = train.RayData(jnp.asarray(d, jnp.float32), jnp.asarray(r, jnp.float32), jnp.asarray(scan, jnp.int32))
+    return rays, jnp.asarray(T, jnp.float32)
+
+
+def mlp_flops_per_point(field_params) -> int:
+    """Forward FLOPs of the MLP's dense layers for one point: sum over [in, out] kernels of 2 * in * out."""
+    kernels = [leaf for path, leaf in jax.tree_util.tree_leaves_with_path(field_params)
+               if getattr(path[-1], "key", None) == "kernel"]
+    return int(sum(2 * k.shape[0] * k.shape[1] for k in kernels))
+
+
+def median_seconds(run: Callable[[], object], repeats: int) -> tuple[float, list[float]]:
+    """Median and all of `repeats` wall-clock timings of run() (run must block until its work is done)."""
+    times = []
+    for _ in range(max(repeats, 1)):
+        t0 = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), times
+
+
+def device_info() -> dict:
+    dev = jax.devices()[0]
+    return {"device": f"{dev.platform}:{dev.device_kind}", "num_devices": jax.device_count(),
+            "cpu_count": os.cpu_count(), "jax_version": jax.__version__}
+
+
+def xla_flops(compiled) -> float | None:
+    """XLA's FLOP estimate of a compiled executable (None where the backend gives none)."""
+    try:
+        cost = compiled.cost_analysis()
+    except Exception:  # not every backend/version implements it; the benchmark works without
+        return None
+    if isinstance(cost, (list, tuple)):
+        cost = cost[0] if cost else {}
+    flops = (cost or {}).get("flops")
+    return float(flops) if flops is not None else None
+
+
+# Profile summary: the categories of HLO work, tested in this order on the ops of an instruction (a fusion's
+# ops are those of the computation it calls). The first match names the instruction's category.
+OP_CATEGORIES = (
+    ("matmul", ("dot", "convolution")),
+    ("sin/cos (encoding)", ("sine", "cosine")),
+    ("sort", ("sort",)),
+    ("gather/scatter", ("gather", "scatter", "dynamic-slice", "dynamic-update-slice")),
+    ("exp/log/expm1", ("exponential", "exponential-minus-one", "log", "log-plus-one")),
+    ("reduce/cumsum", ("reduce", "reduce-window")),
+    ("concatenate/copy/transpose", ("concatenate", "copy", "transpose", "pad", "slice")),
+)
+_HLO_INSTRUCTION = re.compile(r"^\s*(?:ROOT )?%(\S+) = .*? ([a-z][a-z0-9\-]*)\(")
+
+
+def hlo_instruction_ops(hlo_text: str) -> dict[str, set]:
+    """Optimized HLO text -> {instruction name: set of HLO opcodes it runs (a fusion: its callee's ops)}."""
+    computations: dict[str, list] = {}
+    current = None
+    for line in hlo_text.splitlines():
+        header = re.match(r"^(?:ENTRY )?%(\S+) .*\{\s*$", line)
+        if header:
+            current = computations.setdefault(header.group(1), [])
+        elif line.strip() == "}":
+            current = None
+        elif current is not None:
+            current.append(line)
+    ops: dict[str, set] = {}
+    for lines in computations.values():
+        for line in lines:
+            m = _HLO_INSTRUCTION.match(line)
+            if not m:
+                continue
+            name, opcode = m.groups()
+            callee = re.search(r"calls=%([\w.\-]+)", line)
+            if callee and callee.group(1) in computations:
+                body = (_HLO_INSTRUCTION.match(l) for l in computations[callee.group(1)])
+                ops[name] = {b.group(2) for b in body if b}
+            else:
+                ops[name] = {opcode}
+    return ops
+
+
+def op_category(opcodes: set) -> str:
+    for category, members in OP_CATEGORIES:
+        if opcodes & set(members):
+            return category
+    return "elementwise/other"
+
+
+def summarize_profile(xplane_path: str, hlo_text: str, num_steps: int, top: int = 15) -> dict:
+    """Thread-milliseconds per step by op category, from a jax.profiler trace of `num_steps` steps.
+
+    Every XLA op event of the host plane counts with its duration; ops that run on both CPU threads at
+    once count twice, so the total can exceed the wall time (total / wall ~ threads kept busy).
+    """
+    ops = hlo_instruction_ops(hlo_text)
+    by_op: dict[str, float] = {}
+    plane = jax.profiler.ProfileData.from_file(xplane_path).find_plane_with_name("/host:CPU")
+    for line in plane.lines:
+        for event in line.events:
+            hlo_op = dict(event.stats).get("hlo_op")
+            if hlo_op:
+                by_op[hlo_op] = by_op.get(hlo_op, 0.0) + event.duration_ns / 1e6 / num_steps
+    by_category: dict[str, float] = {}
+    for name, ms in by_op.items():
+        category = op_category(ops.get(name, set()))
+        by_category[category] = by_category.get(category, 0.0) + ms
+    total = sum(by_op.values())
+    ranked = sorted(by_op.items(), key=lambda kv: -kv[1])[:top]
+    return {
+        "thread_ms_per_step": total,
+        "by_category_ms": dict(sorted(((k, round(v, 2)) for k, v in by_category.items()), key=lambda kv: -kv[1])),
+        "top_ops_ms": [[name, round(ms, 2), op_category(ops.get(name, set()))] for name, ms in ranked],
+    }
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Benchmarks (effects: compile, run, time)
+
+
+def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int,
+                         num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0,
+                         profile_dir: str = "", profile_steps: int = 5, dump_hlo: str = "") -> dict:
+    """Compile, warm up and time the trainer's jitted step at `sizes`; returns the JSON-ready record."""
+    config = configure(config, sizes, train_steps=steps * repeats + profile_steps + 1)
+    rays, T_init = synthetic_rays(num_scans, rays_per_scan, seed)
+    schedules = train.make_schedules(config)
+    tx = train.make_optimizer(config, schedules, num_scans)
+    settings = train.render_settings(config, SYNTHETIC_SCALE, sizes["coarse"], sizes["fine"])
+    state = train.create_train_state(config, jax.random.PRNGKey(seed), num_scans, tx, settings)
+    step_fn = train.make_train_step(tx, schedules, train.loss_settings(config), sizes["rays"])
+
+    t0 = time.perf_counter()
+    compiled = step_fn.lower(state, rays, T_init, settings=settings).compile()
+    compile_s = time.perf_counter() - t0
+    if dump_hlo:
+        with open(dump_hlo, "w") as f:
+            f.write(compiled.as_text())
+        logger.info("optimized HLO written to %s", dump_hlo)
+
+    holder = {"state": state}
+
+    def run_steps(n: int):
+        s = holder["state"]
+        metrics = None
+        for _ in range(n):
+            s, metrics = compiled(s, rays, T_init)  # state donated: always feed the newest one back
+        jax.block_until_ready((s, metrics))
+        holder["state"] = s
+        return metrics
+
+    t0 = time.perf_counter()
+    metrics = run_steps(1)
+    warmup_s = time.perf_counter() - t0
+    loss = float(metrics["loss"])
+    median_s, times = median_seconds(lambda: run_steps(steps), repeats)
+
+    profile = None
+    if profile_dir:
+        with jax.profiler.trace(profile_dir):
+            run_steps(profile_steps)
+        logger.info("profile of %d steps written under %s", profile_steps, profile_dir)
+        traces = sorted(glob.glob(os.path.join(profile_dir, "plugins", "profile", "*", "*.xplane.pb")), key=os.path.getmtime)
+        if traces:
+            profile = summarize_profile(traces[-1], compiled.as_text(), profile_steps)
+
+    steps_per_s = steps / median_s
+    samples_per_ray = sizes["coarse"] + sizes["guided"] + sizes["fine"]
+    flops_point = mlp_flops_per_point(holder["state"].params["field"])
+    mlp_flops_step = 3 * sizes["rays"] * samples_per_ray * flops_point
+    return {
+        "benchmark": "train_step",
+        "steps_per_s": steps_per_s,
+        "step_ms": 1e3 / steps_per_s,
+        "rays_per_s": steps_per_s * sizes["rays"],
+        "samples_per_s": steps_per_s * sizes["rays"] * samples_per_ray,
+        "compile_s": compile_s,
+        "warmup_step_s": warmup_s,
+        "mlp_flops_per_point_forward": flops_point,
+        "mlp_flops_per_step": mlp_flops_step,
+        "achieved_gflops": mlp_flops_step * steps_per_s / 1e9,
+        "xla_flops_per_step": xla_flops(compiled),
+        "repeat_s": times,
+        "loss_after_warmup": loss,
+        "profile": profile,
+        **device_info(),
+        "config": {**sizes, "skip_layers": list(config.model.skip_layers), "samples_per_ray": samples_per_ray,
+                   "steps": steps, "repeats": repeats, "scans": num_scans, "rays_per_scan": rays_per_scan,
+                   "hierarchical": str(config.sampling.hierarchical), "use_view_dirs": bool(config.model.use_view_dirs),
+                   "dtype": "float32"},
+    }
+
+
+def matmul_gflops(m: int, k: int, n: int, repeats: int, min_seconds: float = 0.05, seed: int = 0) -> float:
+    """Median GFLOP/s of a jitted float32 [m, k] @ [k, n] (2 m k n FLOPs), batched to >= min_seconds a repeat."""
+    key_a, key_b = jax.random.split(jax.random.PRNGKey(seed))
+    a = jax.random.normal(key_a, (m, k), jnp.float32)
+    b = jax.random.normal(key_b, (k, n), jnp.float32)
+    matmul = jax.jit(jnp.matmul)
+    jax.block_until_ready(matmul(a, b))  # compile and warm up
+    t0 = time.perf_counter()
+    jax.block_until_ready(matmul(a, b))
+    calls = max(1, int(min_seconds / max(time.perf_counter() - t0, 1e-6)))
+
+    def run():
+        out = None
+        for _ in range(calls):
+            out = matmul(a, b)
+        jax.block_until_ready(out)
+
+    median_s, _ = median_seconds(run, repeats)
+    return 2.0 * m * k * n * calls / median_s / 1e9
+
+
+def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int) -> dict:
+    """float32 matmul GFLOP/s: square n x n matmuls and the MLP's [points, width] @ [width, width] matmul."""
+    points = sizes["rays"] * (sizes["coarse"] + sizes["guided"] + sizes["fine"])
+    width = sizes["width"]
+    square = {str(n): matmul_gflops(n, n, n, repeats) for n in square_sizes}
+    mlp_shaped = {f"{points}x{width}x{width}": matmul_gflops(points, width, width, repeats)}
+    return {
+        "benchmark": "matmul_peak",
+        "gflops": max([*square.values(), *mlp_shaped.values()]),
+        "square_gflops": square,
+        "mlp_shaped_gflops": mlp_shaped,
+        **device_info(),
+        "config": {"dtype": "float32", "repeats": repeats, "points": points, "width": width},
+    }
+
+
+# ----------------------------------------------------------------------------------------------------------
+
+
+def resolve_sizes() -> tuple[ml_collections.ConfigDict, dict]:
+    """The preset's config and sizes, with every size flag given on the command line taking precedence."""
+    config, sizes = preset_sizes("cpu" if FLAGS.preset == "none" else FLAGS.preset, FLAGS.stage)
+    for name in SIZE_FLAGS:
+        if FLAGS.preset == "none" or FLAGS[name].present:
+            value = FLAGS[name].value
+            sizes[name] = tuple(int(v) for v in value) if name == "skip_layers" else int(value)
+    return config, sizes
+
+
+def main(argv):
+    del argv
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
+    config, sizes = resolve_sizes()
+    if FLAGS.matmul_peak:
+        record = benchmark_matmul_peak(sizes, [int(n) for n in FLAGS.matmul_sizes], FLAGS.repeats)
+    else:
+        record = benchmark_train_step(config, sizes, FLAGS.steps, FLAGS.repeats, FLAGS.scans, FLAGS.rays_per_scan,
+                                      FLAGS.seed, FLAGS.profile_dir, FLAGS.profile_steps, FLAGS.dump_hlo)
+    record["preset"] = FLAGS.preset
+    print(json.dumps(record), flush=True)  # the one line of stdout a caller parses
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -146,14 +146,19 @@ def mlp_flops_per_point(field_params) -> int:
     return int(sum(2 * k.shape[0] * k.shape[1] for k in kernels))
 
 
-def median_seconds(run: Callable[[], object], repeats: int) -> tuple[float, list[float]]:
-    """Median and all of `repeats` wall-clock timings of run() (run must block until its work is done)."""
-    times = []
+def median_seconds(run: Callable[[], object], repeats: int) -> tuple[float, list[float], float]:
+    """(median wall seconds, all wall seconds, median process CPU seconds) of `repeats` calls of run().
+
+    run must block until its work is done. The CPU time sums all threads of this process: on a machine
+    shared with other jobs it is a steadier measure of the work than the wall time (which includes waiting).
+    """
+    times, cpu_times = [], []
     for _ in range(max(repeats, 1)):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         run()
         times.append(time.perf_counter() - t0)
-    return statistics.median(times), times
+        cpu_times.append(time.process_time() - c0)
+    return statistics.median(times), times, statistics.median(cpu_times)
 
 
 def device_info() -> dict:
@@ -289,7 +294,7 @@ def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: 
     metrics = run_steps(1)
     warmup_s = time.perf_counter() - t0
     loss = float(metrics["loss"])
-    median_s, times = median_seconds(lambda: run_steps(steps), repeats)
+    median_s, times, median_cpu_s = median_seconds(lambda: run_steps(steps), repeats)
 
     profile = None
     if profile_dir:
@@ -308,6 +313,7 @@ def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: 
         "benchmark": "train_step",
         "steps_per_s": steps_per_s,
         "step_ms": 1e3 / steps_per_s,
+        "cpu_ms_per_step": 1e3 * median_cpu_s / steps,  # all threads; ~ step_ms * threads kept busy
         "rays_per_s": steps_per_s * sizes["rays"],
         "samples_per_s": steps_per_s * sizes["rays"] * samples_per_ray,
         "compile_s": compile_s,
@@ -315,6 +321,7 @@ def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: 
         "mlp_flops_per_point_forward": flops_point,
         "mlp_flops_per_step": mlp_flops_step,
         "achieved_gflops": mlp_flops_step * steps_per_s / 1e9,
+        "achieved_gflops_per_cpu_s": mlp_flops_step * steps / median_cpu_s / 1e9,
         "xla_flops_per_step": xla_flops(compiled),
         "repeat_s": times,
         "loss_after_warmup": loss,
@@ -327,8 +334,9 @@ def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: 
     }
 
 
-def matmul_gflops(m: int, k: int, n: int, repeats: int, min_seconds: float = 0.05, seed: int = 0) -> float:
-    """Median GFLOP/s of a jitted float32 [m, k] @ [k, n] (2 m k n FLOPs), batched to >= min_seconds a repeat."""
+def matmul_gflops(m: int, k: int, n: int, repeats: int, min_seconds: float = 0.05, seed: int = 0) -> tuple[float, float]:
+    """(GFLOP/s, GFLOP per CPU second) of a jitted float32 [m, k] @ [k, n] (2 m k n FLOPs), medians of
+    `repeats` batches of calls lasting >= min_seconds each."""
     key_a, key_b = jax.random.split(jax.random.PRNGKey(seed))
     a = jax.random.normal(key_a, (m, k), jnp.float32)
     b = jax.random.normal(key_b, (k, n), jnp.float32)
@@ -344,8 +352,9 @@ def matmul_gflops(m: int, k: int, n: int, repeats: int, min_seconds: float = 0.0
             out = matmul(a, b)
         jax.block_until_ready(out)
 
-    median_s, _ = median_seconds(run, repeats)
-    return 2.0 * m * k * n * calls / median_s / 1e9
+    median_s, _, median_cpu_s = median_seconds(run, repeats)
+    flops = 2.0 * m * k * n * calls
+    return flops / median_s / 1e9, flops / median_cpu_s / 1e9
 
 
 def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int) -> dict:
@@ -354,11 +363,15 @@ def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int) ->
     width = sizes["width"]
     square = {str(n): matmul_gflops(n, n, n, repeats) for n in square_sizes}
     mlp_shaped = {f"{points}x{width}x{width}": matmul_gflops(points, width, width, repeats)}
+    rates = [*square.values(), *mlp_shaped.values()]
     return {
         "benchmark": "matmul_peak",
-        "gflops": max([*square.values(), *mlp_shaped.values()]),
-        "square_gflops": square,
-        "mlp_shaped_gflops": mlp_shaped,
+        "gflops": max(wall for wall, _ in rates),
+        "gflops_per_cpu_s": max(cpu for _, cpu in rates),
+        "square_gflops": {n: wall for n, (wall, _) in square.items()},
+        "mlp_shaped_gflops": {s: wall for s, (wall, _) in mlp_shaped.items()},
+        "square_gflops_per_cpu_s": {n: cpu for n, (_, cpu) in square.items()},
+        "mlp_shaped_gflops_per_cpu_s": {s: cpu for s, (_, cpu) in mlp_shaped.items()},
         **device_info(),
         "config": {"dtype": "float32", "repeats": repeats, "points": points, "width": width},
     }

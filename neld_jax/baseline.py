@@ -23,8 +23,7 @@ import ml_collections
 import numpy as np
 import open3d as o3d
 
-from neld_jax.data.datasets import load_sequence
-from neld_jax.data.preprocess import preprocess
+from neld_jax.data.preprocess import load_preprocessed
 from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
 from neld_jax.export import write_point_cloud, write_poses, write_raw_map
 
@@ -141,10 +140,7 @@ def run_baseline(config: ml_collections.ConfigDict, voxel_size: float = 0.2, max
     map_gt.ply where they do not exist yet, so that the folder can be evaluated on its own.
     Returns evaluate_run's result when ground truth exists, else None.
     """
-    data = config.data
-    sequence = preprocess(load_sequence(data), keyframe_interval_s=data.keyframe_interval_s,
-                          min_range=data.min_range_m, max_range=data.max_range_m,
-                          voxel_size=data.voxel_size_m, max_scans=(data.max_scans or None))
+    sequence = load_preprocessed(config.data)
     poses = multiway_registration(sequence.scans, sequence.poses, voxel_size=voxel_size,
                                   max_corr_dist=max_corr_dist, loop_radius_m=loop_radius_m)
 

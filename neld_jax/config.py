@@ -149,9 +149,10 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
     c.train.pose_start_freq = 6
     c.train.checkpoint_every = 500
     c.train.log_every = 25
+    c.train.max_minutes = 8.0  # a guard: the whole run (with the map) stays under 10 minutes on a busy machine
     c.mapping.num_coarse = 64
     c.mapping.num_fine = 64
-    c.mapping.max_rays_per_scan = 4096
+    c.mapping.max_rays_per_scan = 2048
     c.mapping.voxel_size_m = 0.1
     c.data.synthetic.gt_map_points = 100_000
     return c

@@ -8,6 +8,8 @@ of frequency 0, then of frequency 1, ...), then the L*D sines in the same order:
 The surrogate gradient keeps the forward pass but divides the backward pass of frequency k by 2^k pi:
 d/dx cos(2^k pi x) -> -sin(2^k pi x) and d/dx sin(2^k pi x) -> cos(2^k pi x). It is exactly the gradient of
 gamma_k(x) / (2^k pi), so a pose gradient that flows through high frequencies is not amplified by 2^k pi.
+Being a custom VJP, the surrogate supports reverse-mode differentiation only (grad, vjp, jacrev); use
+surrogate=False where forward mode (jvp, jacfwd) is needed.
 """
 
 from __future__ import annotations

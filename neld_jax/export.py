@@ -17,6 +17,7 @@ import numpy as np
 import open3d as o3d
 
 from neld_jax.data.poses import write_kitti, write_tum
+from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -77,15 +78,6 @@ def write_point_cloud(path: str | os.PathLike, points: np.ndarray) -> Path:
     if not o3d.t.io.write_point_cloud(str(path), cloud, write_ascii=False):
         raise DataError(f"{path}: Open3D could not write the point cloud")
     return path
-
-
-def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """Average the points in each voxel (Open3D). points: [N, 3] -> [K, 3], K <= N; no-op if voxel_size <= 0."""
-    points = np.asarray(points, dtype=np.float64)
-    if voxel_size <= 0 or len(points) == 0:
-        return points
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    return np.asarray(cloud.voxel_down_sample(voxel_size).points, dtype=np.float64)
 
 
 def write_raw_map(path: str | os.PathLike, scans: list[np.ndarray], poses: np.ndarray,

@@ -59,7 +59,9 @@ class DensityField(nn.Module):
         dir_window: jax.Array | None = None,
     ) -> jax.Array:
         if self.density_activation not in _ACTIVATIONS:
-            raise ValueError(f"density_activation must be one of {sorted(_ACTIVATIONS)}, got {self.density_activation!r}")
+            raise ValueError(
+                f"density_activation must be one of {sorted(_ACTIVATIONS)}, got {self.density_activation!r}"
+            )
         positions = positions.astype(self.dtype)
         encoded = fourier_encode(positions, self.pos_freqs, pos_window, surrogate=self.surrogate)
         hidden = encoded

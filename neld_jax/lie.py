@@ -112,7 +112,8 @@ def _matrix_to_quaternion(rotation: jax.Array) -> jax.Array:
     s21 = r[..., 2, 1] + r[..., 1, 2]
     s02 = r[..., 0, 2] + r[..., 2, 0]
     s10 = r[..., 1, 0] + r[..., 0, 1]
-    # Rows: (w, x, y, z) * 4 * (the chosen component), one row per choice of largest component.
+    # One candidate per choice of the largest component c: each stack holds 4 c (w, x, y, z) (e.g. d21 = 4 w x,
+    # root_c^2 = 4 c^2), and 2 root_c = 4 c, so the division yields (w, x, y, z).
     q_from_w = jnp.stack([root[..., 0] ** 2, d21, d02, d10], axis=-1) / (2.0 * root[..., 0:1])
     q_from_x = jnp.stack([d21, root[..., 1] ** 2, s10, s02], axis=-1) / (2.0 * root[..., 1:2])
     q_from_y = jnp.stack([d02, s10, root[..., 2] ** 2, s21], axis=-1) / (2.0 * root[..., 2:3])
@@ -198,12 +199,16 @@ def invert(transform: jax.Array) -> jax.Array:
 
 
 def apply(transform: jax.Array, points: jax.Array) -> jax.Array:
-    """R p + t. transform: [..., 4, 4], points: [..., 3] (leading axes broadcast) -> [..., 3]."""
+    """R p + t. transform: [..., 4, 4], points: [..., 3] -> [..., 3].
+
+    Leading axes broadcast like numpy (right-aligned): one [4, 4] applies to points [N, 3]; per-scan poses
+    [S, 4, 4] with points [S, N, 3] need transform[:, None].
+    """
     return rotate(transform, points) + transform[..., :3, 3]
 
 
 def rotate(transform: jax.Array, vectors: jax.Array) -> jax.Array:
-    """R v (rotation only, for directions). transform: [..., 4, 4], vectors: [..., 3] -> [..., 3]."""
+    """R v (rotation only, for directions). transform: [..., 4, 4], vectors: [..., 3] -> [..., 3] (as `apply`)."""
     return jnp.einsum("...ij,...j->...i", transform[..., :3, :3], vectors)
 
 

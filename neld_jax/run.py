@@ -22,9 +22,8 @@ import numpy as np
 
 from neld_jax import export, train
 from neld_jax.checkpoint import Checkpointer
-from neld_jax.data.datasets import load_sequence
 from neld_jax.data.normalize import fit_normalization
-from neld_jax.data.preprocess import preprocess
+from neld_jax.data.preprocess import load_preprocessed, voxel_downsample
 from neld_jax.data.rays import build_rays
 from neld_jax.mapping import render_map
 from neld_jax.model import scan_poses
@@ -48,11 +47,8 @@ def config_hash(config: ml_collections.ConfigDict) -> str:
 
 def load_and_prepare(config: ml_collections.ConfigDict):
     """Load the sequence named by config.data, preprocess it and fit the normalisation."""
-    d = config.data
-    seq = load_sequence(d)
-    seq = preprocess(seq, keyframe_interval_s=d.keyframe_interval_s, min_range=d.min_range_m, max_range=d.max_range_m,
-                     voxel_size=d.voxel_size_m, max_scans=(d.max_scans or None))
-    norm = fit_normalization(seq.scans, seq.poses, margin=d.normalization_margin)
+    seq = load_preprocessed(config.data)
+    norm = fit_normalization(seq.scans, seq.poses, margin=config.data.normalization_margin)
     return seq, norm
 
 
@@ -146,8 +142,4 @@ def _write_rendered_map(config, state, norm, seq, T_opt_n, out_dir, progress):
         return
     points = norm.points_to_world(points_n)
     path = os.path.join(out_dir, "map_rendered.ply")
-    if m.voxel_size_m > 0:
-        from neld_jax.data.preprocess import voxel_downsample
-
-        points = voxel_downsample(points, float(m.voxel_size_m))
-    export.write_point_cloud(path, points)
+    export.write_point_cloud(path, voxel_downsample(points, float(m.voxel_size_m)))

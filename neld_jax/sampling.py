@@ -109,7 +109,8 @@ def _inverse_cdf(bin_start: jax.Array, bin_end: jax.Array, pdf: jax.Array, u: ja
     cdf = jnp.cumsum(pdf, axis=-1)  # [R, M], cdf[b] = P(bin <= b)
     u = u * cdf[:, -1:]  # the total is 1 up to rounding; this keeps u below it, off trailing empty bins
     index = jnp.clip(_search(cdf, u), 0, num_bins - 1)
-    cdf_before = jnp.take_along_axis(jnp.concatenate([jnp.zeros_like(cdf[:, :1]), cdf[:, :-1]], axis=-1), index, axis=-1)
+    cdf_exclusive = jnp.concatenate([jnp.zeros_like(cdf[:, :1]), cdf[:, :-1]], axis=-1)  # P(bin < b)
+    cdf_before = jnp.take_along_axis(cdf_exclusive, index, axis=-1)
     mass = jnp.take_along_axis(pdf, index, axis=-1)
     fraction = jnp.clip((u - cdf_before) / jnp.where(mass > 0, mass, 1.0), 0.0, 1.0)
     lower = jnp.take_along_axis(bin_start, index, axis=-1)

@@ -25,7 +25,8 @@ def _samples(num_rays=4, num_samples=64, near=0.1, far=2.1):
 def test_deltas_from_samples():
     z = jnp.array([[0.0, 0.5, 1.5], [1.0, 2.0, 2.5]])
     np.testing.assert_allclose(rendering.deltas_from_samples(z), [[0.5, 1.0, 1.0], [1.0, 0.5, 0.5]])
-    np.testing.assert_allclose(rendering.deltas_from_samples(z, jnp.array([2.0, 2.0])), [[0.5, 1.0, 0.5], [1.0, 0.5, 0.0]])
+    with_far = rendering.deltas_from_samples(z, jnp.array([2.0, 2.0]))
+    np.testing.assert_allclose(with_far, [[0.5, 1.0, 0.5], [1.0, 0.5, 0.0]])  # clipped at 0
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])

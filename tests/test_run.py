@@ -76,3 +76,21 @@ def test_cli_bad_input_is_one_clear_line(args, expected, tmp_path):
     assert "Traceback" not in proc.stderr, proc.stderr
     assert expected in err[-1], proc.stderr
     assert err[-1].startswith("error:"), proc.stderr
+
+
+def test_cli_data_with_errors_is_one_clear_line(tmp_path):
+    """A generic-layout folder with 2 scans but 3 poses: the error names both counts, no traceback."""
+    from neld_jax.data.poses import write_tum
+    from neld_jax.data.scans import write_scan
+
+    root = tmp_path / "seq"
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        write_scan(root / "scans" / f"{i:06d}.pcd", rng.uniform(-5, 5, (100, 3)))
+    write_tum(root / "poses.txt", np.arange(3.0), np.tile(np.eye(4), (3, 1, 1)))
+    proc = _train_cli("--config=configs/generic.py:cpu", f"--config.data.root={root}",
+                      f"--config.output_dir={tmp_path / 'out'}")
+    assert proc.returncode != 0
+    assert "Traceback" not in proc.stderr, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("error:") and "2" in last and "3" in last, proc.stderr

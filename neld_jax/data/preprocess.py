@@ -95,3 +95,15 @@ def preprocess(
         timestamps=None if seq.timestamps is None else seq.timestamps[keep],
         gt_poses=None if seq.gt_poses is None else seq.gt_poses[keep],
     )
+
+
+def load_preprocessed(data_cfg) -> Sequence:
+    """Load the sequence that `data_cfg` (config.data) names and preprocess it with the config's settings.
+
+    The one place where bin/train.py and bin/baseline.py turn a config into the scans they work on.
+    """
+    from neld_jax.data.datasets import load_sequence
+
+    return preprocess(load_sequence(data_cfg), keyframe_interval_s=data_cfg.keyframe_interval_s,
+                      min_range=data_cfg.min_range_m, max_range=data_cfg.max_range_m,
+                      voxel_size=data_cfg.voxel_size_m, max_scans=(data_cfg.max_scans or None))

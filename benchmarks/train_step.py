@@ -22,8 +22,14 @@ pass reuses the coarse densities), so
 
     mlp_flops_per_step = 3 * rays * (coarse + guided + fine) * sum_layers 2 * in * out.
 
-achieved_gflops = mlp_flops_per_step * steps_per_s / 1e9; compare it with `--matmul_peak`'s peak_gflops.
-xla_flops_per_step is XLA's own count for the whole compiled step (all ops, for reference).
+achieved_gflops = mlp_flops_per_step * steps_per_s / 1e9; its fraction of `--matmul_peak`'s "gflops" is the
+step's efficiency. xla_flops_per_step is XLA's own count for the whole compiled step (all ops, for reference).
+On a machine shared with other jobs, compare the CPU-time rates instead (cpu_ms_per_step,
+achieved_gflops_per_cpu_s against the peak's gflops_per_cpu_s): they count the work done, not the waiting.
+
+--profile_dir traces a few steps with jax.profiler.trace (open it in TensorBoard / XProf) and adds "profile" to
+the JSON: thread-milliseconds per step by kind of XLA op (matmul, sin/cos, sort, gather, ...) and the top ops.
+--dump_hlo writes the optimized HLO of the step, where those op names can be looked up.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ from __future__ import annotations
 import glob
 import json
 import logging
+import math
 import os
 import re
 import statistics
@@ -107,7 +114,7 @@ def preset_sizes(preset: str, stage: int = 0) -> tuple[ml_collections.ConfigDict
 
 def configure(config: ml_collections.ConfigDict, sizes: dict, train_steps: int) -> ml_collections.ConfigDict:
     """A copy of `config` with the benchmark's sizes written in (one sample stage)."""
-    c = ml_collections.ConfigDict(config.to_dict())
+    c = config.copy_and_resolve_references()
     c.model.width, c.model.depth = sizes["width"], sizes["depth"]
     c.model.skip_layers = tuple(k for k in sizes["skip_layers"] if k < sizes["depth"])
     c.model.pos_freqs, c.model.dir_freqs = sizes["pos_freqs"], sizes["dir_freqs"]
@@ -180,7 +187,8 @@ def xla_flops(compiled) -> float | None:
 
 
 # Profile summary: the categories of HLO work, tested in this order on the ops of an instruction (a fusion's
-# ops are those of the computation it calls). The first match names the instruction's category.
+# ops are those of the computation it calls). The first match names the instruction's category. A sine or
+# cosine on fewer than SMALL_OP_ELEMENTS elements (the BARF window's) does not make a fusion "sin/cos".
 OP_CATEGORIES = (
     ("matmul", ("dot", "convolution")),
     ("sin/cos (encoding)", ("sine", "cosine")),
@@ -190,7 +198,17 @@ OP_CATEGORIES = (
     ("reduce/cumsum", ("reduce", "reduce-window")),
     ("concatenate/copy/transpose", ("concatenate", "copy", "transpose", "pad", "slice")),
 )
-_HLO_INSTRUCTION = re.compile(r"^\s*(?:ROOT )?%(\S+) = .*? ([a-z][a-z0-9\-]*)\(")
+SMALL_OP_ELEMENTS = 4096
+# "%name = f32[24576,30]{1,0} cosine(%x), ..." -> name, result shape, opcode
+_HLO_INSTRUCTION = re.compile(r"^\s*(?:ROOT )?%(\S+) = (.*?) ([a-z][a-z0-9\-]*)\(")
+
+
+def _num_elements(shape: str) -> int:
+    """Elements of an HLO result shape such as 'f32[24576,30]{1,0}' (a scalar: 1; a tuple: its first array)."""
+    dims = re.search(r"\[([0-9,]*)\]", shape)
+    if dims is None:
+        return 1
+    return math.prod(int(d) for d in dims.group(1).split(",") if d)
 
 
 def hlo_instruction_ops(hlo_text: str) -> dict[str, set]:
@@ -211,14 +229,21 @@ def hlo_instruction_ops(hlo_text: str) -> dict[str, set]:
             m = _HLO_INSTRUCTION.match(line)
             if not m:
                 continue
-            name, opcode = m.groups()
+            name, _, opcode = m.groups()
             callee = re.search(r"calls=%([\w.\-]+)", line)
             if callee and callee.group(1) in computations:
-                body = (_HLO_INSTRUCTION.match(l) for l in computations[callee.group(1)])
-                ops[name] = {b.group(2) for b in body if b}
+                body = [b.groups() for b in map(_HLO_INSTRUCTION.match, computations[callee.group(1)]) if b]
+                ops[name] = {_sized_opcode(op, shape) for _, shape, op in body}
             else:
-                ops[name] = {opcode}
+                ops[name] = {_sized_opcode(opcode, m.group(2))}
     return ops
+
+
+def _sized_opcode(opcode: str, shape: str) -> str:
+    """The opcode, with '-small' appended to a sine/cosine on few elements (so it does not name the category)."""
+    if opcode in ("sine", "cosine") and _num_elements(shape) < SMALL_OP_ELEMENTS:
+        return opcode + "-small"
+    return opcode
 
 
 def op_category(opcodes: set) -> str:
@@ -382,11 +407,23 @@ def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int) ->
 
 def resolve_sizes() -> tuple[ml_collections.ConfigDict, dict]:
     """The preset's config and sizes, with every size flag given on the command line taking precedence."""
-    config, sizes = preset_sizes("cpu" if FLAGS.preset == "none" else FLAGS.preset, FLAGS.stage)
+    preset = "cpu" if FLAGS.preset == "none" else FLAGS.preset
+    preset_config = base_config() if preset == "gpu" else apply_budget(base_config(), "cpu")
+    stages = len(preset_config.sampling.coarse_stages)
+    if not 0 <= FLAGS.stage < stages:
+        raise app.UsageError(f"--stage={FLAGS.stage}: the {preset} preset has stages 0..{stages - 1}")
+    config, sizes = preset_sizes(preset, FLAGS.stage)
     for name in SIZE_FLAGS:
         if FLAGS.preset == "none" or FLAGS[name].present:
             value = FLAGS[name].value
             sizes[name] = tuple(int(v) for v in value) if name == "skip_layers" else int(value)
+    for name in ("rays", "coarse", "width", "depth", "steps", "repeats", "scans", "rays_per_scan"):
+        value = sizes[name] if name in sizes else FLAGS[name].value
+        if value < 1:
+            raise app.UsageError(f"--{name} must be at least 1, got {value}")
+    for name in ("fine", "guided", "pos_freqs", "dir_freqs"):
+        if sizes[name] < 0:
+            raise app.UsageError(f"--{name} must not be negative, got {sizes[name]}")
     return config, sizes
 
 

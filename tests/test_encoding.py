@@ -122,3 +122,14 @@ def test_barf_window():
     # alpha may be traced.
     traced = jax.jit(lambda a: barf_window(a, L))(jnp.asarray(3.25))
     np.testing.assert_allclose(traced, barf_window(3.25, L))
+
+
+def test_sin_cos_pi_matches_numpy_in_float64():
+    """The polynomial sin/cos of the encoding against numpy, over a wide range incl. half-integers and negatives."""
+    from neld_jax.encoding import sin_cos_pi
+
+    with jax.enable_x64(True):
+        t = np.concatenate([np.linspace(-600.0, 600.0, 200_001), np.arange(-40, 41) / 2.0, [-0.25, 0.25, 1e-9]])
+        s, c = sin_cos_pi(jnp.asarray(t, jnp.float64))
+        np.testing.assert_allclose(np.asarray(s), np.sin(np.pi * t), atol=1e-12)
+        np.testing.assert_allclose(np.asarray(c), np.cos(np.pi * t), atol=1e-12)

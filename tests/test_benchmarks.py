@@ -1,0 +1,96 @@
+"""benchmarks/train_step.py: the JSON line of a tiny run, the FLOP count, the matmul mode, the HLO categories.
+
+No timing assertions: only that the benchmark runs, reports what it promises, and counts FLOPs right.
+"""
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "benchmarks" / "train_step.py"
+
+TINY = ["--steps", "2", "--repeats", "1", "--rays", "16", "--coarse", "4", "--fine", "2", "--width", "8",
+        "--depth", "1", "--scans", "2", "--rays_per_scan", "64"]
+STEP_KEYS = {"steps_per_s", "rays_per_s", "samples_per_s", "compile_s", "mlp_flops_per_step", "achieved_gflops",
+             "device", "jax_version", "config", "cpu_ms_per_step", "xla_flops_per_step", "profile"}
+
+
+def _load_benchmark_module():
+    spec = importlib.util.spec_from_file_location("benchmark_train_step", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+bench = _load_benchmark_module()
+
+
+def test_tiny_run_prints_one_json_line_with_the_promised_keys(tmp_path):
+    hlo_file = tmp_path / "step.hlo"
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    args = TINY + ["--profile_dir", str(tmp_path / "trace"), "--profile_steps", "1", "--dump_hlo", str(hlo_file)]
+    result = subprocess.run([sys.executable, str(SCRIPT), *args], cwd=ROOT, env=env, capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-3000:]
+    lines = [line for line in result.stdout.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stdout
+    record = json.loads(lines[0])
+    assert STEP_KEYS <= set(record), STEP_KEYS - set(record)
+    assert record["benchmark"] == "train_step" and record["preset"] == "none"
+    assert record["steps_per_s"] > 0 and record["compile_s"] > 0
+    assert record["config"]["rays"] == 16 and record["config"]["samples_per_ray"] == 6
+    assert record["config"]["skip_layers"] == []  # the default skip layer 2 does not exist at depth 1
+    # Analytic count: pos 3 * (1 + 2 * 10) = 63 -> 8; density head (8 + 2 * (1 + 2 * 2)) = 18 -> 4; 4 -> 1.
+    per_point = 2 * (63 * 8 + 18 * 4 + 4 * 1)
+    assert record["mlp_flops_per_point_forward"] == per_point
+    assert record["mlp_flops_per_step"] == 3 * 16 * 6 * per_point
+    assert record["samples_per_s"] == pytest.approx(record["steps_per_s"] * 16 * 6)
+    assert "ENTRY" in hlo_file.read_text()
+    assert record["profile"]["thread_ms_per_step"] > 0
+    assert "matmul" in record["profile"]["by_category_ms"]
+
+
+def test_preset_fills_the_flags_and_a_given_flag_wins():
+    config, sizes = bench.preset_sizes("cpu")
+    assert (sizes["rays"], sizes["coarse"], sizes["guided"], sizes["fine"]) == (512, 32, 16, 16)
+    assert (sizes["width"], sizes["depth"], sizes["pos_freqs"]) == (128, 4, 10)
+    _, gpu = bench.preset_sizes("gpu", stage=2)
+    assert (gpu["width"], gpu["depth"], gpu["coarse"], gpu["fine"]) == (512, 8, 64, 32)
+    configured = bench.configure(config, dict(sizes, depth=2, coarse=8), train_steps=5)
+    assert configured.model.skip_layers == ()  # layer 2 is dropped at depth 2
+    assert configured.sampling.coarse_stages == (8,) and configured.train.steps == 5
+    assert config.model.depth == 4, "configure must not change the preset's config"
+
+
+def test_mlp_flops_per_point_counts_every_dense_kernel():
+    params = {"a": {"kernel": jnp.zeros((63, 128)), "bias": jnp.zeros(128)}, "b": {"kernel": jnp.zeros((128, 1))}}
+    assert bench.mlp_flops_per_point(params) == 2 * (63 * 128 + 128 * 1)
+
+
+def test_matmul_peak_reports_positive_rates():
+    record = bench.benchmark_matmul_peak({"rays": 4, "coarse": 2, "guided": 0, "fine": 2, "width": 16}, [32], 1)
+    assert record["benchmark"] == "matmul_peak" and record["config"]["points"] == 16
+    assert set(record["square_gflops"]) == {"32"} and set(record["mlp_shaped_gflops"]) == {"16x16x16"}
+    assert record["gflops"] == max([*record["square_gflops"].values(), *record["mlp_shaped_gflops"].values()]) > 0
+
+
+def test_hlo_categories_find_the_matmul_and_the_sine():
+    def f(a, b):
+        return jnp.sin(a @ b) * 2.0
+
+    a = jnp.ones((128, 64))
+    compiled = jax.jit(f).lower(a, jnp.ones((64, 64))).compile()
+    ops = bench.hlo_instruction_ops(compiled.as_text())
+    categories = {bench.op_category(o) for o in ops.values()}
+    assert "matmul" in categories and "sin/cos (encoding)" in categories
+    # A sine on a handful of elements (a BARF window) does not make its fusion a sin/cos op.
+    assert bench.op_category({"sine-small", "multiply"}) == "elementwise/other"
+    assert bench._num_elements("f32[24576,30]{1,0}") == 24576 * 30 and bench._num_elements("f32[]") == 1

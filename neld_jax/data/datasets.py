@@ -202,16 +202,24 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
     files = _sorted_by_name(_list_scans(scan_folder))
     scan_times = _timestamps_from_names(files, scan_folder, "<timestamp>.pcd")
 
-    pose_file = _first_existing(root, FUSIONPORTABLE_POSE_FILES)
+    return _timestamped_sequence(root, files, scan_times, scan_folder, FUSIONPORTABLE_POSE_FILES,
+                                 FUSIONPORTABLE_GT_FILES, read_tum, tol)
+
+
+def _timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray, scan_folder: Path,
+                          pose_files: tuple[str, ...], gt_files: tuple[str, ...], read_gt, tol: float) -> Sequence:
+    """The part that FusionPortable and Newer College share: scans with timestamps, initial poses (TUM) and
+    optional ground truth (read by `read_gt`) matched to them by nearest timestamp, optional GT map."""
+    pose_file = _first_existing(root, pose_files)
     if pose_file is None:
-        raise DataError(f"{root}: no initial pose file (looked for {', '.join(FUSIONPORTABLE_POSE_FILES)})")
+        raise DataError(f"{root}: no initial pose file (looked for {', '.join(pose_files)})")
     pose_times, poses = read_tum(pose_file)
     poses = _align(poses, pose_times, scan_times, len(files), pose_file, tol, scan_folder)
 
     gt_poses = None
-    gt_file = _first_existing(root, FUSIONPORTABLE_GT_FILES)
+    gt_file = _first_existing(root, gt_files)
     if gt_file is not None:
-        gt_times, gt_all = read_tum(gt_file)
+        gt_times, gt_all = read_gt(gt_file)
         gt_poses = _align(gt_all, gt_times, scan_times, len(files), gt_file, tol, scan_folder)
 
     return Sequence(
@@ -271,27 +279,8 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
     files = [files[i] for i in order]
     scan_times = np.asarray(times, dtype=np.float64)[order]
 
-    pose_file = _first_existing(root, NEWER_COLLEGE_POSE_FILES)
-    if pose_file is None:
-        raise DataError(f"{root}: no initial pose file (looked for {', '.join(NEWER_COLLEGE_POSE_FILES)})")
-    pose_times, poses = read_tum(pose_file)
-    poses = _align(poses, pose_times, scan_times, len(files), pose_file, tol, scan_folder)
-
-    gt_poses = None
-    gt_file = _first_existing(root, NEWER_COLLEGE_GT_FILES)
-    if gt_file is not None:
-        gt_times, gt_all = read_newer_college_csv(gt_file)
-        gt_poses = _align(gt_all, gt_times, scan_times, len(files), gt_file, tol, scan_folder)
-
-    return Sequence(
-        scans=_read_scans(files),
-        poses=poses,
-        timestamps=scan_times,
-        gt_poses=gt_poses,
-        gt_map=_read_gt_map(root),
-        name=root.name,
-        source=str(root),
-    )
+    return _timestamped_sequence(root, files, scan_times, scan_folder, NEWER_COLLEGE_POSE_FILES,
+                                 NEWER_COLLEGE_GT_FILES, read_newer_college_csv, tol)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -14,7 +14,16 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from neld_jax.cli import main_with_config  # noqa: E402
+from neld_jax.evaluate import format_table  # noqa: E402
 from neld_jax.run import run  # noqa: E402
 
+
+def job(config):
+    summary = run(config)
+    print(f"{summary['steps']} steps in {summary['train_seconds']:.0f} s; outputs in {config.output_dir}")
+    if "evaluation" in summary:
+        print(format_table(summary["evaluation"]))
+
+
 if __name__ == "__main__":
-    main_with_config(run)
+    main_with_config(job)

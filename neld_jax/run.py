@@ -117,11 +117,10 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     with open(os.path.join(out_dir, "history.json"), "w") as f:
         json.dump(result.history, f)
     if seq.gt_poses is not None or seq.gt_map is not None:
-        from neld_jax.evaluate import evaluate_run, format_table
+        from neld_jax.evaluate import evaluate_run
 
-        evaluation = evaluate_run(out_dir, threshold=config.eval.f1_threshold_m, raw_cutoff=config.eval.raw_cutoff_m)
-        summary["evaluation"] = evaluation
-        print(format_table(evaluation))
+        summary["evaluation"] = evaluate_run(out_dir, threshold=config.eval.f1_threshold_m,
+                                             raw_cutoff=config.eval.raw_cutoff_m)
     return summary
 
 

@@ -51,9 +51,9 @@ from absl import app, flags  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import ml_collections  # noqa: E402
-import numpy as np  # noqa: E402
 
-from neld_jax import lie, train  # noqa: E402
+from neld_jax import train  # noqa: E402
+from neld_jax.data.rays import sphere_scene_rays  # noqa: E402
 from neld_jax.config import apply_budget, base_config  # noqa: E402
 
 logger = logging.getLogger(__name__)
@@ -130,20 +130,8 @@ def synthetic_rays(num_scans: int, rays_per_scan: int, seed: int = 0) -> tuple[t
 
     Returns (RayData with R = num_scans * rays_per_scan rays, T_init [S, 4, 4]), float32, on the device.
     """
-    rng = np.random.default_rng(seed)
-    T = np.tile(np.eye(4), (num_scans, 1, 1))
-    T[:, :3, 3] = rng.uniform(-0.3, 0.3, (num_scans, 3))
-    T[:, :3, :3] = np.asarray(lie.so3_exp(jnp.asarray(rng.normal(0.0, 0.3, (num_scans, 3)))))
-    d = rng.normal(size=(num_scans * rays_per_scan, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    scan = np.repeat(np.arange(num_scans), rays_per_scan)
-    # Range from inside to the sphere |o + r R d| = 0.8.
-    d_world = np.einsum("rij,rj->ri", T[scan, :3, :3], d)
-    o = T[scan, :3, 3]
-    b = np.sum(o * d_world, axis=1)
-    r = -b + np.sqrt(b**2 - (np.sum(o * o, axis=1) - 0.64))
-    rays = train.RayData(jnp.asarray(d, jnp.float32), jnp.asarray(r, jnp.float32), jnp.asarray(scan, jnp.int32))
-    return rays, jnp.asarray(T, jnp.float32)
+    rays, T = sphere_scene_rays(num_scans, rays_per_scan, seed)
+    return train.device_rays(rays), jnp.asarray(T, jnp.float32)
 
 
 def mlp_flops_per_point(field_params) -> int:

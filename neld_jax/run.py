@@ -64,8 +64,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     raysets = build_rays(seq, norm, max_rays_per_scan=(config.data.max_rays_per_scan or None), seed=config.seed)
     logger.info("%d scans, %d training rays, normalisation scale %.5f (1 normalised unit = %.2f m)",
                 seq.num_scans, raysets.num_rays, norm.scale, 1.0 / norm.scale)
-    rays = train.RayData(jnp.asarray(raysets.directions, jnp.float32), jnp.asarray(raysets.ranges, jnp.float32),
-                         jnp.asarray(raysets.scan_index, jnp.int32))
+    rays = train.device_rays(raysets)
     T_init = jnp.asarray(norm.poses_to_normalized(seq.poses), jnp.float32)
 
     # Resume from the latest checkpoint of this output_dir, if any.

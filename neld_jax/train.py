@@ -43,6 +43,12 @@ class RayData(NamedTuple):
     scan_index: jax.Array  # [R] int32
 
 
+def device_rays(rayset) -> RayData:
+    """A neld_jax.data.rays.RaySet (numpy) on the device, with the dtypes the step expects."""
+    return RayData(jnp.asarray(rayset.directions, jnp.float32), jnp.asarray(rayset.ranges, jnp.float32),
+                   jnp.asarray(rayset.scan_index, jnp.int32))
+
+
 @flax.struct.dataclass
 class TrainState:
     step: jax.Array  # scalar int32

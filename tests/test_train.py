@@ -5,7 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from neld_jax import lie, train
+from neld_jax import train
+from neld_jax.data.rays import sphere_scene_rays
 from neld_jax.errors import ConfigError
 
 from conftest import make_tiny_config
@@ -13,20 +14,8 @@ from conftest import make_tiny_config
 
 def _random_rays(num_scans=3, per_scan=64, seed=0):
     """Rays of `num_scans` scans whose sensors sit inside the cube, looking at a sphere of radius 0.8."""
-    rng = np.random.default_rng(seed)
-    T = np.tile(np.eye(4), (num_scans, 1, 1))
-    T[:, :3, 3] = rng.uniform(-0.2, 0.2, (num_scans, 3))
-    T[:, :3, :3] = np.asarray(lie.so3_exp(jnp.asarray(rng.normal(0, 0.3, (num_scans, 3)))))
-    d = rng.normal(size=(num_scans * per_scan, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    scan = np.repeat(np.arange(num_scans), per_scan)
-    # Range to the sphere |o + r R d| = 0.8 from inside.
-    dw = np.einsum("rij,rj->ri", T[scan, :3, :3], d)
-    o = T[scan, :3, 3]
-    b = np.sum(o * dw, 1)
-    r = -b + np.sqrt(b**2 - (np.sum(o * o, 1) - 0.64))
-    rays = train.RayData(jnp.asarray(d, jnp.float32), jnp.asarray(r, jnp.float32), jnp.asarray(scan, jnp.int32))
-    return rays, jnp.asarray(T, jnp.float32)
+    rays, T = sphere_scene_rays(num_scans, per_scan, seed, spread=0.2)
+    return train.device_rays(rays), jnp.asarray(T, jnp.float32)
 
 
 def test_poses_frozen_before_k_star_then_move_and_scan0_fixed():

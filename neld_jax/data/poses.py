@@ -159,13 +159,19 @@ def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return values[:, 0].copy(), make_poses(values[:, 1:4], quaternions)
 
 
-def write_tum(path: str | os.PathLike, timestamps: np.ndarray, poses: np.ndarray) -> None:
-    """Write timestamps: [S] and poses: [S, 4, 4] as TUM ('%.9f' time, full-precision pose values)."""
-    path = Path(path)
+def _check_stamped_poses(path: Path, timestamps, poses) -> tuple[np.ndarray, np.ndarray]:
+    """Validate what a writer is given: poses [S, 4, 4] and one timestamp per pose."""
     poses = _check_pose_array(path, poses)
     timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
     if timestamps.shape[0] != poses.shape[0]:
         raise DataError(f"{path}: {timestamps.shape[0]} timestamps for {poses.shape[0]} poses")
+    return timestamps, poses
+
+
+def write_tum(path: str | os.PathLike, timestamps: np.ndarray, poses: np.ndarray) -> None:
+    """Write timestamps: [S] and poses: [S, 4, 4] as TUM ('%.9f' time, full-precision pose values)."""
+    path = Path(path)
+    timestamps, poses = _check_stamped_poses(path, timestamps, poses)
     quaternions = rotation_to_quat(poses[:, :3, :3])
     lines = ["# timestamp tx ty tz qx qy qz qw"]
     for t, pose, q in zip(timestamps, poses, quaternions):
@@ -237,10 +243,7 @@ def read_newer_college_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndar
 def write_newer_college_csv(path: str | os.PathLike, timestamps: np.ndarray, poses: np.ndarray) -> None:
     """Write timestamps: [S] and poses: [S, 4, 4] in the Newer College CSV layout (with header)."""
     path = Path(path)
-    poses = _check_pose_array(path, poses)
-    timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
-    if timestamps.shape[0] != poses.shape[0]:
-        raise DataError(f"{path}: {timestamps.shape[0]} timestamps for {poses.shape[0]} poses")
+    timestamps, poses = _check_stamped_poses(path, timestamps, poses)
     quaternions = rotation_to_quat(poses[:, :3, :3])
     lines = [NEWER_COLLEGE_HEADER]
     for t, pose, q in zip(timestamps, poses, quaternions):

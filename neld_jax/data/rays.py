@@ -83,3 +83,26 @@ def direction_angles(directions) -> jax.Array:
     azimuth = jnp.arctan2(directions[..., 1], directions[..., 0])
     elevation = jnp.arcsin(jnp.clip(directions[..., 2], -1.0, 1.0))
     return jnp.stack([azimuth, elevation], axis=-1)
+
+
+def sphere_scene_rays(num_scans: int, rays_per_scan: int, seed: int = 0, radius: float = 0.8,
+                      spread: float = 0.3) -> tuple[RaySet, np.ndarray]:
+    """An analytic ray set for tests and benchmarks, already in the normalised frame: `num_scans` sensors at
+    random poses within +-spread of the origin, each casting `rays_per_scan` random unit rays at a sphere of
+    `radius` around the origin. Returns (RaySet with exact ranges, T_init [S, 4, 4] float64)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    T = np.tile(np.eye(4), (num_scans, 1, 1))
+    T[:, :3, 3] = rng.uniform(-spread, spread, (num_scans, 3))
+    T[:, :3, :3] = Rotation.from_rotvec(rng.normal(0.0, 0.3, (num_scans, 3))).as_matrix()
+    d = rng.normal(size=(num_scans * rays_per_scan, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    scan = np.repeat(np.arange(num_scans), rays_per_scan)
+    # Range from inside to the sphere: |o + r R d| = radius, the positive root.
+    d_world = np.einsum("rij,rj->ri", T[scan, :3, :3], d)
+    o = T[scan, :3, 3]
+    b = np.sum(o * d_world, axis=1)
+    r = -b + np.sqrt(b**2 - (np.sum(o * o, axis=1) - radius**2))
+    rays = RaySet(directions=d.astype(np.float32), ranges=r.astype(np.float32), scan_index=scan.astype(np.int32))
+    return rays, T

@@ -77,7 +77,11 @@ def base_config() -> ml_collections.ConfigDict:
     c.train.c2f_end_fraction = 0.75  # alpha ramps 0 -> pos_freqs over 120k of 160k steps (BARF)
     c.train.pose_start_freq = 6  # k*: poses start moving once this frequency is active
     c.train.pose_warmup_steps = 0  # extra: poses stay frozen at least this many steps (0 = only k*)
-    c.train.fixed_scans = (0,)  # gauge: these scans never move
+    c.train.fixed_scans = (0,)  # gauge: these scans never move during the optimisation (the paper's choice)
+    # After training, re-express poses and maps so that this scan keeps its initial pose (-1: off). With scan 0
+    # fixed this changes nothing; with fixed_scans=() (every pose free, the field holds the frame) it puts the
+    # result back in the input's frame.
+    c.train.anchor_scan = 0
     c.train.checkpoint_every = 5000
     c.train.log_every = 100
     c.train.max_minutes = 0.0  # 0: no wall-clock limit; else stop (and checkpoint) after this long

@@ -70,6 +70,16 @@ def scan_poses(poses: jax.Array, T_init: jax.Array) -> jax.Array:
     return lie.apply_correction(poses, T_init)
 
 
+def anchor_transform(T_opt: jax.Array, T_ref: jax.Array, anchor: int) -> jax.Array:
+    """The rigid transform G [4, 4] with G @ T_opt[anchor] == T_ref[anchor].
+
+    The density field, not a fixed scan, holds the frame when every pose is free; applying G to all poses and
+    map points afterwards re-expresses the result so that the anchor scan keeps its reference (initial) pose.
+    It changes no relative pose, so trajectory error after alignment and map quality are untouched.
+    """
+    return lie.compose(T_ref[anchor], lie.invert(T_opt[anchor]))
+
+
 def world_rays(T_scan: jax.Array, directions_local: jax.Array) -> tuple[jax.Array, jax.Array]:
     """T_scan: [R, 4, 4] pose of each ray's scan, directions_local: [R, 3] unit, sensor frame.
 

@@ -26,7 +26,7 @@ from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.preprocess import load_preprocessed, voxel_downsample
 from neld_jax.data.rays import build_rays
 from neld_jax.mapping import render_map
-from neld_jax.model import scan_poses
+from neld_jax.model import anchor_transform, scan_poses
 
 logger = logging.getLogger(__name__)
 
@@ -86,7 +86,13 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     state = result.state
 
     # Poses back in the input's world frame and scale.
-    T_opt_n = np.asarray(scan_poses(state.params["poses"], T_init), np.float64)
+    # Poses in the field's frame (what the field renders with), then anchored (train.anchor_scan) so that the
+    # anchor scan keeps its initial pose, then back in the input's world frame and scale.
+    T_field_n = np.asarray(scan_poses(state.params["poses"], T_init), np.float64)
+    G_n = np.eye(4)
+    if config.train.anchor_scan >= 0:
+        G_n = np.asarray(anchor_transform(T_field_n, np.asarray(T_init, np.float64), int(config.train.anchor_scan)))
+    T_opt_n = G_n @ T_field_n
     T_opt = norm.poses_to_world(T_opt_n)
     export.write_poses(out_dir, "poses_initial", seq.timestamps, seq.poses)
     export.write_poses(out_dir, "poses_optimized", seq.timestamps, T_opt)
@@ -99,7 +105,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     export.write_raw_map(os.path.join(out_dir, "map_raw_initial.ply"), seq.scans, seq.poses, voxel_size=voxel)
 
     if config.mapping.enabled:
-        _write_rendered_map(config, state, norm, seq, T_opt_n, out_dir, progress)
+        _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress)
 
     summary = {
         "config_hash": chash,
@@ -123,14 +129,15 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     return summary
 
 
-def _write_rendered_map(config, state, norm, seq, T_opt_n, out_dir, progress):
+def _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress):
+    """Render the map with the poses in the field's frame (T_field_n), then move it by the anchor transform G_n."""
     m = config.mapping
     mapping_rays = build_rays(seq, norm, max_rays_per_scan=(m.max_rays_per_scan or None), seed=config.seed + 1)
     settings = train.render_settings(config, norm.scale, m.num_coarse, m.num_fine)
     # The map is rendered with the paper's sampler (no measured ranges), whatever the training options.
     settings = dataclasses.replace(settings, guided_samples=0)
     alpha = float(train.make_schedules(config).alpha(int(state.step)))  # the window the field was trained with
-    points_n = render_map(state.params["field"], settings, T_opt_n, mapping_rays.directions, mapping_rays.scan_index,
+    points_n = render_map(state.params["field"], settings, T_field_n, mapping_rays.directions, mapping_rays.scan_index,
                           alpha, rays_per_batch=int(m.rays_per_batch), min_opacity=float(m.min_opacity),
                           progress=progress)
     logger.info("rendered map: %d of %d rays end on a surface", len(points_n), mapping_rays.num_rays)
@@ -138,6 +145,6 @@ def _write_rendered_map(config, state, norm, seq, T_opt_n, out_dir, progress):
         logger.warning("rendered map is empty: no ray reached opacity %.2f (train longer or lower "
                        "mapping.min_opacity); map_rendered.ply not written", m.min_opacity)
         return
-    points = norm.points_to_world(points_n)
+    points = norm.points_to_world(points_n @ G_n[:3, :3].T + G_n[:3, 3])
     path = os.path.join(out_dir, "map_rendered.ply")
     export.write_point_cloud(path, voxel_downsample(points, float(m.voxel_size_m)))

@@ -20,9 +20,15 @@ class _Killed(Exception):
     pass
 
 
+def _free_gauge(config):
+    config.train.fixed_scans = ()
+    config.train.anchor_scan = 0
+    return config
+
+
 def test_run_writes_outputs_and_resumes_after_a_kill(tmp_path, monkeypatch):
     # Reference: an uninterrupted run.
-    ref_cfg = make_tiny_config(str(tmp_path / "ref"), steps=12)
+    ref_cfg = _free_gauge(make_tiny_config(str(tmp_path / "ref"), steps=12))
     ref = run.run(ref_cfg, progress=False)
     assert ref["steps"] == 12
 
@@ -32,11 +38,15 @@ def test_run_writes_outputs_and_resumes_after_a_kill(tmp_path, monkeypatch):
         assert (tmp_path / "ref" / name).is_file(), name
     t_opt, T_opt = read_tum(tmp_path / "ref" / "poses_optimized.txt")
     np.testing.assert_allclose(read_kitti(tmp_path / "ref" / "poses_optimized.kitti")[:, :3], T_opt[:, :3], atol=1e-6)
+    # Every pose was free (the field holds the frame); the output is anchored so scan 0 keeps its initial pose.
+    _, T_initial = read_tum(tmp_path / "ref" / "poses_initial.txt")
+    np.testing.assert_allclose(T_opt[0], T_initial[0], atol=1e-6)
+    assert np.abs(T_opt[1:] - T_initial[1:]).max() > 1e-6
     metrics = json.loads((tmp_path / "ref" / "metrics.json").read_text())
     assert metrics["run"]["steps"] == 12
 
     # A run killed right after its first checkpoint (step 5) ...
-    cfg = make_tiny_config(str(out), steps=12)
+    cfg = _free_gauge(make_tiny_config(str(out), steps=12))
     real_save = checkpoint.Checkpointer.save
 
     def save_then_die(self, state, metadata):
@@ -50,7 +60,7 @@ def test_run_writes_outputs_and_resumes_after_a_kill(tmp_path, monkeypatch):
     assert checkpoint.Checkpointer(str(out / "checkpoints")).latest_step() == 5
 
     # ... and rerun with the same output_dir resumes there and ends at the same final step and poses.
-    resumed = run.run(make_tiny_config(str(out), steps=12), progress=False)
+    resumed = run.run(_free_gauge(make_tiny_config(str(out), steps=12)), progress=False)
     assert resumed["steps"] == 12
     _, T_resumed = read_tum(out / "poses_optimized.txt")
     np.testing.assert_allclose(T_resumed, T_opt, atol=1e-6)

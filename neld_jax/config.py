@@ -151,6 +151,11 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
     c.train.pose_lr_trans_final = 1e-5
     c.train.c2f_end_fraction = 0.5
     c.train.pose_start_freq = 6
+    # Every pose free, the field holds the frame, the result is anchored on scan 0 afterwards. Fixing scan 0
+    # during training leaves it behind the others, which follow the field that the drifted majority built:
+    # measured on the demo, ATE 0.031 m with scan 0 fixed against 0.0027 m free (benchmarks/RESULTS.md).
+    c.train.fixed_scans = ()
+    c.train.anchor_scan = 0
     c.train.checkpoint_every = 500
     c.train.log_every = 25
     c.train.max_minutes = 8.0  # a guard: the whole run (with the map) stays under 10 minutes on a busy machine

@@ -71,12 +71,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"))
     state = None
     if ckpt.latest_step() is not None:
-        schedules = train.make_schedules(config)
-        tx = train.make_optimizer(config, schedules, seq.num_scans)
-        c0, f0 = schedules.samples(0)
-        template = train.create_train_state(config, jax.random.PRNGKey(config.seed), seq.num_scans, tx,
-                                            train.render_settings(config, norm.scale, c0, f0))
-        state, _ = ckpt.restore(template, expected_config_hash=chash)
+        state, _ = ckpt.restore(train.initial_state(config, seq.num_scans, norm.scale), expected_config_hash=chash)
     metadata = {"config_hash": chash, "normalization": norm.to_dict(), "num_scans": seq.num_scans}
     t_train = time.perf_counter()
     result = train.fit(config, rays, T_init, norm.scale, state=state,

@@ -198,6 +198,14 @@ def create_train_state(config, key: jax.Array, num_scans: int, tx: optax.Gradien
     return TrainState(step=jnp.zeros([], jnp.int32), params=params, opt_state=tx.init(params), key=key_state)
 
 
+def initial_state(config, num_scans: int, scale: float) -> TrainState:
+    """The state a run starts from (seeded by config.seed); also the template a checkpoint restores into."""
+    schedules = make_schedules(config)
+    tx = make_optimizer(config, schedules, num_scans)
+    settings = render_settings(config, scale, *schedules.samples(0))
+    return create_train_state(config, jax.random.PRNGKey(config.seed), num_scans, tx, settings)
+
+
 def _pass_losses(rendered, z: jax.Array, ranges: jax.Array, termination: bool) -> tuple[jax.Array, jax.Array]:
     """L1 range loss and termination loss of one pass (coarse or fine)."""
     l_range = losses.range_l1(rendered.depth, ranges)
@@ -282,9 +290,8 @@ def fit(
     num_scans = int(T_init.shape[0])
     schedules = make_schedules(config)
     tx = make_optimizer(config, schedules, num_scans)
-    c0, f0 = schedules.samples(0)
     if state is None:
-        state = create_train_state(config, jax.random.PRNGKey(config.seed), num_scans, tx, render_settings(config, scale, c0, f0))
+        state = initial_state(config, num_scans, scale)
     step_fn = make_train_step(tx, schedules, loss_settings(config), int(config.train.batch_rays))
 
     start = int(state.step)

@@ -26,6 +26,7 @@ from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.preprocess import load_preprocessed, voxel_downsample
 from neld_jax.data.rays import build_rays
 from neld_jax.mapping import render_map
+from neld_jax.metrics import align_points
 from neld_jax.model import anchor_transform, scan_poses
 
 logger = logging.getLogger(__name__)
@@ -80,7 +81,6 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     ckpt.close()
     state = result.state
 
-    # Poses back in the input's world frame and scale.
     # Poses in the field's frame (what the field renders with), then anchored (train.anchor_scan) so that the
     # anchor scan keeps its initial pose, then back in the input's world frame and scale.
     T_field_n = np.asarray(scan_poses(state.params["poses"], T_init), np.float64)
@@ -140,6 +140,6 @@ def _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progr
         logger.warning("rendered map is empty: no ray reached opacity %.2f (train longer or lower "
                        "mapping.min_opacity); map_rendered.ply not written", m.min_opacity)
         return
-    points = norm.points_to_world(points_n @ G_n[:3, :3].T + G_n[:3, 3])
+    points = norm.points_to_world(align_points(points_n, G_n))
     path = os.path.join(out_dir, "map_rendered.ply")
     export.write_point_cloud(path, voxel_downsample(points, float(m.voxel_size_m)))

@@ -18,6 +18,7 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from absl import app, flags  # noqa: E402
+from neld_jax.hugepages import reexec_with_huge_page_malloc  # noqa: E402
 
 # name -> synthetic overrides. "easy" is the demo's sequence; "hard" doubles the odometry drift on another scene.
 SEQUENCES = {
@@ -77,4 +78,5 @@ def main(argv):
 
 
 if __name__ == "__main__":
+    reexec_with_huge_page_malloc()  # ~25% faster CPU steps: see neld_jax/hugepages.py
     app.run(main)

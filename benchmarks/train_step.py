@@ -4,6 +4,7 @@
     python benchmarks/train_step.py --preset=cpu                  # the CPU budget's step
     python benchmarks/train_step.py --preset=gpu --stage=2        # the paper's step, last sample stage
     python benchmarks/train_step.py --preset=cpu --matmul_peak    # GFLOP/s of plain matmuls, same backend
+    python benchmarks/train_step.py --preset=cpu --efficiency     # both, alternately: the step's share of the peak
     python benchmarks/train_step.py --rays 256 --coarse 16 --fine 8 --width 64 --depth 2
 
 Each run prints ONE JSON line on stdout (logs go to stderr). The train step runs on synthetic rays built in
@@ -53,6 +54,7 @@ import jax.numpy as jnp  # noqa: E402
 import ml_collections  # noqa: E402
 
 from neld_jax import train  # noqa: E402
+from neld_jax.hugepages import reexec_with_huge_page_malloc  # noqa: E402
 from neld_jax.data.rays import sphere_scene_rays  # noqa: E402
 from neld_jax.config import apply_budget, base_config  # noqa: E402
 
@@ -81,6 +83,8 @@ flags.DEFINE_integer("scans", 8, "Scans in the synthetic ray set.")
 flags.DEFINE_integer("rays_per_scan", 4096, "Rays per scan in the synthetic ray set.")
 flags.DEFINE_integer("seed", 0, "Seed of the synthetic rays and the parameters.")
 flags.DEFINE_bool("matmul_peak", False, "Measure float32 matmul GFLOP/s instead of the train step.")
+flags.DEFINE_bool("efficiency", False, "Time the step and the matmul peak alternately in this process and report "
+                  "the step's GFLOP/s as a fraction of the peak (median over --repeats rounds).")
 flags.DEFINE_list("matmul_sizes", ["256", "512", "1024", "2048"], "Square matmul sizes for --matmul_peak.")
 flags.DEFINE_string("profile_dir", "", "If set, trace --profile_steps steps with jax.profiler.trace into it.")
 flags.DEFINE_integer("profile_steps", 5, "Steps inside the profiler trace.")
@@ -272,56 +276,69 @@ def summarize_profile(xplane_path: str, hlo_text: str, num_steps: int, top: int 
 # Benchmarks (effects: compile, run, time)
 
 
+class StepRunner:
+    """The trainer's jitted step at `sizes`, compiled once, on in-memory synthetic rays.
+
+    run(n) runs n consecutive steps (the state is donated, as in the trainer, so each step's output feeds the
+    next) and blocks until they are done; it returns the last step's metrics.
+    """
+
+    def __init__(self, config: ml_collections.ConfigDict, sizes: dict, train_steps: int, num_scans: int = 8,
+                 rays_per_scan: int = 4096, seed: int = 0):
+        self.sizes = sizes
+        self.config = configure(config, sizes, train_steps=train_steps)
+        self.rays, self.T_init = synthetic_rays(num_scans, rays_per_scan, seed)
+        schedules = train.make_schedules(self.config)
+        tx = train.make_optimizer(self.config, schedules, num_scans)
+        settings = train.render_settings(self.config, SYNTHETIC_SCALE, sizes["coarse"], sizes["fine"])
+        self.state = train.create_train_state(self.config, jax.random.PRNGKey(seed), num_scans, tx, settings)
+        step_fn = train.make_train_step(tx, schedules, train.loss_settings(self.config), sizes["rays"])
+        t0 = time.perf_counter()
+        self.compiled = step_fn.lower(self.state, self.rays, self.T_init, settings=settings).compile()
+        self.compile_s = time.perf_counter() - t0
+
+    def run(self, n: int):
+        state, metrics = self.state, None
+        for _ in range(n):
+            state, metrics = self.compiled(state, self.rays, self.T_init)  # donated: feed the newest one back
+        jax.block_until_ready((state, metrics))
+        self.state = state
+        return metrics
+
+    def mlp_flops_per_step(self) -> int:
+        """3 * points per step * forward FLOPs per point (see the module docstring)."""
+        s = self.sizes
+        return 3 * s["rays"] * (s["coarse"] + s["guided"] + s["fine"]) * mlp_flops_per_point(self.state.params["field"])
+
+
 def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int,
                          num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0,
                          profile_dir: str = "", profile_steps: int = 5, dump_hlo: str = "") -> dict:
     """Compile, warm up and time the trainer's jitted step at `sizes`; returns the JSON-ready record."""
-    config = configure(config, sizes, train_steps=steps * repeats + profile_steps + 1)
-    rays, T_init = synthetic_rays(num_scans, rays_per_scan, seed)
-    schedules = train.make_schedules(config)
-    tx = train.make_optimizer(config, schedules, num_scans)
-    settings = train.render_settings(config, SYNTHETIC_SCALE, sizes["coarse"], sizes["fine"])
-    state = train.create_train_state(config, jax.random.PRNGKey(seed), num_scans, tx, settings)
-    step_fn = train.make_train_step(tx, schedules, train.loss_settings(config), sizes["rays"])
-
-    t0 = time.perf_counter()
-    compiled = step_fn.lower(state, rays, T_init, settings=settings).compile()
-    compile_s = time.perf_counter() - t0
+    runner = StepRunner(config, sizes, steps * repeats + profile_steps + 1, num_scans, rays_per_scan, seed)
     if dump_hlo:
         with open(dump_hlo, "w") as f:
-            f.write(compiled.as_text())
+            f.write(runner.compiled.as_text())
         logger.info("optimized HLO written to %s", dump_hlo)
 
-    holder = {"state": state}
-
-    def run_steps(n: int):
-        s = holder["state"]
-        metrics = None
-        for _ in range(n):
-            s, metrics = compiled(s, rays, T_init)  # state donated: always feed the newest one back
-        jax.block_until_ready((s, metrics))
-        holder["state"] = s
-        return metrics
-
     t0 = time.perf_counter()
-    metrics = run_steps(1)
+    metrics = runner.run(1)
     warmup_s = time.perf_counter() - t0
     loss = float(metrics["loss"])
-    median_s, times, median_cpu_s = median_seconds(lambda: run_steps(steps), repeats)
+    median_s, times, median_cpu_s = median_seconds(lambda: runner.run(steps), repeats)
 
     profile = None
     if profile_dir:
         with jax.profiler.trace(profile_dir):
-            run_steps(profile_steps)
+            runner.run(profile_steps)
         logger.info("profile of %d steps written under %s", profile_steps, profile_dir)
         traces = sorted(glob.glob(os.path.join(profile_dir, "plugins", "profile", "*", "*.xplane.pb")), key=os.path.getmtime)
         if traces:
-            profile = summarize_profile(traces[-1], compiled.as_text(), profile_steps)
+            profile = summarize_profile(traces[-1], runner.compiled.as_text(), profile_steps)
 
     steps_per_s = steps / median_s
     samples_per_ray = sizes["coarse"] + sizes["guided"] + sizes["fine"]
-    flops_point = mlp_flops_per_point(holder["state"].params["field"])
-    mlp_flops_step = 3 * sizes["rays"] * samples_per_ray * flops_point
+    mlp_flops_step = runner.mlp_flops_per_step()
     return {
         "benchmark": "train_step",
         "steps_per_s": steps_per_s,
@@ -329,45 +346,96 @@ def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: 
         "cpu_ms_per_step": 1e3 * median_cpu_s / steps,  # all threads; ~ step_ms * threads kept busy
         "rays_per_s": steps_per_s * sizes["rays"],
         "samples_per_s": steps_per_s * sizes["rays"] * samples_per_ray,
-        "compile_s": compile_s,
+        "compile_s": runner.compile_s,
         "warmup_step_s": warmup_s,
-        "mlp_flops_per_point_forward": flops_point,
+        "mlp_flops_per_point_forward": mlp_flops_per_point(runner.state.params["field"]),
         "mlp_flops_per_step": mlp_flops_step,
         "achieved_gflops": mlp_flops_step * steps_per_s / 1e9,
         "achieved_gflops_per_cpu_s": mlp_flops_step * steps / median_cpu_s / 1e9,
-        "xla_flops_per_step": xla_flops(compiled),
+        "xla_flops_per_step": xla_flops(runner.compiled),
         "repeat_s": times,
         "loss_after_warmup": loss,
         "profile": profile,
         **device_info(),
-        "config": {**sizes, "skip_layers": list(config.model.skip_layers), "samples_per_ray": samples_per_ray,
+        "config": {**sizes, "skip_layers": list(runner.config.model.skip_layers), "samples_per_ray": samples_per_ray,
                    "steps": steps, "repeats": repeats, "scans": num_scans, "rays_per_scan": rays_per_scan,
-                   "hierarchical": str(config.sampling.hierarchical), "use_view_dirs": bool(config.model.use_view_dirs),
-                   "dtype": "float32"},
+                   "hierarchical": str(runner.config.sampling.hierarchical),
+                   "use_view_dirs": bool(runner.config.model.use_view_dirs), "dtype": "float32"},
     }
+
+
+def benchmark_efficiency(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int,
+                         square_sizes: list[int], num_scans: int = 8, rays_per_scan: int = 4096,
+                         seed: int = 0) -> dict:
+    """The step's GFLOP/s as a fraction of the matmul peak, both timed in this process, alternately.
+
+    Each of `repeats` rounds times `steps` train steps, then each peak matmul (the square `square_sizes` and
+    the MLP-shaped one); a round's efficiency is its step rate over its best matmul rate. Alternating makes
+    the ratio robust to the machine's speed drifting (shared or throttled cores) between the two measurements.
+    """
+    runner = StepRunner(config, sizes, steps * repeats + 2, num_scans, rays_per_scan, seed)
+    runner.run(1)  # warm-up
+    points = sizes["rays"] * (sizes["coarse"] + sizes["guided"] + sizes["fine"])
+    shapes = {**{str(n): (n, n, n) for n in square_sizes}, f"{points}x{sizes['width']}x{sizes['width']}":
+              (points, sizes["width"], sizes["width"])}
+    matmuls = {name: MatmulTimer(*shape) for name, shape in shapes.items()}
+    flops = runner.mlp_flops_per_step()
+    rounds = []
+    for _ in range(max(repeats, 1)):
+        step_s, _, _ = median_seconds(lambda: runner.run(steps), 1)
+        rates = {name: timer.gflops() for name, timer in matmuls.items()}
+        achieved = flops * steps / step_s / 1e9
+        rounds.append({"achieved_gflops": achieved, "peak_gflops": max(rates.values()), "matmul_gflops": rates,
+                       "efficiency": achieved / max(rates.values())})
+    median = lambda key: statistics.median(r[key] for r in rounds)  # noqa: E731
+    return {
+        "benchmark": "efficiency",
+        "efficiency": median("efficiency"),
+        "achieved_gflops": median("achieved_gflops"),
+        "peak_gflops": median("peak_gflops"),
+        "step_ms": flops / median("achieved_gflops") / 1e6,
+        "mlp_flops_per_step": flops,
+        "rounds": rounds,
+        "compile_s": runner.compile_s,
+        **device_info(),
+        "config": {**sizes, "skip_layers": list(runner.config.model.skip_layers), "steps": steps,
+                   "repeats": repeats, "square_sizes": list(square_sizes), "dtype": "float32"},
+    }
+
+
+class MatmulTimer:
+    """A jitted float32 [m, k] @ [k, n] on random inputs; gflops() times a batch of calls lasting ~min_seconds."""
+
+    def __init__(self, m: int, k: int, n: int, seed: int = 0, min_seconds: float = 0.05):
+        key_a, key_b = jax.random.split(jax.random.PRNGKey(seed))
+        self.a = jax.random.normal(key_a, (m, k), jnp.float32)
+        self.b = jax.random.normal(key_b, (k, n), jnp.float32)
+        self.flops = 2.0 * m * k * n
+        self.matmul = jax.jit(jnp.matmul)
+        jax.block_until_ready(self.matmul(self.a, self.b))  # compile and warm up
+        t0 = time.perf_counter()
+        jax.block_until_ready(self.matmul(self.a, self.b))
+        self.calls = max(1, int(min_seconds / max(time.perf_counter() - t0, 1e-6)))
+
+    def run(self):
+        out = None
+        for _ in range(self.calls):
+            out = self.matmul(self.a, self.b)
+        jax.block_until_ready(out)
+
+    def gflops(self, repeats: int = 1) -> float:
+        return self.rates(repeats)[0]
+
+    def rates(self, repeats: int) -> tuple[float, float]:
+        """(GFLOP/s, GFLOP per CPU second), medians of `repeats` batches."""
+        median_s, _, median_cpu_s = median_seconds(self.run, repeats)
+        return self.flops * self.calls / median_s / 1e9, self.flops * self.calls / median_cpu_s / 1e9
 
 
 def matmul_gflops(m: int, k: int, n: int, repeats: int, min_seconds: float = 0.05, seed: int = 0) -> tuple[float, float]:
     """(GFLOP/s, GFLOP per CPU second) of a jitted float32 [m, k] @ [k, n] (2 m k n FLOPs), medians of
     `repeats` batches of calls lasting >= min_seconds each."""
-    key_a, key_b = jax.random.split(jax.random.PRNGKey(seed))
-    a = jax.random.normal(key_a, (m, k), jnp.float32)
-    b = jax.random.normal(key_b, (k, n), jnp.float32)
-    matmul = jax.jit(jnp.matmul)
-    jax.block_until_ready(matmul(a, b))  # compile and warm up
-    t0 = time.perf_counter()
-    jax.block_until_ready(matmul(a, b))
-    calls = max(1, int(min_seconds / max(time.perf_counter() - t0, 1e-6)))
-
-    def run():
-        out = None
-        for _ in range(calls):
-            out = matmul(a, b)
-        jax.block_until_ready(out)
-
-    median_s, _, median_cpu_s = median_seconds(run, repeats)
-    flops = 2.0 * m * k * n * calls
-    return flops / median_s / 1e9, flops / median_cpu_s / 1e9
+    return MatmulTimer(m, k, n, seed, min_seconds).rates(repeats)
 
 
 def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int) -> dict:
@@ -419,8 +487,13 @@ def main(argv):
     del argv
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     config, sizes = resolve_sizes()
+    if FLAGS.matmul_peak and FLAGS.efficiency:
+        raise app.UsageError("--matmul_peak and --efficiency are two different modes: give one")
     if FLAGS.matmul_peak:
         record = benchmark_matmul_peak(sizes, [int(n) for n in FLAGS.matmul_sizes], FLAGS.repeats)
+    elif FLAGS.efficiency:
+        record = benchmark_efficiency(config, sizes, FLAGS.steps, FLAGS.repeats, [int(n) for n in FLAGS.matmul_sizes],
+                                      FLAGS.scans, FLAGS.rays_per_scan, FLAGS.seed)
     else:
         record = benchmark_train_step(config, sizes, FLAGS.steps, FLAGS.repeats, FLAGS.scans, FLAGS.rays_per_scan,
                                       FLAGS.seed, FLAGS.profile_dir, FLAGS.profile_steps, FLAGS.dump_hlo)
@@ -429,4 +502,5 @@ def main(argv):
 
 
 if __name__ == "__main__":
+    reexec_with_huge_page_malloc()  # ~25% faster CPU steps: see neld_jax/hugepages.py
     app.run(main)

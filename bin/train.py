@@ -16,6 +16,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from neld_jax.cli import main_with_config  # noqa: E402
 from neld_jax.evaluate import format_table  # noqa: E402
 from neld_jax.run import run  # noqa: E402
+from neld_jax.hugepages import reexec_with_huge_page_malloc  # noqa: E402
 
 
 def job(config):
@@ -26,4 +27,5 @@ def job(config):
 
 
 if __name__ == "__main__":
+    reexec_with_huge_page_malloc()  # ~25% faster CPU steps: see neld_jax/hugepages.py
     main_with_config(job)

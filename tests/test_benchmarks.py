@@ -94,3 +94,17 @@ def test_hlo_categories_find_the_matmul_and_the_sine():
     # A sine on a handful of elements (a BARF window) does not make its fusion a sin/cos op.
     assert bench.op_category({"sine-small", "multiply"}) == "elementwise/other"
     assert bench._num_elements("f32[24576,30]{1,0}") == 24576 * 30 and bench._num_elements("f32[]") == 1
+
+
+def test_efficiency_mode_times_step_and_peak_alternately():
+    config, sizes = bench.preset_sizes("cpu")
+    sizes = dict(sizes, rays=16, coarse=4, guided=0, fine=2, width=8, depth=1)
+    record = bench.benchmark_efficiency(config, sizes, steps=1, repeats=3, square_sizes=[32], num_scans=2,
+                                        rays_per_scan=64)
+    assert record["benchmark"] == "efficiency" and len(record["rounds"]) == 3
+    for r in record["rounds"]:
+        assert set(r["matmul_gflops"]) == {"32", "96x8x8"}
+        assert r["peak_gflops"] == max(r["matmul_gflops"].values()) > 0
+        assert r["efficiency"] == pytest.approx(r["achieved_gflops"] / r["peak_gflops"])
+    assert record["efficiency"] == sorted(r["efficiency"] for r in record["rounds"])[1]  # the median
+    assert record["mlp_flops_per_step"] == 3 * 16 * 6 * 2 * (63 * 8 + 18 * 4 + 4 * 1)

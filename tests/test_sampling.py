@@ -194,3 +194,10 @@ def test_merge_samples_sorts_and_returns_the_permutation():
     np.testing.assert_array_equal(z, np.sort(np.concatenate([z_a, z_b], -1), -1))
     values = np.concatenate([z_a * 10, z_b * 10], axis=-1)  # something computed per sample
     np.testing.assert_allclose(np.take_along_axis(values, np.asarray(order), -1), np.asarray(z) * 10)
+    # Ties (and repeated values inside one set) keep z_a's samples first, as a stable argsort does.
+    z_a = np.array([[0.1, 0.2, 0.2, 0.5, 0.9], [0.0, 0.0, 0.0, 0.0, 0.0]])
+    z_b = np.array([[0.2, 0.5, 0.6], [0.0, 0.0, 1.0]])
+    z, order = sampling.merge_samples(z_a, z_b)
+    both = np.concatenate([z_a, z_b], -1)
+    np.testing.assert_array_equal(order, np.argsort(both, axis=-1, kind="stable"))
+    np.testing.assert_array_equal(z, np.sort(both, -1))

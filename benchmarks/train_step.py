@@ -138,6 +138,17 @@ def synthetic_rays(num_scans: int, rays_per_scan: int, seed: int = 0) -> tuple[t
     return train.device_rays(rays), jnp.asarray(T, jnp.float32)
 
 
+def points_per_step(sizes: dict) -> int:
+    """Samples the MLP evaluates per step: rays * (coarse + guided + fine)."""
+    return sizes["rays"] * (sizes["coarse"] + sizes["guided"] + sizes["fine"])
+
+
+def mlp_shaped_matmul(sizes: dict) -> tuple[str, tuple[int, int, int]]:
+    """(name, (m, k, n)) of the MLP's hidden-layer matmul: [points per step, width] @ [width, width]."""
+    points, width = points_per_step(sizes), sizes["width"]
+    return f"{points}x{width}x{width}", (points, width, width)
+
+
 def mlp_flops_per_point(field_params) -> int:
     """Forward FLOPs of the MLP's dense layers for one point: sum over [in, out] kernels of 2 * in * out."""
     kernels = [leaf for path, leaf in jax.tree_util.tree_leaves_with_path(field_params)
@@ -296,6 +307,7 @@ class StepRunner:
         t0 = time.perf_counter()
         self.compiled = step_fn.lower(self.state, self.rays, self.T_init, settings=settings).compile()
         self.compile_s = time.perf_counter() - t0
+        self.mlp_flops_per_point = mlp_flops_per_point(self.state.params["field"])  # kernel shapes never change
 
     def run(self, n: int):
         state, metrics = self.state, None
@@ -307,8 +319,7 @@ class StepRunner:
 
     def mlp_flops_per_step(self) -> int:
         """3 * points per step * forward FLOPs per point (see the module docstring)."""
-        s = self.sizes
-        return 3 * s["rays"] * (s["coarse"] + s["guided"] + s["fine"]) * mlp_flops_per_point(self.state.params["field"])
+        return 3 * points_per_step(self.sizes) * self.mlp_flops_per_point
 
 
 def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int,
@@ -345,10 +356,10 @@ def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: 
         "step_ms": 1e3 / steps_per_s,
         "cpu_ms_per_step": 1e3 * median_cpu_s / steps,  # all threads; ~ step_ms * threads kept busy
         "rays_per_s": steps_per_s * sizes["rays"],
-        "samples_per_s": steps_per_s * sizes["rays"] * samples_per_ray,
+        "samples_per_s": steps_per_s * points_per_step(sizes),
         "compile_s": runner.compile_s,
         "warmup_step_s": warmup_s,
-        "mlp_flops_per_point_forward": mlp_flops_per_point(runner.state.params["field"]),
+        "mlp_flops_per_point_forward": runner.mlp_flops_per_point,
         "mlp_flops_per_step": mlp_flops_step,
         "achieved_gflops": mlp_flops_step * steps_per_s / 1e9,
         "achieved_gflops_per_cpu_s": mlp_flops_step * steps / median_cpu_s / 1e9,
@@ -375,18 +386,17 @@ def benchmark_efficiency(config: ml_collections.ConfigDict, sizes: dict, steps: 
     """
     runner = StepRunner(config, sizes, steps * repeats + 2, num_scans, rays_per_scan, seed)
     runner.run(1)  # warm-up
-    points = sizes["rays"] * (sizes["coarse"] + sizes["guided"] + sizes["fine"])
-    shapes = {**{str(n): (n, n, n) for n in square_sizes}, f"{points}x{sizes['width']}x{sizes['width']}":
-              (points, sizes["width"], sizes["width"])}
+    mlp_name, mlp_shape = mlp_shaped_matmul(sizes)
+    shapes = {**{str(n): (n, n, n) for n in square_sizes}, mlp_name: mlp_shape}
     matmuls = {name: MatmulTimer(*shape) for name, shape in shapes.items()}
     flops = runner.mlp_flops_per_step()
     rounds = []
     for _ in range(max(repeats, 1)):
         step_s, _, _ = median_seconds(lambda: runner.run(steps), 1)
         rates = {name: timer.gflops() for name, timer in matmuls.items()}
-        achieved = flops * steps / step_s / 1e9
-        rounds.append({"achieved_gflops": achieved, "peak_gflops": max(rates.values()), "matmul_gflops": rates,
-                       "efficiency": achieved / max(rates.values())})
+        achieved, peak = flops * steps / step_s / 1e9, max(rates.values())
+        rounds.append({"achieved_gflops": achieved, "peak_gflops": peak, "matmul_gflops": rates,
+                       "efficiency": achieved / peak})
     median = lambda key: statistics.median(r[key] for r in rounds)  # noqa: E731
     return {
         "benchmark": "efficiency",
@@ -440,10 +450,9 @@ def matmul_gflops(m: int, k: int, n: int, repeats: int, min_seconds: float = 0.0
 
 def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int) -> dict:
     """float32 matmul GFLOP/s: square n x n matmuls and the MLP's [points, width] @ [width, width] matmul."""
-    points = sizes["rays"] * (sizes["coarse"] + sizes["guided"] + sizes["fine"])
-    width = sizes["width"]
+    mlp_name, mlp_shape = mlp_shaped_matmul(sizes)
     square = {str(n): matmul_gflops(n, n, n, repeats) for n in square_sizes}
-    mlp_shaped = {f"{points}x{width}x{width}": matmul_gflops(points, width, width, repeats)}
+    mlp_shaped = {mlp_name: matmul_gflops(*mlp_shape, repeats)}
     rates = [*square.values(), *mlp_shaped.values()]
     return {
         "benchmark": "matmul_peak",
@@ -454,7 +463,7 @@ def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int) ->
         "square_gflops_per_cpu_s": {n: cpu for n, (_, cpu) in square.items()},
         "mlp_shaped_gflops_per_cpu_s": {s: cpu for s, (_, cpu) in mlp_shaped.items()},
         **device_info(),
-        "config": {"dtype": "float32", "repeats": repeats, "points": points, "width": width},
+        "config": {"dtype": "float32", "repeats": repeats, "points": mlp_shape[0], "width": mlp_shape[1]},
     }
 
 

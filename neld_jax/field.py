@@ -6,8 +6,10 @@ layers of `width`, with the encoded position concatenated again to the input of 
 width // 2 -> dense 1 -> softplus or ReLU. Without view directions the density comes straight from the
 features. Both encodings use the surrogate gradient (eq. 9) unless `surrogate` is False.
 
-View directions are two angles (azimuth, elevation) in radians; they are divided by pi so they lie in
-[-1, 1] like the normalised positions.
+View directions are world-frame unit vectors [..., 3], encoded as they are (their components already lie in
+[-1, 1] like the normalised positions). Not azimuth/elevation angles: their Jacobian is infinite at a vertical
+ray, which fed NaN or huge values into the pose gradients of LiDARs that see straight up or down
+(docs/method.md, "View directions").
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ def _inverse_activation(name: str, value: float) -> float:
 
 
 class DensityField(nn.Module):
-    """sigma(x, d). Call with positions [..., 3], view_dirs [..., 2] -> sigma [...] (>= 0).
+    """sigma(x, d). Call with positions [..., 3], view_dirs [..., 3] unit vectors -> sigma [...] (>= 0).
 
     pos_window: [pos_freqs] and dir_window: [dir_freqs] are BARF coarse-to-fine weights (None: all on).
     `skip_layers` are the indices (0-based) of hidden layers whose input gets the encoded position again.
@@ -71,8 +73,8 @@ class DensityField(nn.Module):
             hidden = nn.relu(nn.Dense(self.width, dtype=self.dtype, name=f"hidden_{layer}")(hidden))
 
         if self.use_view_dirs:
-            angles = view_dirs.astype(self.dtype) / jnp.pi
-            encoded_dir = fourier_encode(angles, self.dir_freqs, dir_window, surrogate=self.surrogate)
+            encoded_dir = fourier_encode(view_dirs.astype(self.dtype), self.dir_freqs, dir_window,
+                                         surrogate=self.surrogate)
             hidden = jnp.concatenate([hidden, encoded_dir], axis=-1)
             hidden = nn.relu(nn.Dense(self.width // 2, dtype=self.dtype, name="density_hidden")(hidden))
 

@@ -16,7 +16,6 @@ import jax
 import jax.numpy as jnp
 
 from neld_jax import encoding, lie, rendering, sampling
-from neld_jax.data.rays import direction_angles
 from neld_jax.field import DensityField
 
 
@@ -102,8 +101,9 @@ def _densities(params_field, s: RenderSettings, origins, directions, z, pos_wind
     """sigma at origins + z * directions; origins, directions: [R, 3], z: [R, N] -> [R, N]."""
     r, n = z.shape
     points = origins[:, None, :] + z[..., None] * directions[:, None, :]
-    view = jnp.broadcast_to(direction_angles(directions)[:, None, :], (r, n, 2))
-    sigma = s.field().apply({"params": params_field}, points.reshape(-1, 3), view.reshape(-1, 2), pos_window)
+    # The unit direction itself is the view input: smooth everywhere, unlike angles at the poles.
+    view = jnp.broadcast_to(directions[:, None, :], (r, n, 3))
+    sigma = s.field().apply({"params": params_field}, points.reshape(-1, 3), view.reshape(-1, 3), pos_window)
     return sigma.reshape(r, n)
 
 

@@ -193,7 +193,7 @@ def render_settings(config: ml_collections.ConfigDict, scale: float, num_coarse:
 
 def create_train_state(config, key: jax.Array, num_scans: int, tx: optax.GradientTransformation, settings: RenderSettings):
     key_init, key_state = jax.random.split(key)
-    field_params = settings.field().init(key_init, jnp.zeros((1, 3)), jnp.zeros((1, 2)))["params"]
+    field_params = settings.field().init(key_init, jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]
     params = {"field": field_params, "poses": jnp.zeros((num_scans, 6), jnp.float32)}
     return TrainState(step=jnp.zeros([], jnp.int32), params=params, opt_state=tx.init(params), key=key_state)
 

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from neld_jax.data.normalize import Normalization, fit_normalization
 from neld_jax.data.preprocess import crop_range, preprocess, select_keyframes, voxel_downsample
-from neld_jax.data.rays import build_rays, direction_angles, sample_ray_indices
+from neld_jax.data.rays import build_rays, sample_ray_indices
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
 
@@ -165,11 +165,3 @@ def test_sample_ray_indices_uniform_and_jittable():
     assert indices.shape == (20000,) and indices.dtype == jnp.int32
     counts = np.bincount(np.asarray(indices), minlength=10)
     assert counts.min() > 1700 and counts.max() < 2300 and np.asarray(indices).max() == 9
-
-
-def test_direction_angles():
-    directions = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [-1.0 / np.sqrt(2), 0, -1.0 / np.sqrt(2)]])
-    angles = np.asarray(direction_angles(directions))
-    np.testing.assert_allclose(angles[:, 0], [0, np.pi / 2, 0, np.pi], atol=1e-6)
-    np.testing.assert_allclose(angles[:, 1], [0, 0, np.pi / 2, -np.pi / 4], atol=1e-6)
-    assert direction_angles(jnp.ones((2, 5, 3)) / np.sqrt(3)).shape == (2, 5, 2)

@@ -16,7 +16,8 @@ SMALL = dict(width=32, depth=3, skip_layers=(2,), pos_freqs=6, dir_freqs=2)
 def _inputs(n=64, seed=0):
     rng = np.random.default_rng(seed)
     positions = jnp.asarray(rng.uniform(-1, 1, size=(n, 3)), jnp.float32)
-    view_dirs = jnp.asarray(np.stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-0.5, 0.5, n)], -1), jnp.float32)
+    view_dirs = rng.normal(size=(n, 3))
+    view_dirs = jnp.asarray(view_dirs / np.linalg.norm(view_dirs, axis=1, keepdims=True), jnp.float32)
     return positions, view_dirs
 
 
@@ -35,8 +36,8 @@ def _param_count(params):
 def test_paper_sized_parameter_count():
     # Shapes only (no arrays): width 512, 8 layers, skip at 4, L = 15 / 4, view-dependent head.
     field = DensityField()
-    shapes = jax.eval_shape(field.init, jax.random.key(0), jnp.zeros((1, 3)), jnp.zeros((1, 2)))
-    pos, dirs, w = encoded_dim(3, 15), encoded_dim(2, 4), 512
+    shapes = jax.eval_shape(field.init, jax.random.key(0), jnp.zeros((1, 3)), jnp.zeros((1, 3)))
+    pos, dirs, w = encoded_dim(3, 15), encoded_dim(3, 4), 512
     first, hidden, skip = pos * w + w, w * w + w, (w + pos) * w + w
     head = (w + dirs) * (w // 2) + w // 2 + (w // 2 + 1)
     assert _param_count(shapes) == first + 6 * hidden + skip + head
@@ -63,7 +64,7 @@ def test_leading_axes_are_kept():
     params = _initial_params()
     apply = jax.jit(field.apply)
     flat = apply(params, positions, view_dirs)
-    grid = apply(params, positions.reshape(4, 16, 3), view_dirs.reshape(4, 16, 2))
+    grid = apply(params, positions.reshape(4, 16, 3), view_dirs.reshape(4, 16, 3))
     assert grid.shape == (4, 16)
     np.testing.assert_allclose(grid.reshape(-1), flat, rtol=1e-5, atol=1e-6)
 

@@ -78,7 +78,7 @@ def test_every_public_function_jit_compiles():
 
 def test_density_field_jit_with_traced_windows():
     field = DensityField(width=16, depth=2, skip_layers=(1,), pos_freqs=4, dir_freqs=2)
-    view = jnp.zeros((R, 2))
+    view = jnp.zeros((R, 3))
     params = jax.jit(field.init)(KEY, POINTS, view)
 
     @jax.jit

@@ -21,7 +21,7 @@ from neld_jax.data.poses import (
     write_tum,
 )
 from neld_jax.data.preprocess import crop_range, preprocess, select_keyframes, voxel_downsample
-from neld_jax.data.rays import RaySet, build_rays, direction_angles, sample_ray_indices
+from neld_jax.data.rays import RaySet, build_rays, sample_ray_indices
 from neld_jax.data.scans import read_scan, write_scan
 from neld_jax.data.sequence import Sequence, match_by_timestamp
 from neld_jax.data.synthetic import default_synthetic_config, make_sequence, write_generic
@@ -33,7 +33,6 @@ __all__ = [
     "build_rays",
     "crop_range",
     "default_synthetic_config",
-    "direction_angles",
     "fit_normalization",
     "load_fusionportable",
     "load_generic",

@@ -77,14 +77,6 @@ def sample_ray_indices(key: jax.Array, num_rays: int, batch_size: int) -> jax.Ar
     return jax.random.randint(key, (batch_size,), 0, num_rays, dtype=jnp.int32)
 
 
-def direction_angles(directions) -> jax.Array:
-    """directions: [..., 3] unit vectors -> [..., 2] (azimuth atan2(y, x), elevation asin(z)) in radians."""
-    directions = jnp.asarray(directions)
-    azimuth = jnp.arctan2(directions[..., 1], directions[..., 0])
-    elevation = jnp.arcsin(jnp.clip(directions[..., 2], -1.0, 1.0))
-    return jnp.stack([azimuth, elevation], axis=-1)
-
-
 def sphere_scene_rays(num_scans: int, rays_per_scan: int, seed: int = 0, radius: float = 0.8,
                       spread: float = 0.3) -> tuple[RaySet, np.ndarray]:
     """An analytic ray set for tests and benchmarks, already in the normalised frame: `num_scans` sensors at

@@ -1,0 +1,56 @@
+"""The forward model (neld_jax.model): pose gradients stay finite and smooth for every ray direction."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from neld_jax import encoding, lie
+from neld_jax.model import RenderSettings, render_rays, scan_poses, world_rays
+
+SETTINGS = RenderSettings(num_coarse=16, num_fine=8, z_low=0.01, z_up=4.0, width=32, depth=2, skip_layers=(1,),
+                          pos_freqs=4, dir_freqs=4, use_view_dirs=True)
+
+
+def _pose_gradient(direction_local, params_field, T_init):
+    """d(rendered range)/d(pose correction) [6] of one ray with the given sensor-frame direction."""
+
+    def rendered_range(xi):
+        T = scan_poses(xi[None], T_init[None])
+        origins, directions = world_rays(T, direction_local[None])
+        out = render_rays(params_field, SETTINGS, origins, directions, jnp.asarray(4.0))
+        return out.fine.depth[0]
+
+    return jax.grad(rendered_range)(jnp.zeros(6, jnp.float64))
+
+
+def test_pose_gradient_finite_and_continuous_at_a_vertical_ray():
+    # Azimuth/elevation view inputs had an infinite Jacobian at a vertical ray (NaN pose gradients) and ~1e3 at
+    # 1 mrad from it; the unit-vector input keeps the gradient finite and continuous through the pole.
+    with jax.enable_x64(True):
+        field = SETTINGS.field()
+        params = field.init(jax.random.PRNGKey(3), jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]
+        # A field that is neither transparent nor opaque and varies along the ray (density 0.6-0.8 per unit),
+        # so that the rendered range depends on the pose.
+        params = jax.tree.map(lambda p: jnp.asarray(p, jnp.float64), params)
+        params["density_out"]["kernel"] = params["density_out"]["kernel"] * 300.0
+        params["density_out"]["bias"] = jnp.full_like(params["density_out"]["bias"], 2.0)
+        T_init = jnp.asarray(np.eye(4))
+        up = jnp.array([0.0, 0.0, 1.0])
+        tilted = jnp.array([1e-3, 0.0, 1.0]) / jnp.sqrt(1.0 + 1e-6)
+        g_up = np.asarray(_pose_gradient(up, params, T_init))
+        g_tilted = np.asarray(_pose_gradient(tilted, params, T_init))
+        g_down = np.asarray(_pose_gradient(-up, params, T_init))
+    assert np.all(np.isfinite(g_up)) and np.all(np.isfinite(g_down))
+    assert np.linalg.norm(g_up) > 1e-2  # the test means something: the range depends on the pose
+    # 1 mrad of tilt changes the gradient by a few percent (measured: 2.8 %), not by a factor of 1e3.
+    assert np.linalg.norm(g_tilted - g_up) < 0.1 * np.linalg.norm(g_up)
+
+
+def test_view_input_is_the_world_direction():
+    # The field sees R d: rotating the scan rotates the view input (so rotation gradients reach the view head).
+    directions = jnp.array([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]])
+    T = lie.se3_exp(jnp.array([0.1, 0.2, 0.3, 0.4, -0.2, 0.1]))
+    _, world = world_rays(jnp.broadcast_to(T, (2, 4, 4)), directions)
+    np.testing.assert_allclose(np.linalg.norm(world, axis=1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(world, directions @ np.asarray(T[:3, :3]).T, atol=1e-6)
+    assert encoding.encoded_dim(3, SETTINGS.dir_freqs) == 3 * (1 + 2 * SETTINGS.dir_freqs)

@@ -23,9 +23,15 @@ def base_config() -> ml_collections.ConfigDict:
     c.seed = 0
 
     c.data = ml_collections.ConfigDict()
-    c.data.format = "generic"  # generic | fusionportable | newer_college | synthetic
+    c.data.format = "generic"  # generic | fusionportable | newer_college | lio_keyframes | synthetic
     c.data.root = ""
+    c.data.pose_file = ""  # lio_keyframes: the initial trajectory under root ("" = odom_poses.txt)
+    c.data.drop_unmatched_tail = False  # drop up to 3 trailing scans that have no pose/stamp instead of failing
+    # Keyframes: a scan is kept when ANY enabled rule says so (<= 0 turns a rule off; all off keeps every scan).
+    # Every input scan still gets a refined pose: the others take their keyframes' interpolated correction.
     c.data.keyframe_interval_s = 3.0
+    c.data.keyframe_distance_m = 0.0
+    c.data.keyframe_angle_deg = 0.0
     c.data.min_range_m = 0.5
     c.data.max_range_m = 80.0
     c.data.voxel_size_m = 0.05

@@ -22,7 +22,7 @@ from neld_jax.errors import ConfigError, DataError
 logger = logging.getLogger(__name__)
 
 DEFAULT_TIMESTAMP_TOLERANCE_S = 0.05
-FORMATS = ("generic", "fusionportable", "newer_college", "synthetic")
+FORMATS = ("generic", "fusionportable", "newer_college", "lio_keyframes", "synthetic")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -302,6 +302,11 @@ def load_sequence(data_cfg) -> Sequence:
     root = data_cfg.get("root", None)
     if not root:
         raise ConfigError(f"data.root must be set for format '{fmt}'")
+    if fmt == "lio_keyframes":
+        from neld_jax.data.lio_keyframes import DEFAULT_POSE_FILE, load_lio_keyframes
+
+        return load_lio_keyframes(root, pose_file=data_cfg.get("pose_file", "") or DEFAULT_POSE_FILE,
+                                  drop_unmatched_tail=bool(data_cfg.get("drop_unmatched_tail", False)))
     tol = float(data_cfg.get("timestamp_tol_s", DEFAULT_TIMESTAMP_TOLERANCE_S))
     loader = {"generic": load_generic, "fusionportable": load_fusionportable, "newer_college": load_newer_college}
     return loader[fmt](root, tol=tol)

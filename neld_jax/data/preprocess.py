@@ -15,25 +15,42 @@ logger = logging.getLogger(__name__)
 
 
 def select_keyframes(
-    timestamps: np.ndarray | None, interval_s: float, num_scans: int | None = None
+    timestamps: np.ndarray | None, interval_s: float, num_scans: int | None = None,
+    poses: np.ndarray | None = None, distance_m: float = 0.0, angle_deg: float = 0.0,
 ) -> np.ndarray:
-    """Indices [K] int64 of keyframes: the first scan, then each scan at least `interval_s` after the last kept.
-
-    timestamps: [S] seconds, or None. All scans are kept when timestamps is None or interval_s <= 0;
-    with timestamps None the scan count must be given as `num_scans`."""
-    if timestamps is None:
-        if num_scans is None:
-            raise ValueError("select_keyframes: pass num_scans when there are no timestamps")
+    """Indices [K] int64 of keyframes: the first scan, then each scan that is far enough from the last kept
+    one by ANY enabled rule: at least `interval_s` later (needs timestamps), or at least `distance_m` away or
+    `angle_deg` turned (spatial rules, need poses [S, 4, 4]). A rule is off when its threshold is <= 0 (or its
+    input is None); with every rule off all scans are kept. `num_scans` is needed only when timestamps and
+    poses are both None."""
+    if timestamps is not None:
+        timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+        num_scans = timestamps.size
+    elif poses is not None:
+        num_scans = len(poses)
+    elif num_scans is None:
+        raise ValueError("select_keyframes: pass num_scans when there are no timestamps and no poses")
+    use_time = timestamps is not None and interval_s > 0
+    use_distance = poses is not None and distance_m > 0
+    use_angle = poses is not None and angle_deg > 0
+    if not (use_time or use_distance or use_angle) or num_scans == 0:
         return np.arange(num_scans, dtype=np.int64)
-    timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
-    if interval_s <= 0 or timestamps.size == 0:
-        return np.arange(timestamps.size, dtype=np.int64)
     kept = [0]
-    for i in range(1, timestamps.size):
+    for i in range(1, num_scans):
+        last = kept[-1]
         # Small slack so that scans exactly interval_s apart (up to float rounding) are kept.
-        if timestamps[i] - timestamps[kept[-1]] >= interval_s - 1e-6:
+        keep = use_time and timestamps[i] - timestamps[last] >= interval_s - 1e-6
+        if (use_distance or use_angle) and not keep:
+            relative = np.linalg.inv(poses[last]) @ poses[i]
+            keep = (use_distance and np.linalg.norm(relative[:3, 3]) >= distance_m) or (
+                use_angle and _rotation_angle_deg(relative[:3, :3]) >= angle_deg)
+        if keep:
             kept.append(i)
     return np.asarray(kept, dtype=np.int64)
+
+
+def _rotation_angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
@@ -57,16 +74,21 @@ def preprocess(
     max_range: float = 80.0,
     voxel_size: float = 0.05,
     max_scans: int | None = None,
+    keyframe_distance_m: float = 0.0,
+    keyframe_angle_deg: float = 0.0,
 ) -> Sequence:
-    """Select keyframes, crop each scan by range and voxel-downsample it. Returns a new Sequence.
+    """Select keyframes (select_keyframes' rules), crop each scan by range and voxel-downsample it.
 
-    max_scans (if set) keeps only the first max_scans keyframes. A scan left empty raises DataError."""
-    keep = select_keyframes(seq.timestamps, keyframe_interval_s, num_scans=seq.num_scans)
+    Returns a new Sequence whose `source_index` names each kept scan's index in `seq`, so that results can
+    be carried back to every input scan. max_scans (if set) keeps only the first max_scans keyframes. A scan
+    left empty raises DataError naming its file."""
+    keep = select_keyframes(seq.timestamps, keyframe_interval_s, num_scans=seq.num_scans, poses=seq.poses,
+                            distance_m=keyframe_distance_m, angle_deg=keyframe_angle_deg)
     if max_scans is not None and max_scans > 0:
         keep = keep[:max_scans]
     logger.info(
-        "keyframes: kept %d of %d scans (interval %.3g s, max_scans %s)",
-        len(keep), seq.num_scans, keyframe_interval_s, max_scans,
+        "keyframes: kept %d of %d scans (interval %.3g s, distance %.3g m, angle %.3g deg, max_scans %s)",
+        len(keep), seq.num_scans, keyframe_interval_s, keyframe_distance_m, keyframe_angle_deg, max_scans,
     )
 
     scans = []
@@ -79,7 +101,7 @@ def preprocess(
                      index, len(raw), len(cropped), len(downsampled))
         if downsampled.shape[0] == 0:
             raise DataError(
-                f"{seq.source or seq.name}: scan {index} has no points left within {min_range}-{max_range} m "
+                f"{seq.source or seq.name}: {seq.scan_name(index)} has no points left within {min_range}-{max_range} m "
                 f"(it had {len(raw)} points)"
             )
         totals += (len(raw), len(cropped), len(downsampled))
@@ -94,16 +116,24 @@ def preprocess(
         poses=seq.poses[keep],
         timestamps=None if seq.timestamps is None else seq.timestamps[keep],
         gt_poses=None if seq.gt_poses is None else seq.gt_poses[keep],
+        files=None if seq.files is None else [seq.files[i] for i in keep],
+        source_index=keep if seq.source_index is None else seq.source_index[keep],
     )
 
 
-def load_preprocessed(data_cfg) -> Sequence:
+def load_preprocessed(data_cfg) -> tuple[Sequence, Sequence]:
     """Load the sequence that `data_cfg` (config.data) names and preprocess it with the config's settings.
 
-    The one place where bin/train.py and bin/baseline.py turn a config into the scans they work on.
+    Returns (loaded, keyframes): every input scan as read, and the preprocessed keyframes that training
+    uses (`keyframes.source_index` indexes `loaded`). The one place where bin/train.py and bin/baseline.py
+    turn a config into the scans they work on.
     """
     from neld_jax.data.datasets import load_sequence
 
-    return preprocess(load_sequence(data_cfg), keyframe_interval_s=data_cfg.keyframe_interval_s,
-                      min_range=data_cfg.min_range_m, max_range=data_cfg.max_range_m,
-                      voxel_size=data_cfg.voxel_size_m, max_scans=(data_cfg.max_scans or None))
+    loaded = load_sequence(data_cfg)
+    keyframes = preprocess(loaded, keyframe_interval_s=data_cfg.keyframe_interval_s,
+                           min_range=data_cfg.min_range_m, max_range=data_cfg.max_range_m,
+                           voxel_size=data_cfg.voxel_size_m, max_scans=(data_cfg.max_scans or None),
+                           keyframe_distance_m=data_cfg.get("keyframe_distance_m", 0.0),
+                           keyframe_angle_deg=data_cfg.get("keyframe_angle_deg", 0.0))
+    return loaded, keyframes

@@ -20,6 +20,9 @@ class Sequence:
     gt_map:     [M, 3] float64 ground-truth map points in the world frame, or None
     name:       short human-readable name (e.g. the folder name)
     source:     where it came from: a path or 'synthetic'
+    files:      S scan file names relative to `source` (for messages and reports), or None
+    source_index: [S] int64 index of each scan in the sequence as loaded (set by keyframe selection), or
+                None when these are the loaded scans themselves
     """
 
     scans: list[np.ndarray]
@@ -29,6 +32,8 @@ class Sequence:
     gt_map: np.ndarray | None = None
     name: str = "sequence"
     source: str = ""
+    files: list[str] | None = None
+    source_index: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         where = f"sequence '{self.name}' ({self.source or 'no source'})"
@@ -53,6 +58,14 @@ class Sequence:
                     f"{where}: {self.gt_poses.shape[0] if self.gt_poses.ndim else 0} ground-truth poses "
                     f"(shape {self.gt_poses.shape}) for {num_scans} scans"
                 )
+        if self.files is not None:
+            self.files = [str(f) for f in self.files]
+            if len(self.files) != num_scans:
+                raise DataError(f"{where}: {len(self.files)} file names for {num_scans} scans")
+        if self.source_index is not None:
+            self.source_index = np.asarray(self.source_index, dtype=np.int64).reshape(-1)
+            if self.source_index.shape[0] != num_scans:
+                raise DataError(f"{where}: {self.source_index.shape[0]} source indices for {num_scans} scans")
         if self.gt_map is not None:
             self.gt_map = np.asarray(self.gt_map, dtype=np.float64)
             if self.gt_map.ndim != 2 or self.gt_map.shape[1] != 3:
@@ -61,6 +74,10 @@ class Sequence:
     @property
     def num_scans(self) -> int:
         return len(self.scans)
+
+    def scan_name(self, i: int) -> str:
+        """How messages and reports name scan i: its file where known, else 'scan i'."""
+        return self.files[i] if self.files is not None else f"scan {i}"
 
     @property
     def num_points(self) -> int:

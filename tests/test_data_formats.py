@@ -249,6 +249,25 @@ def test_tum_non_numeric_names_line(tmp_path):
         read_tum(tmp_path / "p.txt")
 
 
+@pytest.mark.parametrize("reader, lines", [
+    (read_tum, ["# t x y z qx qy qz qw", "0.5 0 0 0 0 0 0 1", "1.0 0 0 0 0 0 0 1", "0.5 1 0 0 0 0 0 1"]),
+    (read_newer_college_csv, ["#sec,nsec,x,y,z,qx,qy,qz,qw", "0,500000000,0,0,0,0,0,0,1", "1,0,0,0,0,0,0,0,1",
+                              "0,500000000,1,0,0,0,0,0,1"]),
+])
+def test_duplicate_timestamp_names_file_and_both_lines(tmp_path, reader, lines):
+    (tmp_path / "p.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=r"p\.txt, lines 2 and 4: the same timestamp 0\.500000000 twice"):
+        reader(tmp_path / "p.txt")
+
+
+def test_unsorted_timestamps_are_read_in_file_order(tmp_path):
+    """The reader keeps file order; datasets.align_poses decides (error by order, warning by time)."""
+    (tmp_path / "p.txt").write_text("2.0 0 0 0 0 0 0 1\n1.0 1 0 0 0 0 0 1\n")
+    times, poses = read_tum(tmp_path / "p.txt")
+    np.testing.assert_array_equal(times, [2.0, 1.0])
+    np.testing.assert_array_equal(poses[:, 0, 3], [0.0, 1.0])
+
+
 def test_tum_nan_value_names_line(tmp_path):
     (tmp_path / "p.txt").write_text("0.0 nan 0 0 0 0 0 1\n")
     with pytest.raises(DataError, match=r"p\.txt, line 1: NaN"):

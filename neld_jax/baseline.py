@@ -140,7 +140,7 @@ def run_baseline(config: ml_collections.ConfigDict, voxel_size: float = 0.2, max
     map_gt.ply where they do not exist yet, so that the folder can be evaluated on its own.
     Returns evaluate_run's result when ground truth exists, else None.
     """
-    sequence = load_preprocessed(config.data)
+    _, sequence = load_preprocessed(config.data)
     poses = multiway_registration(sequence.scans, sequence.poses, voxel_size=voxel_size,
                                   max_corr_dist=max_corr_dist, loop_radius_m=loop_radius_m)
 

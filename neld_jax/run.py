@@ -48,7 +48,7 @@ def config_hash(config: ml_collections.ConfigDict) -> str:
 
 def load_and_prepare(config: ml_collections.ConfigDict):
     """Load the sequence named by config.data, preprocess it and fit the normalisation."""
-    seq = load_preprocessed(config.data)
+    _, seq = load_preprocessed(config.data)
     norm = fit_normalization(seq.scans, seq.poses, margin=config.data.normalization_margin)
     return seq, norm
 

@@ -94,8 +94,54 @@ def test_empty_scan_names_file(tmp_path, ext):
 
 def test_npy_with_zero_points_is_an_error(tmp_path):
     np.save(tmp_path / "none.npy", np.zeros((0, 3)))
-    with pytest.raises(DataError, match=r"none\.npy.*no valid points"):
+    with pytest.raises(DataError, match=r"none\.npy: scan file holds 0 points"):
         read_scan(tmp_path / "none.npy")
+
+
+PCD_HEADER_0_POINTS = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 0\n"
+                       "HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 0\nDATA ascii\n")
+PLY_HEADER_0_POINTS = ("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+                       "property float z\nend_header\n")
+
+
+@pytest.mark.parametrize("name, text", [("zero.pcd", PCD_HEADER_0_POINTS), ("zero.ply", PLY_HEADER_0_POINTS)])
+def test_point_cloud_with_zero_points_names_file(tmp_path, name, text):
+    """A recorder that wrote a header but no point: one clear line, not Open3D's 'unable to parse header'."""
+    (tmp_path / name).write_text(text)
+    with pytest.raises(DataError, match=f"{name}: scan file holds 0 points"):
+        read_scan(tmp_path / name)
+
+
+@pytest.mark.parametrize("ext", [".pcd", ".npy", ".bin"])
+def test_zero_points_dropped_with_count(tmp_path, ext, caplog):
+    """(0, 0, 0) is how many drivers write 'no return'; a few are dropped quietly, many with a warning."""
+    points = random_points(20)
+    points[:4] = 0.0
+    points[4] = [0.0, 0.0, 1e-3]  # near the origin is a measurement; only exactly (0, 0, 0) goes
+    write_scan(tmp_path / f"few{ext}", points)
+    with caplog.at_level(logging.DEBUG, logger="neld_jax.data.scans"):
+        back = read_scan(tmp_path / f"few{ext}")
+    assert back.shape == (16, 3) and back.any(axis=1).all()
+    (record,) = [r for r in caplog.records if f"few{ext}" in r.getMessage()]
+    assert record.levelno == logging.DEBUG and "dropped 4 of 20" in record.getMessage()
+    assert "0 with NaN or infinite coordinates, 4 at (0, 0, 0)" in record.getMessage()
+
+    points[:15] = 0.0
+    write_scan(tmp_path / f"many{ext}", points)
+    caplog.clear()
+    with caplog.at_level(logging.DEBUG, logger="neld_jax.data.scans"):
+        assert read_scan(tmp_path / f"many{ext}").shape == (5, 3)
+    (record,) = [r for r in caplog.records if f"many{ext}" in r.getMessage()]
+    assert record.levelno == logging.WARNING and "dropped 15 of 20" in record.getMessage()
+
+
+def test_all_zero_or_infinite_scan_is_an_error(tmp_path):
+    points = np.zeros((6, 3))
+    points[:2] = np.inf
+    np.save(tmp_path / "noreturn.npy", points)
+    with pytest.raises(DataError, match=r"noreturn\.npy: scan has no valid points \(all 6 points were NaN or "
+                                        r"infinite \(2\) or at \(0, 0, 0\) \(4\)"):
+        read_scan(tmp_path / "noreturn.npy")
 
 
 def test_npy_wrong_shape_names_file(tmp_path):
@@ -201,6 +247,25 @@ def test_tum_non_numeric_names_line(tmp_path):
     (tmp_path / "p.txt").write_text("0.0 0 0 0 0 0 0 1\n0.1 0 zero 0 0 0 0 1\n")
     with pytest.raises(DataError, match=r"p\.txt, line 2: non-numeric"):
         read_tum(tmp_path / "p.txt")
+
+
+@pytest.mark.parametrize("reader, lines", [
+    (read_tum, ["# t x y z qx qy qz qw", "0.5 0 0 0 0 0 0 1", "1.0 0 0 0 0 0 0 1", "0.5 1 0 0 0 0 0 1"]),
+    (read_newer_college_csv, ["#sec,nsec,x,y,z,qx,qy,qz,qw", "0,500000000,0,0,0,0,0,0,1", "1,0,0,0,0,0,0,0,1",
+                              "0,500000000,1,0,0,0,0,0,1"]),
+])
+def test_duplicate_timestamp_names_file_and_both_lines(tmp_path, reader, lines):
+    (tmp_path / "p.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=r"p\.txt, lines 2 and 4: the same timestamp 0\.500000000 twice"):
+        reader(tmp_path / "p.txt")
+
+
+def test_unsorted_timestamps_are_read_in_file_order(tmp_path):
+    """The reader keeps file order; datasets.align_poses decides (error by order, warning by time)."""
+    (tmp_path / "p.txt").write_text("2.0 0 0 0 0 0 0 1\n1.0 1 0 0 0 0 0 1\n")
+    times, poses = read_tum(tmp_path / "p.txt")
+    np.testing.assert_array_equal(times, [2.0, 1.0])
+    np.testing.assert_array_equal(poses[:, 0, 3], [0.0, 1.0])
 
 
 def test_tum_nan_value_names_line(tmp_path):

@@ -1,6 +1,7 @@
 """Keyframes, range crop, voxel grid, normalisation into the cube, and training rays."""
 
 import logging
+import re
 
 import jax
 import jax.numpy as jnp
@@ -88,8 +89,23 @@ def test_preprocess_subsets_everything_and_logs(caplog):
 def test_preprocess_scan_left_empty_is_an_error():
     seq = make_sequence(num_scans=2)
     seq.scans[1] = np.full((10, 3), 0.1)  # everything inside the 0.5 m minimum range
-    with pytest.raises(DataError, match="test: scan 1 has no points left"):
+    with pytest.raises(DataError, match="test: scan 1 has no points left"):  # synthetic: no file to name
         preprocess(seq, keyframe_interval_s=0.0)
+
+
+def test_preprocess_scan_left_empty_names_its_file_and_time_after_keyframes(tmp_path):
+    """The issue's case: after keyframe selection the index would point at the wrong scan; the file does not."""
+    from neld_jax.data.datasets import load_generic
+    from neld_jax.data.synthetic import write_generic
+
+    times = np.array([0.0, 1.0, 3.0, 4.0, 6.0])
+    src = make_sequence(num_scans=5, timestamps=times)
+    src.scans[4] = np.random.default_rng(1).uniform(-0.2, 0.2, size=(500, 3))  # all within 0.5 m
+    write_generic(src, tmp_path)
+    seq = load_generic(tmp_path)
+    with pytest.raises(DataError, match=re.escape(f"{tmp_path}: scans/000004.pcd (t=6.000000) has no points left "
+                                                  "within 0.5-80.0 m (it had 500 points, ")):
+        preprocess(seq, keyframe_interval_s=3.0)
 
 
 # ---------------------------------------------------------------------------------------------- normalisation

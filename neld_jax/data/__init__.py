@@ -8,7 +8,14 @@ Typical use:
     rays = build_rays(seq, norm)                       # RaySet: directions, normalised ranges, scan index
 """
 
-from neld_jax.data.datasets import load_fusionportable, load_generic, load_newer_college, load_sequence
+from neld_jax.data.datasets import (
+    Alignment,
+    align_poses,
+    load_fusionportable,
+    load_generic,
+    load_newer_college,
+    load_sequence,
+)
 from neld_jax.data.normalize import Normalization, fit_normalization
 from neld_jax.data.poses import (
     quat_to_rotation,
@@ -23,14 +30,17 @@ from neld_jax.data.poses import (
 from neld_jax.data.preprocess import crop_range, preprocess, select_keyframes, voxel_downsample
 from neld_jax.data.rays import RaySet, build_rays, sample_ray_indices
 from neld_jax.data.scans import read_scan, write_scan
-from neld_jax.data.sequence import Sequence, match_by_timestamp
+from neld_jax.data.sequence import Sequence, check_pose_jumps, match_by_timestamp
 from neld_jax.data.synthetic import default_synthetic_config, make_sequence, write_generic
 
 __all__ = [
+    "Alignment",
     "Normalization",
     "RaySet",
     "Sequence",
+    "align_poses",
     "build_rays",
+    "check_pose_jumps",
     "crop_range",
     "default_synthetic_config",
     "fit_normalization",

@@ -1,7 +1,19 @@
 """Loaders that turn a dataset folder (or the synthetic generator) into a `Sequence`.
 
-Poses are matched to scans by timestamp where the scans carry one (numeric file names), else by
-order; a mismatch is a DataError that names the file and both counts.
+Poses are matched to scans by `align_poses` (shared by every loader): by timestamp where the scans carry
+one (numeric file names), else by order. What real recordings bring, and what happens:
+  - pose and scan counts differ (by order): DataError saying which side is short, by how many, which
+    scans (or pose times) are left over and how to fix it; with drop_unmatched_tail=True a short
+    trailing surplus (at most MAX_UNMATCHED_TAIL, e.g. 332 scans and 331 poses at the end of a
+    recording) is dropped with a warning naming it instead.
+  - pose timestamps out of order: by order, a DataError (the file cannot be in scan order then); by
+    time, a warning (matching by time does not need order).
+  - the same timestamp twice in a pose file: DataError naming both lines (poses.read_tum).
+  - NaN/inf points and points at (0, 0, 0) ("no return"): dropped, counted per reason (scans.read_scan,
+    plus one total here); a scan file with no point left, or none at all, is a DataError naming it.
+  - consecutive poses implausibly far apart: a warning naming both scan files
+    (sequence.check_pose_jumps).
+Every Sequence carries `files` (relative to the root), so later per-scan messages name the file.
 """
 
 from __future__ import annotations
@@ -10,18 +22,21 @@ import logging
 import os
 import re
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from neld_jax.data import synthetic
 from neld_jax.data.poses import read_newer_college_csv, read_tum
-from neld_jax.data.scans import SCAN_EXTENSIONS, read_scan
-from neld_jax.data.sequence import Sequence, match_by_timestamp
+from neld_jax.data.scans import SCAN_EXTENSIONS, read_scan, read_scan_counted
+from neld_jax.data.sequence import Sequence, check_pose_jumps, match_by_timestamp
 from neld_jax.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_TIMESTAMP_TOLERANCE_S = 0.05
+# drop_unmatched_tail forgives a recording cut a little unevenly at its end, not a different sequence.
+MAX_UNMATCHED_TAIL = 5
 FORMATS = ("generic", "fusionportable", "newer_college", "lio_keyframes", "synthetic")
 
 
@@ -86,31 +101,144 @@ def _sorted_by_name(files: list[Path]) -> list[Path]:
     return sorted(files, key=lambda f: f.name)
 
 
+def _relative(path: Path, root: Path | None) -> str:
+    """path relative to root when it lies inside it (scans/000002.pcd), else the path as given."""
+    if root is not None:
+        try:
+            return path.relative_to(root).as_posix()
+        except ValueError:
+            pass
+    return str(path)
+
+
 def _read_scans(files: list[Path]) -> list[np.ndarray]:
-    scans = [read_scan(f) for f in files]
+    """Read every scan; one log line with the totals dropped per reason (each file's own is in scans)."""
+    scans, totals, affected = [], {"read": 0, "non-finite": 0, "zero": 0}, {"non-finite": 0, "zero": 0}
+    for f in files:
+        points, dropped = read_scan_counted(f)
+        scans.append(points)
+        for key in totals:
+            totals[key] += dropped[key]
+        for key in affected:
+            affected[key] += dropped[key] > 0
     logger.info("read %d scans (%d points) from %s", len(scans), sum(len(s) for s in scans), files[0].parent)
+    if totals["non-finite"] or totals["zero"]:
+        logger.info("dropped %d of %d points: %d NaN/infinite (in %d scans), %d at (0, 0, 0), i.e. no return "
+                    "(in %d scans)", totals["non-finite"] + totals["zero"], totals["read"], totals["non-finite"],
+                    affected["non-finite"], totals["zero"], affected["zero"])
     return scans
 
 
-def _align(
+class Alignment(NamedTuple):
+    """What align_poses returns.
+
+    poses:        [S', 4, 4] the pose of each kept scan
+    timestamps:   [S'] the kept scans' times (scan_times if given, else the matched poses' times), or None
+    scan_indices: [S'] int64 indices of the kept scans into scan_files (all of them unless
+                  drop_unmatched_tail dropped a trailing few)
+    """
+
+    poses: np.ndarray
+    timestamps: np.ndarray | None
+    scan_indices: np.ndarray
+
+
+def _listed(names: list[str], limit: int = 3) -> str:
+    return ", ".join(names[:limit]) + (f", ... ({len(names)} in all)" if len(names) > limit else "")
+
+
+def align_poses(
     poses: np.ndarray,
-    pose_times: np.ndarray,
-    scan_times: np.ndarray | None,
-    num_scans: int,
-    pose_file: Path,
-    tol: float,
-    scan_folder: Path,
-) -> np.ndarray:
-    """Poses [S, 4, 4] for the scans: by timestamp when scan_times is given, else by order (counts must agree)."""
+    pose_times: np.ndarray | None,
+    pose_file: str | os.PathLike,
+    scan_files: list[Path],
+    scan_times: np.ndarray | None = None,
+    tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+    drop_unmatched_tail: bool = False,
+    root: str | os.PathLike | None = None,
+) -> Alignment:
+    """Match poses read from pose_file to the scans in scan_files: by time if scan_times is given, else by order.
+
+    poses: [P, 4, 4]; pose_times: [P] seconds (None for files without times, e.g. KITTI);
+    scan_files: [S] scan paths (messages show them relative to `root` when given);
+    scan_times: [S] seconds, or None to match by order; tol: seconds, for matching by time.
+
+    By time: every scan needs a pose within `tol` seconds (else DataError naming the first scan file);
+    pose times out of order are fine (a warning: the file may be a concatenation).
+    By order: pose times, when given, must increase (else DataError naming the first pose that goes
+    back in time: the file is then not in scan order). The counts must agree; if not, DataError saying
+    which side is short, by how many, and which trailing scans (or pose times) are left over, e.g.
+    "<root>: poses.txt has 331 poses but scans/ has 332 scans: the last 1 scan(s) (scans/000331.pcd) have
+    no pose; delete them or add poses". With drop_unmatched_tail=True and at most MAX_UNMATCHED_TAIL left
+    over, the surplus trailing scans (or poses) are dropped with a warning naming them instead.
+    """
+    pose_file = Path(pose_file)
+    root = None if root is None else Path(root)
+    poses = np.asarray(poses, dtype=np.float64)
+    pose_times = None if pose_times is None else np.asarray(pose_times, dtype=np.float64).reshape(-1)
+    labels = [_relative(Path(f), root) for f in scan_files]
+    num_poses, num_scans = poses.shape[0], len(scan_files)
+
     if scan_times is not None:
-        indices = match_by_timestamp(scan_times, pose_times, tol=tol, what=f"{pose_file} ({scan_folder})")
-        return poses[indices]
-    if poses.shape[0] != num_scans:
-        raise DataError(
-            f"{pose_file}: {poses.shape[0]} poses but {num_scans} scans in {scan_folder} "
-            "(scan file names are not timestamps, so poses must match scans one to one, in order)"
-        )
-    return poses
+        scan_times = np.asarray(scan_times, dtype=np.float64).reshape(-1)
+        if pose_times is None:
+            raise DataError(f"{pose_file}: has no timestamps, so its poses cannot be matched to scans by time")
+        back = np.flatnonzero(np.diff(pose_times) < 0)
+        if back.size:
+            logger.warning("%s: timestamps are not in time order (pose %d at t=%.6f comes after t=%.6f; %d such "
+                           "places); poses are matched by time, so this only matters if the file is a mix-up",
+                           pose_file, back[0] + 2, pose_times[back[0] + 1], pose_times[back[0]], back.size)
+        indices = match_by_timestamp(scan_times, pose_times, tol=tol, what=str(pose_file), scan_labels=labels)
+        return Alignment(poses[indices], scan_times, np.arange(num_scans, dtype=np.int64))
+
+    if pose_times is not None:
+        back = np.flatnonzero(np.diff(pose_times) <= 0)
+        if back.size:
+            i = int(back[0]) + 1
+            raise DataError(
+                f"{pose_file}: timestamps are not in time order (pose {i + 1} at t={pose_times[i]:.6f} comes after "
+                f"t={pose_times[i - 1]:.6f}; {back.size} such place(s)); poses are matched to the scans "
+                "one to one, in order, so the file must be sorted by time (sort it by its first column)"
+            )
+    keep = min(num_poses, num_scans)
+    extra = abs(num_poses - num_scans)
+    if extra:
+        if num_poses < num_scans:
+            left_over = labels[keep:]
+            what = (f"the last {extra} scan(s) ({_listed(left_over)}) have no pose; "
+                    "delete them or add poses")
+        else:
+            left_over = ([f"pose {i + 1}" for i in range(keep, num_poses)] if pose_times is None
+                         else [f"t={t:.6f}" for t in pose_times[keep:]])
+            what = (f"the last {extra} pose(s) ({_listed(left_over)}) have no scan; "
+                    "delete them or add the missing scans")
+        folder = _relative(Path(scan_files[0]).parent, root) + "/" if scan_files else "the scan list"
+        message = (f"{'' if root is None else f'{root}: '}{_relative(pose_file, root)} has {num_poses} poses "
+                   f"but {folder} has {num_scans} scans: {what} (poses are matched to scans one to one, in order)")
+        if not drop_unmatched_tail or extra > MAX_UNMATCHED_TAIL:
+            if drop_unmatched_tail:
+                message += f"; drop_unmatched_tail drops at most {MAX_UNMATCHED_TAIL}, not {extra}"
+            raise DataError(message)
+        logger.warning("%s; dropped them (drop_unmatched_tail)", message)
+    times = None if pose_times is None else pose_times[:keep]
+    return Alignment(poses[:keep], times, np.arange(keep, dtype=np.int64))
+
+
+def _sequence(root: Path, files: list[Path], poses: np.ndarray, timestamps: np.ndarray | None,
+              gt_poses: np.ndarray | None, pose_file: Path) -> Sequence:
+    """Read the scans and the GT map, build the Sequence (files relative to root), check for pose jumps."""
+    seq = Sequence(
+        scans=_read_scans(files),
+        poses=poses,
+        timestamps=timestamps,
+        gt_poses=gt_poses,
+        gt_map=_read_gt_map(root),
+        name=root.name,
+        source=str(root),
+        files=[_relative(f, root) for f in files],
+    )
+    check_pose_jumps(seq.poses, [seq.scan_label(i) for i in range(seq.num_scans)], what=str(pose_file))
+    return seq
 
 
 def _first_existing(root: Path, candidates: tuple[str, ...]) -> Path | None:
@@ -130,7 +258,8 @@ def _read_gt_map(root: Path) -> np.ndarray | None:
 # --------------------------------------------------------------------------------------------------
 
 
-def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S) -> Sequence:
+def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+                 drop_unmatched_tail: bool = False) -> Sequence:
     """Load the generic layout (see DESIGN.md, "Data on disk"):
 
         ROOT/scans/*.{pcd,ply,bin,npy}   one scan per file, sensor frame, sorted by name
@@ -138,10 +267,12 @@ def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERAN
         ROOT/gt_poses.txt                optional ground-truth poses, TUM
         ROOT/gt_map.pcd | gt_map.ply     optional ground-truth map, world frame
 
-    Poses match scans by order. Only when the counts differ and every scan name is a timestamp
-    (1650000000.123456.pcd, or 10/13/16/19-digit integer s/ms/us/ns; zero-padded frame numbers such as
-    000012.pcd are not) are they matched by timestamp, nearest within `tol` seconds. Ground-truth poses
-    follow the same rule (a different count is matched against the scan timestamps)."""
+    Poses match scans by order (their timestamps must then increase). Only when the counts differ and
+    every scan name is a timestamp (1650000000.123456.pcd, or 10/13/16/19-digit integer s/ms/us/ns;
+    zero-padded frame numbers such as 000012.pcd are not) are they matched by timestamp, nearest within
+    `tol` seconds. Ground-truth poses follow the same rule (a different count is matched against the scan
+    timestamps). drop_unmatched_tail: see align_poses (a few trailing scans without a pose are dropped
+    with a warning instead of an error)."""
     root = _check_root(root)
     scan_folder = root / "scans"
     files = _sorted_by_name(_list_scans(scan_folder))
@@ -152,27 +283,20 @@ def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERAN
     pose_times, poses = read_tum(pose_file)
     by_time = names_are_times and poses.shape[0] != len(files)
     scan_times = np.asarray(name_times, dtype=np.float64) if by_time else None
-    poses = _align(poses, pose_times, scan_times, len(files), pose_file, tol, scan_folder)
-    timestamps = scan_times if by_time else pose_times
+    aligned = align_poses(poses, pose_times, pose_file, files, scan_times, tol=tol,
+                          drop_unmatched_tail=drop_unmatched_tail, root=root)
+    files = [files[i] for i in aligned.scan_indices]
+    timestamps = aligned.timestamps
 
     gt_poses = None
     gt_file = root / "gt_poses.txt"
     if gt_file.is_file():
         gt_times, gt_all = read_tum(gt_file)
         gt_by_time = by_time or (gt_all.shape[0] != len(files))
-        gt_poses = _align(
-            gt_all, gt_times, timestamps if gt_by_time else None, len(files), gt_file, tol, scan_folder
-        )
+        gt_poses = align_poses(gt_all, gt_times, gt_file, files, timestamps if gt_by_time else None,
+                               tol=tol, root=root).poses
 
-    return Sequence(
-        scans=_read_scans(files),
-        poses=poses,
-        timestamps=timestamps,
-        gt_poses=gt_poses,
-        gt_map=_read_gt_map(root),
-        name=root.name,
-        source=str(root),
-    )
+    return _sequence(root, files, aligned.poses, timestamps, gt_poses, pose_file)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -202,11 +326,11 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
     files = _sorted_by_name(_list_scans(scan_folder))
     scan_times = _timestamps_from_names(files, scan_folder, "<timestamp>.pcd")
 
-    return _timestamped_sequence(root, files, scan_times, scan_folder, FUSIONPORTABLE_POSE_FILES,
+    return _timestamped_sequence(root, files, scan_times, FUSIONPORTABLE_POSE_FILES,
                                  FUSIONPORTABLE_GT_FILES, read_tum, tol)
 
 
-def _timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray, scan_folder: Path,
+def _timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray,
                           pose_files: tuple[str, ...], gt_files: tuple[str, ...], read_gt, tol: float) -> Sequence:
     """The part that FusionPortable and Newer College share: scans with timestamps, initial poses (TUM) and
     optional ground truth (read by `read_gt`) matched to them by nearest timestamp, optional GT map."""
@@ -214,23 +338,15 @@ def _timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray,
     if pose_file is None:
         raise DataError(f"{root}: no initial pose file (looked for {', '.join(pose_files)})")
     pose_times, poses = read_tum(pose_file)
-    poses = _align(poses, pose_times, scan_times, len(files), pose_file, tol, scan_folder)
+    aligned = align_poses(poses, pose_times, pose_file, files, scan_times, tol=tol, root=root)
 
     gt_poses = None
     gt_file = _first_existing(root, gt_files)
     if gt_file is not None:
         gt_times, gt_all = read_gt(gt_file)
-        gt_poses = _align(gt_all, gt_times, scan_times, len(files), gt_file, tol, scan_folder)
+        gt_poses = align_poses(gt_all, gt_times, gt_file, files, scan_times, tol=tol, root=root).poses
 
-    return Sequence(
-        scans=_read_scans(files),
-        poses=poses,
-        timestamps=scan_times,
-        gt_poses=gt_poses,
-        gt_map=_read_gt_map(root),
-        name=root.name,
-        source=str(root),
-    )
+    return _sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file)
 
 
 def _timestamps_from_names(files: list[Path], folder: Path, pattern: str) -> np.ndarray:
@@ -262,8 +378,8 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
         ROOT/gt_map.pcd | gt_map.ply            optional ground-truth map, world frame
 
     Scan time = sec + nsec * 1e-9 from the file name; poses are matched by nearest timestamp within
-    `tol` seconds. Points at the origin (no return in organised Ouster clouds) are left in; the
-    preprocessing range crop removes them."""
+    `tol` seconds. Points at the origin (no return in organised Ouster clouds) are dropped when read
+    and counted in one log line."""
     root = _check_root(root)
     scan_folder = next((root / f for f in NEWER_COLLEGE_SCAN_FOLDERS if (root / f).is_dir()), None)
     if scan_folder is None:
@@ -279,7 +395,7 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
     files = [files[i] for i in order]
     scan_times = np.asarray(times, dtype=np.float64)[order]
 
-    return _timestamped_sequence(root, files, scan_times, scan_folder, NEWER_COLLEGE_POSE_FILES,
+    return _timestamped_sequence(root, files, scan_times, NEWER_COLLEGE_POSE_FILES,
                                  NEWER_COLLEGE_GT_FILES, read_newer_college_csv, tol)
 
 
@@ -308,5 +424,7 @@ def load_sequence(data_cfg) -> Sequence:
         return load_lio_keyframes(root, pose_file=data_cfg.get("pose_file", "") or DEFAULT_POSE_FILE,
                                   drop_unmatched_tail=bool(data_cfg.get("drop_unmatched_tail", False)))
     tol = float(data_cfg.get("timestamp_tol_s", DEFAULT_TIMESTAMP_TOLERANCE_S))
-    loader = {"generic": load_generic, "fusionportable": load_fusionportable, "newer_college": load_newer_college}
+    if fmt == "generic":
+        return load_generic(root, tol=tol, drop_unmatched_tail=bool(data_cfg.get("drop_unmatched_tail", False)))
+    loader = {"fusionportable": load_fusionportable, "newer_college": load_newer_college}
     return loader[fmt](root, tol=tol)

@@ -11,7 +11,7 @@ file is the initial trajectory (odom_poses.txt by default; optimized_poses.txt t
 result). There is no ground truth in this layout; `bin/perturb.py` makes a pseudo ground truth from it.
 
 A count mismatch (a recording cut short: 332 scans and stamps, 331 poses) is an error that says which side
-is short; `drop_unmatched_tail=True` drops the trailing scans without a pose instead, with a warning.
+is short; `drop_unmatched_tail=True` drops up to MAX_UNMATCHED_TAIL trailing scans without a pose instead, with a warning.
 """
 
 from __future__ import annotations
@@ -22,9 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
+from neld_jax.data.datasets import MAX_UNMATCHED_TAIL
 from neld_jax.data.poses import read_kitti
 from neld_jax.data.scans import read_scan
-from neld_jax.data.sequence import Sequence
+from neld_jax.data.sequence import Sequence, check_pose_jumps
 from neld_jax.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -107,20 +108,22 @@ def load_lio_keyframes(root: str | os.PathLike, pose_file: str = DEFAULT_POSE_FI
         listing = ", ".join(f"{name} has {n}" for name, n in counts.items())
         short = [name for name, n in counts.items() if n == shortest]
         extra = max(counts.values()) - shortest
-        if not drop_unmatched_tail or extra > 3:
+        if not drop_unmatched_tail or extra > MAX_UNMATCHED_TAIL:
             raise DataError(
                 f"{root}: scans, poses and stamps must correspond one to one, but {listing} "
                 f"({', '.join(short)} {'is' if len(short) == 1 else 'are'} short by {extra}); if the recording "
                 f"was cut short at its end, set data.drop_unmatched_tail=True to drop the last {extra} scan(s)"
-                + ("" if extra <= 3 else " (only allowed for up to 3)"))
+                + ("" if extra <= MAX_UNMATCHED_TAIL else f" (only allowed for up to {MAX_UNMATCHED_TAIL})"))
         dropped = [p.name for p in files[shortest:]]
         logger.warning("%s: %s; dropping the trailing %d scan(s) without a full record: %s", root, listing, extra,
                        ", ".join(dropped) or "(none: only poses or stamps)")
         files, poses = files[:shortest], poses[:shortest]
         stamps = None if stamps is None else stamps[:shortest]
 
+    names = [f"{folder.name}/{f.name}" for f in files]
+    check_pose_jumps(poses, names, what=str(pose_path))
     scans = [read_scan(f) for f in files]
     logger.info("read %d keyframe scans (%d points, %.0f per scan) from %s, poses from %s", len(scans),
                 sum(len(s) for s in scans), np.mean([len(s) for s in scans]), folder, pose_path.name)
     return Sequence(scans=scans, poses=poses, timestamps=stamps, name=root.name, source=str(root),
-                    files=[f"{folder.name}/{f.name}" for f in files])
+                    files=names)

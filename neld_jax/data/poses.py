@@ -6,7 +6,11 @@ Quaternions are in (qx, qy, qz, qw) order everywhere in this module.
 Validation (each raises `DataError` naming the file and the line):
   wrong column count, non-numeric or non-finite values, a quaternion whose norm is off by more than
   1e-3 relative (smaller errors are normalised silently), a rotation block that is not a rotation
-  (R^T R != I within 1e-4, or det(R) != +1), and a file without any pose.
+  (R^T R != I within 1e-4, or det(R) != +1), a file without any pose, and in timestamped files (TUM,
+  Newer College CSV) two lines with the same timestamp (naming both lines): matching by time would be
+  ambiguous, and trajectory evaluation (evo) associates by time.
+Timestamps out of order are returned as they are, in file order: whoever matches the poses to scans
+decides (datasets.align_poses: fine by time, with a warning; an error by order).
 """
 
 from __future__ import annotations
@@ -118,6 +122,19 @@ def _parse_rows(
     return np.asarray(rows, dtype=np.float64), line_numbers
 
 
+def _check_unique_times(path: Path, times: np.ndarray, line_numbers: list[int]) -> None:
+    """times: [S] -> DataError naming both lines of the first timestamp that appears twice."""
+    order = np.argsort(times, kind="stable")
+    same = np.flatnonzero(np.diff(times[order]) == 0.0)
+    if same.size:
+        first, second = sorted((int(order[same[0]]), int(order[same[0] + 1])))
+        raise DataError(
+            f"{path}, lines {line_numbers[first]} and {line_numbers[second]}: the same timestamp "
+            f"{times[first]:.9f} twice ({same.size} repeated timestamp(s) in the file); "
+            "poses are matched and evaluated by time, so each timestamp must appear once"
+        )
+
+
 def _checked_quaternions(path: Path, quaternions: np.ndarray, line_numbers: list[int]) -> np.ndarray:
     """quaternions: [S, 4] -> normalised; a norm off by more than the tolerance is an error."""
     norms = np.linalg.norm(quaternions, axis=1)
@@ -152,10 +169,13 @@ def _check_pose_array(path: Path, poses: np.ndarray) -> np.ndarray:
 
 
 def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM trajectory. Returns (timestamps [S] float64, poses [S, 4, 4] float64)."""
+    """Read a TUM trajectory. Returns (timestamps [S] float64, poses [S, 4, 4] float64), in file order.
+
+    A timestamp that appears on two lines is a DataError naming both."""
     path = Path(path)
     values, line_numbers = _parse_rows(path, _read_lines(path, "TUM pose"), 8, "timestamp tx ty tz qx qy qz qw")
     quaternions = _checked_quaternions(path, values[:, 4:8], line_numbers)
+    _check_unique_times(path, values[:, 0], line_numbers)
     return values[:, 0].copy(), make_poses(values[:, 1:4], quaternions)
 
 
@@ -237,6 +257,7 @@ def read_newer_college_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndar
     values, line_numbers = _parse_rows(path, lines, 9, "sec,nsec,x,y,z,qx,qy,qz,qw", separator=",")
     quaternions = _checked_quaternions(path, values[:, 5:9], line_numbers)
     timestamps = values[:, 0] + values[:, 1] * 1e-9
+    _check_unique_times(path, timestamps, line_numbers)
     return timestamps, make_poses(values[:, 2:5], quaternions)
 
 

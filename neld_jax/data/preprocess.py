@@ -1,4 +1,7 @@
-"""Scan preprocessing as in the paper: keyframes every 3 s, points within 0.5-80 m, 0.05 m voxel grid."""
+"""Scan preprocessing as in the paper: keyframes every 3 s, points within 0.5-80 m, 0.05 m voxel grid.
+
+Per-scan fields (scans, poses, timestamps, gt_poses, files) are subset together; a scan that the range
+crop empties is a DataError naming its file (and time), e.g. "scans/000002.pcd (t=6.000000)"."""
 
 from __future__ import annotations
 
@@ -97,12 +100,15 @@ def preprocess(
         raw = seq.scans[index]
         cropped = crop_range(raw, min_range, max_range)
         downsampled = voxel_downsample(cropped, voxel_size)
-        logger.debug("scan %d: %d points -> %d in range -> %d after voxel grid",
-                     index, len(raw), len(cropped), len(downsampled))
+        logger.debug("%s: %d points -> %d in range -> %d after voxel grid",
+                     seq.scan_label(index), len(raw), len(cropped), len(downsampled))
         if downsampled.shape[0] == 0:
+            distances = np.linalg.norm(raw, axis=1)
             raise DataError(
-                f"{seq.source or seq.name}: {seq.scan_name(index)} has no points left within {min_range}-{max_range} m "
-                f"(it had {len(raw)} points)"
+                f"{seq.source or seq.name}: {seq.scan_label(index)} has no points left within "
+                f"{min_range}-{max_range} m (it had {len(raw)} points, "
+                f"{distances.min():.3g}-{distances.max():.3g} m from the sensor; check the units or "
+                "data.min_range_m / data.max_range_m)"
             )
         totals += (len(raw), len(cropped), len(downsampled))
         scans.append(downsampled)

@@ -5,8 +5,13 @@ Supported formats, chosen by file extension:
   .bin         KITTI velodyne layout: float32 records (x, y, z, intensity)
   .npy         numpy array [N, 3] or [N, >=3] (first three columns are x, y, z)
 
-Every reader returns `points: [N, 3] float64` with non-finite points removed (and counted in the log).
-Bad input raises `DataError` with a message that names the file.
+Every reader returns `points: [N, 3] float64` without the points that are no measurement: non-finite ones
+(NaN/inf) and ones exactly at the origin (0, 0, 0), which many drivers and organised clouds (Ouster, ROS
+bags) use for "no return". Each file's drops are logged with a count per reason: a warning naming the file
+when there are non-finite points or when the scan loses more than half its points (MANY_DROPPED_FRACTION),
+else at debug level (organised clouds lose some zeros in every scan; the loader logs one total).
+Bad input raises `DataError` with a message that names the file; so does a file that holds no point
+(0 bytes, a PCD/PLY whose header says 0 points, an empty array) or only points that are no measurement.
 """
 
 from __future__ import annotations
@@ -23,6 +28,8 @@ from neld_jax.errors import DataError
 logger = logging.getLogger(__name__)
 
 SCAN_EXTENSIONS = (".pcd", ".ply", ".bin", ".npy")
+# A scan that loses more than this fraction to NaN/inf/(0,0,0) is worth a warning with its name.
+MANY_DROPPED_FRACTION = 0.5
 
 
 def _extension(path: Path) -> str:
@@ -34,7 +41,30 @@ def _extension(path: Path) -> str:
     return ext
 
 
-def _read_open3d(path: Path) -> np.ndarray:
+def _header_point_count(path: Path, ext: str) -> int | None:
+    """The point count a PCD ('POINTS n') or PLY ('element vertex n') header states, else None."""
+    key = b"POINTS" if ext == ".pcd" else b"element vertex"
+    end = b"DATA" if ext == ".pcd" else b"end_header"
+    with open(path, "rb") as f:
+        for _ in range(64):  # headers are a dozen lines; stop early on binary junk
+            line = f.readline()
+            if not line:
+                break
+            if line.startswith(key):
+                try:
+                    return int(line[len(key):].split()[0])
+                except (ValueError, IndexError):
+                    return None
+            if line.startswith(end):
+                break
+    return None
+
+
+def _read_open3d(path: Path, ext: str) -> np.ndarray:
+    # Open3D cannot tell "0 points" from "unreadable" (it fails on a PCD header with POINTS 0), so ask
+    # the header first for a clearer message.
+    if _header_point_count(path, ext) == 0:
+        raise DataError(f"{path}: scan file holds 0 points (its header says so)")
     # Open3D does not raise on a corrupt file; it logs a warning and returns an empty cloud.
     cloud = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
     points = np.asarray(cloud.points, dtype=np.float64)
@@ -65,28 +95,54 @@ def _read_npy(path: Path) -> np.ndarray:
 
 
 def read_scan(path: str | os.PathLike) -> np.ndarray:
-    """Read one scan. Returns points: [N, 3] float64 (non-finite points dropped, with a warning)."""
-    path = Path(path)
+    """Read one scan. Returns points: [N, 3] float64 without NaN/inf and (0, 0, 0) points (counts logged)."""
+    return _read_scan(Path(path))[0]
+
+
+def read_scan_counted(path: str | os.PathLike) -> tuple[np.ndarray, dict[str, int]]:
+    """read_scan that also returns what was dropped: counts {'read', 'non-finite', 'zero', 'total'}."""
+    return _read_scan(Path(path))
+
+
+def _read_scan(path: Path) -> tuple[np.ndarray, dict[str, int]]:
     ext = _extension(path)
     if not path.is_file():
         raise DataError(f"{path}: scan file does not exist")
     if path.stat().st_size == 0:
         raise DataError(f"{path}: scan file is empty (0 bytes)")
     if ext in (".pcd", ".ply"):
-        points = _read_open3d(path)
+        points = _read_open3d(path, ext)
     elif ext == ".bin":
         points = _read_kitti_bin(path)
     else:
         points = _read_npy(path)
 
-    finite = np.isfinite(points).all(axis=1)
-    num_dropped = int(points.shape[0] - finite.sum())
-    if num_dropped:
-        logger.warning("%s: dropped %d of %d points with NaN or infinite coordinates", path, num_dropped, len(points))
-        points = points[finite]
     if points.shape[0] == 0:
-        raise DataError(f"{path}: scan has no valid points (all {num_dropped} points were NaN or infinite)")
-    return points
+        raise DataError(f"{path}: scan file holds 0 points")
+    points, dropped = drop_invalid_points(points)
+    if dropped["total"]:
+        many = dropped["total"] > MANY_DROPPED_FRACTION * dropped["read"]
+        level = logging.WARNING if dropped["non-finite"] or many else logging.DEBUG
+        logger.log(level, "%s: dropped %d of %d points (%d with NaN or infinite coordinates, %d at (0, 0, 0): "
+                   "no return)", path, dropped["total"], dropped["read"], dropped["non-finite"], dropped["zero"])
+    if points.shape[0] == 0:
+        raise DataError(
+            f"{path}: scan has no valid points (all {dropped['read']} points were NaN or infinite "
+            f"({dropped['non-finite']}) or at (0, 0, 0) ({dropped['zero']}), i.e. no return)"
+        )
+    return points, dropped
+
+
+def drop_invalid_points(points: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
+    """points: [N, 3] -> (points without NaN/inf rows and without exact (0, 0, 0) rows [N', 3], counts).
+
+    counts: {'read': N, 'non-finite': ..., 'zero': ..., 'total': N - N'}."""
+    finite = np.isfinite(points).all(axis=1)
+    zero = finite & ~points.any(axis=1)  # exactly (0, 0, 0): the "no return" encoding
+    keep = finite & ~zero
+    counts = {"read": int(points.shape[0]), "non-finite": int((~finite).sum()), "zero": int(zero.sum())}
+    counts["total"] = counts["non-finite"] + counts["zero"]
+    return (points if counts["total"] == 0 else points[keep]), counts
 
 
 def write_scan(path: str | os.PathLike, points: np.ndarray) -> None:

@@ -1,12 +1,21 @@
-"""The in-memory LiDAR sequence that every loader returns and the trainer consumes."""
+"""The in-memory LiDAR sequence that every loader returns and the trainer consumes, matching poses to
+scans by time, and a plausibility check on consecutive poses.
+
+Messages about one scan name its file (`Sequence.scan_label`: "scans/000002.pcd (t=1650000006.000000)"),
+because after keyframe selection, or with files named by timestamp, an index does not tell the user
+which file is meant; only synthetic sequences (no files) fall back to "scan 2".
+"""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 
 from neld_jax.errors import DataError
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -20,7 +29,8 @@ class Sequence:
     gt_map:     [M, 3] float64 ground-truth map points in the world frame, or None
     name:       short human-readable name (e.g. the folder name)
     source:     where it came from: a path or 'synthetic'
-    files:      S scan file names relative to `source` (for messages and reports), or None
+    files:      [S] the file each scan was read from (relative to `source`, or absolute), or None
+                (synthetic); carried through keyframe selection so messages can name the file
     source_index: [S] int64 index of each scan in the sequence as loaded (set by keyframe selection), or
                 None when these are the loaded scans themselves
     """
@@ -38,13 +48,17 @@ class Sequence:
     def __post_init__(self) -> None:
         where = f"sequence '{self.name}' ({self.source or 'no source'})"
         self.scans = [np.asarray(scan, dtype=np.float64) for scan in self.scans]
+        num_scans = len(self.scans)
+        if self.files is not None:
+            self.files = [str(f) for f in self.files]
+            if len(self.files) != num_scans:
+                raise DataError(f"{where}: {len(self.files)} file names for {num_scans} scans")
         for i, scan in enumerate(self.scans):
             if scan.ndim != 2 or scan.shape[1] != 3:
-                raise DataError(f"{where}: scan {i} must have shape [N, 3], got {scan.shape}")
+                raise DataError(f"{where}: {self.scan_label(i)} must have shape [N, 3], got {scan.shape}")
         self.poses = np.asarray(self.poses, dtype=np.float64)
         if self.poses.ndim != 3 or self.poses.shape[1:] != (4, 4):
             raise DataError(f"{where}: poses must have shape [S, 4, 4], got {self.poses.shape}")
-        num_scans = len(self.scans)
         if self.poses.shape[0] != num_scans:
             raise DataError(f"{where}: {self.poses.shape[0]} poses for {num_scans} scans")
         if self.timestamps is not None:
@@ -58,10 +72,6 @@ class Sequence:
                     f"{where}: {self.gt_poses.shape[0] if self.gt_poses.ndim else 0} ground-truth poses "
                     f"(shape {self.gt_poses.shape}) for {num_scans} scans"
                 )
-        if self.files is not None:
-            self.files = [str(f) for f in self.files]
-            if len(self.files) != num_scans:
-                raise DataError(f"{where}: {len(self.files)} file names for {num_scans} scans")
         if self.source_index is not None:
             self.source_index = np.asarray(self.source_index, dtype=np.int64).reshape(-1)
             if self.source_index.shape[0] != num_scans:
@@ -71,13 +81,16 @@ class Sequence:
             if self.gt_map.ndim != 2 or self.gt_map.shape[1] != 3:
                 raise DataError(f"{where}: gt_map must have shape [M, 3], got {self.gt_map.shape}")
 
+    def scan_label(self, i: int) -> str:
+        """How messages name scan i: its file and, when known, its time; "scan i" without files."""
+        label = f"scan {i}" if self.files is None else self.files[i]
+        if self.timestamps is not None and len(self.timestamps) == len(self.scans):
+            label += f" (t={self.timestamps[i]:.6f})"
+        return label
+
     @property
     def num_scans(self) -> int:
         return len(self.scans)
-
-    def scan_name(self, i: int) -> str:
-        """How messages and reports name scan i: its file where known, else 'scan i'."""
-        return self.files[i] if self.files is not None else f"scan {i}"
 
     @property
     def num_points(self) -> int:
@@ -86,13 +99,14 @@ class Sequence:
 
 
 def match_by_timestamp(
-    scan_times: np.ndarray, pose_times: np.ndarray, tol: float = 0.05, what: str = "poses"
+    scan_times: np.ndarray, pose_times: np.ndarray, tol: float = 0.05, what: str = "poses",
+    scan_labels: list[str] | None = None,
 ) -> np.ndarray:
     """For each scan time, the index of the nearest pose time.
 
     scan_times: [S], pose_times: [P] (any order) -> indices [S] int64 into pose_times.
     Raises DataError when some scan has no pose within `tol` seconds; `what` names the pose source
-    (e.g. a file) in that message."""
+    (e.g. a file) in that message and `scan_labels` [S] (e.g. file names) the scans."""
     scan_times = np.asarray(scan_times, dtype=np.float64).reshape(-1)
     pose_times = np.asarray(pose_times, dtype=np.float64).reshape(-1)
     if pose_times.size == 0:
@@ -110,9 +124,50 @@ def match_by_timestamp(
     unmatched = np.flatnonzero(gaps > tol)
     if unmatched.size:
         i = int(unmatched[0])
+        first = f"scan {i}" if scan_labels is None else scan_labels[i]
         raise DataError(
             f"{what}: {unmatched.size} of {scan_times.size} scans have no pose within {tol} s "
-            f"(first: scan {i} at t={scan_times[i]:.6f}, nearest pose {gaps[i]:.6f} s away); "
+            f"(first: {first} at t={scan_times[i]:.6f}, nearest pose {gaps[i]:.6f} s away); "
             f"{pose_times.size} poses for {scan_times.size} scans"
         )
     return order[nearest]
+
+
+# A step is a jump when it is JUMP_FACTOR times the 90th-percentile step, and at least MIN_JUMP_M.
+# Relative, not a fixed distance: steps between consecutive scans range from centimetres (handheld,
+# 10 Hz) to tens of metres (a car, keyframes 3 s apart), so any fixed threshold is blind on one and
+# noisy on the other. The 90th percentile, not the median: a car that waits at lights for half the
+# recording has a median step of ~0, yet its moving steps are normal. The floor keeps a (nearly)
+# standing platform from warning about centimetre steps.
+JUMP_FACTOR = 5.0
+MIN_JUMP_M = 1.0
+_MAX_JUMPS_LISTED = 3
+
+
+def check_pose_jumps(
+    poses: np.ndarray,
+    labels: list[str] | None = None,
+    max_step_m: float | None = None,
+    what: str = "poses",
+) -> np.ndarray:
+    """Warn (logger.warning, naming both scans) about consecutive poses implausibly far apart.
+
+    poses: [S, 4, 4]; labels: [S] how to name each scan (files), else "scan i"; max_step_m: the largest
+    plausible distance between consecutive positions, default max(MIN_JUMP_M, JUMP_FACTOR x the 90th
+    percentile step); what: names the pose source in the message. Returns the indices i [J] int64 of the
+    jumps from scan i to scan i + 1. Only warns: the run goes on (odometry does glitch, and a user may
+    mean it), but a jump is the first suspect when the result is bad."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape[0] < 2:
+        return np.zeros(0, dtype=np.int64)
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    threshold = max_step_m if max_step_m is not None else max(MIN_JUMP_M, JUMP_FACTOR * np.percentile(steps, 90))
+    jumps = np.flatnonzero(steps > threshold).astype(np.int64)
+    name = (lambda i: f"scan {i}") if labels is None else (lambda i: labels[i])
+    for i in jumps[:_MAX_JUMPS_LISTED]:
+        logger.warning("%s: the pose jumps %.3g m from %s to %s (more than the %.3g m plausible between "
+                       "consecutive scans)", what, steps[i], name(i), name(i + 1), threshold)
+    if jumps.size > _MAX_JUMPS_LISTED:
+        logger.warning("%s: %d more pose jumps over %.3g m (%d in all)", what, jumps.size - _MAX_JUMPS_LISTED,
+                       threshold, jumps.size)
+    return jumps

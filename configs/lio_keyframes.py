@@ -1,0 +1,19 @@
+"""Keyframe scans saved by a LiDAR-inertial odometry front-end (FAST-LIO2 + Scan Context and similar):
+ROOT/Scans/NNNNNN.pcd (sensor frame), ROOT/odom_poses.txt (KITTI), ROOT/times.txt. No ground truth needed.
+
+    python bin/train.py --config=configs/lio_keyframes.py:cpu --config.data.root=/data/HKU_1_bag
+    python bin/train.py --config=configs/lio_keyframes.py:cpu --config.data.root=... --config.data.pose_file=optimized_poses.txt
+
+The scans are already keyframes (the front-end chose them), so every one is trained on. Quality is judged
+without ground truth: the crispness of the raw map (mean map entropy, plane thickness) before and after.
+"""
+
+from neld_jax.config import apply_budget, base_config
+
+
+def get_config(budget: str = "gpu"):
+    c = base_config()
+    c.data.format = "lio_keyframes"
+    c.data.keyframe_interval_s = 0.0
+    c.output_dir = "outputs/lio_keyframes"
+    return apply_budget(c, budget)

@@ -88,6 +88,9 @@ def base_config() -> ml_collections.ConfigDict:
     # fixed this changes nothing; with fixed_scans=() (every pose free, the field holds the frame) it puts the
     # result back in the input's frame.
     c.train.anchor_scan = 0
+    # Where training starts: "input" (the loaded odometry) or "baseline" (the classical ICP + pose graph run
+    # from it first; for starts that drifted beyond the field's basin of convergence).
+    c.train.init_poses = "input"
     c.train.checkpoint_every = 5000
     c.train.log_every = 100
     c.train.max_minutes = 0.0  # 0: no wall-clock limit; else stop (and checkpoint) after this long
@@ -104,6 +107,9 @@ def base_config() -> ml_collections.ConfigDict:
     c.eval = ml_collections.ConfigDict()
     c.eval.f1_threshold_m = 0.2
     c.eval.raw_cutoff_m = 1.0
+    # Map crispness without ground truth (neld_jax.crispness): neighbourhood radius and number of query points.
+    c.eval.crispness_radius_m = 0.3
+    c.eval.crispness_queries = 10_000
     return c
 
 

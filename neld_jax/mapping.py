@@ -5,6 +5,7 @@ the point at argmax_i h_i / delta_i. Works in the normalised frame; the caller m
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -27,20 +28,29 @@ def render_map_points(params_field, settings: RenderSettings, T_rays: jax.Array,
     return origins + z_map[:, None] * directions, rendered.opacity
 
 
+class MapRender(NamedTuple):
+    """points: [N, 3] map points of the rays that end on a surface (normalised frame); ranges, opacity: [R]
+    rendered map range (normalised units) and opacity of every ray, for per-ray residuals."""
+
+    points: np.ndarray
+    ranges: np.ndarray
+    opacity: np.ndarray
+
+
 def render_map(params_field, settings: RenderSettings, T_scans: np.ndarray, directions_local: np.ndarray,
                scan_index: np.ndarray, alpha: float, rays_per_batch: int = 4096, min_opacity: float = 0.5,
-               progress: bool = False) -> np.ndarray:
+               progress: bool = False) -> MapRender:
     """Rendered map of all rays, in the normalised frame.
 
     T_scans: [S, 4, 4] optimised poses; directions_local: [R, 3]; scan_index: [R]. Rays whose opacity is below
-    `min_opacity` (they pass through empty space and end nowhere) are dropped. Returns points [N, 3].
+    `min_opacity` (they pass through empty space and end nowhere) give no map point.
     Batches are padded to one size so that the renderer compiles once.
     """
     from tqdm.auto import tqdm
 
     T_scans = jnp.asarray(T_scans, jnp.float32)
     r = directions_local.shape[0]
-    kept = []
+    kept, ranges, opacities = [], [], []
     for start in tqdm(range(0, r, rays_per_batch), disable=not progress, desc="rendered map", unit="batch"):
         stop = min(start + rays_per_batch, r)
         pad = rays_per_batch - (stop - start)
@@ -48,5 +58,10 @@ def render_map(params_field, settings: RenderSettings, T_scans: np.ndarray, dire
         s = np.pad(scan_index[start:stop], (0, pad), mode="edge")
         points, opacity = render_map_points(params_field, settings, T_scans[s], jnp.asarray(d, jnp.float32), alpha)
         points, opacity = np.asarray(points)[: stop - start], np.asarray(opacity)[: stop - start]
+        origins = np.asarray(T_scans)[s[: stop - start], :3, 3]
         kept.append(points[opacity >= min_opacity])
-    return np.concatenate(kept, axis=0) if kept else np.zeros((0, 3))
+        ranges.append(np.linalg.norm(points - origins, axis=1))
+        opacities.append(opacity)
+    if not kept:
+        return MapRender(np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    return MapRender(np.concatenate(kept, axis=0), np.concatenate(ranges), np.concatenate(opacities))

@@ -93,3 +93,51 @@ def plot_error_histogram(path: str | os.PathLike, distances: dict[str, np.ndarra
     ax.legend(loc="best", fontsize=8)
     ax.set_title("Map error histogram")
     return _save(fig, path)
+
+
+def plot_scan_report(path: str | os.PathLike, rows: list[dict]) -> Path:
+    """Per keyframe: median range residual and pose correction, flagged scans in red (see neld_jax.report)."""
+    keyframes = [row for row in rows if row["keyframe"]]
+    index = np.array([row["scan"] for row in keyframes])
+    flagged = np.array([bool(row["flag"]) for row in keyframes], bool)
+    residual = np.array([np.nan if row["median_residual_m"] is None else row["median_residual_m"] for row in keyframes])
+    correction = np.array([row["correction_cm"] for row in keyframes])
+    fig, axes = plt.subplots(2, 1, figsize=(8.0, 5.0), sharex=True)
+    for ax, values, label in ((axes[0], residual, "median range residual [m]"), (axes[1], correction, "pose correction [cm]")):
+        ax.plot(index, values, ".", color="tab:blue", markersize=4)
+        ax.plot(index[flagged], values[flagged], "o", color="tab:red", markersize=6, label="flagged")
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    axes[1].set_xlabel("scan (input index)")
+    if flagged.any():
+        axes[0].legend(loc="best", fontsize=8)
+    axes[0].set_title(f"Per-scan report: {int(flagged.sum())} of {len(keyframes)} keyframes flagged")
+    return _save(fig, path)
+
+
+def plot_map_topdown(path: str | os.PathLike, maps: dict[str, np.ndarray], max_points: int = 400_000,
+                     seed: int = 0) -> Path:
+    """Raw maps seen from above, side by side on the same axes; maps: {title: points [N, 3]}.
+
+    Points are drawn small and translucent, coloured by height, so a misregistered wall shows as a double or
+    blurred line. At most max_points per map (a seeded random subset)."""
+    rng = np.random.default_rng(seed)
+    items = [(title, np.asarray(points)) for title, points in maps.items() if len(points)]
+    fig, axes = plt.subplots(1, max(len(items), 1), figsize=(6.0 * max(len(items), 1), 6.0), squeeze=False)
+    if items:
+        everything = np.concatenate([points for _, points in items])
+        low, high = np.percentile(everything[:, 2], [2, 98])
+        lo_xy, hi_xy = everything[:, :2].min(axis=0), everything[:, :2].max(axis=0)
+    for ax, (title, points) in zip(axes[0], items):
+        if len(points) > max_points:
+            points = points[rng.choice(len(points), max_points, replace=False)]
+        ax.scatter(points[:, 0], points[:, 1], c=np.clip(points[:, 2], low, high), s=0.05, alpha=0.4,
+                   cmap="viridis", linewidths=0, rasterized=True)
+        ax.set_xlim(lo_xy[0], hi_xy[0])
+        ax.set_ylim(lo_xy[1], hi_xy[1])
+        ax.set_aspect("equal")
+        ax.set_title(title)
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+    fig.set_dpi(150)
+    return _save(fig, path)

@@ -20,14 +20,16 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from neld_jax import export, train
+from neld_jax import export, quality, report, train
 from neld_jax.checkpoint import Checkpointer
+from neld_jax.errors import ConfigError
 from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.preprocess import load_preprocessed, voxel_downsample
 from neld_jax.data.rays import build_rays
 from neld_jax.mapping import render_map
 from neld_jax.metrics import align_points
 from neld_jax.model import anchor_transform, scan_poses
+from neld_jax.trajectory import propagate_corrections
 
 logger = logging.getLogger(__name__)
 
@@ -47,10 +49,32 @@ def config_hash(config: ml_collections.ConfigDict) -> str:
 
 
 def load_and_prepare(config: ml_collections.ConfigDict):
-    """Load the sequence named by config.data, preprocess it and fit the normalisation."""
-    _, seq = load_preprocessed(config.data)
+    """Load the sequence named by config.data, preprocess it and fit the normalisation.
+
+    Returns (loaded, keyframes, norm): every input scan as read, the preprocessed keyframes that training uses
+    (keyframes.source_index indexes loaded), and the normalisation fitted to the keyframes."""
+    loaded, seq = load_preprocessed(config.data)
     norm = fit_normalization(seq.scans, seq.poses, margin=config.data.normalization_margin)
-    return seq, norm
+    return loaded, seq, norm
+
+
+def starting_poses(config: ml_collections.ConfigDict, seq) -> tuple[np.ndarray, dict]:
+    """The keyframe poses [K, 4, 4] training starts from (train.init_poses), and how long getting them took.
+
+    "input": the loaded poses (odometry). "baseline": the classical baseline's (Open3D ICP + pose graph) run
+    from them first, for starts that drifted further than the field's basin of convergence."""
+    how = str(config.train.init_poses).lower()
+    if how == "input":
+        return seq.poses, {}
+    if how != "baseline":
+        raise ConfigError(f"train.init_poses: unknown value {config.train.init_poses!r} (input | baseline)")
+    from neld_jax.baseline import multiway_registration
+
+    t0 = time.perf_counter()
+    poses = multiway_registration(seq.scans, seq.poses)
+    seconds = time.perf_counter() - t0
+    logger.info("train.init_poses=baseline: the classical baseline took %.1f s; training starts from its poses", seconds)
+    return poses, {"baseline_seconds": round(seconds, 2)}
 
 
 def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
@@ -61,12 +85,14 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     chash = config_hash(config)
     export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
 
-    seq, norm = load_and_prepare(config)
+    loaded, seq, norm = load_and_prepare(config)
+    T_start, start_info = starting_poses(config, seq)
     raysets = build_rays(seq, norm, max_rays_per_scan=(config.data.max_rays_per_scan or None), seed=config.seed)
-    logger.info("%d scans, %d training rays, normalisation scale %.5f (1 normalised unit = %.2f m)",
-                seq.num_scans, raysets.num_rays, norm.scale, 1.0 / norm.scale)
+    logger.info("%d keyframes of %d input scans, %d training rays, normalisation scale %.5f "
+                "(1 normalised unit = %.2f m)", seq.num_scans, loaded.num_scans, raysets.num_rays, norm.scale,
+                1.0 / norm.scale)
     rays = train.device_rays(raysets)
-    T_init = jnp.asarray(norm.poses_to_normalized(seq.poses), jnp.float32)
+    T_init = jnp.asarray(norm.poses_to_normalized(T_start), jnp.float32)
 
     # Resume from the latest checkpoint of this output_dir, if any.
     ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"))
@@ -87,24 +113,39 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     G_n = np.eye(4)
     if config.train.anchor_scan >= 0:
         G_n = np.asarray(anchor_transform(T_field_n, np.asarray(T_init, np.float64), int(config.train.anchor_scan)))
-    T_opt_n = G_n @ T_field_n
-    T_opt = norm.poses_to_world(T_opt_n)
-    export.write_poses(out_dir, "poses_initial", seq.timestamps, seq.poses)
-    export.write_poses(out_dir, "poses_optimized", seq.timestamps, T_opt)
-    if seq.gt_poses is not None:
-        export.write_poses(out_dir, "poses_gt", seq.timestamps, seq.gt_poses)
+    T_opt = norm.poses_to_world(G_n @ T_field_n)  # keyframes
+    # Every input scan gets a pose: keyframes their own, the others their keyframes' interpolated correction.
+    keyframe_index = seq.source_index if seq.source_index is not None else np.arange(seq.num_scans)
+    T_all = propagate_corrections(loaded.poses, keyframe_index, T_opt, loaded.timestamps)
+    export.write_poses(out_dir, "poses_initial", loaded.timestamps, loaded.poses)
+    export.write_poses(out_dir, "poses_optimized", loaded.timestamps, T_all)
+    if config.train.init_poses == "baseline":
+        export.write_poses(out_dir, "poses_baseline", seq.timestamps, T_start)
+    if loaded.gt_poses is not None:
+        export.write_poses(out_dir, "poses_gt", loaded.timestamps, loaded.gt_poses)
     if seq.gt_map is not None:
         export.write_point_cloud(os.path.join(out_dir, "map_gt.ply"), seq.gt_map)
     voxel = float(config.mapping.voxel_size_m)
     export.write_raw_map(os.path.join(out_dir, "map_raw.ply"), seq.scans, T_opt, voxel_size=voxel)
     export.write_raw_map(os.path.join(out_dir, "map_raw_initial.ply"), seq.scans, seq.poses, voxel_size=voxel)
 
+    rendered = None
     if config.mapping.enabled:
-        _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress)
+        rendered = _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress)
+
+    # Quality without ground truth: crispness of the keyframes' raw map, and the per-scan report.
+    methods = {"initial": seq.poses, "optimized": T_opt}
+    if config.train.init_poses == "baseline":
+        methods["baseline"] = T_start
+    crisp, per_scan_entropy = quality.map_crispness(seq, methods, config.eval)
+    rows = quality.write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rendered, norm,
+                                     per_scan_entropy, min_opacity=float(config.mapping.min_opacity))
+    quality.write_topdown(out_dir, seq, {"input poses": seq.poses, "after NeLD-BA": T_opt})
 
     summary = {
         "config_hash": chash,
-        "num_scans": seq.num_scans,
+        "num_input_scans": loaded.num_scans,
+        "num_scans": seq.num_scans,  # keyframes: the scans trained on
         "num_rays": int(raysets.num_rays),
         "steps": int(state.step),
         "stopped_early": bool(result.stopped_early),
@@ -112,8 +153,11 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         "total_seconds": round(time.perf_counter() - t_start, 2),
         "device": str(jax.devices()[0]),
         "final": result.history[-1] if result.history else {},
+        **start_info,
     }
-    export.write_json(os.path.join(out_dir, "metrics.json"), {"run": summary})
+    export.write_json(os.path.join(out_dir, "metrics.json"),
+                      {"run": summary, "crispness": crisp, "scans_report": report.summarize(rows)})
+    summary["crispness"] = crisp
     with open(os.path.join(out_dir, "history.json"), "w") as f:
         json.dump(result.history, f)
     if seq.gt_poses is not None or seq.gt_map is not None:
@@ -125,21 +169,24 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
 
 
 def _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress):
-    """Render the map with the poses in the field's frame (T_field_n), then move it by the anchor transform G_n."""
+    """Render the map with the poses in the field's frame (T_field_n), then move it by the anchor transform G_n.
+
+    Returns (the mapping rays, their MapRender) for the per-scan residuals."""
     m = config.mapping
     mapping_rays = build_rays(seq, norm, max_rays_per_scan=(m.max_rays_per_scan or None), seed=config.seed + 1)
     settings = train.render_settings(config, norm.scale, m.num_coarse, m.num_fine)
     # The map is rendered with the paper's sampler (no measured ranges), whatever the training options.
     settings = dataclasses.replace(settings, guided_samples=0)
     alpha = float(train.make_schedules(config).alpha(int(state.step)))  # the window the field was trained with
-    points_n = render_map(state.params["field"], settings, T_field_n, mapping_rays.directions, mapping_rays.scan_index,
-                          alpha, rays_per_batch=int(m.rays_per_batch), min_opacity=float(m.min_opacity),
-                          progress=progress)
+    rendered = render_map(state.params["field"], settings, T_field_n, mapping_rays.directions,
+                          mapping_rays.scan_index, alpha, rays_per_batch=int(m.rays_per_batch),
+                          min_opacity=float(m.min_opacity), progress=progress)
+    points_n = rendered.points
     logger.info("rendered map: %d of %d rays end on a surface", len(points_n), mapping_rays.num_rays)
     if len(points_n) == 0:
         logger.warning("rendered map is empty: no ray reached opacity %.2f (train longer or lower "
                        "mapping.min_opacity); map_rendered.ply not written", m.min_opacity)
-        return
-    points = norm.points_to_world(align_points(points_n, G_n))
-    path = os.path.join(out_dir, "map_rendered.ply")
-    export.write_point_cloud(path, voxel_downsample(points, float(m.voxel_size_m)))
+    else:
+        points = norm.points_to_world(align_points(points_n, G_n))
+        export.write_point_cloud(os.path.join(out_dir, "map_rendered.ply"), voxel_downsample(points, float(m.voxel_size_m)))
+    return mapping_rays, rendered

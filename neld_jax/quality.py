@@ -1,0 +1,70 @@
+"""Quality of a run without ground truth (effects: files in output_dir): map crispness per method, the per-scan
+report (scans_report.csv / .png) and the top view of the raw map before and after (map_topdown.png).
+
+The maths lives in neld_jax.crispness and neld_jax.report; this module feeds them a run's arrays.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+
+from neld_jax import crispness, plots, report
+from neld_jax.export import register_scans
+
+logger = logging.getLogger(__name__)
+
+
+def map_crispness(seq, methods: dict[str, np.ndarray], eval_cfg) -> tuple[dict, dict]:
+    """Crispness of the keyframes' raw map (seq.scans, sensor frame) under each method's poses [K, 4, 4].
+
+    Every method is measured on the same query points (the same scans, the same seed), so the figures compare.
+    Returns ({method: crispness summary + radius}, {method: per-keyframe mean entropy [K]})."""
+    radius = float(eval_cfg.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M))
+    max_queries = int(eval_cfg.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES))
+    scan_of_point = np.repeat(np.arange(seq.num_scans), [len(s) for s in seq.scans])
+    queries = crispness.sample_queries(len(scan_of_point), max_queries, seed=0)
+    summaries, per_scan = {}, {}
+    for name, poses in methods.items():
+        result = crispness.crispness(register_scans(seq.scans, poses), radius=radius, query_index=queries)
+        summaries[name] = {**result.summary(), "radius_m": radius}
+        per_scan[name] = crispness.per_scan_means(result.entropy, queries, scan_of_point, seq.num_scans)
+    logger.info("raw-map crispness (radius %.2f m, %d query points): %s", radius, len(queries),
+                "; ".join(f"{name}: entropy {s['mean_map_entropy']:.3f}, thickness "
+                          f"{100 * s['mean_plane_thickness_m']:.2f} cm" for name, s in summaries.items()
+                          if s["mean_map_entropy"] is not None))
+    return summaries, per_scan
+
+
+def write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rendered, norm, per_scan_entropy,
+                      min_opacity: float) -> list[dict]:
+    """scans_report.csv and scans_report.png: one row per input scan (neld_jax.report).
+
+    rendered: (mapping rays, MapRender) from the rendered map, or None (then no residuals)."""
+    num_keyframes = seq.num_scans
+    rays_per_keyframe = np.bincount(raysets.scan_index, minlength=num_keyframes)
+    residual = np.full(num_keyframes, np.nan)
+    if rendered is not None:
+        mapping_rays, render = rendered
+        hit = render.opacity >= min_opacity
+        error_m = np.abs(render.ranges - mapping_rays.ranges) / norm.scale
+        for k in range(num_keyframes):
+            mine = (mapping_rays.scan_index == k) & hit
+            if mine.any():
+                residual[k] = float(np.median(error_m[mine]))
+    correction_m, correction_deg = report.pose_corrections(loaded.poses, T_all)
+    rows = report.scan_report(loaded.num_scans, keyframe_index, loaded.files, loaded.timestamps, rays_per_keyframe,
+                              residual, correction_m, correction_deg, per_scan_entropy.get("initial"),
+                              per_scan_entropy.get("optimized"))
+    report.write_csv(os.path.join(out_dir, "scans_report.csv"), rows)
+    plots.plot_scan_report(os.path.join(out_dir, "scans_report.png"), rows)
+    logger.info("scans_report.csv: %d input scans, %d keyframes trained on", loaded.num_scans, num_keyframes)
+    return rows
+
+
+def write_topdown(out_dir, seq, methods: dict[str, np.ndarray]) -> None:
+    """map_topdown.png: the keyframes' raw map from above under each method's poses, side by side."""
+    plots.plot_map_topdown(os.path.join(out_dir, "map_topdown.png"),
+                           {name: register_scans(seq.scans, poses) for name, poses in methods.items()})

@@ -1,0 +1,123 @@
+"""The per-scan quality report of a run (scans_report.csv) and the outliers it names.
+
+One row per INPUT scan: whether it was a keyframe, how many rays trained on it, the median |rendered -
+measured| range of its rays after training, the correction the bundle adjustment applied to its pose, and the
+local crispness of the map around its points before and after. A scan is flagged when its residual or its
+correction is an outlier among the keyframes: above median + 3 scaled MADs (1.4826 MAD, the robust standard
+deviation). Flagged scans are the ones the bundle adjustment did not trust or moved most: look at them first.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+MAD_THRESHOLD = 3.0
+COLUMNS = ("scan", "file", "timestamp", "keyframe", "rays", "median_residual_m", "correction_cm",
+           "correction_deg", "entropy_before", "entropy_after", "flag")
+
+
+def pose_corrections(T_before: np.ndarray, T_after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Size of the change of each pose, in its own sensor frame: T_before^-1 T_after.
+
+    T_before, T_after: [S, 4, 4] -> (translation [S] metres, rotation angle [S] degrees)."""
+    delta = np.linalg.inv(T_before) @ T_after
+    cos = np.clip((np.trace(delta[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    return np.linalg.norm(delta[:, :3, 3], axis=1), np.degrees(np.arccos(cos))
+
+
+def robust_outliers(values: np.ndarray, threshold: float = MAD_THRESHOLD) -> np.ndarray:
+    """values: [N] (NaN ignored) -> bool [N], True where value > median + threshold * 1.4826 MAD.
+
+    With a MAD of zero (most values equal) nothing is flagged: there is no spread to be an outlier of."""
+    values = np.asarray(values, np.float64)
+    finite = np.isfinite(values)
+    flags = np.zeros(len(values), bool)
+    if finite.sum() < 3:
+        return flags
+    median = np.median(values[finite])
+    mad = 1.4826 * np.median(np.abs(values[finite] - median))
+    if mad <= 0:
+        return flags
+    flags[finite] = values[finite] > median + threshold * mad
+    return flags
+
+
+def scan_report(num_scans: int, keyframe_index: np.ndarray, files: list[str] | None, timestamps: np.ndarray | None,
+                rays_per_keyframe: np.ndarray, residual_per_keyframe: np.ndarray, correction_m: np.ndarray,
+                correction_deg: np.ndarray, entropy_before_kf: np.ndarray, entropy_after_kf: np.ndarray) -> list[dict]:
+    """Rows (dicts with COLUMNS) for every input scan; per-keyframe arrays are [K], corrections are [S].
+
+    The flag names why a keyframe is an outlier ("residual", "correction" or both, joined by '+')."""
+    keyframe_index = np.asarray(keyframe_index, np.int64)
+    residual_flags = robust_outliers(residual_per_keyframe)
+    correction_flags = robust_outliers(correction_m[keyframe_index]) | robust_outliers(correction_deg[keyframe_index])
+    kf_row = {int(s): k for k, s in enumerate(keyframe_index)}
+    rows = []
+    for s in range(num_scans):
+        k = kf_row.get(s)
+        reasons = [] if k is None else ([r for r, f in (("residual", residual_flags[k]),
+                                                        ("correction", correction_flags[k])) if f])
+        rows.append({
+            "scan": s,
+            "file": files[s] if files is not None else "",
+            "timestamp": None if timestamps is None else float(timestamps[s]),
+            "keyframe": int(k is not None),
+            "rays": int(rays_per_keyframe[k]) if k is not None else 0,
+            "median_residual_m": _value(residual_per_keyframe, k),
+            "correction_cm": float(100.0 * correction_m[s]),
+            "correction_deg": float(correction_deg[s]),
+            "entropy_before": _value(entropy_before_kf, k),
+            "entropy_after": _value(entropy_after_kf, k),
+            "flag": "+".join(reasons),
+        })
+    return rows
+
+
+def _value(per_keyframe: np.ndarray, k: int | None) -> float | None:
+    if k is None or per_keyframe is None:
+        return None
+    value = float(per_keyframe[k])
+    return value if np.isfinite(value) else None
+
+
+def write_csv(path: str | os.PathLike, rows: list[dict]) -> Path:
+    path = Path(path)
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({key: _format(row[key]) for key in COLUMNS})
+    return path
+
+
+def _format(value) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.6f}" if abs(value) < 1e6 else f"{value:.6f}"
+    return str(value)
+
+
+def summarize(rows: list[dict], max_listed: int = 10) -> dict:
+    """{"num_scans", "num_keyframes", "flagged": [{"scan", "file", "flag", ...}]} for metrics.json and the log."""
+    flagged = [row for row in rows if row["flag"]]
+    for row in flagged[:max_listed]:
+        logger.warning("scan report: %s flagged (%s): median residual %s m, correction %.1f cm / %.2f deg",
+                       row["file"] or f"scan {row['scan']}", row["flag"],
+                       "-" if row["median_residual_m"] is None else f"{row['median_residual_m']:.3f}",
+                       row["correction_cm"], row["correction_deg"])
+    if len(flagged) > max_listed:
+        logger.warning("scan report: %d more scans flagged (see scans_report.csv)", len(flagged) - max_listed)
+    return {
+        "num_scans": len(rows),
+        "num_keyframes": int(sum(row["keyframe"] for row in rows)),
+        "flagged": [{key: row[key] for key in ("scan", "file", "flag", "median_residual_m", "correction_cm",
+                                               "correction_deg")} for row in flagged],
+    }

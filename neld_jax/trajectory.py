@@ -1,0 +1,71 @@
+"""Carrying the keyframes' refined poses to every input scan.
+
+NeLD-BA trains on keyframes. A scan between two keyframes gets their corrections interpolated: with the left
+(world-frame) correction C_k = T_refined[k] T_input[k]^-1 of keyframe k, the scan j between keyframes a and b
+(a < j < b in scan order) gets
+
+    C_j = C_a Exp(u Log(C_a^-1 C_b)),   u = (t_j - t_a) / (t_b - t_a)   (time, or scan index without stamps)
+    T_refined[j] = C_j T_input[j]
+
+so the odometry's motion between keyframes (which is accurate over short spans) is kept, and the correction
+varies smoothly along the trajectory. Scans before the first / after the last keyframe take its correction.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from neld_jax import lie
+
+
+def _se3_exp(xi: np.ndarray) -> np.ndarray:
+    with jax.enable_x64(True):
+        return np.asarray(lie.se3_exp(jnp.asarray(xi, jnp.float64)))
+
+
+def _se3_log(T: np.ndarray) -> np.ndarray:
+    with jax.enable_x64(True):
+        return np.asarray(lie.se3_log(jnp.asarray(T, jnp.float64)))
+
+
+def _inverse(T: np.ndarray) -> np.ndarray:
+    out = np.zeros_like(T)
+    R_t = np.swapaxes(T[..., :3, :3], -1, -2)
+    out[..., :3, :3] = R_t
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", R_t, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def propagate_corrections(T_input: np.ndarray, keyframe_index: np.ndarray, T_keyframes: np.ndarray,
+                          times: np.ndarray | None = None) -> np.ndarray:
+    """Refined poses [S, 4, 4] of every input scan.
+
+    T_input: [S, 4, 4] input poses of all scans; keyframe_index: [K] increasing indices into them;
+    T_keyframes: [K, 4, 4] the keyframes' refined poses; times: [S] seconds (None: interpolate by index).
+    Keyframes get exactly T_keyframes.
+    """
+    T_input = np.asarray(T_input, np.float64)
+    keyframe_index = np.asarray(keyframe_index, np.int64)
+    T_keyframes = np.asarray(T_keyframes, np.float64)
+    if len(keyframe_index) != len(T_keyframes) or len(keyframe_index) == 0:
+        raise ValueError(f"{len(keyframe_index)} keyframe indices for {len(T_keyframes)} refined poses")
+    if np.any(np.diff(keyframe_index) <= 0):
+        raise ValueError("keyframe_index must be strictly increasing")
+    num_scans = len(T_input)
+    position = np.asarray(times, np.float64) if times is not None else np.arange(num_scans, dtype=np.float64)
+    corrections = T_keyframes @ _inverse(T_input[keyframe_index])  # [K, 4, 4]
+    # For each scan, the keyframe at or before it (a) and the fraction u of the way to the next one (b).
+    a = np.clip(np.searchsorted(keyframe_index, np.arange(num_scans), side="right") - 1, 0, len(keyframe_index) - 1)
+    b = np.minimum(a + 1, len(keyframe_index) - 1)
+    span = position[keyframe_index[b]] - position[keyframe_index[a]]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = np.where(span > 0, (position - position[keyframe_index[a]]) / span, 0.0)
+    u = np.clip(u, 0.0, 1.0)  # before the first keyframe: its correction (u = 0 at a = 0 below it)
+    delta = _se3_log(_inverse(corrections[a]) @ corrections[b])  # [S, 6]
+    C = corrections[a] @ _se3_exp(u[:, None] * delta)
+    refined = C @ T_input
+    refined[keyframe_index] = T_keyframes  # exact, without the round trip through exp/log
+    return refined

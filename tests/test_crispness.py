@@ -1,0 +1,63 @@
+"""Map crispness (mean map entropy, plane thickness) against a brute-force numpy version on small maps."""
+
+import math
+
+import numpy as np
+import pytest
+
+from neld_jax.crispness import crispness, per_scan_means, sample_queries
+
+
+def _brute_force(points, radius, min_neighbors):
+    entropy, thickness = [], []
+    for p in points:
+        near = points[np.linalg.norm(points - p, axis=1) <= radius]
+        if len(near) < min_neighbors:
+            entropy.append(np.nan)
+            thickness.append(np.nan)
+            continue
+        cov = np.cov(near.T, bias=True)
+        entropy.append(0.5 * math.log(np.linalg.det(2 * math.pi * math.e * cov)))
+        thickness.append(math.sqrt(np.linalg.eigvalsh(cov)[0]))
+    return np.array(entropy), np.array(thickness)
+
+
+def test_matches_brute_force_on_a_small_map():
+    rng = np.random.default_rng(0)
+    # A noisy plane, a noisy blob and a few isolated points (skipped: too few neighbours), far from the origin
+    # so that the centring matters.
+    plane = np.c_[rng.uniform(0, 2, (300, 2)), rng.normal(0, 0.02, 300)]
+    blob = rng.normal(0, 0.1, (100, 3)) + [3.0, 0.0, 0.0]
+    lonely = np.array([[10.0, 10.0, 10.0], [20.0, 0.0, 0.0]])
+    points = np.concatenate([plane, blob, lonely]) + [5e5, 4e6, 30.0]
+    result = crispness(points, radius=0.3, min_neighbors=5, max_queries=0)
+    entropy, thickness = _brute_force(points, 0.3, 5)
+    np.testing.assert_array_equal(np.isnan(result.entropy), np.isnan(entropy))
+    assert np.isnan(entropy[-2:]).all()
+    valid = ~np.isnan(entropy)
+    np.testing.assert_allclose(result.entropy[valid], entropy[valid], atol=1e-6)
+    np.testing.assert_allclose(result.thickness[valid], thickness[valid], atol=1e-7)
+    summary = result.summary()
+    assert summary["queries_skipped"] == int((~valid).sum())
+    assert summary["mean_map_entropy"] == pytest.approx(entropy[valid].mean())
+
+
+def test_misregistration_makes_the_map_less_crisp():
+    rng = np.random.default_rng(1)
+    wall = np.c_[rng.uniform(0, 4, (2000, 2)), rng.normal(0, 0.005, 2000)]
+    shifted = wall + [0.0, 0.0, 0.05]  # a second scan of the same wall, 5 cm off
+    aligned = crispness(np.concatenate([wall, wall + rng.normal(0, 0.005, wall.shape)]), seed=3)
+    smeared = crispness(np.concatenate([wall, shifted]), seed=3)
+    assert smeared.summary()["mean_map_entropy"] > aligned.summary()["mean_map_entropy"] + 0.5
+    assert smeared.summary()["mean_plane_thickness_m"] == pytest.approx(0.025, abs=0.004)
+
+
+def test_query_sampling_and_per_scan_means():
+    np.testing.assert_array_equal(sample_queries(5, 10), np.arange(5))
+    picked = sample_queries(1000, 50, seed=2)
+    assert len(picked) == 50 and np.all(np.diff(picked) > 0)
+    np.testing.assert_array_equal(picked, sample_queries(1000, 50, seed=2))
+    values = np.array([1.0, 3.0, np.nan, 5.0])
+    means = per_scan_means(values, np.array([0, 1, 2, 3]), np.array([0, 0, 1, 1]), num_scans=3)
+    np.testing.assert_allclose(means[:2], [2.0, 5.0])
+    assert np.isnan(means[2])

@@ -25,7 +25,7 @@ import ml_collections
 import numpy as np
 import optax
 
-from neld_jax import losses
+from neld_jax import lie, losses
 from neld_jax.model import RenderSettings, render_rays, scan_poses, world_rays
 
 logger = logging.getLogger(__name__)
@@ -91,7 +91,8 @@ def make_schedules(config: ml_collections.ConfigDict) -> Schedules:
     c2f_end = int(round(t.c2f_end_fraction * steps))
     L = int(config.model.pos_freqs)
     # Frequency k is fully on once alpha >= k + 1 and starts at alpha = k; poses start when k* starts.
-    pose_start = int(math.ceil(min(t.pose_start_freq, L) / L * c2f_end))
+    # L = 0 (no positional frequencies): nothing to wait for.
+    pose_start = int(math.ceil(min(t.pose_start_freq, L) / L * c2f_end)) if L > 0 else 0
     pose_start = max(pose_start, int(t.pose_warmup_steps))
     coarse = tuple(int(n) for n in config.sampling.coarse_stages)
     fine = tuple(int(n) for n in config.sampling.fine_stages)
@@ -270,6 +271,26 @@ class FitResult(NamedTuple):
     stopped_early: bool
 
 
+def pose_start_message(config: ml_collections.ConfigDict, schedules: Schedules) -> str:
+    """Why the poses start moving at schedules.pose_start_step: frequency k* or train.pose_warmup_steps."""
+    step = schedules.pose_start_step
+    k_star = min(int(config.train.pose_start_freq), schedules.pos_freqs)
+    if step > 0 and step == int(config.train.pose_warmup_steps):
+        return f"step {step}: poses start moving (train.pose_warmup_steps; frequency {k_star} is already active)"
+    return f"step {step}: frequency {k_star} active, poses start moving"
+
+
+def pose_correction_stats(poses: np.ndarray, scale: float) -> tuple[float, float]:
+    """Mean translation (metres) and rotation (degrees) of the corrections exp(xi), xi = poses [S, 6] (rho, omega).
+
+    The translation of exp(xi) is V(omega) rho, not rho; `scale` converts normalised units to metres.
+    """
+    T = np.asarray(lie.se3_exp(jnp.asarray(poses)), np.float64)
+    trans_m = float(np.linalg.norm(T[:, :3, 3], axis=1).mean() / scale)
+    rot_deg = float(np.degrees(np.linalg.norm(np.asarray(poses)[:, 3:], axis=1)).mean())
+    return trans_m, rot_deg
+
+
 def fit(
     config: ml_collections.ConfigDict,
     rays: RayData,
@@ -313,16 +334,14 @@ def fit(
             logger.info("step %d: stage %d, %d coarse + %d fine (+%d guided) samples per ray, %d rays per step",
                         step, stage, nc, nf, settings.guided_samples, config.train.batch_rays)
         if step == schedules.pose_start_step and step > 0:
-            logger.info("step %d: frequency %d active, poses start moving", step, config.train.pose_start_freq)
+            logger.info(pose_start_message(config, schedules))
         state, metrics = step_fn(state, rays, T_init, settings)
         done = step + 1
         if done % log_every == 0 or done == total:
             m = {k: float(v) for k, v in jax.device_get(metrics).items()}
-            poses = np.asarray(state.params["poses"])
             m["step"] = done
             m["range_err_m"] = m.get("range_l1_fine", m["range_l1_coarse"]) / scale
-            m["pose_trans_mean_m"] = float(np.linalg.norm(poses[:, :3], axis=1).mean() / scale)
-            m["pose_rot_mean_deg"] = float(np.degrees(np.linalg.norm(poses[:, 3:], axis=1)).mean())
+            m["pose_trans_mean_m"], m["pose_rot_mean_deg"] = pose_correction_stats(state.params["poses"], scale)
             m["elapsed_s"] = time.perf_counter() - t0
             history.append(m)
             if not np.isfinite(m["loss"]):

@@ -267,8 +267,9 @@ def loss_settings(config) -> dict:
 
 class FitResult(NamedTuple):
     state: TrainState
-    history: list  # one dict of floats per logged step
+    history: list  # one dict of floats per logged step, from step 1 (across resumes)
     stopped_early: bool
+    train_seconds: float = 0.0  # wall-clock seconds in fit, summed over resumes
 
 
 def pose_start_message(config: ml_collections.ConfigDict, schedules: Schedules) -> str:
@@ -297,14 +298,18 @@ def fit(
     T_init: jax.Array,
     scale: float,
     state: TrainState | None = None,
-    checkpoint_fn: Callable[[TrainState], None] | None = None,
+    checkpoint_fn: Callable[[TrainState, list, float], None] | None = None,
     progress: bool = True,
+    history: list | None = None,
+    elapsed_s: float = 0.0,
 ) -> FitResult:
     """Run the bundle adjustment from `state` (or a fresh one) up to config.train.steps.
 
     rays: all training rays on the device; T_init: [S, 4, 4] initial poses, normalised frame; scale: the
     normalisation scale (metres -> normalised), used for settings and for the logs in metres.
-    checkpoint_fn(state) is called every config.train.checkpoint_every steps and at the end.
+    checkpoint_fn(state, history, train_seconds) is called every config.train.checkpoint_every steps and at
+    the end. A resumed run passes the restored state with the history and elapsed_s saved with it, so that
+    the history and the logged elapsed_s continue (train.max_minutes counts this call only).
     """
     from tqdm.auto import tqdm  # an effect at the edge; the step itself is pure
 
@@ -320,9 +325,13 @@ def fit(
     log_every = max(int(config.train.log_every), 1)
     ckpt_every = int(config.train.checkpoint_every)
     max_seconds = float(config.train.max_minutes) * 60.0
-    history: list[dict] = []
+    history = [h for h in (history or []) if h.get("step", 0) <= start]  # a resumed run's, up to its step
     stopped_early = False
     t0 = time.perf_counter()
+
+    def train_seconds() -> float:
+        return elapsed_s + time.perf_counter() - t0
+
     current_stage = None
     bar = tqdm(total=total, initial=start, disable=not progress, unit="step", dynamic_ncols=True)
     for step in range(start, total):
@@ -342,7 +351,7 @@ def fit(
             m["step"] = done
             m["range_err_m"] = m.get("range_l1_fine", m["range_l1_coarse"]) / scale
             m["pose_trans_mean_m"], m["pose_rot_mean_deg"] = pose_correction_stats(state.params["poses"], scale)
-            m["elapsed_s"] = time.perf_counter() - t0
+            m["elapsed_s"] = train_seconds()
             history.append(m)
             if not np.isfinite(m["loss"]):
                 raise FloatingPointError(f"loss is {m['loss']} at step {done}; lower the learning rates")
@@ -350,12 +359,13 @@ def fit(
                             dpose=f"{100 * m['pose_trans_mean_m']:.1f}cm/{m['pose_rot_mean_deg']:.2f}deg", refresh=False)
         bar.update(1)
         if checkpoint_fn is not None and ckpt_every > 0 and done % ckpt_every == 0 and done != total:
-            checkpoint_fn(state)
+            checkpoint_fn(state, history, train_seconds())
         if max_seconds > 0 and time.perf_counter() - t0 > max_seconds and done != total:
             logger.warning("stopping at step %d of %d: train.max_minutes=%.1f reached", done, total, config.train.max_minutes)
             stopped_early = True
             break
     bar.close()
+    seconds = train_seconds()
     if checkpoint_fn is not None:
-        checkpoint_fn(state)
-    return FitResult(state, history, stopped_early)
+        checkpoint_fn(state, history, seconds)
+    return FitResult(state, history, stopped_early, seconds)

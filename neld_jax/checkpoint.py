@@ -1,4 +1,5 @@
-"""Orbax checkpoints of a training run: the whole TrainState plus JSON metadata (normalisation, config hash).
+"""Orbax checkpoints of a training run: the whole TrainState plus JSON metadata (normalisation, config hash,
+scan count, and the training history and seconds so far, which a resumed run continues).
 
 A rerun with the same output directory restores the latest checkpoint and continues from its step.
 """
@@ -9,9 +10,10 @@ import logging
 import os
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
 
-from neld_jax.errors import ConfigError
+from neld_jax.errors import ConfigError, DataError
 
 logger = logging.getLogger(__name__)
 
@@ -42,25 +44,44 @@ class Checkpointer:
         self._manager.wait_until_finished()
         logger.info("checkpoint saved at step %d in %s", step, self.directory)
 
-    def restore(self, template_state, expected_config_hash: str | None = None):
-        """Restore the latest checkpoint into the structure of `template_state`; returns (state, metadata)."""
+    def restore(self, template_state, expected_config_hash: str | None = None, expected_data: dict | None = None):
+        """Restore the latest checkpoint into the structure of `template_state`; returns (state, metadata).
+
+        expected_data: {"num_scans": int, "normalization": {"scale", "offset"}} of the data loaded now; a
+        checkpoint written for other data raises DataError before the state (whose shapes may differ) is read.
+        """
         step = self._manager.latest_step()
         if step is None:
             raise FileNotFoundError(f"no checkpoint in {self.directory}")
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _as_tree(template_state))
-        restored = self._manager.restore(
-            step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract), metadata=ocp.args.JsonRestore())
-        )
-        metadata = dict(restored["metadata"])
+        metadata = dict(self._manager.restore(step, args=ocp.args.Composite(metadata=ocp.args.JsonRestore()))["metadata"])
         if expected_config_hash is not None and metadata.get("config_hash") != expected_config_hash:
             raise ConfigError(
                 f"the checkpoint in {self.directory} was written with a different configuration "
                 f"(hash {metadata.get('config_hash')} != {expected_config_hash}); use a new output_dir or delete it"
             )
-        tree = restored["state"]
+        if expected_data is not None:
+            self._check_data(metadata, expected_data)
+        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _as_tree(template_state))
+        tree = self._manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))["state"]
         state = template_state.replace(step=tree["step"], params=tree["params"], opt_state=tree["opt_state"], key=tree["key"])
         logger.info("resumed from the checkpoint at step %d in %s", step, self.directory)
         return state, metadata
+
+    def _check_data(self, metadata: dict, expected: dict) -> None:
+        """Same scan count and normalisation, else the poses would resume in another frame."""
+        differences = []
+        if "num_scans" in metadata and int(metadata["num_scans"]) != int(expected["num_scans"]):
+            differences.append(f"{metadata['num_scans']} scans, now {expected['num_scans']}")
+        saved, now = metadata.get("normalization"), expected["normalization"]
+        if saved is not None:
+            a = np.array([saved["scale"], *saved["offset"]], np.float64)
+            b = np.array([now["scale"], *now["offset"]], np.float64)
+            if not np.allclose(a, b, rtol=1e-9, atol=1e-9):
+                differences.append(f"normalisation scale {saved['scale']:.9g} offset {list(saved['offset'])}, "
+                                   f"now scale {now['scale']:.9g} offset {list(now['offset'])}")
+        if differences:
+            raise DataError(f"the checkpoint in {self.directory} was written for other data "
+                            f"({'; '.join(differences)}); use a new output_dir or delete it")
 
     def close(self) -> None:
         self._manager.close()

@@ -38,6 +38,7 @@ def base_config() -> ml_collections.ConfigDict:
     c.data.max_scans = 0  # 0: all keyframes
     c.data.max_rays_per_scan = 0  # 0: every point of the preprocessed scan is a training ray
     c.data.normalization_margin = 0.9  # largest half-extent of scans+origins maps to this (room for corrections)
+    c.data.timestamp_tol_s = 0.05  # scan <-> pose matching by time (datasets.DEFAULT_TIMESTAMP_TOLERANCE_S)
     c.data.synthetic = _synthetic_defaults()
 
     c.model = ml_collections.ConfigDict()

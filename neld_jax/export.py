@@ -61,7 +61,7 @@ def register_scans(scans: list[np.ndarray], poses: np.ndarray) -> np.ndarray:
 
 
 def write_point_cloud(path: str | os.PathLike, points: np.ndarray) -> Path:
-    """Write points: [N, 3] as a float32 .ply (binary) or .pcd (binary) through Open3D. Returns path."""
+    """Write points: [N, 3] as a float64 .ply (binary) or .pcd (binary) through Open3D. Returns path."""
     path = Path(path)
     if path.suffix.lower() not in POINT_CLOUD_EXTENSIONS:
         raise DataError(f"{path}: unsupported point-cloud extension '{path.suffix}' (use .ply or .pcd)")
@@ -73,8 +73,8 @@ def write_point_cloud(path: str | os.PathLike, points: np.ndarray) -> Path:
                         "NaN or infinite points")
     path.parent.mkdir(parents=True, exist_ok=True)
     cloud = o3d.t.geometry.PointCloud()
-    # float32 halves the size of large maps; millimetre precision survives up to ~100 km coordinates.
-    cloud.point.positions = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
+    # float64: float32 spacing is 0.25 m at UTM-sized coordinates (4e6 m), and the map metrics read these files.
+    cloud.point.positions = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float64))
     if not o3d.t.io.write_point_cloud(str(path), cloud, write_ascii=False):
         raise DataError(f"{path}: Open3D could not write the point cloud")
     return path

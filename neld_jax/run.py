@@ -94,16 +94,22 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     rays = train.device_rays(raysets)
     T_init = jnp.asarray(norm.poses_to_normalized(T_start), jnp.float32)
 
-    # Resume from the latest checkpoint of this output_dir, if any.
+    # Resume from the latest checkpoint of this output_dir, if any, with its history and training seconds; a
+    # checkpoint of other data (scan count, normalisation) is an error rather than a resume in another frame.
     ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"))
-    state = None
-    if ckpt.latest_step() is not None:
-        state, _ = ckpt.restore(train.initial_state(config, seq.num_scans, norm.scale), expected_config_hash=chash)
     metadata = {"config_hash": chash, "normalization": norm.to_dict(), "num_scans": seq.num_scans}
-    t_train = time.perf_counter()
-    result = train.fit(config, rays, T_init, norm.scale, state=state,
-                       checkpoint_fn=lambda s: ckpt.save(s, metadata), progress=progress)
-    train_seconds = time.perf_counter() - t_train
+    state, history, elapsed_s = None, [], 0.0
+    if ckpt.latest_step() is not None:
+        state, saved = ckpt.restore(train.initial_state(config, seq.num_scans, norm.scale), expected_config_hash=chash,
+                                    expected_data=metadata)
+        history, elapsed_s = list(saved.get("history", [])), float(saved.get("train_seconds", 0.0))
+
+    def save(s, history, seconds):
+        ckpt.save(s, {**metadata, "history": export.to_jsonable(history), "train_seconds": seconds})
+
+    result = train.fit(config, rays, T_init, norm.scale, state=state, checkpoint_fn=save, progress=progress,
+                       history=history, elapsed_s=elapsed_s)
+    train_seconds = result.train_seconds
     ckpt.close()
     state = result.state
 

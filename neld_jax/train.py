@@ -25,7 +25,7 @@ import ml_collections
 import numpy as np
 import optax
 
-from neld_jax import losses
+from neld_jax import lie, losses
 from neld_jax.model import RenderSettings, render_rays, scan_poses, world_rays
 
 logger = logging.getLogger(__name__)
@@ -91,7 +91,8 @@ def make_schedules(config: ml_collections.ConfigDict) -> Schedules:
     c2f_end = int(round(t.c2f_end_fraction * steps))
     L = int(config.model.pos_freqs)
     # Frequency k is fully on once alpha >= k + 1 and starts at alpha = k; poses start when k* starts.
-    pose_start = int(math.ceil(min(t.pose_start_freq, L) / L * c2f_end))
+    # L = 0 (no positional frequencies): nothing to wait for.
+    pose_start = int(math.ceil(min(t.pose_start_freq, L) / L * c2f_end)) if L > 0 else 0
     pose_start = max(pose_start, int(t.pose_warmup_steps))
     coarse = tuple(int(n) for n in config.sampling.coarse_stages)
     fine = tuple(int(n) for n in config.sampling.fine_stages)
@@ -266,8 +267,29 @@ def loss_settings(config) -> dict:
 
 class FitResult(NamedTuple):
     state: TrainState
-    history: list  # one dict of floats per logged step
+    history: list  # one dict of floats per logged step, from step 1 (across resumes)
     stopped_early: bool
+    train_seconds: float = 0.0  # wall-clock seconds in fit, summed over resumes
+
+
+def pose_start_message(config: ml_collections.ConfigDict, schedules: Schedules) -> str:
+    """Why the poses start moving at schedules.pose_start_step: frequency k* or train.pose_warmup_steps."""
+    step = schedules.pose_start_step
+    k_star = min(int(config.train.pose_start_freq), schedules.pos_freqs)
+    if step > 0 and step == int(config.train.pose_warmup_steps):
+        return f"step {step}: poses start moving (train.pose_warmup_steps; frequency {k_star} is already active)"
+    return f"step {step}: frequency {k_star} active, poses start moving"
+
+
+def pose_correction_stats(poses: np.ndarray, scale: float) -> tuple[float, float]:
+    """Mean translation (metres) and rotation (degrees) of the corrections exp(xi), xi = poses [S, 6] (rho, omega).
+
+    The translation of exp(xi) is V(omega) rho, not rho; `scale` converts normalised units to metres.
+    """
+    T = np.asarray(lie.se3_exp(jnp.asarray(poses)), np.float64)
+    trans_m = float(np.linalg.norm(T[:, :3, 3], axis=1).mean() / scale)
+    rot_deg = float(np.degrees(np.linalg.norm(np.asarray(poses)[:, 3:], axis=1)).mean())
+    return trans_m, rot_deg
 
 
 def fit(
@@ -276,14 +298,18 @@ def fit(
     T_init: jax.Array,
     scale: float,
     state: TrainState | None = None,
-    checkpoint_fn: Callable[[TrainState], None] | None = None,
+    checkpoint_fn: Callable[[TrainState, list, float], None] | None = None,
     progress: bool = True,
+    history: list | None = None,
+    elapsed_s: float = 0.0,
 ) -> FitResult:
     """Run the bundle adjustment from `state` (or a fresh one) up to config.train.steps.
 
     rays: all training rays on the device; T_init: [S, 4, 4] initial poses, normalised frame; scale: the
     normalisation scale (metres -> normalised), used for settings and for the logs in metres.
-    checkpoint_fn(state) is called every config.train.checkpoint_every steps and at the end.
+    checkpoint_fn(state, history, train_seconds) is called every config.train.checkpoint_every steps and at
+    the end. A resumed run passes the restored state with the history and elapsed_s saved with it, so that
+    the history and the logged elapsed_s continue (train.max_minutes counts this call only).
     """
     from tqdm.auto import tqdm  # an effect at the edge; the step itself is pure
 
@@ -299,9 +325,13 @@ def fit(
     log_every = max(int(config.train.log_every), 1)
     ckpt_every = int(config.train.checkpoint_every)
     max_seconds = float(config.train.max_minutes) * 60.0
-    history: list[dict] = []
+    history = [h for h in (history or []) if h.get("step", 0) <= start]  # a resumed run's, up to its step
     stopped_early = False
     t0 = time.perf_counter()
+
+    def train_seconds() -> float:
+        return elapsed_s + time.perf_counter() - t0
+
     current_stage = None
     bar = tqdm(total=total, initial=start, disable=not progress, unit="step", dynamic_ncols=True)
     for step in range(start, total):
@@ -313,17 +343,15 @@ def fit(
             logger.info("step %d: stage %d, %d coarse + %d fine (+%d guided) samples per ray, %d rays per step",
                         step, stage, nc, nf, settings.guided_samples, config.train.batch_rays)
         if step == schedules.pose_start_step and step > 0:
-            logger.info("step %d: frequency %d active, poses start moving", step, config.train.pose_start_freq)
+            logger.info(pose_start_message(config, schedules))
         state, metrics = step_fn(state, rays, T_init, settings)
         done = step + 1
         if done % log_every == 0 or done == total:
             m = {k: float(v) for k, v in jax.device_get(metrics).items()}
-            poses = np.asarray(state.params["poses"])
             m["step"] = done
             m["range_err_m"] = m.get("range_l1_fine", m["range_l1_coarse"]) / scale
-            m["pose_trans_mean_m"] = float(np.linalg.norm(poses[:, :3], axis=1).mean() / scale)
-            m["pose_rot_mean_deg"] = float(np.degrees(np.linalg.norm(poses[:, 3:], axis=1)).mean())
-            m["elapsed_s"] = time.perf_counter() - t0
+            m["pose_trans_mean_m"], m["pose_rot_mean_deg"] = pose_correction_stats(state.params["poses"], scale)
+            m["elapsed_s"] = train_seconds()
             history.append(m)
             if not np.isfinite(m["loss"]):
                 raise FloatingPointError(f"loss is {m['loss']} at step {done}; lower the learning rates")
@@ -331,12 +359,13 @@ def fit(
                             dpose=f"{100 * m['pose_trans_mean_m']:.1f}cm/{m['pose_rot_mean_deg']:.2f}deg", refresh=False)
         bar.update(1)
         if checkpoint_fn is not None and ckpt_every > 0 and done % ckpt_every == 0 and done != total:
-            checkpoint_fn(state)
+            checkpoint_fn(state, history, train_seconds())
         if max_seconds > 0 and time.perf_counter() - t0 > max_seconds and done != total:
             logger.warning("stopping at step %d of %d: train.max_minutes=%.1f reached", done, total, config.train.max_minutes)
             stopped_early = True
             break
     bar.close()
+    seconds = train_seconds()
     if checkpoint_fn is not None:
-        checkpoint_fn(state)
-    return FitResult(state, history, stopped_early)
+        checkpoint_fn(state, history, seconds)
+    return FitResult(state, history, stopped_early, seconds)

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from neld_jax.config import base_config
 from neld_jax.data.datasets import (
+    DEFAULT_TIMESTAMP_TOLERANCE_S,
     align_poses,
     load_fusionportable,
     load_generic,
@@ -400,3 +402,28 @@ def test_load_newer_college_duplicate_ground_truth_stamp_names_both_lines(tmp_pa
     write_newer_college_csv(tmp_path / "registered_poses.csv", np.array([4.0, 5.0, 5.0]), make_poses(3))
     with pytest.raises(DataError, match=r"registered_poses\.csv, lines 3 and 4: the same timestamp"):
         load_newer_college(tmp_path)
+
+
+def test_timestamp_tolerance_is_a_config_field_set_from_the_command_line(tmp_path):
+    from pathlib import Path
+
+    from absl import flags
+    from ml_collections import config_flags
+
+    assert base_config().data.timestamp_tol_s == DEFAULT_TIMESTAMP_TOLERANCE_S
+    # Scans 80 ms after their poses; 2 scans, 3 poses, so they are matched by time.
+    names = ["100.080000", "101.080000"]
+    poses = make_poses(3)
+    write_generic_folder(tmp_path, make_scans(2), poses, np.array([100.0, 101.0, 102.0]), names=names)
+    configs = Path(__file__).resolve().parent.parent / "configs"
+    argv = ["train.py", f"--config={configs / 'generic.py'}", f"--config.data.root={tmp_path}",
+            "--config.data.timestamp_tol_s=0.1"]
+    flag_values = flags.FlagValues()  # as bin/train.py parses it: a locked config
+    config_flags.DEFINE_config_file("config", None, "", flag_values=flag_values, lock_config=True, sys_argv=argv)
+    flag_values(argv)
+    data_cfg = flag_values.config.data
+    assert data_cfg.timestamp_tol_s == 0.1
+    np.testing.assert_allclose(load_sequence(data_cfg).poses, poses[:2], atol=1e-12)
+    data_cfg.timestamp_tol_s = DEFAULT_TIMESTAMP_TOLERANCE_S
+    with pytest.raises(DataError, match="no pose within"):
+        load_sequence(data_cfg)

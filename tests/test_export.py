@@ -53,7 +53,15 @@ def test_register_scans_moves_each_scan_into_the_world():
 def test_write_point_cloud_round_trip(tmp_path, suffix):
     points = np.random.default_rng(0).uniform(-50, 50, (500, 3))
     path = export.write_point_cloud(tmp_path / f"map{suffix}", points)
-    np.testing.assert_allclose(read_scan(path), points, atol=1e-4)  # stored as float32
+    np.testing.assert_array_equal(read_scan(path), points)  # stored as float64
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".pcd"])
+def test_write_point_cloud_keeps_utm_sized_coordinates(tmp_path, suffix):
+    # float32 spacing at 4e6 m is 0.25 m; a map in UTM coordinates must keep millimetres.
+    points = np.array([[4e6 + 0.1234, -4e6 + 0.5678, 12.3456], [4e6 + 0.0004, 4e6 - 0.0007, -0.0009]])
+    path = export.write_point_cloud(tmp_path / f"map{suffix}", points)
+    assert np.abs(read_scan(path) - points).max() < 1e-3
 
 
 def test_write_point_cloud_rejects_bad_input(tmp_path):

@@ -62,18 +62,37 @@ CASES = {
 }
 
 
-def test_every_public_function_jit_compiles():
-    # One jit around all of them: one XLA compile instead of one per function (compiles dominate on a CPU).
-    @jax.jit
-    def run_all(args):
-        return {name: CASES[name][0](*args[name]) for name in CASES}
+def _run_all_jitted(cases):
+    """Every case under one jit with 64-bit types enabled; returns {name: [output leaves]}.
 
-    outputs = run_all({name: args for name, (_, args) in CASES.items()})
+    With x64 off JAX never makes float64, so only with it on does a float64 output reveal a silent promotion
+    (a float64 constant, a jnp.zeros without dtype) that would double the cost on a 64-bit-enabled run.
+    """
+    with jax.enable_x64(True):
+        # One jit around all of them: one XLA compile instead of one per function (compiles dominate on a CPU).
+        @jax.jit
+        def run_all(args):
+            return {name: cases[name][0](*args[name]) for name in cases}
+
+        outputs = run_all({name: args for name, (_, args) in cases.items()})
+    return {name: jax.tree.leaves(out) for name, out in outputs.items()}
+
+
+def test_every_public_function_jit_compiles():
+    outputs = _run_all_jitted(CASES)
     assert set(outputs) == set(CASES)
-    for name, out in outputs.items():
-        for leaf in jax.tree.leaves(out):
+    for name, leaves in outputs.items():
+        for leaf in leaves:
             assert leaf.dtype != jnp.float64, name  # nothing silently promotes to double
             assert np.all(np.isfinite(np.asarray(leaf, dtype=np.float64))), name
+
+
+def test_float64_check_catches_a_promotion():
+    # The check above is live: a function that adds a default-dtype array does come out float64.
+    promoting = {"promotes": (lambda x: x + jnp.zeros(()), (POINTS,)), "keeps": (lambda x: x + 1.0, (POINTS,))}
+    outputs = _run_all_jitted(promoting)
+    assert outputs["promotes"][0].dtype == jnp.float64
+    assert outputs["keeps"][0].dtype == jnp.float32
 
 
 def test_density_field_jit_with_traced_windows():

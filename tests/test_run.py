@@ -1,5 +1,6 @@
 """A whole run on a tiny synthetic sequence: outputs, kill-and-resume, command-line errors."""
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -9,7 +10,9 @@ import numpy as np
 import pytest
 
 from neld_jax import checkpoint, run
+from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.poses import read_kitti, read_tum
+from neld_jax.errors import DataError
 
 from conftest import make_tiny_config
 
@@ -64,6 +67,34 @@ def test_run_writes_outputs_and_resumes_after_a_kill(tmp_path, monkeypatch):
     assert resumed["steps"] == 12
     _, T_resumed = read_tum(out / "poses_optimized.txt")
     np.testing.assert_allclose(T_resumed, T_opt, atol=1e-6)
+    # The history and the training time continue across the resume instead of restarting.
+    history = json.loads((out / "history.json").read_text())
+    ref_history = json.loads((tmp_path / "ref" / "history.json").read_text())
+    assert [h["step"] for h in history] == [h["step"] for h in ref_history] == list(range(1, 13))
+    np.testing.assert_allclose([h["loss"] for h in history], [h["loss"] for h in ref_history], rtol=1e-5)
+    elapsed = [h["elapsed_s"] for h in history]
+    assert np.all(np.diff(elapsed) > 0), elapsed
+    assert resumed["train_seconds"] >= round(elapsed[-1], 2) - 0.01
+
+    # Data that changed under the same configuration (here: every initial pose shifted by 1 m, which moves the
+    # normalisation; then one scan fewer) must not resume silently in another frame.
+    real_load = run.load_and_prepare
+
+    def load_changed(config, shift=1.0, drop=0):
+        _, seq, _ = real_load(config)
+        keep = slice(0, seq.num_scans - drop)
+        poses = seq.poses[keep].copy()
+        poses[:, 0, 3] += shift
+        seq = dataclasses.replace(seq, scans=seq.scans[keep], poses=poses, timestamps=None, gt_poses=None,
+                                  source_index=None)
+        return seq, seq, fit_normalization(seq.scans, seq.poses, margin=config.data.normalization_margin)
+
+    monkeypatch.setattr(run, "load_and_prepare", load_changed)
+    with pytest.raises(DataError, match=r"checkpoints was written for other data \(normalisation scale"):
+        run.run(_free_gauge(make_tiny_config(str(out), steps=12)), progress=False)
+    monkeypatch.setattr(run, "load_and_prepare", lambda config: load_changed(config, shift=0.0, drop=1))
+    with pytest.raises(DataError, match=r"checkpoints was written for other data \(4 scans, now 3"):
+        run.run(_free_gauge(make_tiny_config(str(out), steps=12)), progress=False)
 
 
 def _train_cli(*args):

@@ -87,3 +87,47 @@ def test_unknown_budget_is_a_config_error():
 
     with pytest.raises(ConfigError, match="unknown budget"):
         apply_budget(base_config(), "tpu")
+
+
+def test_no_positional_frequencies_trains():
+    """model.pos_freqs=0 (the encoding is then x alone): no frequency to wait for, poses start at the warm-up."""
+    config = make_tiny_config(steps=2)
+    config.model.pos_freqs = 0
+    config.sampling.coarse_stages, config.sampling.fine_stages = (8,), (4,)
+    assert train.make_schedules(config).pose_start_step == 0
+    config.train.pose_warmup_steps = 1
+    assert train.make_schedules(config).pose_start_step == 1
+    rays, T_init = _random_rays()
+    result = train.fit(config, rays, T_init, scale=1.0, progress=False)
+    assert int(result.state.step) == 2 and np.isfinite(result.history[-1]["loss"])
+
+
+def test_fit_logs_why_poses_start_and_reports_the_translation_of_exp_xi(caplog):
+    config = make_tiny_config(steps=4)
+    config.sampling.coarse_stages, config.sampling.fine_stages = (8,), (4,)
+    config.train.fixed_scans = (0, 1, 2)  # the corrections below stay as set
+    # k* = 6 of 8 starts at ceil(6/8 * 2) = 2; the warm-up holds the poses until step 3.
+    config.train.pose_warmup_steps = 3
+    rays, T_init = _random_rays()
+    scale = 0.5
+    xi = np.array([[0.2, -0.1, 0.3, 0.0, 0.0, 1.2], [0.0, 0.4, 0.0, 0.9, 0.0, 0.0], [0.1, 0.1, 0.1, 0.3, -0.5, 0.7]],
+                  np.float32)
+    state = train.initial_state(config, 3, scale)
+    state = state.replace(params={**state.params, "poses": jnp.asarray(xi)})
+    with caplog.at_level("INFO", logger="neld_jax.train"):
+        result = train.fit(config, rays, T_init, scale, state=state, progress=False)
+    assert "step 3: poses start moving (train.pose_warmup_steps" in caplog.text
+    assert "frequency 6 active" not in caplog.text
+    # The translation of exp(xi) is V(omega) rho, by Rodrigues' formula written out here.
+    expected = []
+    for rho, omega in zip(xi[:, :3].astype(np.float64), xi[:, 3:].astype(np.float64)):
+        theta = np.linalg.norm(omega)
+        K = np.array([[0, -omega[2], omega[1]], [omega[2], 0, -omega[0]], [-omega[1], omega[0], 0]])
+        V = np.eye(3) + (1 - np.cos(theta)) / theta**2 * K + (theta - np.sin(theta)) / theta**3 * K @ K
+        expected.append(np.linalg.norm(V @ rho))
+    expected_m = np.mean(expected) / scale
+    assert abs(np.mean(np.linalg.norm(xi[:, :3], axis=1)) / scale - expected_m) > 0.01  # |rho| would be wrong
+    assert result.history[-1]["pose_trans_mean_m"] == pytest.approx(expected_m, rel=1e-5)
+    assert np.all(np.asarray(result.state.params["poses"]) == xi)
+    k_star_config = make_tiny_config(steps=20)  # here k* sets the start (step 8)
+    assert "frequency 6 active" in train.pose_start_message(k_star_config, train.make_schedules(k_star_config))

@@ -1,7 +1,7 @@
 """Reading and writing single LiDAR scans (point clouds in the sensor frame).
 
 Supported formats, chosen by file extension:
-  .pcd / .ply  Open3D point-cloud I/O (Open3D writes .pcd as float32, .ply as float64)
+  .pcd / .ply  Open3D point-cloud I/O, float32 or float64 positions (write_scan: .pcd float32, .ply float64)
   .bin         KITTI velodyne layout: float32 records (x, y, z, intensity)
   .npy         numpy array [N, 3] or [N, >=3] (first three columns are x, y, z)
 
@@ -65,9 +65,12 @@ def _read_open3d(path: Path, ext: str) -> np.ndarray:
     # the header first for a clearer message.
     if _header_point_count(path, ext) == 0:
         raise DataError(f"{path}: scan file holds 0 points (its header says so)")
-    # Open3D does not raise on a corrupt file; it logs a warning and returns an empty cloud.
-    cloud = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
-    points = np.asarray(cloud.points, dtype=np.float64)
+    # The tensor reader: the legacy one reads float64 (SIZE 8) PCD fields as zeros, and maps are float64.
+    # Open3D does not raise on a corrupt file; it logs a warning and returns a cloud without positions.
+    cloud = o3d.t.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
+    if "positions" not in cloud.point:
+        raise DataError(f"{path}: no points could be read (unreadable or empty point cloud)")
+    points = np.asarray(cloud.point.positions.numpy(), dtype=np.float64).reshape(-1, 3)
     if points.shape[0] == 0:
         raise DataError(f"{path}: no points could be read (unreadable or empty point cloud)")
     return points

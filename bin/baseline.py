@@ -26,13 +26,14 @@ LOOP_RADIUS = flags.DEFINE_float("loop_radius", 10.0, "Register non-neighbouring
 def job(config):
     from neld_jax.baseline import run_baseline
     from neld_jax.evaluate import format_table
+    from neld_jax.quality import format_crispness_table
 
     result = run_baseline(config, voxel_size=VOXEL_SIZE.value, max_corr_dist=MAX_CORR_DIST.value,
                           loop_radius_m=LOOP_RADIUS.value)
-    if result is None:
-        print(f"baseline written to {config.output_dir} (no ground truth: nothing to evaluate)")
-    else:
-        print(format_table(result))
+    print(f"baseline ({result['seconds']:.0f} s) written to {config.output_dir}")
+    print(format_crispness_table(result["crispness"]))
+    if result["evaluation"] is not None:
+        print(format_table(result["evaluation"]))
 
 
 if __name__ == "__main__":

@@ -15,13 +15,17 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from neld_jax.cli import main_with_config  # noqa: E402
 from neld_jax.evaluate import format_table  # noqa: E402
+from neld_jax.quality import format_crispness_table  # noqa: E402
 from neld_jax.run import run  # noqa: E402
 from neld_jax.hugepages import reexec_with_huge_page_malloc  # noqa: E402
 
 
 def job(config):
     summary = run(config)
-    print(f"{summary['steps']} steps in {summary['train_seconds']:.0f} s; outputs in {config.output_dir}")
+    print(f"{summary['steps']} steps in {summary['train_seconds']:.0f} s on {summary['num_scans']} keyframes of "
+          f"{summary['num_input_scans']} input scans (every input scan has a refined pose); outputs in "
+          f"{config.output_dir}")
+    print(format_crispness_table(summary["crispness"]))
     if "evaluation" in summary:
         print(format_table(summary["evaluation"]))
 

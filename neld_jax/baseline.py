@@ -17,6 +17,7 @@ behind bin/baseline.py (load and preprocess like the trainer, register, write, e
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 
 import ml_collections
@@ -25,7 +26,9 @@ import open3d as o3d
 
 from neld_jax.data.preprocess import load_preprocessed
 from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
-from neld_jax.export import write_point_cloud, write_poses, write_raw_map
+from neld_jax import quality
+from neld_jax.export import write_json, write_point_cloud, write_poses, write_raw_map
+from neld_jax.trajectory import propagate_corrections
 
 logger = logging.getLogger(__name__)
 
@@ -41,16 +44,22 @@ def _prepare_scan(points: np.ndarray, voxel_size: float, normal_radius: float) -
     return cloud
 
 
-def candidate_pairs(positions: np.ndarray, loop_radius_m: float) -> tuple[list[tuple[int, int]],
-                                                                          list[tuple[int, int]]]:
+def candidate_pairs(positions: np.ndarray, loop_radius_m: float, max_loops_per_scan: int = 4
+                    ) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
     """Scan pairs to register. positions: [S, 3] initial positions.
 
-    Returns (odometry pairs [(s, s + 1)], loop pairs [(i, j)] with j > i + 1 and |p_i - p_j| < radius).
+    Returns (odometry pairs [(s, s + 1)], loop pairs [(i, j)] with j > i + 1 and |p_i - p_j| < radius). Each
+    scan i keeps at most `max_loops_per_scan` loop partners j > i + 1, the nearest ones: a dense trajectory
+    (hundreds of keyframes a few metres apart) otherwise gives tens of thousands of pairs for little gain.
     """
     num_scans = len(positions)
     odometry = [(s, s + 1) for s in range(num_scans - 1)]
     distances = np.linalg.norm(positions[:, None, :] - positions[None, :, :], axis=-1)
-    loops = [(i, j) for i in range(num_scans) for j in range(i + 2, num_scans) if distances[i, j] < loop_radius_m]
+    loops = []
+    for i in range(num_scans):
+        partners = [j for j in range(i + 2, num_scans) if distances[i, j] < loop_radius_m]
+        partners = sorted(partners, key=lambda j: (distances[i, j], j))[:max(max_loops_per_scan, 0)]
+        loops.extend((i, j) for j in sorted(partners))
     return odometry, loops
 
 
@@ -131,35 +140,47 @@ def multiway_registration(scans: list[np.ndarray], init_poses: np.ndarray, voxel
 
 
 def run_baseline(config: ml_collections.ConfigDict, voxel_size: float = 0.2, max_corr_dist: float = 1.0,
-                 loop_radius_m: float = 10.0) -> dict | None:
+                 loop_radius_m: float = 10.0) -> dict:
     """Run the baseline on `config.data` and write its outputs into `config.output_dir`.
 
     config: the ml_collections ConfigDict of bin/train.py (uses config.data, config.output_dir and,
-    when present, config.mapping.voxel_size_m and config.eval). Writes poses_baseline.txt/.kitti and
-    map_raw_baseline.ply; also poses_initial.txt/.kitti, map_raw_initial.ply, poses_gt.txt and
-    map_gt.ply where they do not exist yet, so that the folder can be evaluated on its own.
-    Returns evaluate_run's result when ground truth exists, else None.
+    when present, config.mapping.voxel_size_m and config.eval). Registers the keyframes and carries their
+    corrections to every input scan (neld_jax.trajectory), as the trainer does. Writes poses_baseline.txt/.kitti,
+    map_raw_baseline.ply and the raw-map crispness of "initial" and "baseline" into metrics.json; also
+    poses_initial.txt/.kitti, map_raw_initial.ply, poses_gt.txt and map_gt.ply where they do not exist yet, so
+    that the folder can be evaluated on its own.
+    Returns {"seconds", "crispness": {method: summary}, "evaluation": evaluate_run's result or None}.
     """
-    _, sequence = load_preprocessed(config.data)
+    loaded, sequence = load_preprocessed(config.data)
+    t0 = time.perf_counter()
     poses = multiway_registration(sequence.scans, sequence.poses, voxel_size=voxel_size,
                                   max_corr_dist=max_corr_dist, loop_radius_m=loop_radius_m)
+    seconds = time.perf_counter() - t0
+    keyframe_index = sequence.source_index if sequence.source_index is not None else np.arange(sequence.num_scans)
+    poses_all = propagate_corrections(loaded.poses, keyframe_index, poses, loaded.timestamps)
 
     output_dir = Path(config.output_dir)
     map_voxel = float(config.mapping.voxel_size_m) if "mapping" in config else 0.0
-    write_poses(output_dir, "poses_baseline", sequence.timestamps, poses)
+    write_poses(output_dir, "poses_baseline", loaded.timestamps, poses_all)
     write_raw_map(output_dir / "map_raw_baseline.ply", sequence.scans, poses, voxel_size=map_voxel)
     if not (output_dir / "poses_initial.txt").exists():
-        write_poses(output_dir, "poses_initial", sequence.timestamps, sequence.poses)
+        write_poses(output_dir, "poses_initial", loaded.timestamps, loaded.poses)
     if not (output_dir / "map_raw_initial.ply").exists():
         write_raw_map(output_dir / "map_raw_initial.ply", sequence.scans, sequence.poses, voxel_size=map_voxel)
-    if sequence.gt_poses is not None and not (output_dir / GT_POSES_FILE).exists():
-        write_poses(output_dir, GT_POSES_FILE[:-len(".txt")], sequence.timestamps, sequence.gt_poses)
+    if loaded.gt_poses is not None and not (output_dir / GT_POSES_FILE).exists():
+        write_poses(output_dir, GT_POSES_FILE[:-len(".txt")], loaded.timestamps, loaded.gt_poses)
     if sequence.gt_map is not None and not any((output_dir / name).exists() for name in GT_MAP_FILES):
         write_point_cloud(output_dir / GT_MAP_FILES[0], sequence.gt_map)
-    logger.info("baseline outputs written to %s", output_dir)
+    evaluation = config.get("eval", ml_collections.ConfigDict())
+    crisp, _ = quality.map_crispness(sequence, {"initial": sequence.poses, "baseline": poses}, evaluation)
+    crisp = quality.record_crispness(output_dir, crisp)
+    write_json(output_dir / "metrics.json", {"baseline": {"seconds": round(seconds, 2), "voxel_size_m": voxel_size,
+                                                          "max_corr_dist_m": max_corr_dist,
+                                                          "loop_radius_m": loop_radius_m}})
+    logger.info("baseline outputs written to %s (registration took %.1f s)", output_dir, seconds)
 
-    if sequence.gt_poses is None and sequence.gt_map is None:
-        return None
-    evaluation = config.get("eval", {})
-    return evaluate_run(output_dir, threshold=evaluation.get("f1_threshold_m", 0.2),
-                        raw_cutoff=evaluation.get("raw_cutoff_m", 1.0))
+    result = None
+    if sequence.gt_poses is not None or sequence.gt_map is not None:
+        result = evaluate_run(output_dir, threshold=evaluation.get("f1_threshold_m", 0.2),
+                              raw_cutoff=evaluation.get("raw_cutoff_m", 1.0))
+    return {"seconds": seconds, "crispness": crisp, "evaluation": result}

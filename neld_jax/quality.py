@@ -12,7 +12,7 @@ import os
 import numpy as np
 
 from neld_jax import crispness, plots, report
-from neld_jax.export import register_scans
+from neld_jax.export import read_json, register_scans, write_json
 
 logger = logging.getLogger(__name__)
 
@@ -68,3 +68,26 @@ def write_topdown(out_dir, seq, methods: dict[str, np.ndarray]) -> None:
     """map_topdown.png: the keyframes' raw map from above under each method's poses, side by side."""
     plots.plot_map_topdown(os.path.join(out_dir, "map_topdown.png"),
                            {name: register_scans(seq.scans, poses) for name, poses in methods.items()})
+
+
+def record_crispness(out_dir, summaries: dict) -> dict:
+    """Merge {method: crispness summary} into the "crispness" section of OUT_DIR/metrics.json (the trainer and
+    the baseline each add their methods); returns the merged section."""
+    path = os.path.join(out_dir, "metrics.json")
+    merged = {**read_json(path).get("crispness", {}), **summaries}
+    write_json(path, {"crispness": merged})
+    return merged
+
+
+def format_crispness_table(summaries: dict) -> str:
+    """Plain-text table of {method: crispness summary}: entropy and plane thickness of the raw map."""
+    order = [m for m in ("initial", "baseline", "optimized") if m in summaries] + sorted(
+        set(summaries) - {"initial", "baseline", "optimized"})
+    lines = ["raw-map crispness (no ground truth needed; lower is crisper)",
+             f"{'method':<12} {'mean map entropy':>17} {'plane thickness [cm]':>21}"]
+    for name in order:
+        s = summaries[name]
+        entropy, thickness = s.get("mean_map_entropy"), s.get("mean_plane_thickness_m")
+        lines.append(f"{name:<12} {'-' if entropy is None else f'{entropy:.3f}':>17} "
+                     f"{'-' if thickness is None else f'{100 * thickness:.2f}':>21}")
+    return "\n".join(lines)

@@ -161,9 +161,8 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         "final": result.history[-1] if result.history else {},
         **start_info,
     }
-    export.write_json(os.path.join(out_dir, "metrics.json"),
-                      {"run": summary, "crispness": crisp, "scans_report": report.summarize(rows)})
-    summary["crispness"] = crisp
+    export.write_json(os.path.join(out_dir, "metrics.json"), {"run": summary, "scans_report": report.summarize(rows)})
+    summary["crispness"] = quality.record_crispness(out_dir, crisp)
     with open(os.path.join(out_dir, "history.json"), "w") as f:
         json.dump(result.history, f)
     if seq.gt_poses is not None or seq.gt_map is not None:

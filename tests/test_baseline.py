@@ -43,6 +43,11 @@ def test_candidate_pairs_are_neighbours_and_close_non_neighbours():
     odometry, loops = candidate_pairs(positions, loop_radius_m=6.0)
     assert odometry == [(0, 1), (1, 2), (2, 3)]
     assert loops == [(0, 3), (1, 3)]  # (0, 2) is 10 m apart
+    # At most max_loops_per_scan partners per scan, the nearest ones.
+    line = np.c_[np.arange(10.0), np.zeros(10), np.zeros(10)]
+    _, loops = candidate_pairs(line, loop_radius_m=100.0, max_loops_per_scan=2)
+    assert [pair for pair in loops if pair[0] == 0] == [(0, 2), (0, 3)]
+    assert len(loops) == 2 * 7 + 1  # scans 0-6 have two partners, scan 7 one (9), scans 8 and 9 none
 
 
 def test_single_scan_is_returned_unchanged():

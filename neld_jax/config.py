@@ -35,7 +35,9 @@ def base_config() -> ml_collections.ConfigDict:
     c.data.min_range_m = 0.5
     c.data.max_range_m = 80.0
     c.data.voxel_size_m = 0.05
+    c.data.first_scan = 0  # keyframes from this input scan on (with max_scans: run a long sequence in pieces)
     c.data.max_scans = 0  # 0: all keyframes
+    c.data.max_extent_m = 1000.0  # larger scenes are refused: one field's resolution falls with the cube's size
     c.data.max_rays_per_scan = 0  # 0: every point of the preprocessed scan is a training ray
     c.data.normalization_margin = 0.9  # largest half-extent of scans+origins maps to this (room for corrections)
     c.data.timestamp_tol_s = 0.05  # scan <-> pose matching by time (datasets.DEFAULT_TIMESTAMP_TOLERANCE_S)

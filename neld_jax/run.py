@@ -55,7 +55,25 @@ def load_and_prepare(config: ml_collections.ConfigDict):
     (keyframes.source_index indexes loaded), and the normalisation fitted to the keyframes."""
     loaded, seq = load_preprocessed(config.data)
     norm = fit_normalization(seq.scans, seq.poses, margin=config.data.normalization_margin)
+    check_extent(seq, norm, config)
     return loaded, seq, norm
+
+
+def check_extent(seq, norm, config: ml_collections.ConfigDict) -> None:
+    """Stop with one clear line when the scene is larger than one field should hold (data.max_extent_m).
+
+    One MLP in one cube has a fixed resolution: its finest Fourier period, 2^(2 - L) normalised units, grows
+    with the scene (issue: submaps for larger sequences). Running such a sequence anyway gives a blurred field
+    and poses worse than the odometry's, so it is refused with the way to run it in pieces."""
+    extent_m = 2.0 * config.data.normalization_margin / norm.scale
+    limit = float(config.data.max_extent_m)
+    if limit > 0 and extent_m > limit:
+        period_m = 2.0 ** (2 - int(config.model.pos_freqs)) / norm.scale
+        raise ConfigError(
+            f"{seq.source or seq.name}: the scans span {extent_m:.0f} m, more than data.max_extent_m={limit:g} m that "
+            f"one field holds (its finest detail would be {period_m:.2f} m at model.pos_freqs="
+            f"{config.model.pos_freqs}); run it in pieces with data.first_scan / data.max_scans (or lower "
+            f"data.max_range_m, or raise data.max_extent_m to run it anyway)")
 
 
 def starting_poses(config: ml_collections.ConfigDict, seq) -> tuple[np.ndarray, dict]:

@@ -79,6 +79,7 @@ def preprocess(
     max_scans: int | None = None,
     keyframe_distance_m: float = 0.0,
     keyframe_angle_deg: float = 0.0,
+    first_scan: int = 0,
 ) -> Sequence:
     """Select keyframes (select_keyframes' rules), crop each scan by range and voxel-downsample it.
 
@@ -87,8 +88,12 @@ def preprocess(
     left empty raises DataError naming its file."""
     keep = select_keyframes(seq.timestamps, keyframe_interval_s, num_scans=seq.num_scans, poses=seq.poses,
                             distance_m=keyframe_distance_m, angle_deg=keyframe_angle_deg)
+    keep = keep[keep >= first_scan]
     if max_scans is not None and max_scans > 0:
         keep = keep[:max_scans]
+    if len(keep) == 0:
+        raise DataError(f"{seq.source or seq.name}: no keyframes from scan {first_scan} on "
+                        f"(the sequence has {seq.num_scans} scans)")
     logger.info(
         "keyframes: kept %d of %d scans (interval %.3g s, distance %.3g m, angle %.3g deg, max_scans %s)",
         len(keep), seq.num_scans, keyframe_interval_s, keyframe_distance_m, keyframe_angle_deg, max_scans,
@@ -141,5 +146,6 @@ def load_preprocessed(data_cfg) -> tuple[Sequence, Sequence]:
                            min_range=data_cfg.min_range_m, max_range=data_cfg.max_range_m,
                            voxel_size=data_cfg.voxel_size_m, max_scans=(data_cfg.max_scans or None),
                            keyframe_distance_m=data_cfg.get("keyframe_distance_m", 0.0),
-                           keyframe_angle_deg=data_cfg.get("keyframe_angle_deg", 0.0))
+                           keyframe_angle_deg=data_cfg.get("keyframe_angle_deg", 0.0),
+                           first_scan=int(data_cfg.get("first_scan", 0)))
     return loaded, keyframes

@@ -1,0 +1,163 @@
+"""Real recordings: the lio_keyframes layout (Scans/ + KITTI poses + times.txt), keyframe rules, every input scan
+in the outputs, the per-scan report, pseudo ground truth, and a scene too large for one field."""
+
+import json
+import os
+import subprocess
+import sys
+
+import ml_collections
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from neld_jax import report
+from neld_jax.data.datasets import load_sequence
+from neld_jax.data.lio_keyframes import load_lio_keyframes, read_times
+from neld_jax.data.poses import read_tum, write_kitti
+from neld_jax.data.preprocess import select_keyframes
+from neld_jax.data.pseudo_gt import with_drift
+from neld_jax.data.scans import write_scan
+from neld_jax.data.synthetic import make_sequence
+from neld_jax.errors import DataError
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _write_layout(root, seq, times=None, num_poses=None):
+    (root / "Scans").mkdir(parents=True)
+    for i, scan in enumerate(seq.scans):
+        write_scan(root / "Scans" / f"{i:06d}.pcd", scan)
+    write_kitti(root / "odom_poses.txt", seq.poses[: num_poses or seq.num_scans])
+    times = seq.timestamps if times is None else times
+    (root / "times.txt").write_text("".join(f"{t:.6f}\n" for t in times))
+
+
+def _tiny_synthetic(num_scans=4):
+    cfg = ml_collections.ConfigDict({"num_scans": num_scans, "num_beams": 8, "num_columns": 64,
+                                     "gt_map_points": 1000, "scene_size_m": 30.0, "trajectory_radius_m": 5.0,
+                                     "max_range_m": 30.0})
+    return make_sequence(cfg)
+
+
+def test_lio_keyframes_layout_reads_scans_poses_and_stamps(tmp_path):
+    seq = _tiny_synthetic()
+    _write_layout(tmp_path, seq, times=1.6e9 + np.array([0.1, 7.4, 7.8, 9.0]))
+    loaded = load_lio_keyframes(tmp_path)
+    assert loaded.num_scans == 4 and loaded.files == [f"Scans/{i:06d}.pcd" for i in range(4)]
+    np.testing.assert_allclose(loaded.poses, seq.poses, atol=1e-6)
+    np.testing.assert_allclose(loaded.timestamps, 1.6e9 + np.array([0.1, 7.4, 7.8, 9.0]))
+    assert loaded.gt_poses is None
+    via_config = load_sequence(ml_collections.ConfigDict({"format": "lio_keyframes", "root": str(tmp_path),
+                                                          "pose_file": "", "drop_unmatched_tail": False}))
+    np.testing.assert_allclose(via_config.poses, loaded.poses)
+
+
+def test_lio_keyframes_count_mismatch_names_the_short_side(tmp_path):
+    seq = _tiny_synthetic()
+    _write_layout(tmp_path, seq, num_poses=3)  # as new_Riverside02_bag_331: 332 scans and stamps, 331 poses
+    with pytest.raises(DataError, match=r"odom_poses.txt has 3.*odom_poses.txt is short by 1.*drop_unmatched_tail"):
+        load_lio_keyframes(tmp_path)
+    dropped = load_lio_keyframes(tmp_path, drop_unmatched_tail=True)
+    assert dropped.num_scans == 3 and dropped.files[-1] == "Scans/000002.pcd" and len(dropped.timestamps) == 3
+    with pytest.raises(DataError, match="optimized_poses.txt: pose file does not exist .found: odom_poses.txt"):
+        load_lio_keyframes(tmp_path, pose_file="optimized_poses.txt")
+
+
+def test_times_file_errors_name_the_line(tmp_path):
+    path = tmp_path / "times.txt"
+    path.write_text("1.0\n2.0\nabc\n")
+    with pytest.raises(DataError, match=r"times.txt, line 3: not a timestamp"):
+        read_times(path)
+    path.write_text("1.0\n# comment\n2.0\n2.0\n")
+    with pytest.raises(DataError, match=r"times.txt, lines 3 and 4: timestamps do not increase"):
+        read_times(path)
+
+
+def test_spatial_keyframes_and_any_rule():
+    poses = np.tile(np.eye(4), (6, 1, 1))
+    poses[:, 0, 3] = [0.0, 0.4, 0.9, 1.0, 1.0, 1.0]
+    poses[4:, :3, :3] = Rotation.from_euler("z", [[20.0], [50.0]], degrees=True).as_matrix()
+    np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, distance_m=0.5), [0, 2])
+    np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, angle_deg=15.0), [0, 4, 5])
+    np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, distance_m=0.5, angle_deg=15.0), [0, 2, 4, 5])
+    times = np.arange(6) * 1.0
+    np.testing.assert_array_equal(select_keyframes(times, 3.0, poses=poses, distance_m=0.5), [0, 2, 5])
+
+
+def test_robust_outliers_and_report_rows():
+    values = np.array([1.0, 1.1, 0.9, 1.05, 0.95, 5.0, np.nan])
+    np.testing.assert_array_equal(report.robust_outliers(values), [0, 0, 0, 0, 0, 1, 0])
+    assert not report.robust_outliers(np.ones(5)).any()  # no spread: nothing is an outlier
+    T = np.tile(np.eye(4), (3, 1, 1))
+    T_after = T.copy()
+    T_after[1, :3, 3] = [0.03, 0.04, 0.0]
+    T_after[1, :3, :3] = Rotation.from_euler("x", 2.0, degrees=True).as_matrix()
+    metres, degrees = report.pose_corrections(T, T_after)
+    np.testing.assert_allclose(metres, [0, 0.05, 0], atol=1e-12)
+    np.testing.assert_allclose(degrees, [0, 2.0, 0], atol=1e-9)
+    rows = report.scan_report(3, np.array([0, 2]), ["a.pcd", "b.pcd", "c.pcd"], None, np.array([10, 20]),
+                              np.array([0.1, 0.2]), metres, degrees, np.array([-3.0, -3.1]), np.array([-3.2, -3.3]))
+    assert [r["keyframe"] for r in rows] == [1, 0, 1] and rows[1]["rays"] == 0 and rows[1]["entropy_after"] is None
+    assert rows[2]["median_residual_m"] == pytest.approx(0.2) and rows[1]["correction_cm"] == pytest.approx(5.0)
+
+
+def test_pseudo_ground_truth_keeps_the_recording_as_gt():
+    seq = _tiny_synthetic(6)
+    drifted = with_drift(seq, 0.05, 0.5, seed=0)
+    np.testing.assert_array_equal(drifted.gt_poses, seq.poses)
+    np.testing.assert_allclose(drifted.poses[0], seq.poses[0])
+    assert np.abs(drifted.poses[1:, :3, 3] - seq.poses[1:, :3, 3]).max() > 0.01
+    np.testing.assert_array_equal(with_drift(seq, 0.05, 0.5, seed=0).poses, drifted.poses)  # seeded
+
+
+def _cli(script, *args):
+    return subprocess.run([sys.executable, os.path.join(REPO, "bin", script), *args], capture_output=True,
+                          text=True, timeout=600, env={**os.environ, "NELD_JAX_HUGEPAGES": "0"})
+
+
+def test_train_on_the_layout_writes_every_input_scan_and_quality(tmp_path):
+    """End to end through the CLI: 6 scans of which 3 are keyframes (distance rule), a pseudo ground truth from
+    bin/perturb.py; every input scan gets a pose, the crispness and the per-scan report are written."""
+    seq = _tiny_synthetic(6)
+    _write_layout(tmp_path / "rec", seq, times=np.arange(6) * 1.0)
+    perturbed = _cli("perturb.py", "--config=configs/lio_keyframes.py", f"--config.data.root={tmp_path / 'rec'}",
+                     f"--out={tmp_path / 'drift'}", "--trans_m=0.02", "--rot_deg=0.2")
+    assert perturbed.returncode == 0, perturbed.stderr[-2000:]
+    assert "wrote 6 scans" in perturbed.stdout
+    out = tmp_path / "out"
+    args = ["--config=configs/generic.py", f"--config.data.root={tmp_path / 'drift'}", f"--config.output_dir={out}",
+            "--config.data.keyframe_interval_s=2.0", "--config.model.width=16", "--config.model.depth=2",
+            "--config.model.skip_layers=(1,)", "--config.model.pos_freqs=6", "--config.model.dir_freqs=2",
+            "--config.sampling.coarse_stages=(8,)", "--config.sampling.fine_stages=(4,)",
+            "--config.train.steps=12", "--config.train.batch_rays=32", "--config.train.log_every=4",
+            "--config.data.max_rays_per_scan=128", "--config.mapping.num_coarse=8", "--config.mapping.num_fine=8",
+            "--config.mapping.max_rays_per_scan=32", "--config.eval.crispness_queries=500",
+            "--config.eval.crispness_radius_m=3.0"]  # sparse 8-beam scans: a wide neighbourhood
+    result = _cli("train.py", *args)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "3 keyframes of 6 input scans" in result.stdout + result.stderr or "on 3 keyframes of 6 input" in result.stdout
+    stamps, poses = read_tum(out / "poses_optimized.txt")
+    assert len(poses) == 6 and np.all(np.isfinite(poses))
+    np.testing.assert_allclose(stamps, np.arange(6) * 1.0)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["run"]["num_input_scans"] == 6 and metrics["run"]["num_scans"] == 3
+    assert set(metrics["crispness"]) == {"initial", "optimized"}
+    assert metrics["crispness"]["optimized"]["mean_map_entropy"] is not None
+    assert metrics["evaluation"]["methods"]["optimized"]["num_poses"] == 6
+    lines = (out / "scans_report.csv").read_text().strip().splitlines()
+    assert lines[0].startswith("scan,file,timestamp,keyframe") and len(lines) == 7
+    assert [line.split(",")[3] for line in lines[1:]] == ["1", "0", "1", "0", "1", "0"]
+    assert (out / "map_topdown.png").stat().st_size > 10_000 and (out / "scans_report.png").is_file()
+    assert "mean map entropy" in result.stdout
+
+
+def test_a_scene_too_large_for_one_field_is_one_clear_line(tmp_path):
+    seq = _tiny_synthetic()
+    _write_layout(tmp_path, seq)
+    result = _cli("train.py", "--config=configs/lio_keyframes.py:cpu", f"--config.data.root={tmp_path}",
+                  f"--config.output_dir={tmp_path / 'out'}", "--config.data.max_extent_m=10")
+    assert result.returncode == 1
+    lines = result.stderr.strip().splitlines()
+    assert lines[-1].startswith("error: ") and "more than data.max_extent_m=10 m" in lines[-1]
+    assert "data.first_scan" in lines[-1]

@@ -77,6 +77,9 @@ def base_config() -> ml_collections.ConfigDict:
     c.train = ml_collections.ConfigDict()
     c.train.steps = 160_000
     c.train.batch_rays = 1024
+    # 0: each step's rays uniform over all rays (the paper). N > 0: N scans a step, batch_rays // N rays each,
+    # so each pose sampled gets a gradient averaged over several rays (sequences of hundreds of scans).
+    c.train.scans_per_step = 0
     c.train.field_lr_init = 5e-5
     c.train.field_lr_final = 2e-5
     c.train.pose_lr_rot_init = 5e-5

@@ -36,17 +36,42 @@ TRACE_COUNT = {"train_step": 0}
 
 
 class RayData(NamedTuple):
-    """All training rays, resident on the device. R rays over S scans."""
+    """All training rays, resident on the device. R rays over S scans, grouped by scan (scan_index sorted)."""
 
     directions: jax.Array  # [R, 3] unit, sensor frame
     ranges: jax.Array  # [R] normalised measured ranges
     scan_index: jax.Array  # [R] int32
+    scan_start: jax.Array | None = None  # [S] int32 first ray of each scan (for per-scan batches)
+    scan_count: jax.Array | None = None  # [S] int32 rays of each scan
 
 
 def device_rays(rayset) -> RayData:
-    """A neld_jax.data.rays.RaySet (numpy) on the device, with the dtypes the step expects."""
+    """A neld_jax.data.rays.RaySet (numpy, rays grouped by scan) on the device, with the dtypes the step expects."""
+    scan_index = np.asarray(rayset.scan_index)
+    if np.any(np.diff(scan_index) < 0):
+        raise ValueError("device_rays: rays must be grouped by scan (scan_index sorted)")
+    counts = np.bincount(scan_index, minlength=int(scan_index.max()) + 1 if len(scan_index) else 0)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if len(counts) else counts
     return RayData(jnp.asarray(rayset.directions, jnp.float32), jnp.asarray(rayset.ranges, jnp.float32),
-                   jnp.asarray(rayset.scan_index, jnp.int32))
+                   jnp.asarray(scan_index, jnp.int32), jnp.asarray(starts, jnp.int32), jnp.asarray(counts, jnp.int32))
+
+
+def sample_batch(key: jax.Array, rays: RayData, batch_rays: int, scans_per_step: int = 0) -> jax.Array:
+    """Ray indices [batch_rays] int32 of one step.
+
+    scans_per_step = 0: uniform over all rays (each of S scans gets batch_rays / S rays on average). Otherwise
+    `scans_per_step` scans drawn uniformly, each with batch_rays // scans_per_step of its rays: with hundreds of
+    scans a uniform batch gives each pose one or two rays a step, and Adam turns such noisy pose gradients into
+    a random walk; a few rays per scan average the noise out (docs/method.md, "Batches").
+    """
+    if scans_per_step <= 0:
+        return jax.random.randint(key, (batch_rays,), 0, rays.ranges.shape[0])
+    key_scans, key_rays = jax.random.split(key)
+    per_scan = batch_rays // scans_per_step
+    scans = jax.random.randint(key_scans, (scans_per_step,), 0, rays.scan_count.shape[0])
+    counts = jnp.maximum(rays.scan_count[scans], 1)[:, None]
+    offsets = jnp.minimum(jnp.floor(jax.random.uniform(key_rays, (scans_per_step, per_scan)) * counts), counts - 1)
+    return (rays.scan_start[scans][:, None] + offsets.astype(jnp.int32)).reshape(-1)
 
 
 @flax.struct.dataclass
@@ -228,14 +253,15 @@ def ray_losses(out, ranges: jax.Array, loss_cfg: dict) -> tuple[jax.Array, dict]
     return total, metrics
 
 
-def make_train_step(tx: optax.GradientTransformation, schedules: Schedules, loss_cfg: dict, batch_rays: int):
+def make_train_step(tx: optax.GradientTransformation, schedules: Schedules, loss_cfg: dict, batch_rays: int,
+                    scans_per_step: int = 0):
     """Returns step(state, rays, T_init, settings) -> (state, metrics), jitted with `settings` static."""
     loss_cfg = dict(loss_cfg)
 
     def step(state: TrainState, rays: RayData, T_init: jax.Array, settings: RenderSettings):
         TRACE_COUNT["train_step"] += 1
         key, key_batch, key_render = jax.random.split(state.key, 3)
-        idx = jax.random.randint(key_batch, (batch_rays,), 0, rays.ranges.shape[0])
+        idx = sample_batch(key_batch, rays, batch_rays, scans_per_step)
         directions_local, ranges, scan = rays.directions[idx], rays.ranges[idx], rays.scan_index[idx]
         alpha = schedules.alpha(state.step)
 
@@ -318,7 +344,8 @@ def fit(
     tx = make_optimizer(config, schedules, num_scans)
     if state is None:
         state = initial_state(config, num_scans, scale)
-    step_fn = make_train_step(tx, schedules, loss_settings(config), int(config.train.batch_rays))
+    step_fn = make_train_step(tx, schedules, loss_settings(config), int(config.train.batch_rays),
+                              int(config.train.get("scans_per_step", 0)))
 
     start = int(state.step)
     total = schedules.total_steps

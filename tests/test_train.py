@@ -131,3 +131,22 @@ def test_fit_logs_why_poses_start_and_reports_the_translation_of_exp_xi(caplog):
     assert np.all(np.asarray(result.state.params["poses"]) == xi)
     k_star_config = make_tiny_config(steps=20)  # here k* sets the start (step 8)
     assert "frequency 6 active" in train.pose_start_message(k_star_config, train.make_schedules(k_star_config))
+
+
+def test_per_scan_batches_draw_whole_groups_of_one_scan():
+    from neld_jax.data.rays import RaySet
+
+    scan_index = np.repeat(np.arange(5), [3, 50, 7, 1, 20]).astype(np.int32)
+    rayset = RaySet(np.tile([[1.0, 0, 0]], (len(scan_index), 1)).astype(np.float32),
+                    np.arange(len(scan_index), dtype=np.float32), scan_index)
+    rays = train.device_rays(rayset)
+    np.testing.assert_array_equal(rays.scan_start, [0, 3, 53, 60, 61])
+    np.testing.assert_array_equal(rays.scan_count, [3, 50, 7, 1, 20])
+    idx = np.asarray(jax.jit(train.sample_batch, static_argnums=(2, 3))(jax.random.PRNGKey(0), rays, 64, 4))
+    groups = scan_index[idx].reshape(4, 16)
+    assert np.all(groups == groups[:, :1])  # each group of 16 rays comes from one scan
+    assert idx.min() >= 0 and idx.max() < len(scan_index)
+    uniform = np.asarray(train.sample_batch(jax.random.PRNGKey(0), rays, 64, 0))
+    assert len(np.unique(scan_index[uniform])) > 1
+    with pytest.raises(ValueError, match="grouped by scan"):
+        train.device_rays(RaySet(rayset.directions[:3], rayset.ranges[:3], np.array([1, 0, 1], np.int32)))

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Write the synthetic courtyard sequence of a config in the generic layout (DESIGN.md), with ground truth.
+"""Write the synthetic courtyard sequence of a config in the generic layout (docs/design.md), with ground truth.
 
     python bin/make_synthetic.py --config=configs/demo.py --root=/tmp/courtyard
     python bin/train.py --config=configs/generic.py:cpu --config.data.root=/tmp/courtyard

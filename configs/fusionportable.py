@@ -2,7 +2,7 @@
 
     python bin/train.py --config=configs/fusionportable.py --config.data.root=/data/canteen_day
 
-The paper's hyper-parameters (shared/method.md); `:cpu` selects the CPU budget.
+The paper's hyper-parameters (docs/method.md); `:cpu` selects the CPU budget.
 """
 
 from neld_jax.config import apply_budget, base_config

@@ -1,4 +1,4 @@
-"""A dataset in the generic layout (DESIGN.md): ROOT/scans/*, ROOT/poses.txt (TUM), optional ground truth.
+"""A dataset in the generic layout (docs/design.md): ROOT/scans/*, ROOT/poses.txt (TUM), optional ground truth.
 
     python bin/train.py --config=configs/generic.py --config.data.root=/data/seq --config.output_dir=runs/seq
     python bin/train.py --config=configs/generic.py:cpu ...   # sized for 2 CPU cores, ~10 minutes

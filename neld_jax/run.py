@@ -1,7 +1,7 @@
 """One bundle-adjustment run end to end: load, preprocess, normalise, train (resumable), write outputs, evaluate.
 
 This is the effectful edge that `bin/train.py` calls; the maths lives in the pure modules.
-Outputs in config.output_dir (DESIGN.md): poses_initial/optimized (.txt TUM, .kitti), poses_gt.txt when ground
+Outputs in config.output_dir (docs/design.md): poses_initial/optimized (.txt TUM, .kitti), poses_gt.txt when ground
 truth exists, map_raw.ply, map_raw_initial.ply, map_rendered.ply, map_gt.ply, config.json, metrics.json,
 checkpoints/ and the evaluation plots.
 """

@@ -260,7 +260,7 @@ def _read_gt_map(root: Path) -> np.ndarray | None:
 
 def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
                  drop_unmatched_tail: bool = False) -> Sequence:
-    """Load the generic layout (see DESIGN.md, "Data on disk"):
+    """Load the generic layout (docs/design.md, "Data on disk"):
 
         ROOT/scans/*.{pcd,ply,bin,npy}   one scan per file, sensor frame, sorted by name
         ROOT/poses.txt                   initial poses, TUM

@@ -127,7 +127,10 @@ def plot_map_topdown(path: str | os.PathLike, maps: dict[str, np.ndarray], max_p
     if items:
         everything = np.concatenate([points for _, points in items])
         low, high = np.percentile(everything[:, 2], [2, 98])
-        lo_xy, hi_xy = everything[:, :2].min(axis=0), everything[:, :2].max(axis=0)
+        # The 0.5-99.5 percentiles, not min/max: a few far returns would shrink the map to a corner.
+        lo_xy, hi_xy = np.percentile(everything[:, :2], 0.5, axis=0), np.percentile(everything[:, :2], 99.5, axis=0)
+        pad = 0.03 * (hi_xy - lo_xy)
+        lo_xy, hi_xy = lo_xy - pad, hi_xy + pad
     for ax, (title, points) in zip(axes[0], items):
         if len(points) > max_points:
             points = points[rng.choice(len(points), max_points, replace=False)]

@@ -143,8 +143,9 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     T_all = propagate_corrections(loaded.poses, keyframe_index, T_opt, loaded.timestamps)
     export.write_poses(out_dir, "poses_initial", loaded.timestamps, loaded.poses)
     export.write_poses(out_dir, "poses_optimized", loaded.timestamps, T_all)
-    if config.train.init_poses == "baseline":
-        export.write_poses(out_dir, "poses_baseline", seq.timestamps, T_start)
+    if config.train.init_poses == "baseline":  # the baseline's own result, for every input scan too
+        export.write_poses(out_dir, "poses_baseline", loaded.timestamps,
+                           propagate_corrections(loaded.poses, keyframe_index, T_start, loaded.timestamps))
     if loaded.gt_poses is not None:
         export.write_poses(out_dir, "poses_gt", loaded.timestamps, loaded.gt_poses)
     if seq.gt_map is not None:

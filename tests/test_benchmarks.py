@@ -48,8 +48,9 @@ def test_tiny_run_prints_one_json_line_with_the_promised_keys(tmp_path):
     assert record["steps_per_s"] > 0 and record["compile_s"] > 0
     assert record["config"]["rays"] == 16 and record["config"]["samples_per_ray"] == 6
     assert record["config"]["skip_layers"] == []  # the default skip layer 2 does not exist at depth 1
-    # Analytic count: pos 3 * (1 + 2 * 10) = 63 -> 8; density head (8 + 2 * (1 + 2 * 2)) = 18 -> 4; 4 -> 1.
-    per_point = 2 * (63 * 8 + 18 * 4 + 4 * 1)
+    # Analytic count: pos 3 * (1 + 2 * 10) = 63 -> 8; density head (8 + 3 * (1 + 2 * 2)) = 23 -> 4; 4 -> 1
+    # (the view direction is a 3-D unit vector).
+    per_point = 2 * (63 * 8 + 23 * 4 + 4 * 1)
     assert record["mlp_flops_per_point_forward"] == per_point
     assert record["mlp_flops_per_step"] == 3 * 16 * 6 * per_point
     assert record["samples_per_s"] == pytest.approx(record["steps_per_s"] * 16 * 6)
@@ -107,4 +108,4 @@ def test_efficiency_mode_times_step_and_peak_alternately():
         assert r["peak_gflops"] == max(r["matmul_gflops"].values()) > 0
         assert r["efficiency"] == pytest.approx(r["achieved_gflops"] / r["peak_gflops"])
     assert record["efficiency"] == sorted(r["efficiency"] for r in record["rounds"])[1]  # the median
-    assert record["mlp_flops_per_step"] == 3 * 16 * 6 * 2 * (63 * 8 + 18 * 4 + 4 * 1)
+    assert record["mlp_flops_per_step"] == 3 * 16 * 6 * 2 * (63 * 8 + 23 * 4 + 4 * 1)

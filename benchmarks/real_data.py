@@ -47,7 +47,7 @@ flags.mark_flag_as_required("root")
 def _config(fmt_config: str, root: str, out_dir: str):
     import ast
 
-    from neld_jax.config import apply_budget, base_config
+    from neld_jax.config import apply_budget, base_config, refine_odometry
 
     c = base_config()
     c.data.format = fmt_config
@@ -55,6 +55,8 @@ def _config(fmt_config: str, root: str, out_dir: str):
     c.data.keyframe_interval_s = 0.0  # the front-end's keyframes, all of them
     c.output_dir = out_dir
     c = apply_budget(c, BUDGET.value)
+    if BUDGET.value == "cpu":  # as configs/lio_keyframes.py, for the drifted copy (generic layout) too
+        c = refine_odometry(c)
     if MAX_MINUTES.value >= 0:
         c.train.max_minutes = MAX_MINUTES.value
     for item in OVERRIDES.value:

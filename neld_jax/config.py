@@ -41,7 +41,7 @@ def base_config() -> ml_collections.ConfigDict:
     c.data.max_rays_per_scan = 0  # 0: every point of the preprocessed scan is a training ray
     c.data.normalization_margin = 0.9  # largest half-extent of scans+origins maps to this (room for corrections)
     c.data.timestamp_tol_s = 0.05  # scan <-> pose matching by time (datasets.DEFAULT_TIMESTAMP_TOLERANCE_S)
-    c.data.synthetic = _synthetic_defaults()
+    c.data.synthetic = synthetic_defaults()
 
     c.model = ml_collections.ConfigDict()
     c.model.width = 512
@@ -119,7 +119,8 @@ def base_config() -> ml_collections.ConfigDict:
     return c
 
 
-def _synthetic_defaults() -> ml_collections.ConfigDict:
+def synthetic_defaults() -> ml_collections.ConfigDict:
+    """Every field of the synthetic sequence generator (neld_jax.data.synthetic) with its default."""
     s = ml_collections.ConfigDict()
     s.seed = 0
     s.num_scans = 24

@@ -30,6 +30,7 @@ from neld_jax.data.poses import read_kitti, read_newer_college_csv, read_tum
 from neld_jax.data.scans import read_scan
 from neld_jax.errors import DataError
 from neld_jax.export import write_json
+from neld_jax.geometry import transform_points
 
 logger = logging.getLogger(__name__)
 
@@ -158,9 +159,10 @@ def evaluate_run(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLike
         if gt_poses is not None:
             est_idx, gt_idx, how = match_poses(stamps, gt_stamps, len(poses), len(gt_poses), f"{path}",
                                                max_time_diff)
-            translation_errors, _, alignment, _ = metrics.ate_errors(poses[est_idx], gt_poses[gt_idx], "se3")
+            errors = metrics.ate_errors(poses[est_idx], gt_poses[gt_idx], "se3")
+            translation_errors, alignment = errors[0], errors[2]
             entry.update(matching=how, matched_poses=int(len(est_idx)),
-                         ate=metrics.ate(poses[est_idx], gt_poses[gt_idx], align="se3"),
+                         ate=metrics.ate_summary(*errors, align="se3"),
                          rpe=metrics.rpe(poses[est_idx], gt_poses[gt_idx], delta=1))
             aligned_trajectories[name] = alignment @ poses
             pose_errors[name] = translation_errors
@@ -168,7 +170,7 @@ def evaluate_run(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLike
             for kind, map_path in map_files(output_dir, name).items():
                 points = read_scan(map_path)
                 if alignment is not None:
-                    points = metrics.align_points(points, alignment)
+                    points = transform_points(points, alignment)
                 est_to_gt = metrics.nearest_neighbor_distances(points, gt_map)
                 gt_to_est = metrics.nearest_neighbor_distances(gt_map, points)
                 # Raw maps keep outliers from misregistered scans: the paper cuts their distances at 1 m.

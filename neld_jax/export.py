@@ -1,6 +1,6 @@
 """Writing a run's outputs in the formats the field uses: TUM / KITTI poses, PLY / PCD maps, JSON reports.
 
-`register_scans` is pure; everything else writes files (creating parent folders) and raises
+Everything here writes files (creating parent folders) and raises
 `DataError` naming the file when it cannot.
 """
 
@@ -19,6 +19,7 @@ import open3d as o3d
 from neld_jax.data.poses import write_kitti, write_tum
 from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.errors import DataError
+from neld_jax.geometry import register_scans
 
 logger = logging.getLogger(__name__)
 
@@ -40,24 +41,6 @@ def write_poses(output_dir: str | os.PathLike, stem: str, timestamps: np.ndarray
     write_tum(tum_path, timestamps, poses)
     write_kitti(kitti_path, poses)
     return tum_path, kitti_path
-
-
-def register_scans(scans: list[np.ndarray], poses: np.ndarray) -> np.ndarray:
-    """Transform each scan into the world frame and stack them: the raw map.
-
-    scans: list of S arrays [N_i, 3] (sensor frame), poses: [S, 4, 4] sensor -> world
-    -> points [sum N_i, 3] float64.
-    """
-    poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-        raise ValueError(f"poses must have shape [S, 4, 4], got {poses.shape}")
-    if len(scans) != len(poses):
-        raise ValueError(f"{len(scans)} scans but {len(poses)} poses")
-    if not scans:
-        return np.zeros((0, 3))
-    registered = [np.asarray(scan, dtype=np.float64).reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
-                  for scan, pose in zip(scans, poses)]
-    return np.concatenate(registered, axis=0)
 
 
 def write_point_cloud(path: str | os.PathLike, points: np.ndarray) -> Path:

@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 import open3d as o3d
 
+from neld_jax.geometry import invert_poses, rotation_angles_deg
+
 logger = logging.getLogger(__name__)
 
 ALIGN_MODES = ("se3", "sim3", "none")
@@ -43,40 +45,6 @@ def _check_points(points: np.ndarray, name: str) -> np.ndarray:
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"{name} must have shape [N, 3], got {points.shape}")
     return points
-
-
-def rotation_angles_deg(rotations: np.ndarray) -> np.ndarray:
-    """Rotation angle of each matrix, robust near 0 and pi.
-
-    rotations: [..., 3, 3] -> [...] degrees in [0, 180].
-    """
-    rotations = np.asarray(rotations, dtype=np.float64)
-    trace = np.trace(rotations, axis1=-2, axis2=-1)
-    # |vee(R - R^T)| = 2 sin(theta); atan2 keeps precision where arccos of the trace would not.
-    skew = rotations - np.swapaxes(rotations, -1, -2)
-    sin2 = np.linalg.norm(np.stack([skew[..., 2, 1], skew[..., 0, 2], skew[..., 1, 0]], axis=-1), axis=-1)
-    return np.degrees(np.arctan2(sin2, trace - 1.0))
-
-
-def invert_poses(poses: np.ndarray) -> np.ndarray:
-    """Inverse of rigid transforms. poses: [..., 4, 4] -> [..., 4, 4]."""
-    poses = np.asarray(poses, dtype=np.float64)
-    rot_t = np.swapaxes(poses[..., :3, :3], -1, -2)
-    inverse = np.zeros_like(poses)
-    inverse[..., :3, :3] = rot_t
-    inverse[..., :3, 3] = -np.einsum("...ij,...j->...i", rot_t, poses[..., :3, 3])
-    inverse[..., 3, 3] = 1.0
-    return inverse
-
-
-def align_points(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
-    """Apply a 4x4 transform (rigid or similarity, `[[sR, t], [0, 1]]`) to points.
-
-    points: [N, 3], transform: [4, 4] -> [N, 3].
-    """
-    points = _check_points(points, "points")
-    transform = np.asarray(transform, dtype=np.float64)
-    return points @ transform[:3, :3].T + transform[:3, 3]
 
 
 def apply_alignment_to_poses(poses: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
@@ -175,7 +143,12 @@ def ate(est: np.ndarray, gt: np.ndarray, align: str = "se3") -> dict[str, Any]:
     Returns translation_rmse/mean/median/max/std_m, rotation_rmse/mean_deg, align, alignment (4x4
     nested list, estimate frame -> GT frame), scale and num_poses.
     """
-    translation_errors, rotation_errors, alignment, scale = ate_errors(est, gt, align)
+    return ate_summary(*ate_errors(est, gt, align), align=align)
+
+
+def ate_summary(translation_errors: np.ndarray, rotation_errors: np.ndarray, alignment: np.ndarray, scale: float,
+                align: str = "se3") -> dict[str, Any]:
+    """`ate`'s dictionary from `ate_errors`' outputs (for callers that also need the per-pose errors)."""
     return {
         "translation_rmse_m": _rmse(translation_errors),
         "translation_mean_m": float(np.mean(translation_errors)),

@@ -12,7 +12,8 @@ import os
 import numpy as np
 
 from neld_jax import crispness, plots, report
-from neld_jax.export import read_json, register_scans, write_json
+from neld_jax.export import read_json, write_json
+from neld_jax.geometry import register_scans
 
 logger = logging.getLogger(__name__)
 

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from neld_jax.geometry import invert_poses, rotation_angles_deg
+
 logger = logging.getLogger(__name__)
 
 MAD_THRESHOLD = 3.0
@@ -27,9 +29,8 @@ def pose_corrections(T_before: np.ndarray, T_after: np.ndarray) -> tuple[np.ndar
     """Size of the change of each pose, in its own sensor frame: T_before^-1 T_after.
 
     T_before, T_after: [S, 4, 4] -> (translation [S] metres, rotation angle [S] degrees)."""
-    delta = np.linalg.inv(T_before) @ T_after
-    cos = np.clip((np.trace(delta[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    return np.linalg.norm(delta[:, :3, 3], axis=1), np.degrees(np.arccos(cos))
+    delta = invert_poses(T_before) @ T_after
+    return np.linalg.norm(delta[:, :3, 3], axis=1), rotation_angles_deg(delta[:, :3, :3])
 
 
 def robust_outliers(values: np.ndarray, threshold: float = MAD_THRESHOLD) -> np.ndarray:

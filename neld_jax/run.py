@@ -26,8 +26,8 @@ from neld_jax.errors import ConfigError
 from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.preprocess import load_preprocessed, voxel_downsample
 from neld_jax.data.rays import build_rays
+from neld_jax.geometry import transform_points
 from neld_jax.mapping import render_map
-from neld_jax.metrics import align_points
 from neld_jax.model import anchor_transform, scan_poses
 from neld_jax.trajectory import propagate_corrections
 
@@ -211,6 +211,6 @@ def _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progr
         logger.warning("rendered map is empty: no ray reached opacity %.2f (train longer or lower "
                        "mapping.min_opacity); map_rendered.ply not written", m.min_opacity)
     else:
-        points = norm.points_to_world(align_points(points_n, G_n))
+        points = norm.points_to_world(transform_points(points_n, G_n))
         export.write_point_cloud(os.path.join(out_dir, "map_rendered.ply"), voxel_downsample(points, float(m.voxel_size_m)))
     return mapping_rays, rendered

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from neld_jax import lie
+from neld_jax.geometry import invert_poses
 
 
 def _se3_exp(xi: np.ndarray) -> np.ndarray:
@@ -28,15 +29,6 @@ def _se3_exp(xi: np.ndarray) -> np.ndarray:
 def _se3_log(T: np.ndarray) -> np.ndarray:
     with jax.enable_x64(True):
         return np.asarray(lie.se3_log(jnp.asarray(T, jnp.float64)))
-
-
-def _inverse(T: np.ndarray) -> np.ndarray:
-    out = np.zeros_like(T)
-    R_t = np.swapaxes(T[..., :3, :3], -1, -2)
-    out[..., :3, :3] = R_t
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", R_t, T[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
 
 
 def propagate_corrections(T_input: np.ndarray, keyframe_index: np.ndarray, T_keyframes: np.ndarray,
@@ -56,7 +48,7 @@ def propagate_corrections(T_input: np.ndarray, keyframe_index: np.ndarray, T_key
         raise ValueError("keyframe_index must be strictly increasing")
     num_scans = len(T_input)
     position = np.asarray(times, np.float64) if times is not None else np.arange(num_scans, dtype=np.float64)
-    corrections = T_keyframes @ _inverse(T_input[keyframe_index])  # [K, 4, 4]
+    corrections = T_keyframes @ invert_poses(T_input[keyframe_index])  # [K, 4, 4]
     # For each scan, the keyframe at or before it (a) and the fraction u of the way to the next one (b).
     a = np.clip(np.searchsorted(keyframe_index, np.arange(num_scans), side="right") - 1, 0, len(keyframe_index) - 1)
     b = np.minimum(a + 1, len(keyframe_index) - 1)
@@ -64,7 +56,7 @@ def propagate_corrections(T_input: np.ndarray, keyframe_index: np.ndarray, T_key
     with np.errstate(invalid="ignore", divide="ignore"):
         u = np.where(span > 0, (position - position[keyframe_index[a]]) / span, 0.0)
     u = np.clip(u, 0.0, 1.0)  # before the first keyframe: its correction (u = 0 at a = 0 below it)
-    delta = _se3_log(_inverse(corrections[a]) @ corrections[b])  # [S, 6]
+    delta = _se3_log(invert_poses(corrections[a]) @ corrections[b])  # [S, 6]
     C = corrections[a] @ _se3_exp(u[:, None] * delta)
     refined = C @ T_input
     refined[keyframe_index] = T_keyframes  # exact, without the round trip through exp/log

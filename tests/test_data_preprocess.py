@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from neld_jax.data.normalize import Normalization, fit_normalization
 from neld_jax.data.preprocess import crop_range, preprocess, select_keyframes, voxel_downsample
-from neld_jax.data.rays import build_rays, sample_ray_indices
+from neld_jax.data.rays import build_rays
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
 
@@ -173,11 +173,3 @@ def test_build_rays_directions_ranges_and_subsampling():
     np.testing.assert_array_equal(np.bincount(sub.scan_index), [40, 40, 40])
     again = build_rays(seq, norm, max_rays_per_scan=40, seed=1)
     np.testing.assert_array_equal(sub.ranges, again.ranges)
-
-
-def test_sample_ray_indices_uniform_and_jittable():
-    sample = jax.jit(sample_ray_indices, static_argnums=(1, 2))
-    indices = sample(jax.random.PRNGKey(0), 10, 20000)
-    assert indices.shape == (20000,) and indices.dtype == jnp.int32
-    counts = np.bincount(np.asarray(indices), minlength=10)
-    assert counts.min() > 1700 and counts.max() < 2300 and np.asarray(indices).max() == 9

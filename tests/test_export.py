@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neld_jax import export
+from neld_jax.geometry import register_scans
 from neld_jax.data.poses import read_kitti, read_tum
 from neld_jax.data.scans import read_scan
 from neld_jax.errors import DataError
@@ -40,13 +41,13 @@ def test_write_poses_without_timestamps_numbers_the_poses(tmp_path):
 def test_register_scans_moves_each_scan_into_the_world():
     poses = _poses(2)
     scans = [np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]])]
-    world = export.register_scans(scans, poses)
+    world = register_scans(scans, poses)
     assert world.shape == (3, 3)
     np.testing.assert_allclose(world[0], poses[0, :3, 0] + poses[0, :3, 3])
     np.testing.assert_allclose(world[1], poses[1, :3, 3])
     np.testing.assert_allclose(world[2], 2.0 * poses[1, :3, 1] + poses[1, :3, 3])
     with pytest.raises(ValueError, match="2 scans but 3 poses"):
-        export.register_scans(scans, _poses(3))
+        register_scans(scans, _poses(3))
 
 
 @pytest.mark.parametrize("suffix", [".ply", ".pcd"])

@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neld_jax import metrics
+from neld_jax.geometry import rotation_angles_deg, transform_points
 from neld_jax.data.poses import write_tum
 
 
@@ -167,7 +168,7 @@ def test_associate_timestamps_nearest_within_tolerance():
 def test_rotation_angle_small_and_large():
     angles = np.array([1e-7, 0.3, np.pi - 1e-6])
     rotations = Rotation.from_rotvec(angles[:, None] * np.array([0.0, 0.6, 0.8])).as_matrix()
-    np.testing.assert_allclose(metrics.rotation_angles_deg(rotations), np.degrees(angles), rtol=1e-6)
+    np.testing.assert_allclose(rotation_angles_deg(rotations), np.degrees(angles), rtol=1e-6)
 
 
 # ------------------------------------------------------------------------------------ map metrics
@@ -238,9 +239,9 @@ def test_map_metrics_rejects_empty_maps():
         metrics.map_metrics(np.zeros((0, 3)), _grid())
 
 
-def test_align_points_applies_the_transform():
+def test_transform_points_applies_the_transform():
     transform = np.eye(4)
     transform[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
     transform[:3, 3] = [1.0, 0.0, 0.0]
-    np.testing.assert_allclose(metrics.align_points(np.array([[1.0, 0.0, 0.0]]), transform), [[1.0, 1.0, 0.0]],
+    np.testing.assert_allclose(transform_points(np.array([[1.0, 0.0, 0.0]]), transform), [[1.0, 1.0, 0.0]],
                                atol=1e-12)

@@ -51,10 +51,6 @@ class Normalization:
         """ranges: [...] metres -> [...] normalised units."""
         return np.asarray(ranges, dtype=np.float64) * self.scale
 
-    def ranges_to_world(self, ranges: np.ndarray) -> np.ndarray:
-        """ranges: [...] normalised units -> [...] metres."""
-        return np.asarray(ranges, dtype=np.float64) / self.scale
-
     def to_dict(self) -> dict:
         """JSON-able form, for checkpoints and config.json."""
         return {"scale": self.scale, "offset": [float(v) for v in self.offset]}

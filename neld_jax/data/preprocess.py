@@ -13,6 +13,7 @@ import open3d as o3d
 
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
+from neld_jax.geometry import invert_poses, rotation_angles_deg
 
 logger = logging.getLogger(__name__)
 
@@ -44,16 +45,12 @@ def select_keyframes(
         # Small slack so that scans exactly interval_s apart (up to float rounding) are kept.
         keep = use_time and timestamps[i] - timestamps[last] >= interval_s - 1e-6
         if (use_distance or use_angle) and not keep:
-            relative = np.linalg.inv(poses[last]) @ poses[i]
+            relative = invert_poses(poses[last]) @ poses[i]
             keep = (use_distance and np.linalg.norm(relative[:3, 3]) >= distance_m) or (
-                use_angle and _rotation_angle_deg(relative[:3, :3]) >= angle_deg)
+                use_angle and rotation_angles_deg(relative[:3, :3]) >= angle_deg)
         if keep:
             kept.append(i)
     return np.asarray(kept, dtype=np.int64)
-
-
-def _rotation_angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:

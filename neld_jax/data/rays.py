@@ -9,8 +9,6 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from neld_jax.data.normalize import Normalization
@@ -35,10 +33,6 @@ class RaySet:
     @property
     def num_rays(self) -> int:
         return int(self.ranges.shape[0])
-
-    def rays_of_scan(self, scan: int) -> np.ndarray:
-        """Indices [R_s] of the rays of one scan."""
-        return np.flatnonzero(self.scan_index == scan)
 
 
 def build_rays(
@@ -70,11 +64,6 @@ def build_rays(
     )
     logger.info("build_rays: %d rays from %d scans", rays.num_rays, seq.num_scans)
     return rays
-
-
-def sample_ray_indices(key: jax.Array, num_rays: int, batch_size: int) -> jax.Array:
-    """Uniform random ray indices [batch_size] int32 over all rays (num_rays, batch_size: static ints)."""
-    return jax.random.randint(key, (batch_size,), 0, num_rays, dtype=jnp.int32)
 
 
 def sphere_scene_rays(num_scans: int, rays_per_scan: int, seed: int = 0, radius: float = 0.8,

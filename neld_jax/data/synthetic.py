@@ -25,6 +25,7 @@ from scipy.spatial.transform import Rotation
 from neld_jax.data.poses import write_tum
 from neld_jax.data.scans import write_scan
 from neld_jax.data.sequence import Sequence
+from neld_jax.config import synthetic_defaults
 from neld_jax.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -37,24 +38,8 @@ GT_MAP_VISIBILITY_TOLERANCE_M = 0.02
 
 
 def default_synthetic_config() -> ml_collections.ConfigDict:
-    """Every field that `make_sequence` reads, with its default."""
-    return ml_collections.ConfigDict(
-        {
-            "seed": 0,
-            "num_scans": 24,
-            "scene_size_m": 60.0,
-            "trajectory_radius_m": 15.0,
-            "num_beams": 32,
-            "num_columns": 512,
-            "fov_up_deg": 15.0,
-            "fov_down_deg": -15.0,
-            "max_range_m": 60.0,
-            "range_noise_m": 0.01,
-            "drift_trans_m": 0.05,
-            "drift_rot_deg": 0.5,
-            "gt_map_points": 200000,
-        }
-    )
+    """Every field that `make_sequence` reads, with its default (kept in neld_jax.config, the one place)."""
+    return synthetic_defaults()
 
 
 # --------------------------------------------------------------------------------------------------

@@ -1,0 +1,62 @@
+"""Rigid transforms on numpy arrays, float64, for the edge (I/O, metrics, reports): the one place that moves
+points by a 4x4 transform, inverts poses and measures rotation angles. (The jit-compiled maths has its own
+versions in neld_jax.lie.)
+
+Poses are 4x4 homogeneous matrices `T_world_sensor`: [..., 4, 4].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def transform_points(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform (rigid or similarity, `[[sR, t], [0, 1]]`) to points.
+
+    points: [N, 3], transform: [4, 4] -> [N, 3] float64.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape [N, 3], got {points.shape}")
+    transform = np.asarray(transform, dtype=np.float64)
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def invert_poses(poses: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms. poses: [..., 4, 4] -> [..., 4, 4]."""
+    poses = np.asarray(poses, dtype=np.float64)
+    rot_t = np.swapaxes(poses[..., :3, :3], -1, -2)
+    inverse = np.zeros_like(poses)
+    inverse[..., :3, :3] = rot_t
+    inverse[..., :3, 3] = -np.einsum("...ij,...j->...i", rot_t, poses[..., :3, 3])
+    inverse[..., 3, 3] = 1.0
+    return inverse
+
+
+def rotation_angles_deg(rotations: np.ndarray) -> np.ndarray:
+    """Rotation angle of each matrix, robust near 0 and pi.
+
+    rotations: [..., 3, 3] -> [...] degrees in [0, 180].
+    """
+    rotations = np.asarray(rotations, dtype=np.float64)
+    trace = np.trace(rotations, axis1=-2, axis2=-1)
+    # |vee(R - R^T)| = 2 sin(theta); atan2 keeps precision where arccos of the trace would not.
+    skew = rotations - np.swapaxes(rotations, -1, -2)
+    sin2 = np.linalg.norm(np.stack([skew[..., 2, 1], skew[..., 0, 2], skew[..., 1, 0]], axis=-1), axis=-1)
+    return np.degrees(np.arctan2(sin2, trace - 1.0))
+
+
+def register_scans(scans: list[np.ndarray], poses: np.ndarray) -> np.ndarray:
+    """Transform each scan into the world frame and stack them: the raw map.
+
+    scans: list of S arrays [N_i, 3] (sensor frame), poses: [S, 4, 4] sensor -> world
+    -> points [sum N_i, 3] float64.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"poses must have shape [S, 4, 4], got {poses.shape}")
+    if len(scans) != len(poses):
+        raise ValueError(f"{len(scans)} scans but {len(poses)} poses")
+    if not scans:
+        return np.zeros((0, 3))
+    return np.concatenate([transform_points(np.asarray(scan).reshape(-1, 3), pose) for scan, pose in zip(scans, poses)])

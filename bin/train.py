@@ -26,6 +26,11 @@ def job(config):
           f"{summary['num_input_scans']} input scans (every input scan has a refined pose); outputs in "
           f"{config.output_dir}")
     print(format_crispness_table(summary["crispness"]))
+    flagged = summary["scans_report"]["flagged"]
+    if flagged:
+        names = ", ".join(row["file"] or f"scan {row['scan']}" for row in flagged[:5])
+        print(f"{len(flagged)} keyframes flagged as outliers (residual or correction; see scans_report.csv): {names}"
+              + (" ..." if len(flagged) > 5 else ""))
     if "evaluation" in summary:
         print(format_table(summary["evaluation"]))
 

@@ -180,7 +180,9 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         "final": result.history[-1] if result.history else {},
         **start_info,
     }
-    export.write_json(os.path.join(out_dir, "metrics.json"), {"run": summary, "scans_report": report.summarize(rows)})
+    scans_summary = report.summarize(rows)
+    export.write_json(os.path.join(out_dir, "metrics.json"), {"run": summary, "scans_report": scans_summary})
+    summary["scans_report"] = scans_summary
     summary["crispness"] = quality.record_crispness(out_dir, crisp)
     with open(os.path.join(out_dir, "history.json"), "w") as f:
         json.dump(result.history, f)

@@ -11,7 +11,7 @@ import os
 
 import numpy as np
 
-from neld_jax import crispness, plots, report
+from neld_jax import crispness, metrics, plots, report
 from neld_jax.export import read_json, write_json
 from neld_jax.geometry import register_scans
 
@@ -55,7 +55,11 @@ def write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rend
             mine = (mapping_rays.scan_index == k) & hit
             if mine.any():
                 residual[k] = float(np.median(error_m[mine]))
-    correction_m, correction_deg = report.pose_corrections(loaded.poses, T_all)
+    # The correction each scan got relative to the others: the rigid motion of the whole trajectory (the gauge,
+    # e.g. the anchor scan's own correction) is removed first by aligning the result to the input (SE(3)).
+    _, _, alignment, _ = metrics.ate_errors(T_all, loaded.poses, "se3") if loaded.num_scans >= 3 else (
+        None, None, np.eye(4), 1.0)
+    correction_m, correction_deg = report.pose_corrections(loaded.poses, alignment @ T_all)
     rows = report.scan_report(loaded.num_scans, keyframe_index, loaded.files, loaded.timestamps, rays_per_keyframe,
                               residual, correction_m, correction_deg, per_scan_entropy.get("initial"),
                               per_scan_entropy.get("optimized"))

@@ -1,7 +1,8 @@
 """The per-scan quality report of a run (scans_report.csv) and the outliers it names.
 
 One row per INPUT scan: whether it was a keyframe, how many rays trained on it, the median |rendered -
-measured| range of its rays after training, the correction the bundle adjustment applied to its pose, and the
+measured| range of its rays after training, the correction the bundle adjustment applied to its pose (after
+removing the rigid motion of the whole trajectory, so that it says how the scan moved against the others), and the
 local crispness of the map around its points before and after. A scan is flagged when its residual or its
 correction is an outlier among the keyframes: above median + 3 scaled MADs (1.4826 MAD, the robust standard
 deviation). Flagged scans are the ones the bundle adjustment did not trust or moved most: look at them first.

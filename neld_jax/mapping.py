@@ -40,8 +40,8 @@ class MapRender(NamedTuple):
 
 
 def render_map(params_field, field: DensityField, sampler: SamplerSettings, T_scans: np.ndarray,
-               directions_local: np.ndarray, scan_index: np.ndarray, alpha: float, rays_per_batch: int = 4096, min_opacity: float = 0.5,
-               progress: bool = False) -> MapRender:
+               directions_local: np.ndarray, scan_index: np.ndarray, alpha: float, rays_per_batch: int = 4096,
+               min_opacity: float = 0.5, progress: bool = False) -> MapRender:
     """Rendered map of all rays, in the normalised frame.
 
     T_scans: [S, 4, 4] optimised poses; directions_local: [R, 3]; scan_index: [R]. Rays whose opacity is below
@@ -58,7 +58,8 @@ def render_map(params_field, field: DensityField, sampler: SamplerSettings, T_sc
         pad = rays_per_batch - (stop - start)
         d = np.pad(directions_local[start:stop], ((0, pad), (0, 0)), mode="edge")
         s = np.pad(scan_index[start:stop], (0, pad), mode="edge")
-        points, opacity = render_map_points(params_field, field, sampler, T_scans[s], jnp.asarray(d, jnp.float32), alpha)
+        points, opacity = render_map_points(params_field, field, sampler, T_scans[s], jnp.asarray(d, jnp.float32),
+                                            alpha)
         points, opacity = np.asarray(points)[: stop - start], np.asarray(opacity)[: stop - start]
         origins = np.asarray(T_scans)[s[: stop - start], :3, 3]
         kept.append(points[opacity >= min_opacity])

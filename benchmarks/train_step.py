@@ -299,13 +299,11 @@ class StepRunner:
         self.sizes = sizes
         self.config = configure(config, sizes, train_steps=train_steps)
         self.rays, self.T_init = synthetic_rays(num_scans, rays_per_scan, seed)
-        schedules = train.make_schedules(self.config)
-        tx = train.make_optimizer(self.config, schedules, num_scans)
-        settings = train.render_settings(self.config, SYNTHETIC_SCALE, sizes["coarse"], sizes["fine"])
-        self.state = train.create_train_state(self.config, jax.random.PRNGKey(seed), num_scans, tx, settings)
-        step_fn = train.make_train_step(tx, schedules, train.loss_settings(self.config), sizes["rays"])
+        self.config.seed = seed
+        setup = train.create_train_state(self.config, num_scans, SYNTHETIC_SCALE)  # the trainer's own builder
+        self.state = setup.state
         t0 = time.perf_counter()
-        self.compiled = step_fn.lower(self.state, self.rays, self.T_init, settings=settings).compile()
+        self.compiled = setup.step_fn.lower(self.state, self.rays, self.T_init, sampler=setup.sampler(0)).compile()
         self.compile_s = time.perf_counter() - t0
         self.mlp_flops_per_point = mlp_flops_per_point(self.state.params["field"])  # kernel shapes never change
 

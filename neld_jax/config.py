@@ -52,6 +52,7 @@ def base_config() -> ml_collections.ConfigDict:
     c.model.use_view_dirs = True
     c.model.density_activation = "softplus"
     c.model.surrogate_gradient = True  # ablation: False uses the exact Fourier gradient
+    c.model.initial_density = 0.1  # the untrained field's density everywhere, approximately (normalised units)
 
     c.sampling = ml_collections.ConfigDict()
     c.sampling.z_low_m = 0.3  # eq. 7 lower bound; just below the 0.5 m minimum range

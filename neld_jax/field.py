@@ -36,7 +36,8 @@ def _inverse_activation(name: str, value: float) -> float:
 class DensityField(nn.Module):
     """sigma(x, d). Call with positions [..., 3], view_dirs [..., 3] unit vectors -> sigma [...] (>= 0).
 
-    pos_window: [pos_freqs] and dir_window: [dir_freqs] are BARF coarse-to-fine weights (None: all on).
+    pos_window: [pos_freqs] are the BARF coarse-to-fine weights of the position encoding (None: all on); the
+    view direction's frequencies are always all on.
     `skip_layers` are the indices (0-based) of hidden layers whose input gets the encoded position again.
     `initial_density` is the density the untrained field outputs, approximately (see the output bias).
     """
@@ -58,7 +59,6 @@ class DensityField(nn.Module):
         positions: jax.Array,
         view_dirs: jax.Array,
         pos_window: jax.Array | None = None,
-        dir_window: jax.Array | None = None,
     ) -> jax.Array:
         if self.density_activation not in _ACTIVATIONS:
             raise ValueError(
@@ -73,8 +73,7 @@ class DensityField(nn.Module):
             hidden = nn.relu(nn.Dense(self.width, dtype=self.dtype, name=f"hidden_{layer}")(hidden))
 
         if self.use_view_dirs:
-            encoded_dir = fourier_encode(view_dirs.astype(self.dtype), self.dir_freqs, dir_window,
-                                         surrogate=self.surrogate)
+            encoded_dir = fourier_encode(view_dirs.astype(self.dtype), self.dir_freqs, surrogate=self.surrogate)
             hidden = jnp.concatenate([hidden, encoded_dir], axis=-1)
             hidden = nn.relu(nn.Dense(self.width // 2, dtype=self.dtype, name="density_hidden")(hidden))
 
@@ -90,3 +89,21 @@ class DensityField(nn.Module):
             name="density_out",
         )(hidden)
         return _ACTIVATIONS[self.density_activation](output[..., 0])
+
+
+def field_from_config(model_cfg) -> DensityField:
+    """The DensityField that `model_cfg` (config.model) describes, with every architecture field of it.
+
+    A Flax module is a frozen, hashable dataclass: build it once and pass it as a static jit argument.
+    """
+    return DensityField(
+        width=int(model_cfg.width),
+        depth=int(model_cfg.depth),
+        skip_layers=tuple(int(k) for k in model_cfg.skip_layers),
+        pos_freqs=int(model_cfg.pos_freqs),
+        dir_freqs=int(model_cfg.dir_freqs),
+        surrogate=bool(model_cfg.surrogate_gradient),
+        use_view_dirs=bool(model_cfg.use_view_dirs),
+        density_activation=str(model_cfg.density_activation),
+        initial_density=float(model_cfg.initial_density),
+    )

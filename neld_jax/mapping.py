@@ -12,17 +12,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from neld_jax import rendering
-from neld_jax.model import RenderSettings, render_rays, world_rays
+from neld_jax.field import DensityField
+from neld_jax.model import SamplerSettings, render_rays, world_rays
 
 
-@functools.partial(jax.jit, static_argnames=("settings",))
-def render_map_points(params_field, settings: RenderSettings, T_rays: jax.Array, directions_local: jax.Array, alpha):
+@functools.partial(jax.jit, static_argnames=("field", "sampler"))
+def render_map_points(params_field, field: DensityField, sampler: SamplerSettings, T_rays: jax.Array,
+                      directions_local: jax.Array, alpha):
     """T_rays: [R, 4, 4] pose of each ray's scan, directions_local: [R, 3] -> (points [R, 3], opacity [R]).
 
     Deterministic sampling (no key): bin midpoints for coarse samples, CDF quantiles for fine ones.
     """
     origins, directions = world_rays(T_rays, directions_local)
-    out = render_rays(params_field, settings, origins, directions, alpha)
+    out = render_rays(params_field, field, sampler, origins, directions, alpha)
     rendered, z = (out.coarse, out.z_coarse) if out.fine is None else (out.fine, out.z_fine)
     z_map = rendering.map_range(rendered.weights, rendered.deltas, z)
     return origins + z_map[:, None] * directions, rendered.opacity
@@ -37,9 +39,9 @@ class MapRender(NamedTuple):
     opacity: np.ndarray
 
 
-def render_map(params_field, settings: RenderSettings, T_scans: np.ndarray, directions_local: np.ndarray,
-               scan_index: np.ndarray, alpha: float, rays_per_batch: int = 4096, min_opacity: float = 0.5,
-               progress: bool = False) -> MapRender:
+def render_map(params_field, field: DensityField, sampler: SamplerSettings, T_scans: np.ndarray,
+               directions_local: np.ndarray, scan_index: np.ndarray, alpha: float, rays_per_batch: int = 4096,
+               min_opacity: float = 0.5, progress: bool = False) -> MapRender:
     """Rendered map of all rays, in the normalised frame.
 
     T_scans: [S, 4, 4] optimised poses; directions_local: [R, 3]; scan_index: [R]. Rays whose opacity is below
@@ -56,7 +58,8 @@ def render_map(params_field, settings: RenderSettings, T_scans: np.ndarray, dire
         pad = rays_per_batch - (stop - start)
         d = np.pad(directions_local[start:stop], ((0, pad), (0, 0)), mode="edge")
         s = np.pad(scan_index[start:stop], (0, pad), mode="edge")
-        points, opacity = render_map_points(params_field, settings, T_scans[s], jnp.asarray(d, jnp.float32), alpha)
+        points, opacity = render_map_points(params_field, field, sampler, T_scans[s], jnp.asarray(d, jnp.float32),
+                                            alpha)
         points, opacity = np.asarray(points)[: stop - start], np.asarray(opacity)[: stop - start]
         origins = np.asarray(T_scans)[s[: stop - start], :3, 3]
         kept.append(points[opacity >= min_opacity])

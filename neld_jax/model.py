@@ -20,8 +20,11 @@ from neld_jax.field import DensityField
 
 
 @dataclasses.dataclass(frozen=True)
-class RenderSettings:
-    """Static (hashable) settings of one rendering configuration; a change of any field recompiles."""
+class SamplerSettings:
+    """Static (hashable) settings of the ray sampler of one stage; a change of any field recompiles.
+
+    The field's architecture is not here: it is the DensityField module itself (neld_jax.field), also static.
+    """
 
     num_coarse: int
     num_fine: int
@@ -31,27 +34,6 @@ class RenderSettings:
     hierarchical: str = "before"  # before | nerf | none
     guided_samples: int = 0
     guided_width: float = 0.0  # normalised units
-    # Field architecture (the module is built from these inside jit, so it needs no closure).
-    width: int = 512
-    depth: int = 8
-    skip_layers: tuple = (4,)
-    pos_freqs: int = 15
-    dir_freqs: int = 4
-    use_view_dirs: bool = True
-    density_activation: str = "softplus"
-    surrogate_gradient: bool = True
-
-    def field(self) -> DensityField:
-        return DensityField(
-            width=self.width,
-            depth=self.depth,
-            skip_layers=tuple(self.skip_layers),
-            pos_freqs=self.pos_freqs,
-            dir_freqs=self.dir_freqs,
-            surrogate=self.surrogate_gradient,
-            use_view_dirs=self.use_view_dirs,
-            density_activation=self.density_activation,
-        )
 
 
 class RayOutputs(NamedTuple):
@@ -89,27 +71,28 @@ def world_rays(T_scan: jax.Array, directions_local: jax.Array) -> tuple[jax.Arra
     return origins, directions
 
 
-def sample_interval(origins: jax.Array, directions: jax.Array, s: RenderSettings) -> tuple[jax.Array, jax.Array]:
+def sample_interval(origins: jax.Array, directions: jax.Array, sampler: SamplerSettings) -> tuple[jax.Array, jax.Array]:
     """[z_near, z_far] per ray: eq. 7 with the cube bound, or the plain [z_low, z_up] (ablation)."""
-    if s.cube_bound:
-        return sampling.cube_interval(origins, directions, s.z_low, s.z_up)
+    if sampler.cube_bound:
+        return sampling.cube_interval(origins, directions, sampler.z_low, sampler.z_up)
     r = origins.shape[0]
-    return jnp.full((r,), s.z_low, origins.dtype), jnp.full((r,), s.z_up, origins.dtype)
+    return jnp.full((r,), sampler.z_low, origins.dtype), jnp.full((r,), sampler.z_up, origins.dtype)
 
 
-def _densities(params_field, s: RenderSettings, origins, directions, z, pos_window):
+def _densities(params_field, field: DensityField, origins, directions, z, pos_window):
     """sigma at origins + z * directions; origins, directions: [R, 3], z: [R, N] -> [R, N]."""
     r, n = z.shape
     points = origins[:, None, :] + z[..., None] * directions[:, None, :]
     # The unit direction itself is the view input: smooth everywhere, unlike angles at the poles.
     view = jnp.broadcast_to(directions[:, None, :], (r, n, 3))
-    sigma = s.field().apply({"params": params_field}, points.reshape(-1, 3), view.reshape(-1, 3), pos_window)
+    sigma = field.apply({"params": params_field}, points.reshape(-1, 3), view.reshape(-1, 3), pos_window)
     return sigma.reshape(r, n)
 
 
 def render_rays(
     params_field,
-    s: RenderSettings,
+    field: DensityField,
+    sampler: SamplerSettings,
     origins: jax.Array,
     directions: jax.Array,
     alpha: jax.Array,
@@ -118,35 +101,36 @@ def render_rays(
 ) -> RayOutputs:
     """Render R rays: coarse pass, fine samples from the coarse weights, fine pass over both sets.
 
+    field: the density field module and sampler: the sampler settings (both static under jit);
     origins, directions: [R, 3] world (normalised) frame; alpha: the coarse-to-fine progress (scalar);
-    measured_ranges: [R] normalised, only used for range-guided samples (s.guided_samples > 0).
+    measured_ranges: [R] normalised, only used for range-guided samples (sampler.guided_samples > 0).
     The fine pass reuses the coarse densities (one MLP), so the MLP runs on Nc' + Nf points per ray.
     """
     key_coarse, key_guided, key_fine = (None, None, None) if key is None else tuple(jax.random.split(key, 3))
     # Sample positions are not differentiated (as in NeRF); positions still depend on the pose via o, d.
-    z_near, z_far = jax.lax.stop_gradient(sample_interval(origins, directions, s))
-    z_coarse = sampling.stratified_samples(z_near, z_far, s.num_coarse, key_coarse)
-    if s.guided_samples > 0 and measured_ranges is not None:
-        lo = jnp.clip(measured_ranges - s.guided_width, z_near, z_far)
-        hi = jnp.clip(measured_ranges + s.guided_width, z_near, z_far)
-        z_guided = sampling.stratified_samples(lo, hi, s.guided_samples, key_guided)
+    z_near, z_far = jax.lax.stop_gradient(sample_interval(origins, directions, sampler))
+    z_coarse = sampling.stratified_samples(z_near, z_far, sampler.num_coarse, key_coarse)
+    if sampler.guided_samples > 0 and measured_ranges is not None:
+        lo = jnp.clip(measured_ranges - sampler.guided_width, z_near, z_far)
+        hi = jnp.clip(measured_ranges + sampler.guided_width, z_near, z_far)
+        z_guided = sampling.stratified_samples(lo, hi, sampler.guided_samples, key_guided)
         z_coarse, _ = sampling.merge_samples(z_coarse, z_guided)
     z_coarse = jax.lax.stop_gradient(z_coarse)
 
-    pos_window = encoding.barf_window(alpha, s.pos_freqs)
-    sigma_coarse = _densities(params_field, s, origins, directions, z_coarse, pos_window)
+    pos_window = encoding.barf_window(alpha, field.pos_freqs)
+    sigma_coarse = _densities(params_field, field, origins, directions, z_coarse, pos_window)
     coarse = rendering.composite(sigma_coarse, z_coarse, z_far)
-    if s.hierarchical == "none" or s.num_fine == 0:
+    if sampler.hierarchical == "none" or sampler.num_fine == 0:
         return RayOutputs(coarse, None, z_coarse, None, z_far)
 
     weights = jax.lax.stop_gradient(coarse.weights)
-    if s.hierarchical == "before":
-        z_new = sampling.fine_samples_before(z_coarse, weights, s.num_fine, z_near, key_fine)
-    elif s.hierarchical == "nerf":
-        z_new = sampling.nerf_resample(z_coarse, weights, s.num_fine, key_fine)
+    if sampler.hierarchical == "before":
+        z_new = sampling.fine_samples_before(z_coarse, weights, sampler.num_fine, z_near, key_fine)
+    elif sampler.hierarchical == "nerf":
+        z_new = sampling.nerf_resample(z_coarse, weights, sampler.num_fine, key_fine)
     else:
-        raise ValueError(f"unknown hierarchical sampling {s.hierarchical!r}")
-    sigma_new = _densities(params_field, s, origins, directions, z_new, pos_window)
+        raise ValueError(f"unknown hierarchical sampling {sampler.hierarchical!r}")
+    sigma_new = _densities(params_field, field, origins, directions, z_new, pos_window)
     z_fine, order = sampling.merge_samples(z_coarse, z_new)
     sigma_fine = jnp.take_along_axis(jnp.concatenate([sigma_coarse, sigma_new], axis=-1), order, axis=-1)
     fine = rendering.composite(sigma_fine, z_fine, z_far)

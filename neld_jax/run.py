@@ -200,12 +200,12 @@ def _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progr
     Returns (the mapping rays, their MapRender) for the per-scan residuals."""
     m = config.mapping
     mapping_rays = build_rays(seq, norm, max_rays_per_scan=(m.max_rays_per_scan or None), seed=config.seed + 1)
-    settings = train.render_settings(config, norm.scale, m.num_coarse, m.num_fine)
+    sampler = train.sampler_settings(config, norm.scale, m.num_coarse, m.num_fine)
     # The map is rendered with the paper's sampler (no measured ranges), whatever the training options.
-    settings = dataclasses.replace(settings, guided_samples=0)
+    sampler = dataclasses.replace(sampler, guided_samples=0)
     alpha = float(train.make_schedules(config).alpha(int(state.step)))  # the window the field was trained with
-    rendered = render_map(state.params["field"], settings, T_field_n, mapping_rays.directions,
-                          mapping_rays.scan_index, alpha, rays_per_batch=int(m.rays_per_batch),
+    rendered = render_map(state.params["field"], train.make_field(config), sampler, T_field_n,
+                          mapping_rays.directions, mapping_rays.scan_index, alpha, rays_per_batch=int(m.rays_per_batch),
                           min_opacity=float(m.min_opacity), progress=progress)
     points_n = rendered.points
     logger.info("rendered map: %d of %d rays end on a surface", len(points_n), mapping_rays.num_rays)

@@ -7,7 +7,8 @@ The optimiser is one optax transform over that pytree, partitioned by label: the
 own exponential decay; the poses get Adam with separate translation / rotation schedules that are exactly
 zero until the coarse-to-fine window activates frequency k* (BARF), and gauge-fixed rows are zeroed.
 The step is a single jitted function of (state, rays, T_init) with no Python branching on traced values;
-the only static argument is the sample-count stage, so it compiles once per stage.
+the only static argument is the sampler of the sample-count stage, so it compiles once per stage.
+`create_train_state` builds all of it (state, optimiser, schedules, step, field) from the config, in one place.
 """
 
 from __future__ import annotations
@@ -26,13 +27,10 @@ import numpy as np
 import optax
 
 from neld_jax import lie, losses
-from neld_jax.model import RenderSettings, render_rays, scan_poses, world_rays
+from neld_jax.field import DensityField, field_from_config
+from neld_jax.model import SamplerSettings, render_rays, scan_poses, world_rays
 
 logger = logging.getLogger(__name__)
-
-# Incremented by the Python body of the train step, which only runs while jax traces it: a test reads this
-# to check that the step compiles once per sample-count stage.
-TRACE_COUNT = {"train_step": 0}
 
 
 class RayData(NamedTuple):
@@ -194,10 +192,11 @@ def make_optimizer(config: ml_collections.ConfigDict, schedules: Schedules, num_
     return optax.multi_transform({"field": field_tx, "poses": pose_tx}, labels)
 
 
-def render_settings(config: ml_collections.ConfigDict, scale: float, num_coarse: int, num_fine: int) -> RenderSettings:
-    """The static settings of one stage; metre-valued config fields are converted with the normalisation scale."""
-    m, s = config.model, config.sampling
-    return RenderSettings(
+def sampler_settings(config: ml_collections.ConfigDict, scale: float, num_coarse: int,
+                     num_fine: int) -> SamplerSettings:
+    """The sampler of one stage (config.sampling); metre-valued fields are converted with the normalisation scale."""
+    s = config.sampling
+    return SamplerSettings(
         num_coarse=int(num_coarse),
         num_fine=int(num_fine),
         z_low=float(s.z_low_m * scale),
@@ -206,30 +205,27 @@ def render_settings(config: ml_collections.ConfigDict, scale: float, num_coarse:
         hierarchical=str(s.hierarchical),
         guided_samples=int(s.guided_samples),
         guided_width=float(s.guided_width_m * scale),
-        width=int(m.width),
-        depth=int(m.depth),
-        skip_layers=tuple(int(k) for k in m.skip_layers),
-        pos_freqs=int(m.pos_freqs),
-        dir_freqs=int(m.dir_freqs),
-        use_view_dirs=bool(m.use_view_dirs),
-        density_activation=str(m.density_activation),
-        surrogate_gradient=bool(m.surrogate_gradient),
     )
 
 
-def create_train_state(config, key: jax.Array, num_scans: int, tx: optax.GradientTransformation, settings: RenderSettings):
-    key_init, key_state = jax.random.split(key)
-    field_params = settings.field().init(key_init, jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]
-    params = {"field": field_params, "poses": jnp.zeros((num_scans, 6), jnp.float32)}
-    return TrainState(step=jnp.zeros([], jnp.int32), params=params, opt_state=tx.init(params), key=key_state)
+def make_field(config: ml_collections.ConfigDict) -> DensityField:
+    """The density field of config.model (every architecture field, initial_density included)."""
+    return field_from_config(config.model)
 
 
-def initial_state(config, num_scans: int, scale: float) -> TrainState:
-    """The state a run starts from (seeded by config.seed); also the template a checkpoint restores into."""
-    schedules = make_schedules(config)
-    tx = make_optimizer(config, schedules, num_scans)
-    settings = render_settings(config, scale, *schedules.samples(0))
-    return create_train_state(config, jax.random.PRNGKey(config.seed), num_scans, tx, settings)
+@dataclasses.dataclass(frozen=True)
+class LossSettings:
+    """Weights of eq. 13 (config.loss); static under jit."""
+
+    lambda_coarse: float = 0.1
+    lambda_range: float = 1.0
+    lambda_termination: float = 1.0
+    termination: bool = True  # False drops the termination loss (ablation)
+
+    @classmethod
+    def from_config(cls, loss_cfg) -> "LossSettings":
+        return cls(lambda_coarse=float(loss_cfg.lambda_coarse), lambda_range=float(loss_cfg.lambda_range),
+                   lambda_termination=float(loss_cfg.lambda_termination), termination=bool(loss_cfg.termination))
 
 
 def _pass_losses(rendered, z: jax.Array, ranges: jax.Array, termination: bool) -> tuple[jax.Array, jax.Array]:
@@ -239,27 +235,25 @@ def _pass_losses(rendered, z: jax.Array, ranges: jax.Array, termination: bool) -
     return l_range, l_term
 
 
-def ray_losses(out, ranges: jax.Array, loss_cfg: dict) -> tuple[jax.Array, dict]:
+def ray_losses(out, ranges: jax.Array, loss: LossSettings) -> tuple[jax.Array, dict]:
     """Eq. 13: lambda_coarse (l_d L_range^c + l_h L_term^c) + (l_d L_range^f + l_h L_term^f)."""
-    l_d, l_h = loss_cfg["lambda_range"], loss_cfg["lambda_termination"]
-    lc_range, lc_term = _pass_losses(out.coarse, out.z_coarse, ranges, loss_cfg["termination"])
-    total = loss_cfg["lambda_coarse"] * (l_d * lc_range + l_h * lc_term)
+    l_d, l_h = loss.lambda_range, loss.lambda_termination
+    lc_range, lc_term = _pass_losses(out.coarse, out.z_coarse, ranges, loss.termination)
+    total = loss.lambda_coarse * (l_d * lc_range + l_h * lc_term)
     metrics = {"range_l1_coarse": lc_range, "term_coarse": lc_term}
     if out.fine is not None:
-        lf_range, lf_term = _pass_losses(out.fine, out.z_fine, ranges, loss_cfg["termination"])
+        lf_range, lf_term = _pass_losses(out.fine, out.z_fine, ranges, loss.termination)
         total = total + l_d * lf_range + l_h * lf_term
         metrics.update(range_l1_fine=lf_range, term_fine=lf_term)
     metrics["loss"] = total
     return total, metrics
 
 
-def make_train_step(tx: optax.GradientTransformation, schedules: Schedules, loss_cfg: dict, batch_rays: int,
-                    scans_per_step: int = 0):
-    """Returns step(state, rays, T_init, settings) -> (state, metrics), jitted with `settings` static."""
-    loss_cfg = dict(loss_cfg)
+def make_train_step(tx: optax.GradientTransformation, schedules: Schedules, field: DensityField, loss: LossSettings,
+                    batch_rays: int, scans_per_step: int = 0):
+    """Returns step(state, rays, T_init, sampler) -> (state, metrics), jitted with `sampler` static."""
 
-    def step(state: TrainState, rays: RayData, T_init: jax.Array, settings: RenderSettings):
-        TRACE_COUNT["train_step"] += 1
+    def step(state: TrainState, rays: RayData, T_init: jax.Array, sampler: SamplerSettings):
         key, key_batch, key_render = jax.random.split(state.key, 3)
         idx = sample_batch(key_batch, rays, batch_rays, scans_per_step)
         directions_local, ranges, scan = rays.directions[idx], rays.ranges[idx], rays.scan_index[idx]
@@ -268,8 +262,8 @@ def make_train_step(tx: optax.GradientTransformation, schedules: Schedules, loss
         def loss_fn(params):
             T = scan_poses(params["poses"], T_init)[scan]  # exp of S poses, then a gather: cheaper than exp per ray
             origins, directions = world_rays(T, directions_local)
-            out = render_rays(params["field"], settings, origins, directions, alpha, key_render, ranges)
-            return ray_losses(out, ranges, loss_cfg)
+            out = render_rays(params["field"], field, sampler, origins, directions, alpha, key_render, ranges)
+            return ray_losses(out, ranges, loss)
 
         (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
@@ -278,17 +272,44 @@ def make_train_step(tx: optax.GradientTransformation, schedules: Schedules, loss
         new_state = TrainState(step=state.step + 1, params=params, opt_state=opt_state, key=key)
         return new_state, metrics
 
-    return jax.jit(step, static_argnames=("settings",), donate_argnums=(0,))
+    return jax.jit(step, static_argnames=("sampler",), donate_argnums=(0,))
 
 
-def loss_settings(config) -> dict:
-    l = config.loss
-    return {
-        "lambda_coarse": float(l.lambda_coarse),
-        "lambda_range": float(l.lambda_range),
-        "lambda_termination": float(l.lambda_termination),
-        "termination": bool(l.termination),
-    }
+class TrainSetup(NamedTuple):
+    """Everything a run trains with, built from the config by `create_train_state`."""
+
+    state: TrainState  # the initial state (seeded by config.seed)
+    tx: optax.GradientTransformation
+    schedules: Schedules
+    step_fn: Callable  # step_fn(state, rays, T_init, sampler) -> (state, metrics); jitted, state donated
+    field: DensityField
+    sampler: Callable[[int], SamplerSettings]  # sampler(step): the sampler of the step's sample-count stage
+
+
+def create_train_state(config: ml_collections.ConfigDict, num_scans: int, scale: float) -> TrainSetup:
+    """The one builder of the training state, optimiser, schedules, step and field of a run.
+
+    num_scans: S (the poses' rows); scale: the normalisation scale (metres -> normalised) of the sampler.
+    """
+    schedules = make_schedules(config)
+    tx = make_optimizer(config, schedules, num_scans)
+    field = make_field(config)
+    key_init, key_state = jax.random.split(jax.random.PRNGKey(int(config.seed)))
+    field_params = field.init(key_init, jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]
+    params = {"field": field_params, "poses": jnp.zeros((num_scans, 6), jnp.float32)}
+    state = TrainState(step=jnp.zeros([], jnp.int32), params=params, opt_state=tx.init(params), key=key_state)
+    step_fn = make_train_step(tx, schedules, field, LossSettings.from_config(config.loss),
+                              int(config.train.batch_rays), int(config.train.get("scans_per_step", 0)))
+
+    def sampler(step: int) -> SamplerSettings:
+        return sampler_settings(config, scale, *schedules.samples(step))
+
+    return TrainSetup(state, tx, schedules, step_fn, field, sampler)
+
+
+def initial_state(config: ml_collections.ConfigDict, num_scans: int, scale: float) -> TrainState:
+    """The state a run starts from (seeded by config.seed); also the template a checkpoint restores into."""
+    return create_train_state(config, num_scans, scale).state
 
 
 class FitResult(NamedTuple):
@@ -332,20 +353,17 @@ def fit(
     """Run the bundle adjustment from `state` (or a fresh one) up to config.train.steps.
 
     rays: all training rays on the device; T_init: [S, 4, 4] initial poses, normalised frame; scale: the
-    normalisation scale (metres -> normalised), used for settings and for the logs in metres.
+    normalisation scale (metres -> normalised), used for the sampler and for the logs in metres.
     checkpoint_fn(state, history, train_seconds) is called every config.train.checkpoint_every steps and at
     the end. A resumed run passes the restored state with the history and elapsed_s saved with it, so that
     the history and the logged elapsed_s continue (train.max_minutes counts this call only).
     """
     from tqdm.auto import tqdm  # an effect at the edge; the step itself is pure
 
-    num_scans = int(T_init.shape[0])
-    schedules = make_schedules(config)
-    tx = make_optimizer(config, schedules, num_scans)
+    setup = create_train_state(config, int(T_init.shape[0]), scale)
+    schedules, step_fn = setup.schedules, setup.step_fn
     if state is None:
-        state = initial_state(config, num_scans, scale)
-    step_fn = make_train_step(tx, schedules, loss_settings(config), int(config.train.batch_rays),
-                              int(config.train.get("scans_per_step", 0)))
+        state = setup.state
 
     start = int(state.step)
     total = schedules.total_steps
@@ -365,13 +383,13 @@ def fit(
         stage = schedules.stage(step)
         if stage != current_stage:
             current_stage = stage
-            nc, nf = schedules.samples(step)
-            settings = render_settings(config, scale, nc, nf)
+            sampler = setup.sampler(step)
             logger.info("step %d: stage %d, %d coarse + %d fine (+%d guided) samples per ray, %d rays per step",
-                        step, stage, nc, nf, settings.guided_samples, config.train.batch_rays)
+                        step, stage, sampler.num_coarse, sampler.num_fine, sampler.guided_samples,
+                        config.train.batch_rays)
         if step == schedules.pose_start_step and step > 0:
             logger.info(pose_start_message(config, schedules))
-        state, metrics = step_fn(state, rays, T_init, settings)
+        state, metrics = step_fn(state, rays, T_init, sampler)
         done = step + 1
         if done % log_every == 0 or done == total:
             m = {k: float(v) for k, v in jax.device_get(metrics).items()}

@@ -109,3 +109,22 @@ def test_efficiency_mode_times_step_and_peak_alternately():
         assert r["efficiency"] == pytest.approx(r["achieved_gflops"] / r["peak_gflops"])
     assert record["efficiency"] == sorted(r["efficiency"] for r in record["rounds"])[1]  # the median
     assert record["mlp_flops_per_step"] == 3 * 16 * 6 * 2 * (63 * 8 + 23 * 4 + 4 * 1)
+
+
+def test_step_runner_starts_from_the_trainers_state():
+    """The benchmark builds its state and step with train.create_train_state, as fit does: same initial params."""
+    from neld_jax import train
+
+    config, sizes = bench.preset_sizes("cpu")
+    sizes = dict(sizes, rays=16, coarse=4, guided=0, fine=2, width=8, depth=1)
+    runner = bench.StepRunner(config, sizes, train_steps=3, num_scans=2, rays_per_scan=64, seed=3)
+    assert runner.config.seed == 3
+    fit_config = runner.config.copy_and_resolve_references()
+    fit_config.train.steps = 0  # fit returns the state it starts from
+    fitted = train.fit(fit_config, runner.rays, runner.T_init, bench.SYNTHETIC_SCALE, progress=False).state
+    for expected in (fitted.params, train.initial_state(runner.config, 2, bench.SYNTHETIC_SCALE).params):
+        assert jax.tree.structure(runner.state.params) == jax.tree.structure(expected)
+        for a, b in zip(jax.tree.leaves(runner.state.params), jax.tree.leaves(expected)):
+            assert jnp.array_equal(a, b)
+    assert runner.state.params["field"]["hidden_0"]["kernel"].shape[1] == 8
+    runner.run(1)

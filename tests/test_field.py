@@ -116,3 +116,29 @@ def test_surrogate_flag_changes_only_the_backward_pass():
 def test_unknown_activation_is_rejected():
     with pytest.raises(ValueError, match="density_activation"):
         DensityField(width=8, depth=1, density_activation="tanh").init(jax.random.key(0), *_inputs(2))
+
+
+def test_field_from_config_sets_every_architecture_field():
+    """Each DensityField option has a config.model field that reaches the module (surrogate: surrogate_gradient)."""
+    import dataclasses
+
+    from neld_jax.config import base_config
+    from neld_jax.field import field_from_config
+
+    model = base_config().model
+    names = {"surrogate": "surrogate_gradient"}
+    options = [f.name for f in dataclasses.fields(DensityField) if f.name not in ("dtype", "parent", "name")]
+    assert set(options) >= {"width", "depth", "skip_layers", "initial_density", "density_activation"}
+    # Every option's default is the config's default ...
+    default = field_from_config(model)
+    assert default == DensityField(), [o for o in options if getattr(default, o) != getattr(DensityField(), o)]
+    # ... and a changed config value changes the module.
+    changed = dict(width=8, depth=2, skip_layers=[1], pos_freqs=3, dir_freqs=1, surrogate_gradient=False,
+                   use_view_dirs=False, density_activation="relu", initial_density=0.5)
+    assert {names.get(o, o) for o in options} == set(changed)
+    model.update(changed)
+    field = field_from_config(model)
+    for option in options:
+        expected = changed[names.get(option, option)]
+        assert getattr(field, option) == (tuple(expected) if option == "skip_layers" else expected), option
+    hash(field)  # a static jit argument

@@ -102,7 +102,7 @@ def test_density_field_jit_with_traced_windows():
 
     @jax.jit
     def run(params, alpha):
-        return field.apply(params, POINTS, view, encoding.barf_window(alpha, 4), encoding.barf_window(alpha, 2))
+        return field.apply(params, POINTS, view, encoding.barf_window(alpha, 4))
 
     sigma = run(params, jnp.float32(1.5))
     assert sigma.shape == (R,) and np.all(np.asarray(sigma) >= 0)

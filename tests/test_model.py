@@ -5,10 +5,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from neld_jax import encoding, lie
-from neld_jax.model import RenderSettings, render_rays, scan_poses, world_rays
+from neld_jax.field import DensityField
+from neld_jax.model import SamplerSettings, render_rays, scan_poses, world_rays
 
-SETTINGS = RenderSettings(num_coarse=16, num_fine=8, z_low=0.01, z_up=4.0, width=32, depth=2, skip_layers=(1,),
-                          pos_freqs=4, dir_freqs=4, use_view_dirs=True)
+SAMPLER = SamplerSettings(num_coarse=16, num_fine=8, z_low=0.01, z_up=4.0)
+FIELD = DensityField(width=32, depth=2, skip_layers=(1,), pos_freqs=4, dir_freqs=4, use_view_dirs=True)
 
 
 def _pose_gradient(direction_local, params_field, T_init):
@@ -17,7 +18,7 @@ def _pose_gradient(direction_local, params_field, T_init):
     def rendered_range(xi):
         T = scan_poses(xi[None], T_init[None])
         origins, directions = world_rays(T, direction_local[None])
-        out = render_rays(params_field, SETTINGS, origins, directions, jnp.asarray(4.0))
+        out = render_rays(params_field, FIELD, SAMPLER, origins, directions, jnp.asarray(4.0))
         return out.fine.depth[0]
 
     return jax.grad(rendered_range)(jnp.zeros(6, jnp.float64))
@@ -27,8 +28,7 @@ def test_pose_gradient_finite_and_continuous_at_a_vertical_ray():
     # Azimuth/elevation view inputs had an infinite Jacobian at a vertical ray (NaN pose gradients) and ~1e3 at
     # 1 mrad from it; the unit-vector input keeps the gradient finite and continuous through the pole.
     with jax.enable_x64(True):
-        field = SETTINGS.field()
-        params = field.init(jax.random.PRNGKey(3), jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]
+        params = FIELD.init(jax.random.PRNGKey(3), jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]
         # A field that is neither transparent nor opaque and varies along the ray (density 0.6-0.8 per unit),
         # so that the rendered range depends on the pose.
         params = jax.tree.map(lambda p: jnp.asarray(p, jnp.float64), params)
@@ -53,4 +53,4 @@ def test_view_input_is_the_world_direction():
     _, world = world_rays(jnp.broadcast_to(T, (2, 4, 4)), directions)
     np.testing.assert_allclose(np.linalg.norm(world, axis=1), 1.0, atol=1e-6)
     np.testing.assert_allclose(world, directions @ np.asarray(T[:3, :3]).T, atol=1e-6)
-    assert encoding.encoded_dim(3, SETTINGS.dir_freqs) == 3 * (1 + 2 * SETTINGS.dir_freqs)
+    assert encoding.encoded_dim(3, FIELD.dir_freqs) == 3 * (1 + 2 * FIELD.dir_freqs)

@@ -1,9 +1,10 @@
 """One bundle-adjustment run end to end: load, preprocess, normalise, train (resumable), write outputs, evaluate.
 
 This is the effectful edge that `bin/train.py` calls; the maths lives in the pure modules.
-Outputs in config.output_dir (docs/design.md): poses_initial/optimized (.txt TUM, .kitti), poses_gt.txt when ground
-truth exists, map_raw.ply, map_raw_initial.ply, map_rendered.ply, map_gt.ply, config.json, metrics.json,
-checkpoints/ and the evaluation plots.
+Outputs in config.output_dir (docs/design.md): poses_initial/optimized (.txt TUM, .kitti; one line per input
+scan), poses_baseline with train.init_poses=baseline, poses_gt.txt when ground truth exists, map_raw.ply,
+map_raw_initial.ply, map_rendered.ply, map_gt.ply, config.json, metrics.json (run, crispness, scans_report,
+evaluation), history.json, scans_report.csv/.png, map_topdown.png, checkpoints/ and the evaluation plots.
 """
 
 from __future__ import annotations

@@ -103,7 +103,7 @@ def _format(value) -> str:
     if value is None:
         return ""
     if isinstance(value, float):
-        return f"{value:.6f}" if abs(value) < 1e6 else f"{value:.6f}"
+        return f"{value:.6f}"  # microseconds for stamps, micrometres for distances
     return str(value)
 
 

@@ -45,18 +45,16 @@ flags.mark_flag_as_required("root")
 
 
 def _config(fmt_config: str, root: str, out_dir: str):
+    """configs/lio_keyframes.py's settings (all keyframes, refine_odometry on the cpu budget), for the drifted
+    copy in the generic layout too, with this script's overrides."""
     import ast
 
-    from neld_jax.config import apply_budget, base_config, refine_odometry
+    from configs.lio_keyframes import get_config
 
-    c = base_config()
+    c = get_config(BUDGET.value)
     c.data.format = fmt_config
     c.data.root = root
-    c.data.keyframe_interval_s = 0.0  # the front-end's keyframes, all of them
     c.output_dir = out_dir
-    c = apply_budget(c, BUDGET.value)
-    if BUDGET.value == "cpu":  # as configs/lio_keyframes.py, for the drifted copy (generic layout) too
-        c = refine_odometry(c)
     if MAX_MINUTES.value >= 0:
         c.train.max_minutes = MAX_MINUTES.value
     for item in OVERRIDES.value:

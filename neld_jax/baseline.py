@@ -156,8 +156,7 @@ def run_baseline(config: ml_collections.ConfigDict, voxel_size: float = 0.2, max
     poses = multiway_registration(sequence.scans, sequence.poses, voxel_size=voxel_size,
                                   max_corr_dist=max_corr_dist, loop_radius_m=loop_radius_m)
     seconds = time.perf_counter() - t0
-    keyframe_index = sequence.source_index if sequence.source_index is not None else np.arange(sequence.num_scans)
-    poses_all = propagate_corrections(loaded.poses, keyframe_index, poses, loaded.timestamps)
+    poses_all = propagate_corrections(loaded.poses, sequence.loaded_index, poses, loaded.timestamps)
 
     output_dir = Path(config.output_dir)
     map_voxel = float(config.mapping.voxel_size_m) if "mapping" in config else 0.0

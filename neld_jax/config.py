@@ -26,7 +26,7 @@ def base_config() -> ml_collections.ConfigDict:
     c.data.format = "generic"  # generic | fusionportable | newer_college | lio_keyframes | synthetic
     c.data.root = ""
     c.data.pose_file = ""  # lio_keyframes: the initial trajectory under root ("" = odom_poses.txt)
-    c.data.drop_unmatched_tail = False  # drop up to 3 trailing scans that have no pose/stamp instead of failing
+    c.data.drop_unmatched_tail = False  # drop up to 5 trailing scans that have no pose/stamp instead of failing
     # Keyframes: a scan is kept when ANY enabled rule says so (<= 0 turns a rule off; all off keeps every scan).
     # Every input scan still gets a refined pose: the others take their keyframes' interpolated correction.
     c.data.keyframe_interval_s = 3.0

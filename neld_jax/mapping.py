@@ -50,6 +50,7 @@ def render_map(params_field, field: DensityField, sampler: SamplerSettings, T_sc
     """
     from tqdm.auto import tqdm
 
+    origins_of_scan = np.asarray(T_scans, np.float32)[:, :3, 3]  # on the host once, for the ranges
     T_scans = jnp.asarray(T_scans, jnp.float32)
     r = directions_local.shape[0]
     kept, ranges, opacities = [], [], []
@@ -61,9 +62,8 @@ def render_map(params_field, field: DensityField, sampler: SamplerSettings, T_sc
         points, opacity = render_map_points(params_field, field, sampler, T_scans[s], jnp.asarray(d, jnp.float32),
                                             alpha)
         points, opacity = np.asarray(points)[: stop - start], np.asarray(opacity)[: stop - start]
-        origins = np.asarray(T_scans)[s[: stop - start], :3, 3]
         kept.append(points[opacity >= min_opacity])
-        ranges.append(np.linalg.norm(points - origins, axis=1))
+        ranges.append(np.linalg.norm(points - origins_of_scan[s[: stop - start]], axis=1))
         opacities.append(opacity)
     if not kept:
         return MapRender(np.zeros((0, 3)), np.zeros(0), np.zeros(0))

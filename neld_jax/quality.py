@@ -51,14 +51,17 @@ def write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rend
         mapping_rays, render = rendered
         hit = render.opacity >= min_opacity
         error_m = np.abs(render.ranges - mapping_rays.ranges) / norm.scale
-        for k in range(num_keyframes):
-            mine = (mapping_rays.scan_index == k) & hit
-            if mine.any():
-                residual[k] = float(np.median(error_m[mine]))
+        # build_rays groups the rays by scan: split once instead of masking all rays for every scan.
+        bounds = np.cumsum(np.bincount(mapping_rays.scan_index, minlength=num_keyframes))[:-1]
+        for k, (errors, hits) in enumerate(zip(np.split(error_m, bounds), np.split(hit, bounds))):
+            if hits.any():
+                residual[k] = float(np.median(errors[hits]))
     # The correction each scan got relative to the others: the rigid motion of the whole trajectory (the gauge,
     # e.g. the anchor scan's own correction) is removed first by aligning the result to the input (SE(3)).
-    _, _, alignment, _ = metrics.ate_errors(T_all, loaded.poses, "se3") if loaded.num_scans >= 3 else (
-        None, None, np.eye(4), 1.0)
+    alignment = np.eye(4)
+    if loaded.num_scans >= 3:
+        rotation, translation, _ = metrics.umeyama_alignment(T_all[:, :3, 3], loaded.poses[:, :3, 3])
+        alignment = metrics.similarity_matrix(rotation, translation)
     correction_m, correction_deg = report.pose_corrections(loaded.poses, alignment @ T_all)
     rows = report.scan_report(loaded.num_scans, keyframe_index, loaded.files, loaded.timestamps, rays_per_keyframe,
                               residual, correction_m, correction_deg, per_scan_entropy.get("initial"),

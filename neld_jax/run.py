@@ -77,14 +77,15 @@ def check_extent(seq, norm, config: ml_collections.ConfigDict) -> None:
             f"data.max_range_m, or raise data.max_extent_m to run it anyway)")
 
 
-def starting_poses(config: ml_collections.ConfigDict, seq) -> tuple[np.ndarray, dict]:
-    """The keyframe poses [K, 4, 4] training starts from (train.init_poses), and how long getting them took.
+def starting_poses(config: ml_collections.ConfigDict, seq) -> tuple[np.ndarray, float | None]:
+    """The keyframe poses [K, 4, 4] training starts from (train.init_poses), and the seconds the baseline took
+    (None when training starts from the input).
 
     "input": the loaded poses (odometry). "baseline": the classical baseline's (Open3D ICP + pose graph) run
     from them first, for starts that drifted further than the field's basin of convergence."""
     how = str(config.train.init_poses).lower()
     if how == "input":
-        return seq.poses, {}
+        return seq.poses, None
     if how != "baseline":
         raise ConfigError(f"train.init_poses: unknown value {config.train.init_poses!r} (input | baseline)")
     from neld_jax.baseline import multiway_registration
@@ -93,7 +94,7 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> tuple[np.ndarray, 
     poses = multiway_registration(seq.scans, seq.poses)
     seconds = time.perf_counter() - t0
     logger.info("train.init_poses=baseline: the classical baseline took %.1f s; training starts from its poses", seconds)
-    return poses, {"baseline_seconds": round(seconds, 2)}
+    return poses, seconds
 
 
 def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
@@ -105,7 +106,8 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
 
     loaded, seq, norm = load_and_prepare(config)
-    T_start, start_info = starting_poses(config, seq)
+    T_start, baseline_seconds = starting_poses(config, seq)
+    from_baseline = baseline_seconds is not None
     raysets = build_rays(seq, norm, max_rays_per_scan=(config.data.max_rays_per_scan or None), seed=config.seed)
     logger.info("%d keyframes of %d input scans, %d training rays, normalisation scale %.5f "
                 "(1 normalised unit = %.2f m)", seq.num_scans, loaded.num_scans, raysets.num_rays, norm.scale,
@@ -140,11 +142,11 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         G_n = np.asarray(anchor_transform(T_field_n, np.asarray(T_init, np.float64), int(config.train.anchor_scan)))
     T_opt = norm.poses_to_world(G_n @ T_field_n)  # keyframes
     # Every input scan gets a pose: keyframes their own, the others their keyframes' interpolated correction.
-    keyframe_index = seq.source_index if seq.source_index is not None else np.arange(seq.num_scans)
+    keyframe_index = seq.loaded_index
     T_all = propagate_corrections(loaded.poses, keyframe_index, T_opt, loaded.timestamps)
     export.write_poses(out_dir, "poses_initial", loaded.timestamps, loaded.poses)
     export.write_poses(out_dir, "poses_optimized", loaded.timestamps, T_all)
-    if config.train.init_poses == "baseline":  # the baseline's own result, for every input scan too
+    if from_baseline:  # the baseline's own result, for every input scan too
         export.write_poses(out_dir, "poses_baseline", loaded.timestamps,
                            propagate_corrections(loaded.poses, keyframe_index, T_start, loaded.timestamps))
     if loaded.gt_poses is not None:
@@ -161,7 +163,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
 
     # Quality without ground truth: crispness of the keyframes' raw map, and the per-scan report.
     methods = {"initial": seq.poses, "optimized": T_opt}
-    if config.train.init_poses == "baseline":
+    if from_baseline:
         methods["baseline"] = T_start
     crisp, per_scan_entropy = quality.map_crispness(seq, methods, config.eval)
     rows = quality.write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rendered, norm,
@@ -179,8 +181,9 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         "total_seconds": round(time.perf_counter() - t_start, 2),
         "device": str(jax.devices()[0]),
         "final": result.history[-1] if result.history else {},
-        **start_info,
     }
+    if from_baseline:
+        summary["baseline_seconds"] = round(baseline_seconds, 2)
     scans_summary = report.summarize(rows)
     export.write_json(os.path.join(out_dir, "metrics.json"), {"run": summary, "scans_report": scans_summary})
     summary["scans_report"] = scans_summary

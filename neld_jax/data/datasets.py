@@ -224,8 +224,8 @@ def align_poses(
     return Alignment(poses[:keep], times, np.arange(keep, dtype=np.int64))
 
 
-def _sequence(root: Path, files: list[Path], poses: np.ndarray, timestamps: np.ndarray | None,
-              gt_poses: np.ndarray | None, pose_file: Path) -> Sequence:
+def build_sequence(root: Path, files: list[Path], poses: np.ndarray, timestamps: np.ndarray | None,
+                   gt_poses: np.ndarray | None, pose_file: Path) -> Sequence:
     """Read the scans and the GT map, build the Sequence (files relative to root), check for pose jumps."""
     seq = Sequence(
         scans=_read_scans(files),
@@ -296,7 +296,7 @@ def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERAN
         gt_poses = align_poses(gt_all, gt_times, gt_file, files, timestamps if gt_by_time else None,
                                tol=tol, root=root).poses
 
-    return _sequence(root, files, aligned.poses, timestamps, gt_poses, pose_file)
+    return build_sequence(root, files, aligned.poses, timestamps, gt_poses, pose_file)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -346,7 +346,7 @@ def _timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray,
         gt_times, gt_all = read_gt(gt_file)
         gt_poses = align_poses(gt_all, gt_times, gt_file, files, scan_times, tol=tol, root=root).poses
 
-    return _sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file)
+    return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file)
 
 
 def _timestamps_from_names(files: list[Path], folder: Path, pattern: str) -> np.ndarray:

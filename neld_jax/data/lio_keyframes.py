@@ -22,10 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from neld_jax.data.datasets import MAX_UNMATCHED_TAIL
+from neld_jax.data.datasets import MAX_UNMATCHED_TAIL, build_sequence
 from neld_jax.data.poses import read_kitti
-from neld_jax.data.scans import read_scan
-from neld_jax.data.sequence import Sequence, check_pose_jumps
+from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -71,13 +70,16 @@ def _scan_files(root: Path) -> tuple[Path, list[Path]]:
     folder = next((root / name for name in SCAN_FOLDERS if (root / name).is_dir()), None)
     if folder is None:
         raise DataError(f"{root}: no scan folder (looked for {', '.join(SCAN_FOLDERS)}/)")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".pcd" and not p.name.startswith("."))
+    files, others = [], []
+    for entry in folder.iterdir():
+        if not entry.name.startswith("."):
+            (files if entry.suffix.lower() == ".pcd" else others).append(entry)
     if not files:
         raise DataError(f"{folder}: no .pcd scans")
-    others = [p.name for p in folder.iterdir() if p.suffix.lower() != ".pcd" and not p.name.startswith(".")]
+    files.sort()
     if others:
         logger.warning("%s: ignored %d entries that are not .pcd scans (%s)", folder, len(others),
-                       ", ".join(sorted(others)[:5]))
+                       ", ".join(sorted(p.name for p in others)[:5]))
     return folder, files
 
 
@@ -120,10 +122,5 @@ def load_lio_keyframes(root: str | os.PathLike, pose_file: str = DEFAULT_POSE_FI
         files, poses = files[:shortest], poses[:shortest]
         stamps = None if stamps is None else stamps[:shortest]
 
-    names = [f"{folder.name}/{f.name}" for f in files]
-    check_pose_jumps(poses, names, what=str(pose_path))
-    scans = [read_scan(f) for f in files]
-    logger.info("read %d keyframe scans (%d points, %.0f per scan) from %s, poses from %s", len(scans),
-                sum(len(s) for s in scans), np.mean([len(s) for s in scans]), folder, pose_path.name)
-    return Sequence(scans=scans, poses=poses, timestamps=stamps, name=root.name, source=str(root),
-                    files=names)
+    # Scans read, dropped points counted, files named relative to the root, pose jumps checked: as every loader.
+    return build_sequence(root, files, poses, stamps, None, pose_path)

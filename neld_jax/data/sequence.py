@@ -89,6 +89,11 @@ class Sequence:
         return label
 
     @property
+    def loaded_index(self) -> np.ndarray:
+        """[S] int64 index of each scan in the sequence as loaded: source_index, or 0..S-1 when unset."""
+        return self.source_index if self.source_index is not None else np.arange(self.num_scans, dtype=np.int64)
+
+    @property
     def num_scans(self) -> int:
         return len(self.scans)
 

@@ -111,6 +111,15 @@ def base_config() -> ml_collections.ConfigDict:
     c.mapping.voxel_size_m = 0.05  # voxel grid on the written maps (0 = none)
     c.mapping.min_opacity = 0.5  # rendered points of rays whose opacity is below this are dropped
 
+    # The classical baseline (neld_jax.baseline.BaselineSettings: bin/baseline.py and train.init_poses=baseline).
+    c.baseline = ml_collections.ConfigDict()
+    c.baseline.voxel_size_m = 0.1
+    c.baseline.window = 10  # scans in the local map of the scan-to-map chain
+    c.baseline.icp_distances_m = (1.0, 0.5, 0.25, 0.1)  # multi-scale ICP, coarse first
+    c.baseline.loop_radius_m = 10.0  # loop-closure candidates, in the chain's frame
+    c.baseline.max_loops_per_scan = 4
+    c.baseline.min_loop_fitness = 0.3
+
     c.eval = ml_collections.ConfigDict()
     c.eval.f1_threshold_m = 0.2
     c.eval.raw_cutoff_m = 1.0
@@ -201,3 +210,30 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
     c.mapping.voxel_size_m = 0.1
     c.data.synthetic.gt_map_points = 100_000
     return c
+
+
+def apply_overrides(c: ml_collections.ConfigDict, items) -> ml_collections.ConfigDict:
+    """Apply "KEY=VALUE" overrides (dotted keys, Python-literal values) as the benchmarks' --set flags give them.
+
+    An unknown key raises ConfigError naming it, as bin/train.py's --config.KEY does."""
+    import ast
+
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ConfigError(f"override {item!r}: expected KEY=VALUE")
+        node = c
+        *parents, leaf = key.split(".")
+        try:
+            for part in parents:
+                node = node[part]
+            if leaf not in node:
+                raise KeyError(leaf)
+        except KeyError:
+            raise ConfigError(f"override {item!r}: the config has no field {key}") from None
+        try:
+            node[leaf] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            node[leaf] = value  # a bare string, e.g. train.init_poses=baseline
+    return c
+

@@ -81,17 +81,17 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> tuple[np.ndarray, 
     """The keyframe poses [K, 4, 4] training starts from (train.init_poses), and the seconds the baseline took
     (None when training starts from the input).
 
-    "input": the loaded poses (odometry). "baseline": the classical baseline's (Open3D ICP + pose graph) run
+    "input": the loaded poses (odometry). "baseline": the classical baseline's (Open3D scan-to-map ICP + loop-closed pose graph, config.baseline) run
     from them first, for starts that drifted further than the field's basin of convergence."""
     how = str(config.train.init_poses).lower()
     if how == "input":
         return seq.poses, None
     if how != "baseline":
         raise ConfigError(f"train.init_poses: unknown value {config.train.init_poses!r} (input | baseline)")
-    from neld_jax.baseline import multiway_registration
+    from neld_jax.baseline import BaselineSettings, register_sequence
 
     t0 = time.perf_counter()
-    poses = multiway_registration(seq.scans, seq.poses)
+    poses = register_sequence(seq.scans, seq.poses, BaselineSettings.from_config(config.get("baseline")))
     seconds = time.perf_counter() - t0
     logger.info("train.init_poses=baseline: the classical baseline took %.1f s; training starts from its poses", seconds)
     return poses, seconds

@@ -121,6 +121,7 @@ def base_config() -> ml_collections.ConfigDict:
     c.eval = ml_collections.ConfigDict()
     c.eval.f1_threshold_m = 0.2
     c.eval.raw_cutoff_m = 1.0
+    c.eval.map_icp_m = 0.0  # > 0: refine the map alignment by ICP with this correspondence distance (evaluate.py)
     # Map crispness without ground truth (neld_jax.crispness): neighbourhood radius and number of query points.
     c.eval.crispness_radius_m = 0.3
     c.eval.crispness_queries = 10_000

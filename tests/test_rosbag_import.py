@@ -219,3 +219,25 @@ def test_cli_one_error_line_and_success(tmp_path):
     ok = subprocess.run(cmd + [f"--out={tmp_path / 'o2'}"], capture_output=True, text=True, timeout=120, env=env)
     assert ok.returncode == 0, ok.stderr[-2000:]
     assert "wrote 2 scans of 2 clouds" in ok.stdout and "frame 'body'" in ok.stdout
+
+
+def test_fastlio_bag_to_newer_college_2021_with_its_ground_truth(tmp_path):
+    """README's Newer College steps up to training: FAST-LIO2's recorded topics imported, the downloaded base-frame
+    ground truth put beside them, and configs/newer_college.py's loader matching it to the scans by time."""
+    from neld_jax.config import base_config
+    from neld_jax.data.datasets import load_sequence
+    from neld_jax.data.ground_truth import published_offset
+    from neld_jax.data.poses import write_newer_college_csv
+    from neld_jax.geometry import invert_poses
+
+    n = 4
+    scans, poses, times = _scans(n), _poses(n), T0 + 0.1 * np.arange(n)
+    write_ros1(tmp_path / "quad_easy_fastlio.bag", fastlio_entries(scans, poses, times))
+    import_bag(tmp_path / "quad_easy_fastlio.bag", tmp_path / "quad_easy", progress=False)
+    base = poses @ invert_poses(published_offset("newer_college_2021", "os_sensor"))
+    write_newer_college_csv(tmp_path / "quad_easy" / "gt-nc-quad-easy.csv", times + 0.003, base)
+    cfg = base_config().data
+    cfg.format, cfg.root = "newer_college", str(tmp_path / "quad_easy")
+    seq = load_sequence(cfg)
+    np.testing.assert_allclose(seq.gt_poses, poses, atol=1e-9)
+    np.testing.assert_allclose(seq.timestamps, times, atol=1e-6)

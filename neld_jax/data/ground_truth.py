@@ -75,8 +75,8 @@ _FP_OUSTER_T_BODY = _tq(-0.037354, 0.006824, -0.020190, 0.004028, -0.002505, 0.0
 
 # (format or release, scan frame) -> T_G_S; the first frame listed per release is its default.
 PUBLISHED_GT_FROM_SCAN = {
-    ("newer_college_2021", "os_imu"): invert_poses(_NC2021_IMU_T_GT),
     ("newer_college_2021", "os_sensor"): invert_poses(_NC2021_IMU_T_GT) @ _NC2021_IMU_T_LIDAR,
+    ("newer_college_2021", "os_imu"): invert_poses(_NC2021_IMU_T_GT),
     ("newer_college_2020", "os_sensor"): invert_poses(_NC2020_IMU_T_GT) @ _NC2020_IMU_T_LIDAR,
     ("newer_college_2020", "os_imu"): invert_poses(_NC2020_IMU_T_GT),
     ("fusionportable", "body_imu"): _FP_OUSTER_T_BODY,

@@ -214,3 +214,29 @@ def test_fusionportable_download_to_train_end_to_end(tmp_path):
     initial = evaluation["methods"]["initial"]
     assert initial["matched_poses"] == 4 and initial["ate"]["translation_rmse_m"] > 0.0
     assert initial["raw_map"]["icp"]["fitness"] > 0.5
+
+
+def test_ground_truth_fields_from_the_command_line(tmp_path):
+    """README's rosbag route for FusionPortable: an imported run (generic layout) with the download's ground truth
+    and the published extrinsic given on the command line, as bin/train.py parses it."""
+    from pathlib import Path
+
+    from absl import flags
+    from ml_collections import config_flags
+
+    n = 3
+    body, times = _poses(n), T0 + 0.1 * np.arange(n)
+    for i, scan in enumerate(_scans(n)):
+        write_scan(tmp_path / "run" / "scans" / f"{i:06d}.pcd", scan)
+    write_tum(tmp_path / "run" / "poses.txt", times, body)
+    T_lidar_body = published_offset("fusionportable", "body_imu")
+    write_tum(tmp_path / "groundtruth" / "traj" / f"{SEQ}.txt", times, body @ invert_poses(T_lidar_body))
+    configs = Path(REPO) / "configs"
+    argv = ["train.py", f"--config={configs / 'generic.py'}", f"--config.data.root={tmp_path / 'run'}",
+            f"--config.data.gt_poses_path={tmp_path / 'groundtruth' / 'traj' / f'{SEQ}.txt'}",
+            "--config.data.gt_from_scan=(-0.037354, 0.006824, -0.020190, 0.004028, -0.002505, 0.003725, 0.999982)"]
+    flag_values = flags.FlagValues()
+    config_flags.DEFINE_config_file("config", None, "", flag_values=flag_values, lock_config=True, sys_argv=argv)
+    flag_values(argv)
+    seq = load_sequence(flag_values.config.data)
+    np.testing.assert_allclose(seq.gt_poses, body, atol=1e-6)

@@ -180,7 +180,8 @@ def test_hba_layout(tmp_path):
     for got, want in zip(seq.scans, scans):
         np.testing.assert_allclose(got, want, atol=1e-6)
     write_tum(tmp_path / "gt.txt", np.arange(n) * 1.0, poses)  # no scan stamps: matched by order
-    assert load_sequence(_data_cfg("hba", tmp_path / "park", gt_poses_path=str(tmp_path / "gt.txt"))).gt_poses.shape == (n, 4, 4)
+    with_gt = load_sequence(_data_cfg("hba", tmp_path / "park", gt_poses_path=str(tmp_path / "gt.txt")))
+    np.testing.assert_allclose(with_gt.gt_poses, poses, atol=1e-9)
     (tmp_path / "park" / "pcd" / "00002.pcd").unlink()
     with pytest.raises(DataError, match=r"pcd: scan index 2 is missing"):
         load_sequence(_data_cfg("hba", tmp_path / "park"))
@@ -240,3 +241,30 @@ def test_ground_truth_fields_from_the_command_line(tmp_path):
     flag_values(argv)
     seq = load_sequence(flag_values.config.data)
     np.testing.assert_allclose(seq.gt_poses, body, atol=1e-6)
+
+
+def test_fusionportable_raw_ouster_export_in_the_lidar_frame(tmp_path):
+    """The devkit's raw export (write_bag_to_data.ipynb: organised Ouster clouds with its 9-field ASCII header) with
+    the user's odometry of the LiDAR: the ground truth (the LiDAR's) needs no offset."""
+    n = 3
+    root = tmp_path / "FusionPortable" / "sensor_data" / "handheld" / SEQ
+    points = root / "raw_data" / "ouster00" / "points"
+    (points / "data").mkdir(parents=True)
+    scans = [np.random.default_rng(i).uniform(1, 9, (2, 3, 3)) for i in range(n)]
+    for i, scan in enumerate(scans):
+        header = ("# .PCD v.7 - Point Cloud Data file format\nVERSION .7\n"
+                  "FIELDS x y z intensity t reflectivity ring ambient range\nSIZE 4 4 4 4 4 2 1 2 4\n"
+                  "TYPE F F F F U U U U U\nCOUNT 1 1 1 1 1 1 1 1 1\nWIDTH 3\nHEIGHT 2\nVIEWPOINT 0 0 0 1 0 0 0\n"
+                  "POINTS 6\nDATA ascii\n")
+        rows = "".join(f"{np.float32(x)} {np.float32(y)} {np.float32(z)} 3.0 1234 7 {k} 9 1000\n"
+                       for k, (x, y, z) in enumerate(scan.reshape(-1, 3)))
+        (points / "data" / f"{i:06d}.pcd").write_text(header + rows)
+    times = T0 + 0.1 * np.arange(n)
+    (points / "timestamps.txt").write_text("".join("{}.{:09d}\n".format(*_stamp(t)) for t in times))
+    lidar = _poses(n)
+    write_tum(root / "odometry.txt", times, lidar)
+    write_tum(tmp_path / "FusionPortable" / "groundtruth" / "traj" / f"{SEQ}.txt", times, lidar)
+    seq = load_sequence(_data_cfg("fusionportable", root))
+    assert seq.files[0] == "raw_data/ouster00/points/data/000000.pcd"
+    np.testing.assert_allclose(seq.scans[1], scans[1].reshape(-1, 3), atol=1e-5)
+    np.testing.assert_allclose(seq.gt_poses, lidar, atol=1e-9)

@@ -27,7 +27,7 @@ from typing import NamedTuple
 import numpy as np
 
 from neld_jax.data import ground_truth, synthetic
-from neld_jax.data.poses import read_newer_college_csv, read_tum
+from neld_jax.data.poses import read_tum
 from neld_jax.data.scans import SCAN_EXTENSIONS, read_scan, read_scan_counted
 from neld_jax.data.sequence import Sequence, check_pose_jumps, match_by_timestamp
 from neld_jax.errors import ConfigError, DataError
@@ -480,7 +480,8 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
 
     scan_folder = next((root / f for f in NEWER_COLLEGE_SCAN_FOLDERS if (root / f).is_dir()), None)
     if scan_folder is None:
-        raise DataError(f"{root}: no scan folder (looked for scans/ with poses.txt, {', '.join(NEWER_COLLEGE_SCAN_FOLDERS)})")
+        raise DataError(f"{root}: no scan folder (looked for scans/ with poses.txt, "
+                        f"{', '.join(NEWER_COLLEGE_SCAN_FOLDERS)})")
     files = _list_scans(scan_folder)
     times = []
     for f in files:

@@ -51,7 +51,8 @@ logger = logging.getLogger(__name__)
 
 
 def pose_from_tuple(values, what: str = "data.gt_from_scan") -> np.ndarray:
-    """(tx, ty, tz, qx, qy, qz, qw) -> 4x4; ConfigError naming `what` for a wrong length or a quaternion off by > 1e-3."""
+    """(tx, ty, tz, qx, qy, qz, qw) -> 4x4; ConfigError naming `what` for a wrong length or a quaternion norm
+    off by more than 1e-3."""
     values = np.asarray(values, dtype=np.float64).reshape(-1)
     if values.shape != (7,) or not np.all(np.isfinite(values)):
         raise ConfigError(f"{what}: expected 7 numbers (tx, ty, tz, qx, qy, qz, qw), got {tuple(values.tolist())}")

@@ -14,7 +14,6 @@ with data.gt_poses_path is matched by order. Note that HBA overwrites ROOT/pose.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 from neld_jax.data.datasets import _check_root, _list_scans, align_poses, build_sequence
 from neld_jax.data.poses import read_hba_poses

@@ -21,7 +21,9 @@ Time conventions (each source states its own; the importer does not shift stamps
   - FAST-LIO2 stamps /cloud_registered_body and /Odometry with the same `lidar_end_time` (the END of the
     scan), frames "body" (the IMU) and "camera_init" -> "body": laserMapping.cpp, publish_frame_body and
     publish_odometry (github.com/hku-mars/FAST_LIO, src/laserMapping.cpp). The stamps are equal, so a
-    tolerance of 10 ms is generous; the body-frame clouds and the odometry describe the same frame.
+    tolerance of 10 ms is generous; the body-frame clouds and the odometry describe the same frame. (Its PCD
+    saving, pcd_save_en, accumulates world-frame points into scans_N.pcd, and its pos_log.txt holds time since
+    start, rotation vector, position, ...: neither is per-scan clouds or TUM, hence recording the topics.)
   - Raw driver clouds (e.g. Ouster's /os_cloud_node/points) are stamped by the driver, commonly at the START
     of the sweep; against end-of-scan odometry use `time_offset_s` (+ one scan period, e.g. 0.1 s at 10 Hz).
     `time_offset_s` is added to every cloud stamp before matching, and the shifted stamp is written.

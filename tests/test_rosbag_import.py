@@ -138,6 +138,8 @@ def test_unmatched_cloud_is_named_never_given_a_neighbours_pose(tmp_path):
         import_bag(tmp_path / "gap.bag", tmp_path / "out", progress=False)
     result = import_bag(tmp_path / "gap.bag", tmp_path / "out2", drop_unmatched=True, progress=False)
     assert result.dropped_unmatched == 1 and result.scans_written == 4
+    with pytest.raises(DataError, match=r"out2/scans: already holds scans; import into an empty folder"):
+        import_bag(tmp_path / "gap.bag", tmp_path / "out2", drop_unmatched=True, progress=False)
     seq = load_generic(tmp_path / "out2")
     np.testing.assert_allclose(seq.poses, poses[[0, 1, 3, 4]], atol=1e-9)
     np.testing.assert_allclose(seq.scans[2], scans[3], atol=1e-5)
@@ -150,6 +152,11 @@ def test_missing_topic_lists_the_topics_of_the_bag(tmp_path):
         import_bag(tmp_path / "b.bag", tmp_path / "out", odometry_topic="/odom", progress=False)
     with pytest.raises(DataError, match=r"topic '/Odometry' carries nav_msgs/msg/Odometry, not a cloud"):
         import_bag(tmp_path / "b.bag", tmp_path / "out", cloud_topic="/Odometry", progress=False)
+    (tmp_path / "junk.bag").write_text("not a bag")
+    with pytest.raises(DataError, match=r"junk.bag: cannot read the bag"):
+        import_bag(tmp_path / "junk.bag", tmp_path / "out", progress=False)
+    with pytest.raises(DataError, match=r"missing.bag: bag does not exist"):
+        import_bag(tmp_path / "missing.bag", tmp_path / "out", progress=False)
 
 
 def test_ros2_bag_with_pose_stamped_stride_and_time_offset(tmp_path):

@@ -185,7 +185,7 @@ def import_bag(
     naming the bag for a missing topic (listing the topics the bag has), a topic of the wrong type, a cloud
     without x/y/z, or clouds without an odometry stamp within tolerance_s (unless drop_unmatched), and when
     out_dir already holds scans (a second import would mix two recordings)."""
-    from rosbags.highlevel import AnyReader
+    from rosbags.highlevel import AnyReader, AnyReaderError
     from rosbags.typesys import Stores, get_typestore
     from tqdm import tqdm
 
@@ -200,10 +200,11 @@ def import_bag(
     if (out / "scans").is_dir() and any((out / "scans").iterdir()):
         raise DataError(f"{out / 'scans'}: already holds scans; import into an empty folder")
 
+    # ROS1 bags carry their message definitions; the Noetic store is only the fallback AnyReader asks for.
+    reader = AnyReader(paths, default_typestore=get_typestore(Stores.ROS1_NOETIC))
     try:
-        reader_cm = AnyReader(paths, default_typestore=get_typestore(Stores.ROS1_NOETIC))
-        reader = reader_cm.__enter__()
-    except Exception as exc:  # rosbags raises its own error types for unreadable bags
+        reader.open()
+    except AnyReaderError as exc:
         raise DataError(f"{bag}: cannot read the bag ({exc})") from exc
     try:
         cloud_conns = _connections(reader, cloud_topic, CLOUD_TYPES, bag, "cloud")
@@ -263,7 +264,7 @@ def import_bag(
             kept_times.append(t)
             kept_poses.append(pose)
     finally:
-        reader_cm.__exit__(None, None, None)
+        reader.close()
 
     if unmatched:
         listed = ", ".join(f"message {i} (t={t:.6f})" for i, t in unmatched[:_LISTED])

@@ -48,6 +48,7 @@ def base_config() -> ml_collections.ConfigDict:
     c.data.gt_map_path = ""  # .pcd / .ply, in the ground truth's world frame
     c.data.gt_from_scan = ()
     c.data.scan_frame = ""  # fusionportable: body_imu | ouster00; newer_college: os_sensor | os_imu
+    c.data.gt_time_offset_s = 0.0  # added to scan stamps when matching GT (e.g. end-of-scan scans, start-of-scan GT)
     c.data.synthetic = synthetic_defaults()
 
     c.model = ml_collections.ConfigDict()

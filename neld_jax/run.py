@@ -36,7 +36,8 @@ logger = logging.getLogger(__name__)
 
 # Fields that do not change what is computed; a resumed run may change them.
 _HASH_EXCLUDED = ("output_dir", "train.max_minutes", "train.log_every", "train.checkpoint_every", "mapping", "eval",
-                  "data.gt_poses_path", "data.gt_map_path", "data.gt_from_scan", "data.scan_frame")  # ground truth only
+                  "data.gt_poses_path", "data.gt_map_path", "data.gt_from_scan", "data.scan_frame",
+                  "data.gt_time_offset_s")  # ground truth only
 
 
 def config_hash(config: ml_collections.ConfigDict) -> str:

@@ -268,3 +268,20 @@ def test_fusionportable_raw_ouster_export_in_the_lidar_frame(tmp_path):
     assert seq.files[0] == "raw_data/ouster00/points/data/000000.pcd"
     np.testing.assert_allclose(seq.scans[1], scans[1].reshape(-1, 3), atol=1e-5)
     np.testing.assert_allclose(seq.gt_poses, lidar, atol=1e-9)
+
+
+def test_ground_truth_stamped_at_the_start_of_the_scan(tmp_path):
+    """Scans stamped at their end (FAST-LIO2) against a 10 Hz ground truth stamped at the start of each scan:
+    scan i's stamp is scan i+1's ground-truth stamp, so the last scan has none (named); gt_time_offset_s=-0.1
+    pairs each scan with its own ground truth."""
+    n = 4
+    scans, lidar, times = _scans(n), _poses(n), 1623000000.0 + 0.1 * np.arange(1, n + 1)
+    for i, scan in enumerate(scans):
+        write_scan(tmp_path / "scans" / f"{i:06d}.pcd", scan)
+    write_tum(tmp_path / "poses.txt", times, lidar)
+    write_tum(tmp_path / "gt.txt", times - 0.1, lidar)
+    with pytest.raises(DataError, match=r"gt.txt: 1 of 4 scans have no pose within 0.05 s \(first: scans/000003.pcd"):
+        load_sequence(_data_cfg("generic", tmp_path, gt_poses_path=str(tmp_path / "gt.txt")))
+    seq = load_sequence(_data_cfg("generic", tmp_path, gt_poses_path=str(tmp_path / "gt.txt"), gt_time_offset_s=-0.1))
+    np.testing.assert_allclose(seq.gt_poses, lidar, atol=1e-9)
+    np.testing.assert_allclose(seq.timestamps, times, atol=1e-9)  # the scans keep their own stamps

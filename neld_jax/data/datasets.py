@@ -306,13 +306,17 @@ def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERAN
 
 
 def _matched_ground_truth(root: Path, files: list[Path], scan_times: np.ndarray | None, gt_file: Path, tol: float,
-                          gt_from_scan: np.ndarray | None) -> np.ndarray:
+                          gt_from_scan: np.ndarray | None, gt_time_offset_s: float = 0.0) -> np.ndarray:
     """The ground-truth pose of each scan [S, 4, 4]: gt_file (TUM, or Newer College CSV for .csv) matched to the
     scans by time within tol (by order without scan times), then moved into the scan frame (T_world_G @ T_G_S).
+    gt_time_offset_s is added to the scan stamps for this matching only (a ground truth stamped by another
+    convention, e.g. -0.1 s to pair end-of-scan stamps with start-of-scan ground truth at 10 Hz).
 
     A scan without a ground-truth stamp within tol is a DataError naming it (match_by_timestamp): a scan is
     never given a neighbour's pose."""
     gt_times, gt_all = ground_truth.read_trajectory(gt_file)
+    if scan_times is not None and gt_time_offset_s:
+        scan_times = np.asarray(scan_times, dtype=np.float64) + gt_time_offset_s
     poses = align_poses(gt_all, gt_times, gt_file, files, scan_times, tol=tol, root=root).poses
     return poses if gt_from_scan is None else poses @ gt_from_scan
 
@@ -333,7 +337,8 @@ FUSIONPORTABLE_DEVKIT_ODOMETRY = ("algorithm_result/odometry/odometry.txt", "odo
 
 def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
                         gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
-                        gt_from_scan: np.ndarray | None = None, scan_frame: str = "") -> Sequence:
+                        gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
+                        gt_time_offset_s: float = 0.0) -> Sequence:
     """Load a FusionPortable sequence. ROOT is the devkit's sequence folder (<dataset_path>/<sequence>, e.g.
     .../sensor_data/handheld/20220216_canteen_day); its export, as the devkit writes it:
 
@@ -364,7 +369,7 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
         files = _sorted_by_name(_list_scans(scan_folder))
         scan_times = _timestamps_from_names(files, scan_folder, "<timestamp>.pcd")
         return _timestamped_sequence(root, files, scan_times, FUSIONPORTABLE_POSE_FILES, FUSIONPORTABLE_GT_FILES,
-                                     tol, gt_poses_file, gt_map_file, gt_from_scan)
+                                     tol, gt_poses_file, gt_map_file, gt_from_scan, gt_time_offset_s)
 
     found = next(((root / folder, frame) for folder, frame in FUSIONPORTABLE_DEVKIT_SCANS
                   if (root / folder / "data").is_dir()), None)
@@ -385,12 +390,13 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
     gt_poses_file = gt_poses_file or ground_truth.first_upwards(root, f"groundtruth/traj/{name}.txt")
     gt_map_file = gt_map_file or ground_truth.first_upwards(root, f"groundtruth/map/{name}/merged_scan.pcd")
     return _timestamped_sequence(root, files, scan_times, FUSIONPORTABLE_DEVKIT_ODOMETRY, (), tol, gt_poses_file,
-                                 gt_map_file, gt_from_scan)
+                                 gt_map_file, gt_from_scan, gt_time_offset_s)
 
 
 def _timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray, pose_files: tuple[str, ...],
                           gt_files: tuple[str, ...], tol: float, gt_poses_file: Path | None = None,
-                          gt_map_file: Path | None = None, gt_from_scan: np.ndarray | None = None) -> Sequence:
+                          gt_map_file: Path | None = None, gt_from_scan: np.ndarray | None = None,
+                          gt_time_offset_s: float = 0.0) -> Sequence:
     """The part that FusionPortable and Newer College share: scans with timestamps, initial poses (TUM) and
     optional ground truth (gt_poses_file, else the first of gt_files under root) matched to them by nearest
     timestamp, optional GT map (gt_map_file, else ROOT/gt_map.pcd|ply)."""
@@ -403,7 +409,7 @@ def _timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray,
     gt_poses = None
     gt_file = gt_poses_file or _first_existing(root, gt_files)
     if gt_file is not None:
-        gt_poses = _matched_ground_truth(root, files, scan_times, gt_file, tol, gt_from_scan)
+        gt_poses = _matched_ground_truth(root, files, scan_times, gt_file, tol, gt_from_scan, gt_time_offset_s)
 
     return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file, gt_map_file)
 
@@ -437,7 +443,8 @@ def newer_college_release(gt_file: Path) -> str:
 
 def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
                        gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
-                       gt_from_scan: np.ndarray | None = None, scan_frame: str = "") -> Sequence:
+                       gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
+                       gt_time_offset_s: float = 0.0) -> Sequence:
     """Load a Newer College sequence, 2021 or 2020 release.
 
     2021 (multi-cam, OS0-128; the paper's quad/maths sequences) comes as rosbags: import the clouds and a
@@ -475,7 +482,7 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
         if gt_file is not None:
             offset = gt_from_scan if gt_from_scan is not None else ground_truth.published_offset(
                 newer_college_release(gt_file), scan_frame)
-            gt_poses = _matched_ground_truth(root, files, scan_times, gt_file, tol, offset)
+            gt_poses = _matched_ground_truth(root, files, scan_times, gt_file, tol, offset, gt_time_offset_s)
         return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file, gt_map_file)
 
     scan_folder = next((root / f for f in NEWER_COLLEGE_SCAN_FOLDERS if (root / f).is_dir()), None)
@@ -496,7 +503,7 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
     if gt_from_scan is None and gt_file is not None:
         gt_from_scan = ground_truth.published_offset(newer_college_release(gt_file), scan_frame)
     return _timestamped_sequence(root, files, scan_times, NEWER_COLLEGE_POSE_FILES, NEWER_COLLEGE_GT_FILES, tol,
-                                 gt_file, gt_map_file, gt_from_scan)
+                                 gt_file, gt_map_file, gt_from_scan, gt_time_offset_s)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -521,7 +528,8 @@ def load_sequence(data_cfg) -> Sequence:
     'synthetic'); an optional data_cfg.timestamp_tol_s overrides the 0.05 s matching tolerance.
     Ground truth: data_cfg.gt_poses_path / gt_map_path, when set, replace what the layout has (a path that is set
     but missing is a DataError naming it); data_cfg.gt_from_scan (7 numbers, T_G_S) replaces the published frame
-    offset, data_cfg.scan_frame picks which published offset (neld_jax/data/ground_truth.py). When no
+    offset, data_cfg.scan_frame picks which published offset (neld_jax/data/ground_truth.py), data_cfg.gt_time_offset_s
+    shifts the scan stamps when matching ground truth (another stamping convention). When no
     ground-truth trajectory is found the log says so, what was looked for, and that pose evaluation is skipped.
     Preprocessing is left to the caller (see preprocess.preprocess)."""
     fmt = str(data_cfg.format).lower()
@@ -539,11 +547,12 @@ def load_sequence(data_cfg) -> Sequence:
     scan_frame = str(data_cfg.get("scan_frame", "") or "")
     tol = float(data_cfg.get("timestamp_tol_s", DEFAULT_TIMESTAMP_TOLERANCE_S))
     drop_tail = bool(data_cfg.get("drop_unmatched_tail", False))
+    gt_dt = float(data_cfg.get("gt_time_offset_s", 0.0))
 
     if fmt in ("fusionportable", "newer_college"):
         loader = load_fusionportable if fmt == "fusionportable" else load_newer_college
         seq = loader(root, tol=tol, gt_poses_file=gt_poses_file, gt_map_file=gt_map_file, gt_from_scan=offset,
-                     scan_frame=scan_frame)
+                     scan_frame=scan_frame, gt_time_offset_s=gt_dt)
     else:
         if fmt == "lio_keyframes":
             from neld_jax.data.lio_keyframes import DEFAULT_POSE_FILE, load_lio_keyframes
@@ -556,7 +565,7 @@ def load_sequence(data_cfg) -> Sequence:
             seq = load_hba(root, drop_unmatched_tail=drop_tail)
         else:
             seq = load_generic(root, tol=tol, drop_unmatched_tail=drop_tail)
-        seq = _with_explicit_ground_truth(seq, Path(root).expanduser(), gt_poses_file, gt_map_file, offset, tol)
+        seq = _with_explicit_ground_truth(seq, Path(root).expanduser(), gt_poses_file, gt_map_file, offset, tol, gt_dt)
 
     if seq.gt_poses is None:
         looked = f"data.gt_poses_path {gt_poses_file}" if gt_poses_file else GT_SEARCHED[fmt][0]
@@ -569,7 +578,7 @@ def load_sequence(data_cfg) -> Sequence:
 
 
 def _with_explicit_ground_truth(seq: Sequence, root: Path, gt_poses_file: Path | None, gt_map_file: Path | None,
-                                gt_from_scan: np.ndarray | None, tol: float) -> Sequence:
+                                gt_from_scan: np.ndarray | None, tol: float, gt_time_offset_s: float = 0.0) -> Sequence:
     """seq with data.gt_poses_path / gt_map_path in place of the layout's own ground truth (formats whose loader
     does not search for it itself): poses matched by time when both sides have stamps, else by order."""
     if gt_poses_file is None and gt_map_file is None:
@@ -582,7 +591,7 @@ def _with_explicit_ground_truth(seq: Sequence, root: Path, gt_poses_file: Path |
         gt_times, _ = ground_truth.read_trajectory(gt_poses_file)
         by_time = seq.timestamps is not None and gt_times is not None
         changes["gt_poses"] = _matched_ground_truth(root, files, seq.timestamps if by_time else None, gt_poses_file,
-                                                    tol, gt_from_scan)
+                                                    tol, gt_from_scan, gt_time_offset_s)
     if gt_map_file is not None:
         changes["gt_map"] = read_scan(gt_map_file)
     return dataclasses.replace(seq, **changes)

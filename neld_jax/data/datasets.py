@@ -465,8 +465,9 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
     and, for both, an optional ROOT/gt_map.pcd|ply (or gt_map_file). gt_poses_file overrides the search. The
     ground truth is moved into the scans' frame by gt_from_scan (T_G_S; None: the published offset of the
     release the file name implies, newer_college_release, for scan_frame: '' = os_sensor, the raw clouds and
-    FAST-LIO2's body frame with its shipped ouster64.yaml, whose LiDAR-IMU extrinsic is the identity;
-    'os_imu' for a FAST-LIO2 run configured with the Ouster IMU's extrinsic). Ground truth is matched to scans by
+    FAST-LIO2's body frame as its shipped ouster64.yaml starts it (identity LiDAR-IMU extrinsic, estimated online
+    unless mapping/extrinsic_est_en is false); 'os_imu' for a FAST-LIO2 run configured with the Ouster IMU's
+    extrinsic; the two are 2.4 cm apart). Ground truth is matched to scans by
     nearest stamp within `tol` seconds; a scan without one is a DataError naming it. Points at the origin (no
     return in organised Ouster clouds) are dropped when read and counted in one log line."""
     root = _check_root(root)

@@ -19,7 +19,9 @@ Published offsets (T_G_S, metres and unit quaternions), where they come from, an
   T_G_S = inv(imu_T_gt) @ imu_T_S. The dataset's own calibration page
   (ori-drs.github.io/newer-college-dataset/multi-cam/) was not reached to cross-check them.
     scan frame "os_sensor": raw /os_cloud_node/points clouds (evalio reads these as its lidar frame)
-    scan frame "os_imu": the body frame of FAST-LIO2 run with the Ouster IMU (/cloud_registered_body)
+    scan frame "os_imu": the body frame of FAST-LIO2 run with the Ouster IMU and its extrinsic
+    (/cloud_registered_body); FAST-LIO2's shipped config/ouster64.yaml (github.com/hku-mars/FAST_LIO) starts from
+    an identity extrinsic instead, i.e. from "os_sensor", and estimates it online unless extrinsic_est_en is false
 - Newer College 2020 (stereo-cam release, Ouster OS1-64): registered_poses.csv (sec, nsec, x, y, z, qx, qy, qz,
   qw); same source (evalio, newer_college_2020.py: imu_T_lidar, imu_T_gt). Which physical frame G is (the
   issue that asked for this calls it a camera frame) is not stated in the sources reached; only the transform is.

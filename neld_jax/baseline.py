@@ -253,5 +253,6 @@ def run_baseline(config: ml_collections.ConfigDict) -> dict:
     result = None
     if sequence.gt_poses is not None or sequence.gt_map is not None:
         result = evaluate_run(output_dir, threshold=evaluation.get("f1_threshold_m", 0.2),
-                              raw_cutoff=evaluation.get("raw_cutoff_m", 1.0))
+                              raw_cutoff=evaluation.get("raw_cutoff_m", 1.0),
+                              map_icp_m=evaluation.get("map_icp_m", 0.0))
     return {"seconds": seconds, "crispness": crisp, "evaluation": result}

@@ -23,7 +23,7 @@ def base_config() -> ml_collections.ConfigDict:
     c.seed = 0
 
     c.data = ml_collections.ConfigDict()
-    c.data.format = "generic"  # generic | fusionportable | newer_college | lio_keyframes | synthetic
+    c.data.format = "generic"  # generic | fusionportable | newer_college | lio_keyframes | hba | synthetic
     c.data.root = ""
     c.data.pose_file = ""  # lio_keyframes: the initial trajectory under root ("" = odom_poses.txt)
     c.data.drop_unmatched_tail = False  # drop up to 5 trailing scans that have no pose/stamp instead of failing
@@ -41,6 +41,14 @@ def base_config() -> ml_collections.ConfigDict:
     c.data.max_rays_per_scan = 0  # 0: every point of the preprocessed scan is a training ray
     c.data.normalization_margin = 0.9  # largest half-extent of scans+origins maps to this (room for corrections)
     c.data.timestamp_tol_s = 0.05  # scan <-> pose matching by time (datasets.DEFAULT_TIMESTAMP_TOLERANCE_S)
+    # Ground truth (neld_jax/data/ground_truth.py): explicit files replace what the layout has; a path that is set but
+    # missing is an error. gt_from_scan: the scan frame's pose in the ground truth's body frame, (tx, ty, tz, qx, qy,
+    # qz, qw); () = the dataset's published value for scan_frame ("" = the layout's own frame).
+    c.data.gt_poses_path = ""  # TUM, or Newer College CSV (.csv)
+    c.data.gt_map_path = ""  # .pcd / .ply, in the ground truth's world frame
+    c.data.gt_from_scan = ()
+    c.data.scan_frame = ""  # fusionportable: body_imu | ouster00; newer_college: os_sensor | os_imu
+    c.data.gt_time_offset_s = 0.0  # added to scan stamps when matching GT (e.g. end-of-scan scans, start-of-scan GT)
     c.data.synthetic = synthetic_defaults()
 
     c.model = ml_collections.ConfigDict()
@@ -123,6 +131,7 @@ def base_config() -> ml_collections.ConfigDict:
     c.eval = ml_collections.ConfigDict()
     c.eval.f1_threshold_m = 0.2
     c.eval.raw_cutoff_m = 1.0
+    c.eval.map_icp_m = 0.0  # > 0: refine the map alignment by ICP with this correspondence distance (evaluate.py)
     # Map crispness without ground truth (neld_jax.crispness): neighbourhood radius and number of query points.
     c.eval.crispness_radius_m = 0.3
     c.eval.crispness_queries = 10_000

@@ -35,7 +35,9 @@ from neld_jax.trajectory import propagate_corrections
 logger = logging.getLogger(__name__)
 
 # Fields that do not change what is computed; a resumed run may change them.
-_HASH_EXCLUDED = ("output_dir", "train.max_minutes", "train.log_every", "train.checkpoint_every", "mapping", "eval")
+_HASH_EXCLUDED = ("output_dir", "train.max_minutes", "train.log_every", "train.checkpoint_every", "mapping", "eval",
+                  "data.gt_poses_path", "data.gt_map_path", "data.gt_from_scan", "data.scan_frame",
+                  "data.gt_time_offset_s")  # ground truth only
 
 
 def config_hash(config: ml_collections.ConfigDict) -> str:
@@ -194,7 +196,8 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         from neld_jax.evaluate import evaluate_run
 
         summary["evaluation"] = evaluate_run(out_dir, threshold=config.eval.f1_threshold_m,
-                                             raw_cutoff=config.eval.raw_cutoff_m)
+                                             raw_cutoff=config.eval.raw_cutoff_m,
+                                             map_icp_m=config.eval.get("map_icp_m", 0.0))
     return summary
 
 

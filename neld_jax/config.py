@@ -43,6 +43,16 @@ def base_config() -> ml_collections.ConfigDict:
     c.data.timestamp_tol_s = 0.05  # scan <-> pose matching by time (datasets.DEFAULT_TIMESTAMP_TOLERANCE_S)
     c.data.synthetic = synthetic_defaults()
 
+    # Submaps (neld_jax.submaps, docs/method.md "Submaps"): a sequence that outgrows one cube is split into
+    # overlapping windows of consecutive keyframes, each with its own cube and field, sharing one pose per keyframe.
+    c.submaps = ml_collections.ConfigDict()
+    c.submaps.enabled = "auto"  # auto: on when one cube's finest detail would exceed max_detail_m | on | off
+    c.submaps.max_detail_m = 0.25  # finest Fourier period (2^(2-L) normalised units) one cube may have, metres
+    c.submaps.keyframes = 0  # keyframes per submap; 0: the most whose cube keeps max_detail_m
+    c.submaps.overlap = 2  # keyframes shared by neighbouring submaps (their poses tie the submaps together)
+    c.submaps.batch_rays = 0  # rays per submap per step; 0: train.batch_rays
+    c.submaps.devices = 0  # devices the submaps are sharded over; 0: every visible device
+
     c.model = ml_collections.ConfigDict()
     c.model.width = 512
     c.model.depth = 8

@@ -238,7 +238,8 @@ def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_s
     tx = make_submap_optimizer(config, schedules, num_scans)
     field = make_field(config)
     key_init, key_state = jax.random.split(jax.random.PRNGKey(int(config.seed)))
-    fields = jax.vmap(lambda k: field.init(k, jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"])(
+    # Jitted: a vmapped init run op by op takes seconds.
+    fields = jax.jit(jax.vmap(lambda k: field.init(k, jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]))(
         jax.random.split(key_init, num_submaps))
     params = {"fields": fields, "poses": jnp.zeros((num_scans, 6), jnp.float32)}
     state = TrainState(step=jnp.zeros([], jnp.int32), params=params, opt_state=tx.init(params), key=key_state)

@@ -148,3 +148,26 @@ def test_sharded_step_shared_scan_and_resume_on_8_devices(tmp_path):
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     for check in ("sharded step equals unsharded", "shared scan gradient", "resume with sharded state"):
         assert f"OK {check}" in proc.stdout, proc.stdout
+
+
+def test_run_with_submaps_writes_the_single_cube_outputs(tmp_path):
+    """A run whose submaps are switched on: one pose per input scan, one raw and one rendered map (resume with
+    sharded state is checked in test_sharded_step_shared_scan_and_resume_on_8_devices)."""
+    from conftest import make_tiny_config
+    from neld_jax import run
+    from neld_jax.data.poses import read_tum
+
+    cfg = make_tiny_config(str(tmp_path / "run"), steps=4)
+    cfg.data.synthetic.num_scans = 5
+    cfg.sampling.coarse_stages, cfg.sampling.fine_stages = (8,), (4,)  # one stage: the step compiles once
+    cfg.train.fixed_scans, cfg.train.anchor_scan = (), 0
+    cfg.submaps.enabled, cfg.submaps.keyframes, cfg.submaps.overlap = "on", 3, 1
+    summary = run.run(cfg, progress=False)
+    assert summary["submaps"] == 2 and summary["steps"] == 4
+    for name in ("poses_optimized.txt", "map_raw.ply", "map_rendered.ply", "metrics.json", "scans_report.csv"):
+        assert (tmp_path / "run" / name).is_file(), name
+    _, T_opt = read_tum(tmp_path / "run" / "poses_optimized.txt")
+    _, T_initial = read_tum(tmp_path / "run" / "poses_initial.txt")
+    assert T_opt.shape == (5, 4, 4)
+    np.testing.assert_allclose(T_opt[0], T_initial[0], atol=1e-6)  # anchored on scan 0
+    assert np.abs(T_opt[1:] - T_initial[1:]).max() > 1e-6

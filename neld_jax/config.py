@@ -134,6 +134,10 @@ def synthetic_defaults() -> ml_collections.ConfigDict:
     """Every field of the synthetic sequence generator (neld_jax.data.synthetic) with its default."""
     s = ml_collections.ConfigDict()
     s.seed = 0
+    # loop: one courtyard, a loop of trajectory_radius_m. courtyards: a route_length_m loop through a ring of
+    # connected courtyards (walls across the route with gates, buildings along it): a sequence larger than one cube.
+    s.route = "loop"
+    s.route_length_m = 600.0
     s.num_scans = 24
     s.scene_size_m = 60.0
     s.trajectory_radius_m = 15.0

@@ -171,3 +171,22 @@ def test_run_with_submaps_writes_the_single_cube_outputs(tmp_path):
     assert T_opt.shape == (5, 4, 4)
     np.testing.assert_allclose(T_opt[0], T_initial[0], atol=1e-6)  # anchored on scan 0
     assert np.abs(T_opt[1:] - T_initial[1:]).max() > 1e-6
+
+
+def test_long_courtyard_route_switches_submaps_on_by_itself():
+    """The generic cpu config on the long synthetic route splits it without any submap flag."""
+    from configs.generic import get_config
+    from neld_jax.data.synthetic import make_sequence
+
+    seq = make_sequence({"route": "courtyards", "route_length_m": 600.0, "num_scans": 100, "num_beams": 4,
+                         "num_columns": 90, "max_range_m": 30.0, "gt_map_points": 0})
+    steps = np.linalg.norm(np.diff(seq.gt_poses[:, :3, 3], axis=0), axis=1)
+    assert np.allclose(steps, 6.0, atol=0.1)  # 600 m in 100 even steps (the loop closes: 99 steps + one back)
+    assert np.linalg.norm(seq.gt_poses[0, :3, 3] - seq.gt_poses[-1, :3, 3]) == pytest.approx(6.0, abs=0.1)
+    assert min(len(s) for s in seq.scans) > 50  # walls, buildings and ground within 30 m everywhere
+    config = get_config("cpu")
+    config.data.max_range_m = 30.0
+    norm = fit_normalization(seq.scans, seq.poses, config.data.normalization_margin)
+    plan = submaps.plan_from_config(seq, norm, config)
+    assert plan is not None and plan.num_submaps >= 5
+    assert np.all(submaps.describe_membership(plan, seq.num_scans) >= 1)

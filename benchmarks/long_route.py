@@ -17,6 +17,7 @@ One JSON object on stdout (and in --output).
 import json
 import logging
 import os
+import re
 import subprocess
 import sys
 import time
@@ -26,7 +27,7 @@ sys.path.insert(0, ROOT)
 
 from absl import app, flags  # noqa: E402
 
-PARTS = flags.DEFINE_list("parts", ["accuracy", "throughput"], "accuracy and/or throughput.")
+PARTS = flags.DEFINE_list("parts", ["split", "accuracy", "throughput"], "split, accuracy and/or throughput.")
 NUM_SCANS = flags.DEFINE_integer("num_scans", 200, "Keyframes of the route (one every 3 s).")
 ROUTE_M = flags.DEFINE_float("route_length_m", 600.0, "Length of the closed route.")
 STEPS = flags.DEFINE_integer("steps", 0, "train.steps (0: the cpu budget's).")
@@ -85,6 +86,30 @@ def accuracy() -> dict:
     return out
 
 
+def split() -> dict:
+    """Windows against spatial tiles on the route (initial poses, raw scans within 30 m): how many submaps hold
+    each keyframe either way (neld_jax.submaps: the measurement behind choosing windows)."""
+    import numpy as np
+
+    from neld_jax import submaps
+    from neld_jax.data.normalize import fit_normalization
+    from neld_jax.data.synthetic import make_sequence
+
+    config = route_config("", True)
+    seq = make_sequence(config.data.synthetic)
+    norm = fit_normalization(seq.scans, seq.poses, config.data.normalization_margin)
+    plan = submaps.plan_from_config(seq, norm, config)
+    lower, upper = submaps.scan_bounds(seq.scans, seq.poses)
+    cube = 2.0 * config.data.normalization_margin / float(np.median(plan.scales))
+    tiles = submaps.tile_memberships(lower, upper, cube)
+    windows = submaps.describe_membership(plan, seq.num_scans)
+    return {"extent_m": round(2.0 * config.data.normalization_margin / norm.scale, 1),
+            "submaps": int((plan.weight > 0).sum()), "keyframes_per_submap": plan.window,
+            "median_cube_m": round(cube, 1),
+            "submaps_per_keyframe_windows": {int(k): int(v) for k, v in zip(*np.unique(windows, return_counts=True))},
+            "tiles_per_keyframe_same_size": {int(k): int(v) for k, v in zip(*np.unique(tiles, return_counts=True))}}
+
+
 def throughput_worker(devices: int) -> dict:
     """Time the sharded step of M submaps (cpu-budget field and sampler) on `devices` devices."""
     import jax
@@ -109,6 +134,10 @@ def throughput_worker(devices: int) -> dict:
     rays = submap_train.place(rays, submap_train.data_sharding(rays, mesh))
     frames = submap_train.place(frames, submap_train.data_sharding(frames, mesh))
     sampler = setup.sampler(0)
+    # The collectives XLA put into the partitioned step (expected: the pose gradient's all-reduce, no all-gather).
+    hlo = setup.step_fn.lower(setup.state, rays, frames, sampler).compile().as_text()
+    collectives = {op: len(re.findall(rf"\b{op}(?:-start)?\(", hlo))
+                   for op in ("all-reduce", "all-gather", "all-to-all", "collective-permute", "reduce-scatter")}
     t0 = time.perf_counter()
     state, metrics = setup.step_fn(setup.state, rays, frames, sampler)
     jax.block_until_ready(metrics)
@@ -121,7 +150,7 @@ def throughput_worker(devices: int) -> dict:
     steps_per_s = TP_STEPS.value / seconds
     return {"devices": devices, "submaps": plan.num_submaps, "rays_per_submap": SUBMAP_BATCH.value,
             "steps_per_s": steps_per_s, "rays_per_s": steps_per_s * plan.num_submaps * SUBMAP_BATCH.value,
-            "first_step_s": round(compile_s, 2), "platform": jax.devices()[0].platform,
+            "first_step_s": round(compile_s, 2), "platform": jax.devices()[0].platform, "collectives": collectives,
             "loss_finite": bool(np.isfinite(float(metrics["loss"])))}
 
 
@@ -149,6 +178,8 @@ def main(argv):
         return
     result = {"route": dict(ROUTE, num_scans=NUM_SCANS.value, route_length_m=ROUTE_M.value),
               "submap_batch_rays": SUBMAP_BATCH.value, "argv": sys.argv[1:]}
+    if "split" in PARTS.value:
+        result["split"] = split()
     if "accuracy" in PARTS.value:
         result["accuracy"] = accuracy()
     if "throughput" in PARTS.value:

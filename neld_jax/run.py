@@ -148,7 +148,8 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         T_field_n = np.asarray(scan_poses(state.params["poses"], T_init), np.float64)
         G_n = np.eye(4)
         if config.train.anchor_scan >= 0:
-            G_n = np.asarray(anchor_transform(T_field_n, np.asarray(T_init, np.float64), int(config.train.anchor_scan)))
+            G_n = np.asarray(anchor_transform(T_field_n, np.asarray(T_init, np.float64),
+                                              int(config.train.anchor_scan)))
         T_opt = norm.poses_to_world(G_n @ T_field_n)  # keyframes
 
     # Every input scan gets a pose: keyframes their own, the others their keyframes' interpolated correction.

@@ -50,6 +50,9 @@ def base_config() -> ml_collections.ConfigDict:
     c.submaps.max_detail_m = 0.25  # finest Fourier period (2^(2-L) normalised units) one cube may have, metres
     c.submaps.keyframes = 0  # keyframes per submap; 0: the most whose cube keeps max_detail_m
     c.submaps.overlap = 2  # keyframes shared by neighbouring submaps (their poses tie the submaps together)
+    # A revisit (keyframes 2+ windows apart, initial positions within this many metres) gets a submap holding
+    # both visits, which ties the two ends of a loop together; 0: off.
+    c.submaps.closure_radius_m = 10.0
     c.submaps.batch_rays = 0  # rays per submap per step; 0: train.batch_rays
     c.submaps.devices = 0  # devices the submaps are sharded over; 0: every visible device
 

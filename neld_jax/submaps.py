@@ -133,16 +133,50 @@ def submaps_wanted(config, extent_m: float) -> bool:
     return detail > float(config.submaps.max_detail_m)
 
 
+def closure_pairs(poses: np.ndarray, window: int, radius_m: float) -> list[tuple[int, int]]:
+    """Revisits (i, j), i < j: keyframes at least 2 windows apart in the sequence whose initial positions are
+    within radius_m. One pair per revisited stretch: a pair within a window of an accepted one (both ends) is
+    skipped. radius_m <= 0: none."""
+    if radius_m <= 0:
+        return []
+    t = np.asarray(poses, np.float64)[:, :3, 3]
+    pairs: list[tuple[int, int]] = []
+    for i in range(len(t)):
+        far = np.arange(i + 2 * window, len(t))
+        if far.size == 0:
+            break
+        d = np.linalg.norm(t[far] - t[i], axis=1)
+        if d.min() > radius_m:
+            continue
+        j = int(far[np.argmin(d)])
+        if all(abs(i - a) >= window or abs(j - b) >= window for a, b in pairs):
+            pairs.append((i, j))
+    return pairs
+
+
+def closure_members(i: int, j: int, window: int, num_scans: int) -> np.ndarray:
+    """The W keyframes [W] of a loop-closure submap: window // 2 around i and the rest around j (disjoint)."""
+    h = window // 2
+    a = int(np.clip(i - h // 2, 0, num_scans - h))
+    b = int(np.clip(j - (window - h) // 2, 0, num_scans - (window - h)))
+    return np.concatenate([np.arange(a, a + h), np.arange(b, b + window - h)])
+
+
 def plan_submaps(scans: list[np.ndarray], poses: np.ndarray, window: int, overlap: int, margin: float,
-                 num_devices: int = 1) -> SubmapPlan:
+                 num_devices: int = 1, closure_radius_m: float = 0.0) -> SubmapPlan:
     """Split S keyframes (scans [N_i, 3] sensor frame, poses [S, 4, 4] initial) into windows of `window`.
 
-    Each window gets its own normalisation fitted to its scans (fit_normalization with `margin`); s_ref is the
+    With closure_radius_m > 0, each revisit (closure_pairs) adds a submap holding both visits (closure_members),
+    so that the field of that place ties the two ends of a loop together; windows alone tie only neighbours.
+    Each submap gets its own normalisation fitted to its scans (fit_normalization with `margin`); s_ref is the
     median submap scale. M is padded up to a multiple of num_devices with weight-0 copies of the last submap."""
     s = len(scans)
     window = int(min(max(window, 1), s))
     starts = window_starts(s, window, int(overlap))
     members = starts[:, None] + np.arange(window)[None, :]
+    closures = [closure_members(i, j, window, s) for i, j in closure_pairs(poses, window, closure_radius_m)]
+    if closures:
+        members = np.vstack([members] + [c[None] for c in closures])
     norms = [fit_normalization([scans[i] for i in row], poses[row], margin=margin) for row in members]
     ref_scale = float(np.median([n.scale for n in norms]))
     weight = np.ones(len(members))
@@ -174,7 +208,8 @@ def plan_from_config(seq, norm: Normalization, config, num_devices: int = 1) -> 
                 f"{sc.max_detail_m:g} at model.pos_freqs={config.model.pos_freqs}) cannot hold {int(sc.overlap) + 1} "
                 f"consecutive keyframes (one scan alone spans up to {largest:.0f} m); lower data.max_range_m, raise "
                 f"submaps.max_detail_m, or set submaps.keyframes")
-    plan = plan_submaps(seq.scans, seq.poses, window, int(sc.overlap), margin, num_devices)
+    plan = plan_submaps(seq.scans, seq.poses, window, int(sc.overlap), margin, num_devices,
+                        float(sc.get("closure_radius_m", 0.0)))
     logger.info(describe(plan, extent_m, single_cube_detail_m(extent_m, config.model.pos_freqs, margin),
                          float(sc.max_detail_m), config.model.pos_freqs, margin))
     return plan
@@ -186,9 +221,13 @@ def describe(plan: SubmapPlan, extent_m: float, detail_m: float, max_detail_m: f
     real = plan.weight > 0
     sizes = 2.0 * margin / plan.scales[real]
     details = [single_cube_detail_m(e, pos_freqs, margin) for e in sizes]
+    consecutive = np.all(np.diff(plan.members, axis=1) == 1, axis=1) & real
+    closures = int(real.sum() - consecutive.sum())
     return (f"submaps: the keyframes span {extent_m:.0f} m, one cube's finest detail would be {detail_m:.2f} m "
-            f"(> submaps.max_detail_m={max_detail_m:g}); split into {int(real.sum())} submaps of {plan.window} "
-            f"consecutive keyframes ({sizes.min():.0f}-{sizes.max():.0f} m cubes, finest detail "
+            f"(> submaps.max_detail_m={max_detail_m:g}); split into {int(consecutive.sum())} submaps of {plan.window} "
+            f"consecutive keyframes" + (f" and {closures} loop-closure submaps (two visits of one place)"
+                                        if closures else "")
+            + f" ({sizes.min():.0f}-{sizes.max():.0f} m cubes, finest detail "
             f"{min(details):.2f}-{max(details):.2f} m)"
             + (f", padded with {int((~real).sum())} empty submaps to fill the devices" if (~real).any() else ""))
 

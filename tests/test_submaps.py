@@ -190,3 +190,18 @@ def test_long_courtyard_route_switches_submaps_on_by_itself():
     plan = submaps.plan_from_config(seq, norm, config)
     assert plan is not None and plan.num_submaps >= 5
     assert np.all(submaps.describe_membership(plan, seq.num_scans) >= 1)
+
+
+def test_a_revisit_gets_a_submap_holding_both_visits():
+    # A closed loop of 40 keyframes: the last ones come back to the first.
+    angle = 2 * np.pi * np.arange(40) / 40
+    poses = np.tile(np.eye(4), (40, 1, 1))
+    poses[:, 0, 3], poses[:, 1, 3] = 30 * np.cos(angle), 30 * np.sin(angle)
+    scans = [np.random.default_rng(s).normal(size=(20, 3)) for s in range(40)]
+    assert submaps.closure_pairs(poses, 6, 0.0) == []
+    pairs = submaps.closure_pairs(poses, 6, 10.0)
+    assert pairs == [(0, 39)]  # keyframe 0 and 39 are 4.7 m apart; (1, 39), (0, 38) ... are the same revisit
+    plan = submaps.plan_submaps(scans, poses, 6, 2, 0.9, closure_radius_m=10.0)
+    assert plan.num_submaps == len(submaps.window_starts(40, 6, 2)) + 1
+    last = plan.members[-1]
+    assert list(last) == [0, 1, 2, 37, 38, 39]  # half a window around each visit

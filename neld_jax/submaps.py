@@ -88,12 +88,13 @@ def window_starts(num_scans: int, window: int, overlap: int) -> np.ndarray:
     return np.asarray(sorted(set(starts)), np.int64)
 
 
-def max_window(lower: np.ndarray, upper: np.ndarray, max_extent: float) -> int:
-    """The largest W such that every run of W consecutive scans spans at most max_extent (largest box side).
-
-    lower, upper: [S, 3] per-scan world boxes. Returns 0 when a single scan is already larger."""
+def max_window(lower: np.ndarray, upper: np.ndarray, max_extent: float, quantile: float = 0.0) -> int:
+    """The longest run of consecutive scans whose union spans at most max_extent (largest box side), taken over
+    the starting scans at `quantile`: 0 = every run of that length fits; 0.1 = nine in ten do (a fast stretch
+    then gets larger cubes instead of shrinking every window). lower, upper: [S, 3] per-scan world boxes.
+    Returns 0 when (at the quantile) a single scan is already larger; S when everything fits."""
     s = len(lower)
-    best = s
+    lengths = []
     for a in range(s):
         lo, hi = lower[a].copy(), upper[a].copy()
         b = a
@@ -102,9 +103,11 @@ def max_window(lower: np.ndarray, upper: np.ndarray, max_extent: float) -> int:
             if float((hi - lo).max()) > max_extent:
                 break
             b += 1
-        if b < s:  # the run from a stops before the end: windows may be at most b - a long
-            best = min(best, b - a)
-    return best
+        if b < s:  # runs that reach the end are cut by the sequence, not by the extent
+            lengths.append(b - a)
+    if not lengths:
+        return s
+    return int(np.quantile(np.asarray(lengths), quantile, method="lower"))
 
 
 def single_cube_detail_m(extent_m: float, pos_freqs: int, margin: float) -> float:
@@ -200,14 +203,15 @@ def plan_from_config(seq, norm: Normalization, config, num_devices: int = 1) -> 
     window = int(sc.keyframes)
     if window <= 0:
         lower, upper = scan_bounds(seq.scans, seq.poses)
-        window = max_window(lower, upper, max_extent)
+        window = max_window(lower, upper, max_extent, quantile=0.1)
         if window < int(sc.overlap) + 1:
             largest = float((upper - lower).max())
-            raise ConfigError(
-                f"{seq.source or seq.name}: submaps of at most {max_extent:.0f} m (submaps.max_detail_m="
-                f"{sc.max_detail_m:g} at model.pos_freqs={config.model.pos_freqs}) cannot hold {int(sc.overlap) + 1} "
-                f"consecutive keyframes (one scan alone spans up to {largest:.0f} m); lower data.max_range_m, raise "
-                f"submaps.max_detail_m, or set submaps.keyframes")
+            logger.warning(
+                "%s: submaps of at most %.0f m (submaps.max_detail_m=%g at model.pos_freqs=%d) hold fewer than "
+                "%d consecutive keyframes (one scan alone spans up to %.0f m): using %d, in larger cubes (lower "
+                "data.max_range_m or set submaps.keyframes to choose)", seq.source or seq.name, max_extent,
+                sc.max_detail_m, config.model.pos_freqs, int(sc.overlap) + 1, largest, int(sc.overlap) + 1)
+            window = int(sc.overlap) + 1
     plan = plan_submaps(seq.scans, seq.poses, window, int(sc.overlap), margin, num_devices,
                         float(sc.get("closure_radius_m", 0.0)))
     logger.info(describe(plan, extent_m, single_cube_detail_m(extent_m, config.model.pos_freqs, margin),

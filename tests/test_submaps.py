@@ -53,6 +53,12 @@ def test_max_window_keeps_every_window_under_the_extent():
     assert w == 4
     assert submaps.max_window(lower, upper, 5.0) == 0  # one scan alone (8 m) is larger
     assert submaps.max_window(lower, upper, 1e6) == 12
+    # One fast stretch (a 20 m jump): the strict rule shrinks every window, the 10% quantile ignores it.
+    scans, poses = _line_of_scans(40, spacing=5.0, radius=4.0)
+    poses[20:, 0, 3] += 15.0
+    lower, upper = submaps.scan_bounds(scans, poses)
+    assert submaps.max_window(lower, upper, 25.0) == 1
+    assert submaps.max_window(lower, upper, 25.0, quantile=0.1) == 4
 
 
 def test_plan_normalises_each_submap_and_pads_for_devices():
@@ -109,13 +115,14 @@ def test_switch_rule_and_log_line(caplog):
     norm = fit_normalization(scans, poses, 0.9)
     with caplog.at_level(logging.INFO, logger="neld_jax.submaps"):
         plan = submaps.plan_from_config(seq, norm, c)
-    assert plan is not None and plan.window == submaps.max_window(*submaps.scan_bounds(scans, poses), 46.08)
+    assert plan is not None and plan.window == submaps.max_window(*submaps.scan_bounds(scans, poses), 46.08, 0.1)
     assert any("split into" in r.message and f"{plan.num_submaps} submaps" in r.message for r in caplog.records)
     c.submaps.max_detail_m = 1.0
     assert submaps.plan_from_config(seq, norm, c) is None
     c.submaps.max_detail_m, c.submaps.overlap = 0.01, 2  # 4.6 m cubes: not even one 8 m scan fits
-    with pytest.raises(ConfigError, match="data.max_range_m"):
-        submaps.plan_from_config(seq, norm, c)
+    with caplog.at_level(logging.WARNING, logger="neld_jax.submaps"):
+        plan = submaps.plan_from_config(seq, norm, c)
+    assert plan.window == 3 and any("data.max_range_m" in r.message for r in caplog.records)
 
 
 def test_submap_arrays_hold_each_window_s_rays_in_its_units():

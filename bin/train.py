@@ -35,6 +35,20 @@ def job(config):
         print(format_table(summary["evaluation"]))
 
 
+def init_distributed() -> None:
+    """Several hosts (README, "Several devices and hosts"): NELD_JAX_COORDINATOR=host:port with
+    NELD_JAX_NUM_PROCESSES and NELD_JAX_PROCESS_ID join this process to the others before jax starts, so that
+    jax.devices() and the submap mesh span every host. Unset: one process, nothing to do."""
+    coordinator = os.environ.get("NELD_JAX_COORDINATOR")
+    if coordinator:
+        import jax
+
+        jax.distributed.initialize(coordinator_address=coordinator,
+                                   num_processes=int(os.environ["NELD_JAX_NUM_PROCESSES"]),
+                                   process_id=int(os.environ["NELD_JAX_PROCESS_ID"]))
+
+
 if __name__ == "__main__":
     reexec_with_huge_page_malloc()  # ~25% faster CPU steps: see neld_jax/hugepages.py
+    init_distributed()
     main_with_config(job)

@@ -79,6 +79,8 @@ class Checkpointer:
             if not np.allclose(a, b, rtol=1e-9, atol=1e-9):
                 differences.append(f"normalisation scale {saved['scale']:.9g} offset {list(saved['offset'])}, "
                                    f"now scale {now['scale']:.9g} offset {list(now['offset'])}")
+        if "submaps" in expected and metadata.get("submaps") != expected["submaps"]:
+            differences.append("another split into submaps" if metadata.get("submaps") else "one cube, now submaps")
         if differences:
             raise DataError(f"the checkpoint in {self.directory} was written for other data "
                             f"({'; '.join(differences)}); use a new output_dir or delete it")

@@ -51,6 +51,19 @@ def base_config() -> ml_collections.ConfigDict:
     c.data.gt_time_offset_s = 0.0  # added to scan stamps when matching GT (e.g. end-of-scan scans, start-of-scan GT)
     c.data.synthetic = synthetic_defaults()
 
+    # Submaps (neld_jax.submaps, docs/method.md "Submaps"): a sequence that outgrows one cube is split into
+    # overlapping windows of consecutive keyframes, each with its own cube and field, sharing one pose per keyframe.
+    c.submaps = ml_collections.ConfigDict()
+    c.submaps.enabled = "auto"  # auto: on when one cube's finest detail would exceed max_detail_m | on | off
+    c.submaps.max_detail_m = 0.25  # finest Fourier period (2^(2-L) normalised units) one cube may have, metres
+    c.submaps.keyframes = 0  # keyframes per submap; 0: the most whose cube keeps max_detail_m
+    c.submaps.overlap = 2  # keyframes shared by neighbouring submaps (their poses tie the submaps together)
+    # A revisit (keyframes 2+ windows apart, initial positions within this many metres) gets a submap holding
+    # both visits, which ties the two ends of a loop together; 0: off.
+    c.submaps.closure_radius_m = 10.0
+    c.submaps.batch_rays = 0  # rays per submap per step; 0: train.batch_rays
+    c.submaps.devices = 0  # devices the submaps are sharded over; 0: every visible device
+
     c.model = ml_collections.ConfigDict()
     c.model.width = 512
     c.model.depth = 8
@@ -142,6 +155,10 @@ def synthetic_defaults() -> ml_collections.ConfigDict:
     """Every field of the synthetic sequence generator (neld_jax.data.synthetic) with its default."""
     s = ml_collections.ConfigDict()
     s.seed = 0
+    # loop: one courtyard, a loop of trajectory_radius_m. courtyards: a route_length_m loop through a ring of
+    # connected courtyards (walls across the route with gates, buildings along it): a sequence larger than one cube.
+    s.route = "loop"
+    s.route_length_m = 600.0
     s.num_scans = 24
     s.scene_size_m = 60.0
     s.trajectory_radius_m = 15.0

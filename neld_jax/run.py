@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from neld_jax import export, quality, report, train
+from neld_jax import export, quality, report, submap_run, submaps, train
 from neld_jax.checkpoint import Checkpointer
 from neld_jax.errors import ConfigError
 from neld_jax.data.normalize import fit_normalization
@@ -70,13 +70,15 @@ def check_extent(seq, norm, config: ml_collections.ConfigDict) -> None:
     and poses worse than the odometry's, so it is refused with the way to run it in pieces."""
     extent_m = 2.0 * config.data.normalization_margin / norm.scale
     limit = float(config.data.max_extent_m)
+    if submaps.submaps_wanted(config, extent_m):
+        return  # split into submaps, each cube within submaps.max_detail_m (neld_jax.submaps)
     if limit > 0 and extent_m > limit:
         period_m = 2.0 ** (2 - int(config.model.pos_freqs)) / norm.scale
         raise ConfigError(
             f"{seq.source or seq.name}: the scans span {extent_m:.0f} m, more than data.max_extent_m={limit:g} m that "
             f"one field holds (its finest detail would be {period_m:.2f} m at model.pos_freqs="
-            f"{config.model.pos_freqs}); run it in pieces with data.first_scan / data.max_scans (or lower "
-            f"data.max_range_m, or raise data.max_extent_m to run it anyway)")
+            f"{config.model.pos_freqs}); train it as submaps with submaps.enabled=on, or run it in pieces with "
+            f"data.first_scan / data.max_scans (or lower data.max_range_m, or raise data.max_extent_m to run it anyway)")
 
 
 def starting_poses(config: ml_collections.ConfigDict, seq) -> tuple[np.ndarray, float | None]:
@@ -114,35 +116,44 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     logger.info("%d keyframes of %d input scans, %d training rays, normalisation scale %.5f "
                 "(1 normalised unit = %.2f m)", seq.num_scans, loaded.num_scans, raysets.num_rays, norm.scale,
                 1.0 / norm.scale)
-    rays = train.device_rays(raysets)
-    T_init = jnp.asarray(norm.poses_to_normalized(T_start), jnp.float32)
+    plan = submaps.plan_from_config(seq, norm, config, num_devices=submap_run.num_devices(config))
+    if plan is not None:  # the sequence outgrows one cube: submaps (neld_jax.submap_run), same outputs
+        trained = submap_run.train_submaps(config, seq, norm, T_start, plan, out_dir, chash, progress)
+        result, state = trained.result, trained.result.state
+        train_seconds = result.train_seconds
+        T_opt = trained.G @ trained.T_field
+    else:
+        rays = train.device_rays(raysets)
+        T_init = jnp.asarray(norm.poses_to_normalized(T_start), jnp.float32)
 
-    # Resume from the latest checkpoint of this output_dir, if any, with its history and training seconds; a
-    # checkpoint of other data (scan count, normalisation) is an error rather than a resume in another frame.
-    ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"))
-    metadata = {"config_hash": chash, "normalization": norm.to_dict(), "num_scans": seq.num_scans}
-    state, history, elapsed_s = None, [], 0.0
-    if ckpt.latest_step() is not None:
-        state, saved = ckpt.restore(train.initial_state(config, seq.num_scans, norm.scale), expected_config_hash=chash,
-                                    expected_data=metadata)
-        history, elapsed_s = list(saved.get("history", [])), float(saved.get("train_seconds", 0.0))
+        # Resume from the latest checkpoint of this output_dir, if any, with its history and training seconds; a
+        # checkpoint of other data (scan count, normalisation) is an error rather than a resume in another frame.
+        ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"))
+        metadata = {"config_hash": chash, "normalization": norm.to_dict(), "num_scans": seq.num_scans}
+        state, history, elapsed_s = None, [], 0.0
+        if ckpt.latest_step() is not None:
+            state, saved = ckpt.restore(train.initial_state(config, seq.num_scans, norm.scale),
+                                        expected_config_hash=chash, expected_data=metadata)
+            history, elapsed_s = list(saved.get("history", [])), float(saved.get("train_seconds", 0.0))
 
-    def save(s, history, seconds):
-        ckpt.save(s, {**metadata, "history": export.to_jsonable(history), "train_seconds": seconds})
+        def save(s, history, seconds):
+            ckpt.save(s, {**metadata, "history": export.to_jsonable(history), "train_seconds": seconds})
 
-    result = train.fit(config, rays, T_init, norm.scale, state=state, checkpoint_fn=save, progress=progress,
-                       history=history, elapsed_s=elapsed_s)
-    train_seconds = result.train_seconds
-    ckpt.close()
-    state = result.state
+        result = train.fit(config, rays, T_init, norm.scale, state=state, checkpoint_fn=save, progress=progress,
+                           history=history, elapsed_s=elapsed_s)
+        train_seconds = result.train_seconds
+        ckpt.close()
+        state = result.state
 
-    # Poses in the field's frame (what the field renders with), then anchored (train.anchor_scan) so that the
-    # anchor scan keeps its initial pose, then back in the input's world frame and scale.
-    T_field_n = np.asarray(scan_poses(state.params["poses"], T_init), np.float64)
-    G_n = np.eye(4)
-    if config.train.anchor_scan >= 0:
-        G_n = np.asarray(anchor_transform(T_field_n, np.asarray(T_init, np.float64), int(config.train.anchor_scan)))
-    T_opt = norm.poses_to_world(G_n @ T_field_n)  # keyframes
+        # Poses in the field's frame (what the field renders with), then anchored (train.anchor_scan) so that the
+        # anchor scan keeps its initial pose, then back in the input's world frame and scale.
+        T_field_n = np.asarray(scan_poses(state.params["poses"], T_init), np.float64)
+        G_n = np.eye(4)
+        if config.train.anchor_scan >= 0:
+            G_n = np.asarray(anchor_transform(T_field_n, np.asarray(T_init, np.float64),
+                                              int(config.train.anchor_scan)))
+        T_opt = norm.poses_to_world(G_n @ T_field_n)  # keyframes
+
     # Every input scan gets a pose: keyframes their own, the others their keyframes' interpolated correction.
     keyframe_index = seq.loaded_index
     T_all = propagate_corrections(loaded.poses, keyframe_index, T_opt, loaded.timestamps)
@@ -160,7 +171,9 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     export.write_raw_map(os.path.join(out_dir, "map_raw_initial.ply"), seq.scans, seq.poses, voxel_size=voxel)
 
     rendered = None
-    if config.mapping.enabled:
+    if config.mapping.enabled and plan is not None:
+        rendered = submap_run.write_rendered_map(config, trained, plan, norm, seq, out_dir, progress)
+    elif config.mapping.enabled:
         rendered = _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress)
 
     # Quality without ground truth: crispness of the keyframes' raw map, and the per-scan report.
@@ -182,6 +195,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         "train_seconds": round(train_seconds, 2),
         "total_seconds": round(time.perf_counter() - t_start, 2),
         "device": str(jax.devices()[0]),
+        "submaps": None if plan is None else int((plan.weight > 0).sum()),
         "final": result.history[-1] if result.history else {},
     }
     if from_baseline:

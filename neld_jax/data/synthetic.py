@@ -252,6 +252,107 @@ def add_odometry_drift(gt_poses: np.ndarray, trans_sigma_m: float, rot_sigma_deg
 
 
 # --------------------------------------------------------------------------------------------------
+# A long route through connected courtyards
+# --------------------------------------------------------------------------------------------------
+
+ROUTE_CLEARANCE_M = 3.0  # buildings and walls keep this far from the route; poles and trees 2 m
+COURTYARD_SPACING_M = 45.0  # a wall with a gate crosses the route every this many metres of route
+
+
+def _rounded_rectangle(length_m: float, num_points: int = 4000) -> np.ndarray:
+    """Points [num_points, 2] evenly spaced along a closed rounded rectangle (3:2, corner radius 0.15 of the
+    short side) of perimeter length_m, centred at the origin, counter-clockwise."""
+    # Perimeter of half sides (a, b), corner radius r: 4 (a - r) + 4 (b - r) + 2 pi r; a = 1.5 b, r = 0.3 b.
+    b = length_m / (4 * 1.5 + 4 * 1.0 - 8 * 0.3 + 2 * np.pi * 0.3)
+    a, r = 1.5 * b, 0.3 * b
+    dense = []
+    for cx, cy, start in ((a - r, b - r, 0.0), (-(a - r), b - r, np.pi / 2), (-(a - r), -(b - r), np.pi),
+                          (a - r, -(b - r), 1.5 * np.pi)):
+        t = np.linspace(start, start + np.pi / 2, 200)
+        dense.append(np.stack([cx + r * np.cos(t), cy + r * np.sin(t)], axis=1))
+    # The arcs joined in order form the closed curve (the straight sides between them are implied).
+    dense = np.concatenate(dense + [dense[0][:1]])
+    seg = np.linalg.norm(np.diff(dense, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    s_new = np.linspace(0.0, s[-1], num_points, endpoint=False)
+    return np.stack([np.interp(s_new, s, dense[:, 0]), np.interp(s_new, s, dense[:, 1])], axis=1)
+
+
+def courtyard_route(num_scans: int, length_m: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth poses [S, 4, 4] evenly along a closed route of length_m (a rounded rectangle, so that it
+    passes a ring of courtyards), and the dense route [N, 2] for placing the scene. Yaw follows the route;
+    height, roll and pitch wobble a little as in smooth_trajectory."""
+    rng = np.random.default_rng(seed)
+    z_phase, roll_phase, pitch_phase = rng.uniform(0.0, 2 * np.pi, size=3)
+    dense = _rounded_rectangle(length_m)
+    n = len(dense)
+    idx = (np.arange(num_scans) * n) // num_scans
+    xy = dense[idx]
+    tangent = dense[(idx + 1) % n] - dense[(idx - 1) % n]
+    yaw = np.arctan2(tangent[:, 1], tangent[:, 0])
+    theta = 2 * np.pi * np.arange(num_scans) / num_scans
+    pitch = np.deg2rad(1.5) * np.sin(7 * theta + pitch_phase)
+    roll = np.deg2rad(2.0) * np.sin(5 * theta + roll_phase)
+    poses = np.tile(np.eye(4), (num_scans, 1, 1))
+    poses[:, :3, :3] = Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], axis=1)).as_matrix()
+    poses[:, :3, 3] = np.stack([xy[:, 0], xy[:, 1], SENSOR_HEIGHT_M + 0.1 * np.sin(3 * theta + z_phase)], axis=1)
+    return poses, dense
+
+
+def make_courtyards_meshes(seed: int, route_xy: np.ndarray) -> list[o3d.geometry.TriangleMesh]:
+    """Meshes of a ring of connected courtyards along a closed route [N, 2]: a ground plane, a wall across the
+    route every COURTYARD_SPACING_M with a gate where the route passes, box buildings, poles and trees beside
+    the route (none within ROUTE_CLEARANCE_M of it). Seeded and deterministic."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    tree = cKDTree(route_xy)
+    lo, hi = route_xy.min(axis=0) - 40.0, route_xy.max(axis=0) + 40.0
+    half = float(max(np.abs(lo).max(), np.abs(hi).max()))
+    meshes = [_ground(half)]
+    n = len(route_xy)
+    step_m = float(np.linalg.norm(np.diff(route_xy, axis=0), axis=1).mean())
+
+    def clear(centre, radius, clearance):
+        return tree.query(centre)[0] > radius + clearance
+
+    tangents = np.roll(route_xy, -1, axis=0) - np.roll(route_xy, 1, axis=0)
+    tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
+    normals = np.stack([-tangents[:, 1], tangents[:, 0]], axis=1)
+    every = max(int(COURTYARD_SPACING_M / step_m), 1)
+    for i in range(0, n, every):  # walls across the route, a 2 * clearance gate in the middle, on both sides
+        height, length = rng.uniform(3.0, 7.0), rng.uniform(12.0, 25.0)
+        for side in (-1.0, 1.0):
+            mid = route_xy[i] + side * normals[i] * (ROUTE_CLEARANCE_M + length / 2)
+            yaw = float(np.arctan2(normals[i, 1], normals[i, 0]))
+            if clear(mid, length / 2, ROUTE_CLEARANCE_M - 0.5):
+                meshes.append(_box((length, 0.4, height), mid, yaw))
+    for i in range(0, n, max(int(9.0 / step_m), 1)):  # buildings beside the route, both sides
+        for side in (-1.0, 1.0):
+            if rng.random() < 0.35:
+                continue
+            w, d, h = rng.uniform(3.0, 10.0), rng.uniform(3.0, 10.0), rng.uniform(3.0, 14.0)
+            radius = 0.5 * np.hypot(w, d)
+            along = rng.uniform(-4.0, 4.0)
+            centre = route_xy[i] + tangents[i] * along + side * normals[i] * rng.uniform(radius + 3.5, radius + 14.0)
+            if clear(centre, radius, ROUTE_CLEARANCE_M):
+                meshes.append(_box((w, d, h), centre, rng.uniform(0.0, np.pi / 2)))
+    for i in range(0, n, max(int(6.0 / step_m), 1)):  # poles and trees close to the route
+        side = rng.choice([-1.0, 1.0])
+        centre = route_xy[i] + side * normals[i] * rng.uniform(2.5, 7.0)
+        if rng.random() < 0.5:
+            radius, height = rng.uniform(0.08, 0.2), rng.uniform(3.0, 7.0)
+            if clear(centre, radius, 2.0):
+                meshes.append(_cylinder(radius, height, centre))
+        else:
+            trunk, crown = rng.uniform(1.5, 3.0), rng.uniform([1.0, 1.0, 1.0], [2.0, 2.0, 2.5])
+            if clear(centre, float(crown[:2].max()) * 1.15, 2.0):
+                meshes.append(_cylinder(0.15, trunk + crown[2] * 0.5, centre))
+                meshes.append(_blob(crown, (centre[0], centre[1], trunk + crown[2]), rng))
+    return meshes
+
+
+# --------------------------------------------------------------------------------------------------
 # Ray casting
 # --------------------------------------------------------------------------------------------------
 
@@ -390,7 +491,12 @@ def _resolve_config(cfg) -> ml_collections.ConfigDict:
         raise ConfigError(
             f"data.synthetic: fov_down_deg ({resolved.fov_down_deg}) must be below fov_up_deg ({resolved.fov_up_deg})"
         )
-    if not 0 < resolved.trajectory_radius_m * (1 + PATH_WOBBLE) < resolved.scene_size_m / 2 - 1.0:
+    if resolved.route not in ("loop", "courtyards"):
+        raise ConfigError(f"data.synthetic.route: unknown route {resolved.route!r} (loop | courtyards)")
+    if resolved.route == "courtyards" and resolved.route_length_m < 100.0:
+        raise ConfigError(f"data.synthetic.route_length_m ({resolved.route_length_m}) must be at least 100 m")
+    if resolved.route == "loop" and not (
+            0 < resolved.trajectory_radius_m * (1 + PATH_WOBBLE) < resolved.scene_size_m / 2 - 1.0):
         raise ConfigError(
             f"data.synthetic: trajectory_radius_m ({resolved.trajectory_radius_m}) must be positive and leave the "
             f"loop inside the {resolved.scene_size_m} m courtyard"
@@ -408,8 +514,13 @@ def make_sequence(cfg=None) -> Sequence:
     selection at 3 s keeps every scan."""
     cfg = _resolve_config(cfg)
     started = time.perf_counter()
-    scene, meshes = make_scene(cfg.seed, cfg.scene_size_m, path_radius_m=cfg.trajectory_radius_m)
-    gt_poses = smooth_trajectory(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
+    if cfg.route == "courtyards":
+        gt_poses, route_xy = courtyard_route(cfg.num_scans, cfg.route_length_m, cfg.seed)
+        meshes = make_courtyards_meshes(cfg.seed, route_xy)
+        scene = raycasting_scene(meshes)
+    else:
+        scene, meshes = make_scene(cfg.seed, cfg.scene_size_m, path_radius_m=cfg.trajectory_radius_m)
+        gt_poses = smooth_trajectory(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
     init_poses = add_odometry_drift(gt_poses, cfg.drift_trans_m, cfg.drift_rot_deg, cfg.seed + 1)
     directions = spinning_lidar_directions(cfg.num_beams, cfg.fov_up_deg, cfg.fov_down_deg, cfg.num_columns)
     rng = np.random.default_rng(cfg.seed + 2)

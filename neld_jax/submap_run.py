@@ -1,0 +1,128 @@
+"""The effectful part of a run with submaps (called by neld_jax.run when the sequence outgrows one cube):
+rays per submap, the device mesh, resumable training, the optimised poses in the world and the rendered map
+stitched from the submaps. The outputs are the single cube's: one pose per keyframe, one rendered map.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from neld_jax import export, submap_train, submaps, train
+from neld_jax.checkpoint import Checkpointer
+from neld_jax.data.normalize import Normalization
+from neld_jax.data.preprocess import voxel_downsample
+from neld_jax.data.rays import build_rays
+from neld_jax.mapping import MapRender
+
+logger = logging.getLogger(__name__)
+
+
+def num_devices(config) -> int:
+    """submaps.devices, or every visible device (jax.devices(): every host's after jax.distributed.initialize)."""
+    requested, available = int(config.submaps.devices), len(jax.devices())
+    if requested > available:
+        from neld_jax.errors import ConfigError
+
+        raise ConfigError(f"submaps.devices={requested}, but only {available} devices are visible")
+    return requested if requested > 0 else available
+
+
+class SubmapResult(NamedTuple):
+    result: train.FitResult
+    T_field: np.ndarray  # [S, 4, 4] optimised keyframe poses in the world (metres), before anchoring
+    G: np.ndarray  # [4, 4] world-frame anchor transform (train.anchor_scan)
+    setup: submap_train.SubmapSetup
+
+
+def train_submaps(config, seq, norm: Normalization, T_start: np.ndarray, plan: submaps.SubmapPlan, out_dir: str,
+                  chash: str, progress: bool) -> SubmapResult:
+    """Train the plan's submaps from the keyframe poses T_start [S, 4, 4] (world); resumes from out_dir/checkpoints.
+
+    The rays are the single cube's (same seed and subset), ranges in each submap's units (submaps.submap_arrays)."""
+    rays_metres = build_rays(seq, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
+                             seed=config.seed)
+    arrays = submaps.submap_arrays(plan, rays_metres, T_start)
+    mesh = submap_train.make_mesh(submaps.mesh_size(plan, num_devices(config)))
+    logger.info("submaps: %d submaps (%d rays each at most) on a mesh of %d %s device(s)", plan.num_submaps,
+                arrays.directions.shape[1], mesh.size, jax.devices()[0].platform)
+    setup = submap_train.create_submap_state(config, seq.num_scans, plan.num_submaps, mesh)
+    rays, frames = submap_train.from_arrays(arrays)
+    rays = submap_train.place(rays, submap_train.data_sharding(rays, mesh))
+    frames = submap_train.place(frames, submap_train.data_sharding(frames, mesh))
+
+    ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"))
+    metadata = {"config_hash": chash, "normalization": norm.to_dict(), "num_scans": seq.num_scans,
+                "submaps": plan.to_dict()}
+    state, history, elapsed_s = None, [], 0.0
+    if ckpt.latest_step() is not None:
+        state, saved = ckpt.restore(setup.state, expected_config_hash=chash, expected_data=metadata)
+        history, elapsed_s = list(saved.get("history", [])), float(saved.get("train_seconds", 0.0))
+
+    def save(s, history, seconds):
+        ckpt.save(s, {**metadata, "history": export.to_jsonable(history), "train_seconds": seconds})
+
+    result = submap_train.fit_submaps(config, setup, rays, frames, plan.ref_scale, state=state, checkpoint_fn=save,
+                                      progress=progress, history=history, elapsed_s=elapsed_s)
+    ckpt.close()
+    T_field = submaps.global_poses(T_start, np.asarray(result.state.params["poses"]), plan.ref_scale)
+    G = np.eye(4)
+    anchor = int(config.train.anchor_scan)
+    if anchor >= 0:  # as model.anchor_transform, in the world: the anchor scan keeps its starting pose
+        G = T_start[anchor] @ np.linalg.inv(T_field[anchor])
+    return SubmapResult(result, T_field, G, setup)
+
+
+def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, norm: Normalization, seq,
+                       out_dir: str, progress: bool):
+    """The rendered map stitched from the submaps: each ray rendered by every submap holding its scan, kept from
+    the one whose cube holds its point most centrally; map_rendered.ply in the world (anchored).
+
+    Returns (mapping rays, MapRender) in the whole sequence's normalisation `norm`, as the single cube's map does,
+    for the per-scan residuals."""
+    from tqdm.auto import tqdm
+
+    m = config.mapping
+    mapping_rays = build_rays(seq, norm, max_rays_per_scan=(m.max_rays_per_scan or None), seed=config.seed + 1)
+    sampler = dataclasses.replace(train.sampler_settings(config, 1.0, m.num_coarse, m.num_fine), guided_samples=0)
+    state, setup = trained.result.state, trained.setup
+    alpha = float(setup.schedules.alpha(int(state.step)))
+    scan_index = np.asarray(mapping_rays.scan_index)
+    r = len(scan_index)
+    best_r = np.full(r, np.inf)
+    points_w, ranges_m, opacity = np.zeros((r, 3)), np.zeros(r), np.zeros(r)
+    real = np.flatnonzero(plan.weight > 0)
+    for sub in tqdm(real, disable=not progress, desc="rendered map (submaps)", unit="submap"):
+        row, norm_m = plan.members[sub], plan.norms[sub]
+        slot_of = np.full(seq.num_scans, -1)
+        slot_of[row] = np.arange(len(row))
+        sel = np.flatnonzero(slot_of[scan_index] >= 0)
+        fields_m = jax.tree.map(lambda x: x[sub], state.params["fields"])
+        T_n = norm_m.poses_to_normalized(trained.T_field[row])
+        p_n, op = submap_train.render_submap_rays(fields_m, setup.field, sampler, norm_m.scale, T_n,
+                                                  mapping_rays.directions[sel], slot_of[scan_index[sel]], alpha,
+                                                  int(m.rays_per_batch))
+        centrality = np.abs(p_n).max(axis=1)
+        better = centrality < best_r[sel]
+        idx = sel[better]
+        best_r[idx] = centrality[better]
+        points_w[idx] = norm_m.points_to_world(p_n[better])
+        origins_n = T_n[slot_of[scan_index[idx]], :3, 3]
+        ranges_m[idx] = np.linalg.norm(p_n[better] - origins_n, axis=1) / norm_m.scale
+        opacity[idx] = op[better]
+    kept = opacity >= float(m.min_opacity)
+    points = points_w[kept] @ trained.G[:3, :3].T + trained.G[:3, 3]
+    logger.info("rendered map (stitched from %d submaps): %d of %d rays end on a surface", len(real), int(kept.sum()), r)
+    if kept.any():
+        export.write_point_cloud(os.path.join(out_dir, "map_rendered.ply"),
+                                 voxel_downsample(points, float(m.voxel_size_m)))
+    else:
+        logger.warning("rendered map is empty: no ray reached opacity %.2f; map_rendered.ply not written",
+                       m.min_opacity)
+    render = MapRender(norm.points_to_normalized(points), ranges_m * norm.scale, opacity)
+    return mapping_rays, render

@@ -5,6 +5,7 @@
     python benchmarks/train_step.py --preset=gpu --stage=2        # the paper's step, last sample stage
     python benchmarks/train_step.py --preset=cpu --matmul_peak    # GFLOP/s of plain matmuls, same backend
     python benchmarks/train_step.py --preset=cpu --efficiency     # both, alternately: the step's share of the peak
+    python benchmarks/train_step.py --preset=cpu --fit --steps 200  # train.fit's loop against the bare step
     python benchmarks/train_step.py --rays 256 --coarse 16 --fine 8 --width 64 --depth 2
 
 Each run prints ONE JSON line on stdout (logs go to stderr). The train step runs on synthetic rays built in
@@ -27,6 +28,13 @@ achieved_gflops = mlp_flops_per_step * steps_per_s / 1e9; its fraction of `--mat
 step's efficiency. xla_flops_per_step is XLA's own count for the whole compiled step (all ops, for reference).
 On a machine shared with other jobs, compare the CPU-time rates instead (cpu_ms_per_step,
 achieved_gflops_per_cpu_s against the peak's gflops_per_cpu_s): they count the work done, not the waiting.
+
+--fit times `train.fit` (the fused loop: chunks of --log_every steps in one lax.scan each, with its logging)
+against the bare step at the same sizes, alternately in this process for --repeats rounds. Each round runs fit
+from a fresh state for --log_every + --steps steps (rounded up to whole chunks) and takes its rate from the
+history's elapsed_s between the first and the last logged step, so the first chunk, which compiles, is left
+out; then it times the same number of bare steps (one jitted call each, as in the default mode). "ratio" is
+the median of the rounds' fit / step rates.
 
 --profile_dir traces a few steps with jax.profiler.trace (open it in TensorBoard / XProf) and adds "profile" to
 the JSON: thread-milliseconds per step by kind of XLA op (matmul, sin/cos, sort, gather, ...) and the top ops.
@@ -85,6 +93,8 @@ flags.DEFINE_integer("seed", 0, "Seed of the synthetic rays and the parameters."
 flags.DEFINE_bool("matmul_peak", False, "Measure float32 matmul GFLOP/s instead of the train step.")
 flags.DEFINE_bool("efficiency", False, "Time the step and the matmul peak alternately in this process and report "
                   "the step's GFLOP/s as a fraction of the peak (median over --repeats rounds).")
+flags.DEFINE_bool("fit", False, "Time train.fit (the fused loop) against the bare step, alternately (see --fit above).")
+flags.DEFINE_integer("log_every", 0, "--fit: train.log_every, the steps per device call (0: the preset's).")
 flags.DEFINE_list("matmul_sizes", ["256", "512", "1024", "2048"], "Square matmul sizes for --matmul_peak.")
 flags.DEFINE_string("profile_dir", "", "If set, trace --profile_steps steps with jax.profiler.trace into it.")
 flags.DEFINE_integer("profile_steps", 5, "Steps inside the profiler trace.")
@@ -411,6 +421,50 @@ def benchmark_efficiency(config: ml_collections.ConfigDict, sizes: dict, steps: 
     }
 
 
+def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
+                  num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0) -> dict:
+    """Steps/s of train.fit against the bare jitted step at `sizes`, alternately (module docstring, --fit)."""
+    log_every = max(int(log_every), 1)
+    chunks = max(1, math.ceil(steps / log_every))
+    fit_steps = log_every * (chunks + 1)  # the first chunk compiles and is not timed
+    timed_steps = log_every * chunks
+    runner = StepRunner(config, sizes, timed_steps * repeats + 2, num_scans, rays_per_scan, seed)
+    runner.run(1)  # warm-up
+    fit_config = configure(config, sizes, train_steps=fit_steps)
+    fit_config.seed = seed
+    fit_config.train.log_every = log_every
+    fit_config.train.checkpoint_every = 0
+    fit_config.train.max_minutes = 0.0
+    fit_config.train.pose_start_freq = 0  # poses move from step 0: every chunk is log_every steps long
+    fit_config.train.pose_warmup_steps = 0
+    rounds = []
+    for _ in range(max(repeats, 1)):
+        t0 = time.perf_counter()
+        result = train.fit(fit_config, runner.rays, runner.T_init, SYNTHETIC_SCALE, progress=False)
+        total_s = time.perf_counter() - t0
+        first, last = result.history[0], result.history[-1]
+        fit_rate = (last["step"] - first["step"]) / (last["elapsed_s"] - first["elapsed_s"])
+        step_s, _, _ = median_seconds(lambda: runner.run(timed_steps), 1)
+        step_rate = timed_steps / step_s
+        rounds.append({"fit_steps_per_s": fit_rate, "step_steps_per_s": step_rate, "ratio": fit_rate / step_rate,
+                       "fit_total_s": total_s, "fit_final_loss": last["loss"]})
+    median = lambda key: statistics.median(r[key] for r in rounds)  # noqa: E731
+    return {
+        "benchmark": "fit",
+        "ratio": median("ratio"),
+        "fit_steps_per_s": median("fit_steps_per_s"),
+        "step_steps_per_s": median("step_steps_per_s"),
+        "fit_step_ms": 1e3 / median("fit_steps_per_s"),
+        "step_ms": 1e3 / median("step_steps_per_s"),
+        "rounds": rounds,
+        "compile_s": runner.compile_s,
+        **device_info(),
+        "config": {**sizes, "skip_layers": list(runner.config.model.skip_layers), "log_every": log_every,
+                   "fit_steps": fit_steps, "timed_steps": timed_steps, "repeats": repeats, "scans": num_scans,
+                   "rays_per_scan": rays_per_scan, "dtype": "float32"},
+    }
+
+
 class MatmulTimer:
     """A jitted float32 [m, k] @ [k, n] on random inputs; gflops() times a batch of calls lasting ~min_seconds."""
 
@@ -494,9 +548,14 @@ def main(argv):
     del argv
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     config, sizes = resolve_sizes()
-    if FLAGS.matmul_peak and FLAGS.efficiency:
-        raise app.UsageError("--matmul_peak and --efficiency are two different modes: give one")
-    if FLAGS.matmul_peak:
+    if FLAGS.matmul_peak + FLAGS.efficiency + FLAGS.fit > 1:
+        raise app.UsageError("--matmul_peak, --efficiency and --fit are different modes: give one")
+    if FLAGS.fit:
+        preset = "cpu" if FLAGS.preset == "none" else FLAGS.preset
+        log_every = FLAGS.log_every or int(preset_sizes(preset)[0].train.log_every)
+        record = benchmark_fit(config, sizes, FLAGS.steps, FLAGS.repeats, log_every, FLAGS.scans,
+                               FLAGS.rays_per_scan, FLAGS.seed)
+    elif FLAGS.matmul_peak:
         record = benchmark_matmul_peak(sizes, [int(n) for n in FLAGS.matmul_sizes], FLAGS.repeats)
     elif FLAGS.efficiency:
         record = benchmark_efficiency(config, sizes, FLAGS.steps, FLAGS.repeats, [int(n) for n in FLAGS.matmul_sizes],

@@ -35,7 +35,8 @@ from neld_jax.trajectory import propagate_corrections
 logger = logging.getLogger(__name__)
 
 # Fields that do not change what is computed; a resumed run may change them.
-_HASH_EXCLUDED = ("output_dir", "train.max_minutes", "train.log_every", "train.checkpoint_every", "mapping", "eval")
+_HASH_EXCLUDED = ("output_dir", "budget", "train.max_minutes", "train.log_every", "train.checkpoint_every", "mapping",
+                  "eval")
 
 
 def config_hash(config: ml_collections.ConfigDict) -> str:
@@ -103,6 +104,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     out_dir = os.path.abspath(config.output_dir)
     os.makedirs(out_dir, exist_ok=True)
     chash = config_hash(config)
+    logger.info("budget %s (jax's default backend: %s)", config.get("budget", "?"), jax.default_backend())
     export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
 
     loaded, seq, norm = load_and_prepare(config)

@@ -222,15 +222,16 @@ def build_peer(torch, sizes: dict, rays_np, T_init_np, device: str, reevaluate_c
     return step, use_compile
 
 
-def time_torch(torch, step, n: int, device: str) -> float:
-    t0 = time.perf_counter()
+def time_torch(torch, step, n: int, device: str) -> tuple[float, float]:
+    """(wall seconds, process CPU seconds) of n peer steps."""
+    t0, c0 = time.perf_counter(), time.process_time()
     loss = None
     for _ in range(n):
         loss = step()
     float(loss.detach())  # waits for the device
     if device == "cuda":
         torch.cuda.synchronize()
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, time.process_time() - c0
 
 
 def main(argv):
@@ -273,12 +274,16 @@ def main(argv):
 
     rounds = []
     for _ in range(max(FLAGS.repeats, 1)):
-        jax_s, _, _ = train_step.median_seconds(lambda: runner.run(FLAGS.steps), 1)
-        entry = {"jax_steps_per_s": FLAGS.steps / jax_s}
+        jax_s, _, jax_cpu_s = train_step.median_seconds(lambda: runner.run(FLAGS.steps), 1)
+        entry = {"jax_steps_per_s": FLAGS.steps / jax_s, "jax_cpu_ms_per_step": 1e3 * jax_cpu_s / FLAGS.steps}
         for mode, (step, tf32) in peers.items():
             if device == "cuda":
                 torch.backends.cuda.matmul.allow_tf32 = tf32
-            entry[f"torch_{mode}_steps_per_s"] = FLAGS.steps / time_torch(torch, step, FLAGS.steps, device)
+            wall_s, cpu_s = time_torch(torch, step, FLAGS.steps, device)
+            entry[f"torch_{mode}_steps_per_s"] = FLAGS.steps / wall_s
+            entry[f"torch_{mode}_cpu_ms_per_step"] = 1e3 * cpu_s / FLAGS.steps
+            entry[f"jax_over_torch_{mode}"] = entry["jax_steps_per_s"] / entry[f"torch_{mode}_steps_per_s"]
+            entry[f"cpu_jax_over_torch_{mode}"] = entry[f"torch_{mode}_cpu_ms_per_step"] / entry["jax_cpu_ms_per_step"]
         rounds.append(entry)
     median = lambda key: statistics.median(r[key] for r in rounds)  # noqa: E731
     jax_rate = median("jax_steps_per_s")
@@ -287,7 +292,10 @@ def main(argv):
         "benchmark": "torch_peer",
         "jax_steps_per_s": jax_rate,
         "torch_steps_per_s": torch_rates,
-        "jax_over_torch": {mode: jax_rate / rate for mode, rate in torch_rates.items()},
+        "jax_over_torch": {mode: jax_rate / rate for mode, rate in torch_rates.items()},  # ratio of the medians
+        "jax_over_torch_round_median": {mode: median(f"jax_over_torch_{mode}") for mode in peers},
+        # process CPU time per step (all threads): steadier than wall time where other jobs share the cores
+        "cpu_jax_over_torch": {mode: median(f"cpu_jax_over_torch_{mode}") for mode in peers},
         "rounds": rounds,
         "jax_loss_after_warmup": jax_loss,
         "torch_warmup": warm,

@@ -374,13 +374,19 @@ def pose_start_message(config: ml_collections.ConfigDict, schedules: Schedules) 
     return f"step {step}: frequency {k_star} active, poses start moving"
 
 
+@jax.jit
+def _correction_translations(poses: jax.Array) -> jax.Array:
+    """[S, 6] -> [S, 3] translations of exp(xi); one device call (eager, its ops cost ~17 ms a log on a CPU)."""
+    return lie.se3_exp(poses)[:, :3, 3]
+
+
 def pose_correction_stats(poses: np.ndarray, scale: float) -> tuple[float, float]:
     """Mean translation (metres) and rotation (degrees) of the corrections exp(xi), xi = poses [S, 6] (rho, omega).
 
     The translation of exp(xi) is V(omega) rho, not rho; `scale` converts normalised units to metres.
     """
-    T = np.asarray(lie.se3_exp(jnp.asarray(poses)), np.float64)
-    trans_m = float(np.linalg.norm(T[:, :3, 3], axis=1).mean() / scale)
+    translations = np.asarray(_correction_translations(jnp.asarray(poses)), np.float64)
+    trans_m = float(np.linalg.norm(translations, axis=1).mean() / scale)
     rot_deg = float(np.degrees(np.linalg.norm(np.asarray(poses)[:, 3:], axis=1)).mean())
     return trans_m, rot_deg
 

@@ -163,7 +163,8 @@ class Suite:
         for name in names:
             elapsed = time.perf_counter() - self.t0
             if elapsed > self.budget_s:
-                self.record["sections"][name] = {"skipped": f"time budget spent ({elapsed:.0f} of {self.budget_s:.0f} s)"}
+                skipped = f"time budget spent ({elapsed:.0f} of {self.budget_s:.0f} s)"
+                self.record["sections"][name] = {"skipped": skipped}
                 continue
             logger.info("section %s (%.0f s in)", name, elapsed)
             t = time.perf_counter()
@@ -283,9 +284,10 @@ class Suite:
             rows = []
             # A [rays x 256 samples, width] float32 activation is 4 GiB at 8192 rays and width 512.
             for batch in ((64,) if self.smoke else (4096, 16384, 32768)):
-                render = lambda: render_map(setup.state.params["field"], setup.field, sampler, T, directions,  # noqa: E731
-                                            scan_index, float(config.model.pos_freqs), rays_per_batch=batch,
-                                            min_opacity=0.0)
+                def render():
+                    return render_map(setup.state.params["field"], setup.field, sampler, T, directions, scan_index,
+                                      float(config.model.pos_freqs), rays_per_batch=batch, min_opacity=0.0)
+
                 try:
                     t = time.perf_counter()
                     render()  # compiles

@@ -117,7 +117,8 @@ def build_peer(torch, sizes: dict, rays_np, T_init_np, device: str, reevaluate_c
         theta = torch.sqrt(torch.where(small, torch.ones_like(theta2), theta2))
         a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
         b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / torch.where(small, 1.0, theta2))
-        c = torch.where(small, 1 / 6 - theta2 / 120, (theta - torch.sin(theta)) / (torch.where(small, 1.0, theta2) * theta))
+        safe2 = torch.where(small, torch.ones_like(theta2), theta2)
+        c = torch.where(small, 1 / 6 - theta2 / 120, (theta - torch.sin(theta)) / (safe2 * theta))
         zero = torch.zeros_like(theta2)
         K = torch.stack([zero, -omega[:, 2], omega[:, 1], omega[:, 2], zero, -omega[:, 0],
                          -omega[:, 1], omega[:, 0], zero], -1).reshape(-1, 3, 3)
@@ -191,7 +192,8 @@ def build_peer(torch, sizes: dict, rays_np, T_init_np, device: str, reevaluate_c
             z_near, z_far = cube_interval(o, d)
             edges = torch.linspace(0, 1, num_coarse + 1, device=dev)
             span = (z_far - z_near)[:, None]
-            z_coarse = z_near[:, None] + span * (edges[:-1] + (edges[1:] - edges[:-1]) * torch.rand(o.shape[0], num_coarse, device=dev))
+            jitter = torch.rand(o.shape[0], num_coarse, device=dev)
+            z_coarse = z_near[:, None] + span * (edges[:-1] + (edges[1:] - edges[:-1]) * jitter)
         sigma_coarse = densities(field, o, d, z_coarse, window)
         weights_c, depth_c = composite(sigma_coarse, z_coarse, z_far)
         with torch.no_grad():
@@ -301,7 +303,8 @@ def main(argv):
         "torch_warmup": warm,
         **train_step.device_info(),
         "torch_version": torch.__version__,
-        "torch_device": str(torch.cuda.get_device_name(0)) if device == "cuda" else f"cpu ({torch.get_num_threads()} threads)",
+        "torch_device": (str(torch.cuda.get_device_name(0)) if device == "cuda"
+                         else f"cpu ({torch.get_num_threads()} threads)"),
         "config": {**sizes, "skip_layers": list(sizes["skip_layers"]), "steps": FLAGS.steps, "repeats": FLAGS.repeats,
                    "scans": FLAGS.scans, "rays_per_scan": FLAGS.rays_per_scan,
                    "reevaluate_coarse": FLAGS.reevaluate_coarse, "modes": modes},

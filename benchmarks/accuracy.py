@@ -5,7 +5,7 @@
     python benchmarks/accuracy.py --sequences=hard --budget=paper --output_root=runs/acc
     python benchmarks/accuracy.py --sequences=hard --init_poses=baseline   # NeLD-BA refines the baseline's poses
 
-For each sequence: NeLD-BA (neld_jax.run) and Open3D multiway registration (neld_jax.baseline) on the same
+For each sequence: NeLD-BA (neld_jax.run) and the classical baseline (neld_jax.baseline) on the same
 preprocessed scans, evaluated together; prints one JSON line per sequence with initial / baseline / optimised
 ATE and map metrics and the wall time of each method.
 """
@@ -31,6 +31,7 @@ SEQ = flags.DEFINE_list("sequences", list(SEQUENCES), f"Which of {list(SEQUENCES
 BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper).")
 OUTPUT_ROOT = flags.DEFINE_string("output_root", "outputs/accuracy", "One output_dir per sequence below this.")
 STEPS = flags.DEFINE_integer("steps", 0, "Override train.steps (0: the budget's).")
+OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. train.pose_lr_rot_init=1e-4.")
 INIT_POSES = flags.DEFINE_enum("init_poses", "input", ["input", "baseline"],
                                "train.init_poses: start NeLD-BA from the drifted odometry or from the baseline's poses.")
 
@@ -53,6 +54,7 @@ def main(argv):
     logging.basicConfig(level=logging.WARNING)
     from configs.demo import get_config
     from neld_jax.baseline import run_baseline
+    from neld_jax.config import apply_overrides
     from neld_jax.evaluate import evaluate_run
     from neld_jax.run import run
 
@@ -63,6 +65,7 @@ def main(argv):
         config.train.init_poses = INIT_POSES.value
         if STEPS.value:
             config.train.steps = STEPS.value
+        apply_overrides(config, OVERRIDES.value)
         t0 = time.perf_counter()
         summary = run(config, progress=False)
         t_neld = time.perf_counter() - t0
@@ -76,7 +79,7 @@ def main(argv):
                                   raw_cutoff=config.eval.raw_cutoff_m)
         print(json.dumps({
             "sequence": name, "budget": BUDGET.value, "init_poses": INIT_POSES.value, "synthetic": SEQUENCES[name],
-            "steps": summary["steps"],
+            "steps": summary["steps"], "overrides": OVERRIDES.value,
             "initial": _summary(evaluation, "initial"),
             "baseline": dict(_summary(evaluation, "baseline"), wall_s=round(t_base, 1)),
             "neld_ba": dict(_summary(evaluation, "optimized"), wall_s=round(t_neld, 1),

@@ -7,13 +7,16 @@ downloaded or committed.
         --work=/tmp/real --out=benchmarks/results/real_data.json
 
 Per sequence (one JSON object each, also printed as a line):
-- "recorded": NeLD-BA and the classical baseline (Open3D ICP + pose graph) from the recorded odometry; the raw
-  map's crispness (mean map entropy, plane thickness) under the odometry, the baseline and NeLD-BA.
+- "recorded": from the recorded odometry, NeLD-BA started from it (train.init_poses=input) and NeLD-BA started
+  from the classical baseline's poses (train.init_poses=baseline; the baseline is Open3D scan-to-map ICP + a
+  loop-closed pose graph, neld_jax.baseline); the raw map's crispness (mean map entropy, plane thickness) under
+  the odometry, the baseline and each NeLD-BA run. --recorded_starts picks the starts.
 - "drift" (unless --skip_drift): the same scans with odometry-like drift added (bin/perturb.py's random walk,
   --drift_trans_m / --drift_rot_deg per keyframe, --seed), the recorded odometry as pseudo ground truth. The
   baseline from the drifted start, then NeLD-BA from the baseline's poses (train.init_poses=baseline): ATE of
-  each against the odometry, the crispness of each map, and how far NeLD-BA's answer lies from its answer from
-  the recorded odometry (ATE between the two, SE(3)-aligned).
+  each against the odometry, the crispness of each map, and how far the baseline's and NeLD-BA's answers lie
+  from the same configuration's answers from the recorded odometry (ATE between the two, SE(3)-aligned; needs
+  "baseline" among --recorded_starts).
 A sequence that fails (for example one too large for one field) records its one-line error and the run goes on.
 """
 
@@ -36,6 +39,8 @@ WORK = flags.DEFINE_string("work", "outputs/real_data", "Output folders of the r
 OUT = flags.DEFINE_string("out", "benchmarks/results/real_data.json", "JSON file with one entry per sequence.")
 BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper).")
 MAX_MINUTES = flags.DEFINE_float("max_minutes", -1.0, "Override train.max_minutes (-1: the budget's).")
+RECORDED_STARTS = flags.DEFINE_list("recorded_starts", ["input", "baseline"],
+                                    "Starts (train.init_poses) of the runs from the recorded odometry.")
 SKIP_DRIFT = flags.DEFINE_bool("skip_drift", False, "Only the recorded-odometry runs.")
 DRIFT_TRANS = flags.DEFINE_float("drift_trans_m", 0.05, "Injected drift per keyframe: translation sigma [m].")
 DRIFT_ROT = flags.DEFINE_float("drift_rot_deg", 0.5, "Injected drift per keyframe: rotation sigma [deg].")
@@ -47,9 +52,8 @@ flags.mark_flag_as_required("root")
 def _config(fmt_config: str, root: str, out_dir: str):
     """configs/lio_keyframes.py's settings (all keyframes, refine_odometry on the cpu budget), for the drifted
     copy in the generic layout too, with this script's overrides."""
-    import ast
-
     from configs.lio_keyframes import get_config
+    from neld_jax.config import apply_overrides
 
     c = get_config(BUDGET.value)
     c.data.format = fmt_config
@@ -57,14 +61,7 @@ def _config(fmt_config: str, root: str, out_dir: str):
     c.output_dir = out_dir
     if MAX_MINUTES.value >= 0:
         c.train.max_minutes = MAX_MINUTES.value
-    for item in OVERRIDES.value:
-        key, value = item.split("=", 1)
-        node = c
-        *parents, leaf = key.split(".")
-        for p in parents:
-            node = node[p]
-        node[leaf] = ast.literal_eval(value)
-    return c
+    return apply_overrides(c, OVERRIDES.value)
 
 
 def _crisp(summary: dict) -> dict:
@@ -78,7 +75,6 @@ def _ate(evaluation: dict, method: str):
 
 
 def run_sequence(name: str, root: str) -> dict:
-    from neld_jax.baseline import run_baseline
     from neld_jax.data.datasets import load_sequence
     from neld_jax.data.poses import read_tum
     from neld_jax.data.pseudo_gt import with_drift
@@ -86,23 +82,25 @@ def run_sequence(name: str, root: str) -> dict:
     from neld_jax.metrics import ate
     from neld_jax.run import run
 
-    entry = {"sequence": name}
+    entry = {"sequence": name, "recorded": {}}
     out = os.path.join(WORK.value, name)
-    config = _config("lio_keyframes", root, os.path.join(out, "recorded"))
-    t0 = time.perf_counter()
-    summary = run(config, progress=False)
-    t_neld = time.perf_counter() - t0
-    base = run_baseline(config)
-    entry["recorded"] = {"scans": summary["num_input_scans"], "keyframes": summary["num_scans"],
-                         "steps": summary["steps"], "neld_wall_s": round(t_neld, 1),
-                         "baseline_wall_s": round(base["seconds"], 1), "crispness": _crisp(base["crispness"]),
-                         "final_range_err_m": round(summary["final"].get("range_err_m", float("nan")), 4)}
-    print(json.dumps(entry), flush=True)
+    recorded = _config("lio_keyframes", root, "")
+    for start in RECORDED_STARTS.value:
+        config = _config("lio_keyframes", root, os.path.join(out, f"recorded_{start}"))
+        config.train.init_poses = start
+        t0 = time.perf_counter()
+        summary = run(config, progress=False)
+        entry["recorded"][start] = {
+            "scans": summary["num_input_scans"], "keyframes": summary["num_scans"], "steps": summary["steps"],
+            "wall_s": round(time.perf_counter() - t0, 1), "baseline_wall_s": summary.get("baseline_seconds"),
+            "crispness": _crisp(summary["crispness"]),
+            "final_range_err_m": round(summary["final"].get("range_err_m", float("nan")), 4)}
+        print(json.dumps(entry), flush=True)
     if SKIP_DRIFT.value:
         return entry
 
     drift_root = os.path.join(out, "drifted_input")
-    seq = with_drift(load_sequence(config.data), DRIFT_TRANS.value, DRIFT_ROT.value, SEED.value)
+    seq = with_drift(load_sequence(recorded.data), DRIFT_TRANS.value, DRIFT_ROT.value, SEED.value)
     write_generic(seq, drift_root)
     config = _config("generic", drift_root, os.path.join(out, "drift"))
     config.train.init_poses = "baseline"
@@ -110,16 +108,23 @@ def run_sequence(name: str, root: str) -> dict:
     summary = run(config, progress=False)
     t_neld = time.perf_counter() - t0
     evaluation = summary["evaluation"]
-    _, T_rec = read_tum(os.path.join(out, "recorded", "poses_optimized.txt"))
-    _, T_drift = read_tum(os.path.join(out, "drift", "poses_optimized.txt"))
     entry["drift"] = {
         "drift_per_keyframe": {"trans_m": DRIFT_TRANS.value, "rot_deg": DRIFT_ROT.value, "seed": SEED.value},
         "ate_vs_odometry_m": {m: _ate(evaluation, m) for m in ("initial", "baseline", "optimized")},
-        "neld_vs_neld_from_recorded_m": round(ate(T_drift, T_rec, align="se3")["translation_rmse_m"], 4),
         "crispness": _crisp(summary["crispness"]),
         "neld_wall_s": round(t_neld, 1), "baseline_wall_s": summary.get("baseline_seconds"),
         "steps": summary["steps"],
     }
+    def apart(method: str, recorded_run: str) -> float:
+        _, T_rec = read_tum(os.path.join(out, recorded_run, f"poses_{method}.txt"))
+        _, T_drift = read_tum(os.path.join(out, "drift", f"poses_{method}.txt"))
+        return round(ate(T_drift, T_rec, align="se3")["translation_rmse_m"], 4)
+
+    if "baseline" in RECORDED_STARTS.value:  # the same configuration (init_poses=baseline) from the two starts
+        entry["drift"]["baseline_apart_from_recorded_m"] = apart("baseline", "recorded_baseline")
+        entry["drift"]["optimized_apart_from_recorded_m"] = apart("optimized", "recorded_baseline")
+    if "input" in RECORDED_STARTS.value:  # against NeLD-BA started from the recorded odometry itself
+        entry["drift"]["optimized_apart_from_recorded_input_m"] = apart("optimized", "recorded_input")
     print(json.dumps(entry), flush=True)
     return entry
 

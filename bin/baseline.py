@@ -1,8 +1,9 @@
 #!/usr/bin/env python
-"""The classical baseline: Open3D multiway registration (point-to-plane ICP + pose graph).
+"""The classical baseline: Open3D scan-to-map ICP, then a pose graph with loop closures.
 
     python bin/baseline.py --config=configs/demo.py
     python bin/baseline.py --config=configs/generic.py --config.data.root=/data/seq --config.output_dir=runs/seq
+    python bin/baseline.py --config=configs/demo.py --config.baseline.window=5   # settings: config.baseline
 
 Loads and preprocesses the sequence exactly like bin/train.py, refines the initial poses, writes
 poses_baseline.txt/.kitti and map_raw_baseline.ply into config.output_dir and, when the sequence has
@@ -14,13 +15,7 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from absl import flags  # noqa: E402
-
 from neld_jax.cli import main_with_config  # noqa: E402
-
-VOXEL_SIZE = flags.DEFINE_float("voxel_size", 0.2, "Voxel size (m) of the scans given to ICP.")
-MAX_CORR_DIST = flags.DEFINE_float("max_corr_dist", 1.0, "ICP correspondence distance (m).")
-LOOP_RADIUS = flags.DEFINE_float("loop_radius", 10.0, "Register non-neighbouring scans closer than this (m).")
 
 
 def job(config):
@@ -28,8 +23,7 @@ def job(config):
     from neld_jax.evaluate import format_table
     from neld_jax.quality import format_crispness_table
 
-    result = run_baseline(config, voxel_size=VOXEL_SIZE.value, max_corr_dist=MAX_CORR_DIST.value,
-                          loop_radius_m=LOOP_RADIUS.value)
+    result = run_baseline(config)
     print(f"baseline ({result['seconds']:.0f} s) written to {config.output_dir}")
     print(format_crispness_table(result["crispness"]))
     if result["evaluation"] is not None:

@@ -26,6 +26,8 @@ GT_POSES = flags.DEFINE_string("gt_poses", None, "Ground-truth trajectory (TUM, 
 GT_MAP = flags.DEFINE_string("gt_map", None, "Ground-truth map (.ply/.pcd); default OUTPUT_DIR/map_gt.ply if present.")
 THRESHOLD = flags.DEFINE_float("threshold", 0.2, "F1 / inlier distance threshold in metres.")
 RAW_CUTOFF = flags.DEFINE_float("raw_cutoff", 1.0, "Chamfer cutoff of raw maps in metres.")
+MAP_ICP = flags.DEFINE_float("map_icp_m", 0.0, "Refine the map alignment by ICP with this correspondence distance "
+                             "in metres (0: the trajectory alignment alone).")
 
 
 def main(argv):
@@ -37,7 +39,8 @@ def main(argv):
 
     try:
         result = evaluate_run(OUTPUT_DIR.value, gt_poses_path=GT_POSES.value, gt_map_path=GT_MAP.value,
-                              threshold=THRESHOLD.value, raw_cutoff=RAW_CUTOFF.value)
+                              threshold=THRESHOLD.value, raw_cutoff=RAW_CUTOFF.value,
+                              map_icp_m=MAP_ICP.value)
     except NeldError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -35,7 +35,7 @@ def base_config() -> ml_collections.ConfigDict:
     c.budget = "paper"  # which budget apply_budget applied (paper | gpu | cpu); informational, not hashed
 
     c.data = ml_collections.ConfigDict()
-    c.data.format = "generic"  # generic | fusionportable | newer_college | lio_keyframes | synthetic
+    c.data.format = "generic"  # generic | fusionportable | newer_college | lio_keyframes | hba | synthetic
     c.data.root = ""
     c.data.pose_file = ""  # lio_keyframes: the initial trajectory under root ("" = odom_poses.txt)
     c.data.drop_unmatched_tail = False  # drop up to 5 trailing scans that have no pose/stamp instead of failing
@@ -53,6 +53,14 @@ def base_config() -> ml_collections.ConfigDict:
     c.data.max_rays_per_scan = 0  # 0: every point of the preprocessed scan is a training ray
     c.data.normalization_margin = 0.9  # largest half-extent of scans+origins maps to this (room for corrections)
     c.data.timestamp_tol_s = 0.05  # scan <-> pose matching by time (datasets.DEFAULT_TIMESTAMP_TOLERANCE_S)
+    # Ground truth (neld_jax/data/ground_truth.py): explicit files replace what the layout has; a path that is set but
+    # missing is an error. gt_from_scan: the scan frame's pose in the ground truth's body frame, (tx, ty, tz, qx, qy,
+    # qz, qw); () = the dataset's published value for scan_frame ("" = the layout's own frame).
+    c.data.gt_poses_path = ""  # TUM, or Newer College CSV (.csv)
+    c.data.gt_map_path = ""  # .pcd / .ply, in the ground truth's world frame
+    c.data.gt_from_scan = ()
+    c.data.scan_frame = ""  # fusionportable: body_imu | ouster00; newer_college: os_sensor | os_imu
+    c.data.gt_time_offset_s = 0.0  # added to scan stamps when matching GT (e.g. end-of-scan scans, start-of-scan GT)
     c.data.synthetic = synthetic_defaults()
 
     c.model = ml_collections.ConfigDict()
@@ -125,9 +133,19 @@ def base_config() -> ml_collections.ConfigDict:
     c.mapping.voxel_size_m = 0.05  # voxel grid on the written maps (0 = none)
     c.mapping.min_opacity = 0.5  # rendered points of rays whose opacity is below this are dropped
 
+    # The classical baseline (neld_jax.baseline.BaselineSettings: bin/baseline.py and train.init_poses=baseline).
+    c.baseline = ml_collections.ConfigDict()
+    c.baseline.voxel_size_m = 0.1
+    c.baseline.window = 10  # scans in the local map of the scan-to-map chain
+    c.baseline.icp_distances_m = (1.0, 0.5, 0.25, 0.1)  # multi-scale ICP, coarse first
+    c.baseline.loop_radius_m = 10.0  # loop-closure candidates, in the chain's frame
+    c.baseline.max_loops_per_scan = 4
+    c.baseline.min_loop_fitness = 0.3
+
     c.eval = ml_collections.ConfigDict()
     c.eval.f1_threshold_m = 0.2
     c.eval.raw_cutoff_m = 1.0
+    c.eval.map_icp_m = 0.0  # > 0: refine the map alignment by ICP with this correspondence distance (evaluate.py)
     # Map crispness without ground truth (neld_jax.crispness): neighbourhood radius and number of query points.
     c.eval.crispness_radius_m = 0.3
     c.eval.crispness_queries = 10_000
@@ -231,3 +249,30 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
         for field in ("num_coarse", "num_fine", "max_rays_per_scan", "voxel_size_m"):
             c.mapping[field] = paper[field]
     return c
+
+
+def apply_overrides(c: ml_collections.ConfigDict, items) -> ml_collections.ConfigDict:
+    """Apply "KEY=VALUE" overrides (dotted keys, Python-literal values) as the benchmarks' --set flags give them.
+
+    An unknown key raises ConfigError naming it, as bin/train.py's --config.KEY does."""
+    import ast
+
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ConfigError(f"override {item!r}: expected KEY=VALUE")
+        node = c
+        *parents, leaf = key.split(".")
+        try:
+            for part in parents:
+                node = node[part]
+            if leaf not in node:
+                raise KeyError(leaf)
+        except KeyError:
+            raise ConfigError(f"override {item!r}: the config has no field {key}") from None
+        try:
+            node[leaf] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            node[leaf] = value  # a bare string, e.g. train.init_poses=baseline
+    return c
+

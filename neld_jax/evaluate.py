@@ -10,7 +10,11 @@ Both `bin/evaluate.py` and the trainer call `evaluate_run`. It reads what a run 
 and computes, per method: ATE (SE(3) Umeyama alignment, as evo) and RPE against the GT poses, then the
 map metrics of its maps against the GT map -- raw maps with the paper's 1 m cutoff, rendered maps
 without -- after moving the maps into the GT frame with the ATE alignment of that trajectory (the
-odometry frame is not the GT frame on real data). The result is merged into
+odometry frame is not the GT frame on real data), optionally refined by Open3D point-to-point ICP of the
+raw map against the GT map (map_icp_m > 0: a GT map whose frame differs a little from the GT trajectory's, as a
+survey map registered separately does; FusionPortable's own map evaluation aligns maps by ICP too:
+github.com/JokerJohn/Cloud_Map_Evaluation, linked from fusionportable_dataset_tools' README). Without GT poses
+the ICP starts from the identity. The result is merged into
 `OUTPUT_DIR/metrics.json` under "evaluation"; plots go to trajectory.png, pose_error.png and
 error_histogram.png.
 """
@@ -121,12 +125,14 @@ def _resolve_gt_map(output_dir: Path, gt_map_path: str | os.PathLike | None) -> 
 
 def evaluate_run(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLike | None = None,
                  gt_map_path: str | os.PathLike | None = None, threshold: float = 0.2,
-                 raw_cutoff: float = 1.0, max_time_diff: float = 0.01, write_plots: bool = True
-                 ) -> dict[str, Any]:
+                 raw_cutoff: float = 1.0, max_time_diff: float = 0.01, write_plots: bool = True,
+                 map_icp_m: float = 0.0) -> dict[str, Any]:
     """Evaluate every trajectory and map in output_dir; merge the result into metrics.json.
 
     gt_poses_path / gt_map_path default to OUTPUT_DIR/poses_gt.txt and OUTPUT_DIR/map_gt.ply when
-    those exist. threshold: F1 / inlier distance (m); raw_cutoff: Chamfer cutoff of raw maps (m).
+    those exist. threshold: F1 / inlier distance (m); raw_cutoff: Chamfer cutoff of raw maps (m); map_icp_m: the
+    ICP correspondence distance (m) that refines each method's map alignment (0: off, the trajectory alignment
+    alone), recorded per map as "icp" (fitness, correction in m and deg).
     Returns {"output_dir", "gt_poses", "gt_map", "threshold_m", "raw_cutoff_m", "methods": {method:
     {"poses", "num_poses", ["matching", "matched_poses", "ate", "rpe"], ["raw_map", "rendered_map"]}},
     "plots"}; a map entry holds `metrics.map_metrics` keys plus "file" and "aligned_to_gt".
@@ -167,16 +173,24 @@ def evaluate_run(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLike
             aligned_trajectories[name] = alignment @ poses
             pose_errors[name] = translation_errors
         if gt_map is not None:
+            maps = {kind: read_scan(map_path) for kind, map_path in map_files(output_dir, name).items()}
+            to_gt = np.eye(4) if alignment is None else alignment
+            icp = None
+            if map_icp_m > 0 and maps:
+                if alignment is None:
+                    logger.warning("%s: no GT poses to align the maps with; ICP starts from the odometry frame", name)
+                reference = maps.get("raw", next(iter(maps.values())))
+                icp = refine_map_alignment(transform_points(reference, to_gt), gt_map, map_icp_m)
+                to_gt = icp.pop("transform") @ to_gt
             for kind, map_path in map_files(output_dir, name).items():
-                points = read_scan(map_path)
-                if alignment is not None:
-                    points = transform_points(points, alignment)
+                points = transform_points(maps[kind], to_gt)
                 est_to_gt = metrics.nearest_neighbor_distances(points, gt_map)
                 gt_to_est = metrics.nearest_neighbor_distances(gt_map, points)
                 # Raw maps keep outliers from misregistered scans: the paper cuts their distances at 1 m.
                 cutoff = raw_cutoff if kind == "raw" else None
                 entry[f"{kind}_map"] = {
-                    "file": map_path.name, "aligned_to_gt": alignment is not None,
+                    "file": map_path.name, "aligned_to_gt": alignment is not None or icp is not None,
+                    "icp": icp,
                     **metrics.map_metrics_from_distances(est_to_gt, gt_to_est, threshold, cutoff, "paper")}
                 map_distances[f"{name} {kind}"] = est_to_gt
         methods[name] = entry
@@ -187,6 +201,7 @@ def evaluate_run(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLike
         "gt_map": None if gt_map_file is None else str(gt_map_file),
         "threshold_m": float(threshold),
         "raw_cutoff_m": float(raw_cutoff),
+        "map_icp_m": float(map_icp_m),
         "methods": methods,
         "plots": [],
     }
@@ -195,6 +210,28 @@ def evaluate_run(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLike
                                        threshold, raw_cutoff)
     write_json(output_dir / METRICS_FILE, {"evaluation": result})
     return result
+
+
+def refine_map_alignment(points: np.ndarray, gt_map: np.ndarray, max_distance: float) -> dict[str, Any]:
+    """Open3D point-to-point ICP of points [N, 3] onto gt_map [M, 3] (both in the GT frame already, roughly),
+    with correspondences up to max_distance metres; both are thinned on a max_distance / 10 voxel grid first.
+
+    Returns {"transform": [4, 4] correction (points -> GT), "max_distance_m", "fitness" (share of points with a
+    correspondence), "correction_m", "correction_deg"}."""
+    import open3d as o3d
+
+    from neld_jax.geometry import rotation_angles_deg
+
+    voxel = max_distance / 10.0
+    source, target = (o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(p, dtype=np.float64)))
+                      .voxel_down_sample(voxel) for p in (points, gt_map))
+    result = o3d.pipelines.registration.registration_icp(
+        source, target, max_distance, np.eye(4), o3d.pipelines.registration.TransformationEstimationPointToPoint(),
+        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=100))
+    transform = np.asarray(result.transformation, dtype=np.float64)
+    return {"transform": transform, "max_distance_m": float(max_distance), "fitness": float(result.fitness),
+            "correction_m": float(np.linalg.norm(transform[:3, 3])),
+            "correction_deg": float(rotation_angles_deg(transform[:3, :3]))}
 
 
 def _write_plots(output_dir: Path, trajectories: dict[str, np.ndarray], gt_poses: np.ndarray | None,

@@ -36,7 +36,8 @@ logger = logging.getLogger(__name__)
 
 # Fields that do not change what is computed; a resumed run may change them.
 _HASH_EXCLUDED = ("output_dir", "budget", "train.max_minutes", "train.log_every", "train.checkpoint_every", "mapping",
-                  "eval")
+                  "eval", "data.gt_poses_path", "data.gt_map_path", "data.gt_from_scan", "data.scan_frame",
+                  "data.gt_time_offset_s")  # budget: a name (its fields are hashed); data.gt_*: ground truth only
 
 
 def config_hash(config: ml_collections.ConfigDict) -> str:
@@ -82,17 +83,17 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> tuple[np.ndarray, 
     """The keyframe poses [K, 4, 4] training starts from (train.init_poses), and the seconds the baseline took
     (None when training starts from the input).
 
-    "input": the loaded poses (odometry). "baseline": the classical baseline's (Open3D ICP + pose graph) run
+    "input": the loaded poses (odometry). "baseline": the classical baseline's (Open3D scan-to-map ICP + loop-closed pose graph, config.baseline) run
     from them first, for starts that drifted further than the field's basin of convergence."""
     how = str(config.train.init_poses).lower()
     if how == "input":
         return seq.poses, None
     if how != "baseline":
         raise ConfigError(f"train.init_poses: unknown value {config.train.init_poses!r} (input | baseline)")
-    from neld_jax.baseline import multiway_registration
+    from neld_jax.baseline import BaselineSettings, register_sequence
 
     t0 = time.perf_counter()
-    poses = multiway_registration(seq.scans, seq.poses)
+    poses = register_sequence(seq.scans, seq.poses, BaselineSettings.from_config(config.get("baseline")))
     seconds = time.perf_counter() - t0
     logger.info("train.init_poses=baseline: the classical baseline took %.1f s; training starts from its poses", seconds)
     return poses, seconds
@@ -196,7 +197,8 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         from neld_jax.evaluate import evaluate_run
 
         summary["evaluation"] = evaluate_run(out_dir, threshold=config.eval.f1_threshold_m,
-                                             raw_cutoff=config.eval.raw_cutoff_m)
+                                             raw_cutoff=config.eval.raw_cutoff_m,
+                                             map_icp_m=config.eval.get("map_icp_m", 0.0))
     return summary
 
 

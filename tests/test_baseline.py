@@ -1,4 +1,5 @@
-"""The classical baseline reduces the drift of a small synthetic sequence; bin/baseline.py end to end."""
+"""The classical baseline reduces the drift of a small synthetic sequence, its answer does not depend on how far
+the start drifted; bin/baseline.py end to end."""
 
 import json
 import os
@@ -9,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from neld_jax.baseline import candidate_pairs, multiway_registration
+from neld_jax.baseline import BaselineSettings, candidate_pairs, register_sequence
 from neld_jax.data.preprocess import preprocess
+from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.synthetic import make_sequence
 from neld_jax.metrics import ate
 
@@ -24,10 +26,13 @@ def drifted_sequence():
     return preprocess(seq, keyframe_interval_s=0.0, min_range=0.5, max_range=30.0, voxel_size=0.1)
 
 
-def test_multiway_registration_reduces_ate(drifted_sequence):
+SETTINGS = BaselineSettings(window=2, voxel_size_m=0.2)
+
+
+def test_register_sequence_reduces_ate(drifted_sequence):
     seq = drifted_sequence
     before = ate(seq.poses, seq.gt_poses)
-    refined = multiway_registration(seq.scans, seq.poses, voxel_size=0.2, max_corr_dist=0.5)
+    refined = register_sequence(seq.scans, seq.poses, SETTINGS)
     after = ate(refined, seq.gt_poses)
     assert before["translation_rmse_m"] > 0.1
     assert after["translation_rmse_m"] < 0.25 * before["translation_rmse_m"]
@@ -36,6 +41,26 @@ def test_multiway_registration_reduces_ate(drifted_sequence):
     rotations = refined[:, :3, :3]
     np.testing.assert_allclose(np.einsum("sji,sjk->sik", rotations, rotations), np.tile(np.eye(3), (6, 1, 1)),
                                atol=1e-10)
+
+
+def test_answer_does_not_depend_on_the_start(drifted_sequence):
+    # Two starts whose drift differs (a further random walk on top) give the same answer: every registration
+    # starts from the odometry's increment, which both starts get within ICP's basin.
+    seq = drifted_sequence
+    further = with_drift(seq, 0.05, 0.5, seed=3)
+    a = register_sequence(seq.scans, seq.poses, SETTINGS)
+    b = register_sequence(seq.scans, further.poses, SETTINGS)
+    apart_before = ate(further.poses, seq.poses)["translation_rmse_m"]
+    apart_after = ate(b, a)["translation_rmse_m"]
+    assert apart_before > 0.02
+    assert apart_after < 0.1 * apart_before
+
+
+def test_settings_from_config_checks_fields():
+    assert BaselineSettings.from_config({"window": 3, "icp_distances_m": [0.5, 0.1]}) == BaselineSettings(
+        window=3, icp_distances_m=(0.5, 0.1))
+    with pytest.raises(ValueError, match="unknown field"):
+        BaselineSettings.from_config({"windwo": 3})
 
 
 def test_candidate_pairs_are_neighbours_and_close_non_neighbours():
@@ -48,11 +73,14 @@ def test_candidate_pairs_are_neighbours_and_close_non_neighbours():
     _, loops = candidate_pairs(line, loop_radius_m=100.0, max_loops_per_scan=2)
     assert [pair for pair in loops if pair[0] == 0] == [(0, 2), (0, 3)]
     assert len(loops) == 2 * 7 + 1  # scans 0-6 have two partners, scan 7 one (9), scans 8 and 9 none
+    # Loop partners at least min_index_gap apart (the chain's window already ties closer scans).
+    _, loops = candidate_pairs(line, loop_radius_m=100.0, max_loops_per_scan=1, min_index_gap=4)
+    assert loops == [(i, i + 4) for i in range(6)]
 
 
 def test_single_scan_is_returned_unchanged():
     poses = np.eye(4)[None]
-    np.testing.assert_array_equal(multiway_registration([np.zeros((10, 3))], poses), poses)
+    np.testing.assert_array_equal(register_sequence([np.zeros((10, 3))], poses), poses)
 
 
 def test_cli_writes_baseline_outputs_and_table(tmp_path):
@@ -80,3 +108,21 @@ def test_cli_writes_baseline_outputs_and_table(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1
     assert bad.stderr.startswith("error: ") and "Traceback" not in bad.stderr
+
+
+def test_training_starts_from_the_baseline_of_config_baseline(drifted_sequence):
+    # train.init_poses=baseline: the run registers first, with config.baseline's settings, and trains from
+    # the result; "input" trains from the loaded poses.
+    from neld_jax.config import base_config
+    from neld_jax.run import starting_poses
+
+    config = base_config()
+    config.baseline.window, config.baseline.voxel_size_m = SETTINGS.window, SETTINGS.voxel_size_m
+    config.train.init_poses = "baseline"
+    poses, seconds = starting_poses(config, drifted_sequence)
+    assert seconds > 0
+    np.testing.assert_allclose(poses, register_sequence(drifted_sequence.scans, drifted_sequence.poses, SETTINGS),
+                               atol=1e-9)
+    config.train.init_poses = "input"
+    poses, seconds = starting_poses(config, drifted_sequence)
+    assert seconds is None and poses is drifted_sequence.poses

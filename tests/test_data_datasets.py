@@ -296,7 +296,12 @@ def test_load_newer_college(tmp_path):
     for a, b in zip(seq.scans, scans):
         np.testing.assert_allclose(a, b, atol=1e-5)
     np.testing.assert_allclose(seq.poses, odo, atol=1e-12)
-    np.testing.assert_allclose(seq.gt_poses, gt, atol=1e-12)
+    # 2020 ground truth is in another body frame: moved into the LiDAR's with the published offset
+    from neld_jax.data.ground_truth import published_offset
+
+    np.testing.assert_allclose(seq.gt_poses, gt @ published_offset("newer_college_2020", "os_sensor"), atol=1e-12)
+    identity = load_newer_college(tmp_path, gt_from_scan=np.eye(4))
+    np.testing.assert_allclose(identity.gt_poses, gt, atol=1e-12)
 
 
 def test_load_newer_college_bad_name(tmp_path):

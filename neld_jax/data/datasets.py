@@ -26,8 +26,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from neld_jax.data import synthetic
-from neld_jax.data.poses import read_newer_college_csv, read_tum
+from neld_jax.data import ground_truth, synthetic
+from neld_jax.data.poses import read_tum
 from neld_jax.data.scans import SCAN_EXTENSIONS, read_scan, read_scan_counted
 from neld_jax.data.sequence import Sequence, check_pose_jumps, match_by_timestamp
 from neld_jax.errors import ConfigError, DataError
@@ -37,7 +37,7 @@ logger = logging.getLogger(__name__)
 DEFAULT_TIMESTAMP_TOLERANCE_S = 0.05
 # drop_unmatched_tail forgives a recording cut a little unevenly at its end, not a different sequence.
 MAX_UNMATCHED_TAIL = 5
-FORMATS = ("generic", "fusionportable", "newer_college", "lio_keyframes", "synthetic")
+FORMATS = ("generic", "fusionportable", "newer_college", "lio_keyframes", "hba", "synthetic")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -225,14 +225,15 @@ def align_poses(
 
 
 def build_sequence(root: Path, files: list[Path], poses: np.ndarray, timestamps: np.ndarray | None,
-                   gt_poses: np.ndarray | None, pose_file: Path) -> Sequence:
-    """Read the scans and the GT map, build the Sequence (files relative to root), check for pose jumps."""
+                   gt_poses: np.ndarray | None, pose_file: Path, gt_map_file: Path | None = None) -> Sequence:
+    """Read the scans and the GT map (gt_map_file, else ROOT/gt_map.pcd|ply if present), build the Sequence
+    (files relative to root), check for pose jumps."""
     seq = Sequence(
         scans=_read_scans(files),
         poses=poses,
         timestamps=timestamps,
         gt_poses=gt_poses,
-        gt_map=_read_gt_map(root),
+        gt_map=read_scan(gt_map_file) if gt_map_file is not None else _read_gt_map(root),
         name=root.name,
         source=str(root),
         files=[_relative(f, root) for f in files],
@@ -300,40 +301,105 @@ def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERAN
 
 
 # --------------------------------------------------------------------------------------------------
+# Ground truth shared by the loaders (explicit paths, published frame offsets: neld_jax/data/ground_truth.py)
+# --------------------------------------------------------------------------------------------------
+
+
+def _matched_ground_truth(root: Path, files: list[Path], scan_times: np.ndarray | None, gt_file: Path, tol: float,
+                          gt_from_scan: np.ndarray | None, gt_time_offset_s: float = 0.0) -> np.ndarray:
+    """The ground-truth pose of each scan [S, 4, 4]: gt_file (TUM, or Newer College CSV for .csv) matched to the
+    scans by time within tol (by order without scan times), then moved into the scan frame (T_world_G @ T_G_S).
+    gt_time_offset_s is added to the scan stamps for this matching only (a ground truth stamped by another
+    convention, e.g. -0.1 s to pair end-of-scan stamps with start-of-scan ground truth at 10 Hz).
+
+    A scan without a ground-truth stamp within tol is a DataError naming it (match_by_timestamp): a scan is
+    never given a neighbour's pose."""
+    gt_times, gt_all = ground_truth.read_trajectory(gt_file)
+    if scan_times is not None and gt_time_offset_s:
+        scan_times = np.asarray(scan_times, dtype=np.float64) + gt_time_offset_s
+    poses = align_poses(gt_all, gt_times, gt_file, files, scan_times, tol=tol, root=root).poses
+    return poses if gt_from_scan is None else poses @ gt_from_scan
+
+
+# --------------------------------------------------------------------------------------------------
 # FusionPortable
 # --------------------------------------------------------------------------------------------------
 
 FUSIONPORTABLE_POSE_FILES = ("fastlio2_poses.txt", "poses.txt", "odometry.txt")
 FUSIONPORTABLE_GT_FILES = ("gt_poses.txt", "traj/gt_poses.txt", "ground_truth.txt", "traj/ground_truth.txt")
+# The devkit's exports (fusionportable_dataset_tools, src/data_loader/ros_msg/pointcloud.py and odometry.py, driven
+# by src/write_alg_bag_to_data.ipynb and src/write_bag_to_data.ipynb): (scan folder, frame of its clouds).
+# algorithm_result/ holds FAST-LIO2's /cloud_registered_body (frame body_imu, src/cfg/algorithm/cfg_fastlio2.py).
+FUSIONPORTABLE_DEVKIT_SCANS = (("algorithm_result/ouster00_undistort/points", "body_imu"),
+                               ("raw_data/ouster00/points", "ouster00"))
+FUSIONPORTABLE_DEVKIT_ODOMETRY = ("algorithm_result/odometry/odometry.txt", "odometry.txt")
 
 
-def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S) -> Sequence:
-    """Load a FusionPortable sequence prepared with FAST-LIO2:
+def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+                        gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
+                        gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
+                        gt_time_offset_s: float = 0.0) -> Sequence:
+    """Load a FusionPortable sequence. ROOT is the devkit's sequence folder (<dataset_path>/<sequence>, e.g.
+    .../sensor_data/handheld/20220216_canteen_day); its export, as the devkit writes it:
 
-        ROOT/scans/<timestamp>.pcd       undistorted scans in the LiDAR frame, named by their time
-                                         (1649327985.123456.pcd in seconds, or a 19-digit integer in ns;
-                                         .ply/.bin/.npy also read)
-        ROOT/fastlio2_poses.txt          initial poses, TUM (FAST-LIO2 output); else ROOT/poses.txt or
-                                         ROOT/odometry.txt
-        ROOT/gt_poses.txt                optional ground truth, TUM (also ROOT/traj/gt_poses.txt,
-                                         ROOT/ground_truth.txt, ROOT/traj/ground_truth.txt)
-        ROOT/gt_map.pcd | gt_map.ply     optional ground-truth map (the dataset's TLS map), world frame
+        ROOT/algorithm_result/ouster00_undistort/points/data/000000.pcd ...   FAST-LIO2's /cloud_registered_body,
+                                                                               IMU (body_imu) frame
+        ROOT/algorithm_result/ouster00_undistort/points/timestamps.txt         one stamp per cloud (sec.nsec),
+                                                                               header stamps: END of the scan
+        ROOT/algorithm_result/odometry/odometry.txt                            FAST-LIO2 /Odometry, TUM, same stamps
+        (or ROOT/raw_data/ouster00/points/... raw Ouster clouds, frame ouster00, with ROOT/odometry.txt)
 
-    Every scan name must be a timestamp; initial and ground-truth poses are the ones nearest in time,
-    within `tol` seconds (else DataError)."""
+    and the dataset's ground truth, found beside or up to three folders above ROOT (the download's layout,
+    fusionportable.github.io/dataset/fusionportable, "Data Organization"):
+
+        groundtruth/traj/<sequence>.txt                  TUM, <sequence> = ROOT's folder name
+        groundtruth/map/<sequence>/merged_scan.pcd       TLS map (1 cm), in the ground truth's world frame
+
+    gt_poses_file / gt_map_file (config data.gt_poses_path / gt_map_path) override the search. Ground-truth poses
+    are moved into the scans' frame by gt_from_scan (T_G_S; None: the published extrinsic for the scan frame,
+    ground_truth.PUBLISHED_GT_FROM_SCAN; scan_frame overrides the frame the folder implies).
+
+    Also read, as before: ROOT/scans/<timestamp>.pcd with ROOT/fastlio2_poses.txt (or poses.txt, odometry.txt) and
+    ROOT/gt_poses.txt (or traj/gt_poses.txt, ground_truth.txt, traj/ground_truth.txt), ground truth in the scan
+    frame unless gt_from_scan says otherwise. Odometry and ground truth are matched to the scans by nearest
+    stamp within `tol` seconds; a scan without one is a DataError naming it."""
     root = _check_root(root)
-    scan_folder = root / "scans"
-    files = _sorted_by_name(_list_scans(scan_folder))
-    scan_times = _timestamps_from_names(files, scan_folder, "<timestamp>.pcd")
+    if (root / "scans").is_dir():
+        scan_folder = root / "scans"
+        files = _sorted_by_name(_list_scans(scan_folder))
+        scan_times = _timestamps_from_names(files, scan_folder, "<timestamp>.pcd")
+        return _timestamped_sequence(root, files, scan_times, FUSIONPORTABLE_POSE_FILES, FUSIONPORTABLE_GT_FILES,
+                                     tol, gt_poses_file, gt_map_file, gt_from_scan, gt_time_offset_s)
 
-    return _timestamped_sequence(root, files, scan_times, FUSIONPORTABLE_POSE_FILES,
-                                 FUSIONPORTABLE_GT_FILES, read_tum, tol)
+    found = next(((root / folder, frame) for folder, frame in FUSIONPORTABLE_DEVKIT_SCANS
+                  if (root / folder / "data").is_dir()), None)
+    if found is None:
+        looked = ", ".join(f"{folder}/data/" for folder, _ in FUSIONPORTABLE_DEVKIT_SCANS)
+        raise DataError(f"{root}: no FusionPortable scans (looked for scans/ and the devkit's {looked})")
+    points_folder, frame = found
+    files = _sorted_by_name(_list_scans(points_folder / "data"))
+    from neld_jax.data.lio_keyframes import read_times
+
+    scan_times = read_times(points_folder / "timestamps.txt")
+    if len(scan_times) != len(files):
+        raise DataError(f"{points_folder / 'timestamps.txt'} has {len(scan_times)} stamps but {points_folder / 'data'} "
+                        f"has {len(files)} scans (the devkit writes one stamp per cloud, in order)")
+    if gt_from_scan is None:
+        gt_from_scan = ground_truth.published_offset("fusionportable", scan_frame or frame)
+    name = root.name
+    gt_poses_file = gt_poses_file or ground_truth.first_upwards(root, f"groundtruth/traj/{name}.txt")
+    gt_map_file = gt_map_file or ground_truth.first_upwards(root, f"groundtruth/map/{name}/merged_scan.pcd")
+    return _timestamped_sequence(root, files, scan_times, FUSIONPORTABLE_DEVKIT_ODOMETRY, (), tol, gt_poses_file,
+                                 gt_map_file, gt_from_scan, gt_time_offset_s)
 
 
-def _timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray,
-                          pose_files: tuple[str, ...], gt_files: tuple[str, ...], read_gt, tol: float) -> Sequence:
+def _timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray, pose_files: tuple[str, ...],
+                          gt_files: tuple[str, ...], tol: float, gt_poses_file: Path | None = None,
+                          gt_map_file: Path | None = None, gt_from_scan: np.ndarray | None = None,
+                          gt_time_offset_s: float = 0.0) -> Sequence:
     """The part that FusionPortable and Newer College share: scans with timestamps, initial poses (TUM) and
-    optional ground truth (read by `read_gt`) matched to them by nearest timestamp, optional GT map."""
+    optional ground truth (gt_poses_file, else the first of gt_files under root) matched to them by nearest
+    timestamp, optional GT map (gt_map_file, else ROOT/gt_map.pcd|ply)."""
     pose_file = _first_existing(root, pose_files)
     if pose_file is None:
         raise DataError(f"{root}: no initial pose file (looked for {', '.join(pose_files)})")
@@ -341,12 +407,11 @@ def _timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray,
     aligned = align_poses(poses, pose_times, pose_file, files, scan_times, tol=tol, root=root)
 
     gt_poses = None
-    gt_file = _first_existing(root, gt_files)
+    gt_file = gt_poses_file or _first_existing(root, gt_files)
     if gt_file is not None:
-        gt_times, gt_all = read_gt(gt_file)
-        gt_poses = align_poses(gt_all, gt_times, gt_file, files, scan_times, tol=tol, root=root).poses
+        gt_poses = _matched_ground_truth(root, files, scan_times, gt_file, tol, gt_from_scan, gt_time_offset_s)
 
-    return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file)
+    return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file, gt_map_file)
 
 
 def _timestamps_from_names(files: list[Path], folder: Path, pattern: str) -> np.ndarray:
@@ -364,26 +429,67 @@ def _timestamps_from_names(files: list[Path], folder: Path, pattern: str) -> np.
 NEWER_COLLEGE_SCAN_FOLDERS = ("clouds", "raw_format/ouster_scan", "raw_format/clouds")
 NEWER_COLLEGE_POSE_FILES = ("odometry.txt", "poses.txt", "fastlio2_poses.txt")
 NEWER_COLLEGE_GT_FILES = ("registered_poses.csv", "ground_truth/registered_poses.csv")
+# 2021 ground truth as downloaded (gt-nc-quad-easy.csv ...; gt_state_easy.csv ... for the maths sequences) and as
+# evalio's downloader names it (ground_truth.csv): github.com/contagon/evalio, newer_college_2021.py.
+NEWER_COLLEGE_2021_GT_PATTERNS = ("gt-nc-*.csv", "gt_state_*.csv", "ground_truth.csv")
 _NEWER_COLLEGE_CLOUD_NAME = re.compile(r"^cloud_(\d+)_(\d+)$")
 
 
-def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S) -> Sequence:
-    """Load a Newer College sequence:
+def newer_college_release(gt_file: Path) -> str:
+    """Which release a ground-truth file belongs to, by its name: registered_poses.csv is the 2020 release's,
+    anything else (gt-nc-*.csv, gt_state_*.csv) the 2021 release's."""
+    return "newer_college_2020" if gt_file.name == "registered_poses.csv" else "newer_college_2021"
+
+
+def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+                       gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
+                       gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
+                       gt_time_offset_s: float = 0.0) -> Sequence:
+    """Load a Newer College sequence, 2021 or 2020 release.
+
+    2021 (multi-cam, OS0-128; the paper's quad/maths sequences) comes as rosbags: import the clouds and a
+    FAST-LIO2 run with bin/import_rosbag.py, then put the ground-truth CSV beside them:
+
+        ROOT/scans/000000.pcd ...                 clouds (bin/import_rosbag.py), sensor frame
+        ROOT/poses.txt                            initial poses, TUM, one line per scan (scans match by order)
+        ROOT/gt-nc-quad-easy.csv | gt_state_easy.csv   ground truth, sec,nsec,x,y,z,qx,qy,qz,qw, BASE frame
+
+    2020 (stereo-cam, OS1-64) as extracted:
 
         ROOT/clouds/cloud_<sec>_<nsec>.pcd      Ouster scans in the sensor frame (also read from
                                                 ROOT/raw_format/ouster_scan/ or ROOT/raw_format/clouds/)
         ROOT/odometry.txt                       initial poses, TUM (else ROOT/poses.txt or fastlio2_poses.txt)
-        ROOT/registered_poses.csv               optional ground truth, '#sec,nsec,x,y,z,qx,qy,qz,qw'
+        ROOT/registered_poses.csv               ground truth, '#sec,nsec,x,y,z,qx,qy,qz,qw'
                                                 (also ROOT/ground_truth/registered_poses.csv)
-        ROOT/gt_map.pcd | gt_map.ply            optional ground-truth map, world frame
 
-    Scan time = sec + nsec * 1e-9 from the file name; poses are matched by nearest timestamp within
-    `tol` seconds. Points at the origin (no return in organised Ouster clouds) are dropped when read
-    and counted in one log line."""
+    and, for both, an optional ROOT/gt_map.pcd|ply (or gt_map_file). gt_poses_file overrides the search. The
+    ground truth is moved into the scans' frame by gt_from_scan (T_G_S; None: the published offset of the
+    release the file name implies, newer_college_release, for scan_frame: '' = os_sensor, the raw clouds and
+    FAST-LIO2's body frame as its shipped ouster64.yaml starts it (identity LiDAR-IMU extrinsic, estimated online
+    unless mapping/extrinsic_est_en is false); 'os_imu' for a FAST-LIO2 run configured with the Ouster IMU's
+    extrinsic; the two are 2.4 cm apart). Ground truth is matched to scans by
+    nearest stamp within `tol` seconds; a scan without one is a DataError naming it. Points at the origin (no
+    return in organised Ouster clouds) are dropped when read and counted in one log line."""
     root = _check_root(root)
+    if (root / "scans").is_dir() and (root / "poses.txt").is_file():
+        files = _sorted_by_name(_list_scans(root / "scans"))
+        pose_file = root / "poses.txt"
+        pose_times, poses = read_tum(pose_file)
+        aligned = align_poses(poses, pose_times, pose_file, files, None, tol=tol, root=root)
+        scan_times = aligned.timestamps
+        gt_file = gt_poses_file or next((p for pattern in NEWER_COLLEGE_2021_GT_PATTERNS
+                                         for p in sorted(root.glob(pattern))), None)
+        gt_poses = None
+        if gt_file is not None:
+            offset = gt_from_scan if gt_from_scan is not None else ground_truth.published_offset(
+                newer_college_release(gt_file), scan_frame)
+            gt_poses = _matched_ground_truth(root, files, scan_times, gt_file, tol, offset, gt_time_offset_s)
+        return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file, gt_map_file)
+
     scan_folder = next((root / f for f in NEWER_COLLEGE_SCAN_FOLDERS if (root / f).is_dir()), None)
     if scan_folder is None:
-        raise DataError(f"{root}: no scan folder (looked for {', '.join(NEWER_COLLEGE_SCAN_FOLDERS)})")
+        raise DataError(f"{root}: no scan folder (looked for scans/ with poses.txt, "
+                        f"{', '.join(NEWER_COLLEGE_SCAN_FOLDERS)})")
     files = _list_scans(scan_folder)
     times = []
     for f in files:
@@ -394,14 +500,26 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
     order = np.argsort(times, kind="stable")
     files = [files[i] for i in order]
     scan_times = np.asarray(times, dtype=np.float64)[order]
-
-    return _timestamped_sequence(root, files, scan_times, NEWER_COLLEGE_POSE_FILES,
-                                 NEWER_COLLEGE_GT_FILES, read_newer_college_csv, tol)
+    gt_file = gt_poses_file or _first_existing(root, NEWER_COLLEGE_GT_FILES)
+    if gt_from_scan is None and gt_file is not None:
+        gt_from_scan = ground_truth.published_offset(newer_college_release(gt_file), scan_frame)
+    return _timestamped_sequence(root, files, scan_times, NEWER_COLLEGE_POSE_FILES, NEWER_COLLEGE_GT_FILES, tol,
+                                 gt_file, gt_map_file, gt_from_scan, gt_time_offset_s)
 
 
 # --------------------------------------------------------------------------------------------------
 # Dispatch
 # --------------------------------------------------------------------------------------------------
+
+# Where each format looks for ground truth by itself (for the "evaluation is skipped" line).
+GT_SEARCHED = {
+    "generic": ("ROOT/gt_poses.txt", "ROOT/gt_map.pcd|ply"),
+    "fusionportable": ("groundtruth/traj/<sequence>.txt in or above ROOT (or ROOT/gt_poses.txt)",
+                       "groundtruth/map/<sequence>/merged_scan.pcd in or above ROOT (or ROOT/gt_map.pcd|ply)"),
+    "newer_college": ("ROOT/gt-nc-*.csv, gt_state_*.csv or registered_poses.csv", "ROOT/gt_map.pcd|ply"),
+    "lio_keyframes": ("nothing (the layout has no ground truth)", "ROOT/gt_map.pcd|ply"),
+    "hba": ("nothing (the layout has no ground truth)", "ROOT/gt_map.pcd|ply"),
+}
 
 
 def load_sequence(data_cfg) -> Sequence:
@@ -409,6 +527,11 @@ def load_sequence(data_cfg) -> Sequence:
 
     Reads data_cfg.format (one of FORMATS), data_cfg.root (folder formats) and data_cfg.synthetic (for
     'synthetic'); an optional data_cfg.timestamp_tol_s overrides the 0.05 s matching tolerance.
+    Ground truth: data_cfg.gt_poses_path / gt_map_path, when set, replace what the layout has (a path that is set
+    but missing is a DataError naming it); data_cfg.gt_from_scan (7 numbers, T_G_S) replaces the published frame
+    offset, data_cfg.scan_frame picks which published offset (neld_jax/data/ground_truth.py), data_cfg.gt_time_offset_s
+    shifts the scan stamps when matching ground truth (another stamping convention). When no
+    ground-truth trajectory is found the log says so, what was looked for, and that pose evaluation is skipped.
     Preprocessing is left to the caller (see preprocess.preprocess)."""
     fmt = str(data_cfg.format).lower()
     if fmt not in FORMATS:
@@ -418,13 +541,58 @@ def load_sequence(data_cfg) -> Sequence:
     root = data_cfg.get("root", None)
     if not root:
         raise ConfigError(f"data.root must be set for format '{fmt}'")
-    if fmt == "lio_keyframes":
-        from neld_jax.data.lio_keyframes import DEFAULT_POSE_FILE, load_lio_keyframes
-
-        return load_lio_keyframes(root, pose_file=data_cfg.get("pose_file", "") or DEFAULT_POSE_FILE,
-                                  drop_unmatched_tail=bool(data_cfg.get("drop_unmatched_tail", False)))
+    gt_poses_file = ground_truth.explicit_path(data_cfg, "gt_poses_path")
+    gt_map_file = ground_truth.explicit_path(data_cfg, "gt_map_path")
+    explicit_offset = tuple(data_cfg.get("gt_from_scan", ()) or ())
+    offset = ground_truth.pose_from_tuple(explicit_offset) if explicit_offset else None
+    scan_frame = str(data_cfg.get("scan_frame", "") or "")
     tol = float(data_cfg.get("timestamp_tol_s", DEFAULT_TIMESTAMP_TOLERANCE_S))
-    if fmt == "generic":
-        return load_generic(root, tol=tol, drop_unmatched_tail=bool(data_cfg.get("drop_unmatched_tail", False)))
-    loader = {"fusionportable": load_fusionportable, "newer_college": load_newer_college}
-    return loader[fmt](root, tol=tol)
+    drop_tail = bool(data_cfg.get("drop_unmatched_tail", False))
+    gt_dt = float(data_cfg.get("gt_time_offset_s", 0.0))
+
+    if fmt in ("fusionportable", "newer_college"):
+        loader = load_fusionportable if fmt == "fusionportable" else load_newer_college
+        seq = loader(root, tol=tol, gt_poses_file=gt_poses_file, gt_map_file=gt_map_file, gt_from_scan=offset,
+                     scan_frame=scan_frame, gt_time_offset_s=gt_dt)
+    else:
+        if fmt == "lio_keyframes":
+            from neld_jax.data.lio_keyframes import DEFAULT_POSE_FILE, load_lio_keyframes
+
+            seq = load_lio_keyframes(root, pose_file=data_cfg.get("pose_file", "") or DEFAULT_POSE_FILE,
+                                     drop_unmatched_tail=drop_tail)
+        elif fmt == "hba":
+            from neld_jax.data.hba import load_hba
+
+            seq = load_hba(root, drop_unmatched_tail=drop_tail)
+        else:
+            seq = load_generic(root, tol=tol, drop_unmatched_tail=drop_tail)
+        seq = _with_explicit_ground_truth(seq, Path(root).expanduser(), gt_poses_file, gt_map_file, offset, tol, gt_dt)
+
+    if seq.gt_poses is None:
+        looked = f"data.gt_poses_path {gt_poses_file}" if gt_poses_file else GT_SEARCHED[fmt][0]
+        logger.warning("%s: no ground-truth trajectory (looked for %s; set data.gt_poses_path to give one): pose "
+                       "errors (ATE/RPE) will not be evaluated", root, looked)
+    if seq.gt_map is None:
+        logger.warning("%s: no ground-truth map (looked for %s; set data.gt_map_path to give one): map errors will "
+                       "not be evaluated", root, GT_SEARCHED[fmt][1])
+    return seq
+
+
+def _with_explicit_ground_truth(seq: Sequence, root: Path, gt_poses_file: Path | None, gt_map_file: Path | None,
+                                gt_from_scan: np.ndarray | None, tol: float, gt_time_offset_s: float = 0.0) -> Sequence:
+    """seq with data.gt_poses_path / gt_map_path in place of the layout's own ground truth (formats whose loader
+    does not search for it itself): poses matched by time when both sides have stamps, else by order."""
+    if gt_poses_file is None and gt_map_file is None:
+        return seq
+    import dataclasses
+
+    changes = {}
+    if gt_poses_file is not None:
+        files = [root / f for f in seq.files] if seq.files else [Path(f"scan {i}") for i in range(seq.num_scans)]
+        gt_times, _ = ground_truth.read_trajectory(gt_poses_file)
+        by_time = seq.timestamps is not None and gt_times is not None
+        changes["gt_poses"] = _matched_ground_truth(root, files, seq.timestamps if by_time else None, gt_poses_file,
+                                                    tol, gt_from_scan, gt_time_offset_s)
+    if gt_map_file is not None:
+        changes["gt_map"] = read_scan(gt_map_file)
+    return dataclasses.replace(seq, **changes)

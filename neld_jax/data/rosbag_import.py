@@ -1,0 +1,290 @@
+"""Rosbags in, without ROS: one cloud topic and one odometry topic of a bag -> the generic layout.
+
+    OUT/scans/000000.pcd ...   one cloud per kept message, in the cloud's own frame (header.frame_id)
+    OUT/poses.txt              TUM, one line per scan: the odometry pose matched to that scan, at the scan's stamp
+    OUT/import.json            what was read: bag, topics, the clouds' frame, tolerance, counts (kept, dropped)
+
+Reads ROS1 .bag files and ROS2 bag folders with `rosbags.highlevel.AnyReader` (the `rosbags` package; no ROS
+installation). The layout is the one `datasets.load_generic` reads (docs/design.md, "Data on disk").
+
+Clouds: sensor_msgs/PointCloud2; x, y, z are decoded from the message's own field table (offset, datatype,
+endianness, point_step, row_step), so organised (height > 1, Ouster) and padded clouds read as well as dense
+ones. Points with NaN/inf coordinates or exactly at (0, 0, 0) (no return) are skipped and counted.
+
+Poses: nav_msgs/Odometry (pose.pose) or geometry_msgs/PoseStamped (pose), the pose of the cloud's frame in
+the odometry's world frame (sensor -> world), matched to each cloud by header stamp: the nearest odometry
+stamp within `tolerance_s` (DEFAULT_TOLERANCE_S). A cloud with no odometry stamp that close is never given a
+neighbour's pose: the import stops with an error naming it (its message index and stamp), or, with
+`drop_unmatched=True`, drops it and says how many were dropped.
+
+Time conventions (each source states its own; the importer does not shift stamps unless told to):
+  - FAST-LIO2 stamps /cloud_registered_body and /Odometry with the same `lidar_end_time` (the END of the
+    scan), frames "body" (the IMU) and "camera_init" -> "body": laserMapping.cpp, publish_frame_body and
+    publish_odometry (github.com/hku-mars/FAST_LIO, src/laserMapping.cpp). The stamps are equal, so a
+    tolerance of 10 ms is generous; the body-frame clouds and the odometry describe the same frame. (Its PCD
+    saving, pcd_save_en, accumulates world-frame points into scans_N.pcd, and its pos_log.txt holds time since
+    start, rotation vector, position, ...: neither is per-scan clouds or TUM, hence recording the topics.)
+  - Raw driver clouds (e.g. Ouster's /os_cloud_node/points) are stamped by the driver, commonly at the START
+    of the sweep; against end-of-scan odometry use `time_offset_s` (+ one scan period, e.g. 0.1 s at 10 Hz).
+    `time_offset_s` is added to every cloud stamp before matching, and the shifted stamp is written.
+
+Keyframes at import time (optional): `stride` keeps every k-th matched cloud; `keyframe_distance_m` /
+`keyframe_angle_deg` keep a cloud only when it moved or turned that far since the last kept one (the rule of
+`preprocess.select_keyframes`, applied while reading, so the bag is read once and unkept clouds never hit the
+disk). Training can still select keyframes later (config.data.keyframe_*).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from neld_jax.data.poses import make_poses, write_tum
+from neld_jax.data.scans import drop_invalid_points, write_scan
+from neld_jax.errors import DataError
+from neld_jax.geometry import invert_poses, rotation_angles_deg
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_CLOUD_TOPIC = "/cloud_registered_body"  # FAST-LIO2's undistorted scan in the IMU (body) frame
+DEFAULT_ODOMETRY_TOPIC = "/Odometry"  # FAST-LIO2's odometry, camera_init -> body
+DEFAULT_TOLERANCE_S = 0.01
+CLOUD_TYPES = ("sensor_msgs/msg/PointCloud2",)
+POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped")
+METADATA_FILE = "import.json"
+_LISTED = 5
+
+# sensor_msgs/PointField datatypes (INT8=1 ... FLOAT64=8) as numpy types.
+_POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+# --------------------------------------------------------------------------------------------------
+# Pure decoding
+# --------------------------------------------------------------------------------------------------
+
+
+def stamp_seconds(header) -> float:
+    """A std_msgs/Header's stamp in seconds (rosbags names the fields sec/nanosec for ROS1 and ROS2)."""
+    return int(header.stamp.sec) + int(header.stamp.nanosec) * 1e-9
+
+
+def cloud_xyz(msg) -> np.ndarray:
+    """A sensor_msgs/PointCloud2 -> its x, y, z as [height * width, 3] float64 (every point, none dropped).
+
+    Decoded by each field's offset and datatype within point_step, rows of row_step bytes (padding at the row
+    end skipped), byte order from is_bigendian. Raises ValueError when x, y or z is missing or not scalar."""
+    fields = {f.name: f for f in msg.fields}
+    missing = [name for name in "xyz" if name not in fields]
+    if missing:
+        raise ValueError(f"the cloud has no field {', '.join(missing)} (fields: {', '.join(fields) or 'none'})")
+    order = ">" if msg.is_bigendian else "<"
+    formats = []
+    for name in "xyz":
+        f = fields[name]
+        if f.datatype not in _POINTFIELD_TYPES or f.count != 1:
+            raise ValueError(f"field {name} has datatype {f.datatype} and count {f.count}; expected one number")
+        formats.append(order + _POINTFIELD_TYPES[f.datatype])
+    point_dtype = np.dtype({"names": list("xyz"), "formats": formats,
+                            "offsets": [fields[n].offset for n in "xyz"], "itemsize": int(msg.point_step)})
+    height, width = int(msg.height), int(msg.width)
+    if height * width == 0:
+        return np.zeros((0, 3))
+    raw = np.frombuffer(memoryview(msg.data), dtype=np.uint8)
+    row_bytes = width * int(msg.point_step)
+    if raw.size < (height - 1) * int(msg.row_step) + row_bytes:
+        raise ValueError(f"the cloud's data holds {raw.size} bytes, fewer than its {height} x {width} points need")
+    rows = np.lib.stride_tricks.as_strided(raw, shape=(height, row_bytes), strides=(int(msg.row_step), 1))
+    points = np.ascontiguousarray(rows).reshape(-1).view(point_dtype)
+    return np.stack([points[n].astype(np.float64) for n in "xyz"], axis=1)
+
+
+def pose_matrix(msg, msgtype: str) -> np.ndarray:
+    """nav_msgs/Odometry or geometry_msgs/PoseStamped -> its pose as a 4x4 (child frame -> header frame)."""
+    pose = msg.pose.pose if msgtype == "nav_msgs/msg/Odometry" else msg.pose
+    p, q = pose.position, pose.orientation
+    return make_poses(np.array([[p.x, p.y, p.z]]), np.array([[q.x, q.y, q.z, q.w]]))[0]
+
+
+def nearest_within(times: np.ndarray, query: float, tol: float) -> int | None:
+    """Index of the time in sorted `times` [P] nearest to `query`, or None when none is within `tol` seconds."""
+    if times.size == 0:
+        return None
+    right = int(np.searchsorted(times, query))
+    candidates = [i for i in (right - 1, right) if 0 <= i < times.size]
+    best = min(candidates, key=lambda i: abs(times[i] - query))
+    return best if abs(times[best] - query) <= tol else None
+
+
+def moved_enough(last: np.ndarray, pose: np.ndarray, distance_m: float, angle_deg: float) -> bool:
+    """The spatial keyframe rule of preprocess.select_keyframes between two 4x4 poses (<= 0 turns a rule off)."""
+    relative = invert_poses(last) @ pose
+    return bool((distance_m > 0 and np.linalg.norm(relative[:3, 3]) >= distance_m)
+                or (angle_deg > 0 and rotation_angles_deg(relative[:3, :3]) >= angle_deg))
+
+
+# --------------------------------------------------------------------------------------------------
+# The import
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ImportResult:
+    """What import_bag did (also written to OUT/import.json)."""
+
+    bag: list[str]
+    cloud_topic: str
+    odometry_topic: str
+    frame: str  # the clouds' header.frame_id: the frame the written scans are in
+    odometry_frame: str  # the odometry's header.frame_id (the world frame of poses.txt)
+    tolerance_s: float
+    time_offset_s: float
+    clouds_read: int = 0
+    scans_written: int = 0
+    dropped_unmatched: int = 0
+    skipped_by_keyframe_rule: int = 0
+    points_written: int = 0
+    points_skipped: dict = field(default_factory=lambda: {"non-finite": 0, "zero": 0})
+    note: str = ""
+
+
+def _topics(reader) -> str:
+    return ", ".join(f"{c.topic} ({c.msgtype})" for c in sorted(reader.connections, key=lambda c: c.topic)) or "none"
+
+
+def _connections(reader, topic: str, types: tuple[str, ...], bag: str, what: str):
+    found = [c for c in reader.connections if c.topic == topic]
+    if not found:
+        raise DataError(f"{bag}: no {what} topic '{topic}' in the bag; it has: {_topics(reader)}")
+    bad = [c.msgtype for c in found if c.msgtype not in types]
+    if bad:
+        raise DataError(f"{bag}: topic '{topic}' carries {bad[0]}, not a {what} ({' or '.join(types)})")
+    return found
+
+
+def import_bag(
+    bag_paths: str | os.PathLike | list,
+    out_dir: str | os.PathLike,
+    cloud_topic: str = DEFAULT_CLOUD_TOPIC,
+    odometry_topic: str = DEFAULT_ODOMETRY_TOPIC,
+    tolerance_s: float = DEFAULT_TOLERANCE_S,
+    time_offset_s: float = 0.0,
+    drop_unmatched: bool = False,
+    stride: int = 1,
+    keyframe_distance_m: float = 0.0,
+    keyframe_angle_deg: float = 0.0,
+    progress: bool = True,
+) -> ImportResult:
+    """Write the clouds of `cloud_topic` with their poses from `odometry_topic` into out_dir (module docstring).
+
+    bag_paths: a ROS1 .bag file, a ROS2 bag folder, or a list of them read as one recording. Raises DataError
+    naming the bag for a missing topic (listing the topics the bag has), a topic of the wrong type, a cloud
+    without x/y/z, or clouds without an odometry stamp within tolerance_s (unless drop_unmatched), and when
+    out_dir already holds scans (a second import would mix two recordings)."""
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.typesys import Stores, get_typestore
+    from tqdm import tqdm
+
+    paths = [Path(p) for p in (bag_paths if isinstance(bag_paths, (list, tuple)) else [bag_paths])]
+    bag = ", ".join(str(p) for p in paths)
+    for p in paths:
+        if not p.exists():
+            raise DataError(f"{p}: bag does not exist")
+    if stride < 1:
+        raise DataError(f"stride must be at least 1, got {stride}")
+    out = Path(out_dir)
+    if (out / "scans").is_dir() and any((out / "scans").iterdir()):
+        raise DataError(f"{out / 'scans'}: already holds scans; import into an empty folder")
+
+    # ROS1 bags carry their message definitions; the Noetic store is only the fallback AnyReader asks for.
+    reader = AnyReader(paths, default_typestore=get_typestore(Stores.ROS1_NOETIC))
+    try:
+        reader.open()
+    except AnyReaderError as exc:
+        raise DataError(f"{bag}: cannot read the bag ({exc})") from exc
+    try:
+        cloud_conns = _connections(reader, cloud_topic, CLOUD_TYPES, bag, "cloud")
+        pose_conns = _connections(reader, odometry_topic, POSE_TYPES, bag, "odometry")
+
+        # Pass 1: every odometry pose, sorted by header stamp.
+        stamps, poses, odometry_frame = [], [], ""
+        for conn, _, raw in reader.messages(connections=pose_conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            stamps.append(stamp_seconds(msg.header))
+            poses.append(pose_matrix(msg, conn.msgtype))
+            odometry_frame = odometry_frame or str(msg.header.frame_id)
+        if not stamps:
+            raise DataError(f"{bag}: odometry topic '{odometry_topic}' has no messages")
+        order = np.argsort(stamps, kind="stable")
+        pose_times, pose_array = np.asarray(stamps)[order], np.asarray(poses)[order]
+
+        result = ImportResult(bag=[str(p) for p in paths], cloud_topic=cloud_topic, odometry_topic=odometry_topic,
+                              frame="", odometry_frame=odometry_frame, tolerance_s=float(tolerance_s),
+                              time_offset_s=float(time_offset_s))
+        # Pass 2: clouds in bag order; each is matched, kept or not, and written at once (memory stays flat).
+        kept_times, kept_poses, unmatched = [], [], []
+        matched_count = 0
+        total = sum(c.msgcount for c in cloud_conns)
+        messages = reader.messages(connections=cloud_conns)
+        for conn, _, raw in tqdm(messages, total=total, desc="clouds", unit="msg", disable=not progress):
+            msg = reader.deserialize(raw, conn.msgtype)
+            index = result.clouds_read
+            result.clouds_read += 1
+            t = stamp_seconds(msg.header) + time_offset_s
+            result.frame = result.frame or str(msg.header.frame_id)
+            match = nearest_within(pose_times, t, tolerance_s)
+            if match is None:
+                unmatched.append((index, t))
+                continue
+            matched_count += 1
+            pose = pose_array[match]
+            if (matched_count - 1) % stride:
+                result.skipped_by_keyframe_rule += 1
+                continue
+            if kept_poses and (keyframe_distance_m > 0 or keyframe_angle_deg > 0) and not moved_enough(
+                    kept_poses[-1], pose, keyframe_distance_m, keyframe_angle_deg):
+                result.skipped_by_keyframe_rule += 1
+                continue
+            try:
+                points = cloud_xyz(msg)
+            except ValueError as exc:
+                raise DataError(f"{bag}: {cloud_topic} message {index} (t={t:.6f}): {exc}") from None
+            points, dropped = drop_invalid_points(points)
+            result.points_skipped["non-finite"] += dropped["non-finite"]
+            result.points_skipped["zero"] += dropped["zero"]
+            if points.shape[0] == 0:
+                logger.warning("%s: %s message %d (t=%.6f) has no valid point; skipped", bag, cloud_topic, index, t)
+                continue
+            write_scan(out / "scans" / f"{len(kept_times):06d}.pcd", points)
+            result.points_written += int(points.shape[0])
+            kept_times.append(t)
+            kept_poses.append(pose)
+    finally:
+        reader.close()
+
+    if unmatched:
+        listed = ", ".join(f"message {i} (t={t:.6f})" for i, t in unmatched[:_LISTED])
+        more = f", ... ({len(unmatched)} in all)" if len(unmatched) > _LISTED else ""
+        message = (f"{bag}: {len(unmatched)} of {result.clouds_read} clouds on {cloud_topic} have no {odometry_topic} "
+                   f"stamp within {tolerance_s} s: {listed}{more} (odometry covers t={pose_times[0]:.6f} to "
+                   f"t={pose_times[-1]:.6f})")
+        if not drop_unmatched:
+            raise DataError(message + "; pass --drop_unmatched to drop them, or --tolerance_s / --time_offset_s "
+                            "if the stamps follow another convention")
+        logger.warning("%s; dropped them (--drop_unmatched)", message)
+        result.dropped_unmatched = len(unmatched)
+    if not kept_times:
+        raise DataError(f"{bag}: no cloud on {cloud_topic} was kept ({result.clouds_read} read)")
+
+    write_tum(out / "poses.txt", np.asarray(kept_times), np.asarray(kept_poses))
+    result.scans_written = len(kept_times)
+    result.note = (f"scans/ are in frame '{result.frame}' (the clouds' header.frame_id); poses.txt holds the pose of "
+                   f"that frame in '{result.odometry_frame}' from {odometry_topic}, one line per scan, at the scan's "
+                   f"stamp{'' if not time_offset_s else f' + {time_offset_s} s'}")
+    (out / METADATA_FILE).write_text(json.dumps(asdict(result), indent=2) + "\n")
+    logger.info("wrote %d scans (%d points) to %s; %s", result.scans_written, result.points_written, out, result.note)
+    return result

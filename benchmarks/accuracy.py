@@ -2,7 +2,7 @@
 """Accuracy of the bundle adjustment against the classical baseline on seeded synthetic sequences.
 
     python benchmarks/accuracy.py                         # easy and hard drift, the demo (cpu) budget
-    python benchmarks/accuracy.py --sequences=hard --budget=gpu --output_root=runs/acc
+    python benchmarks/accuracy.py --sequences=hard --budget=paper --output_root=runs/acc
     python benchmarks/accuracy.py --sequences=hard --init_poses=baseline   # NeLD-BA refines the baseline's poses
 
 For each sequence: NeLD-BA (neld_jax.run) and the classical baseline (neld_jax.baseline) on the same
@@ -28,7 +28,7 @@ SEQUENCES = {
 }
 
 SEQ = flags.DEFINE_list("sequences", list(SEQUENCES), f"Which of {list(SEQUENCES)} to run.")
-BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu or gpu).")
+BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper).")
 OUTPUT_ROOT = flags.DEFINE_string("output_root", "outputs/accuracy", "One output_dir per sequence below this.")
 STEPS = flags.DEFINE_integer("steps", 0, "Override train.steps (0: the budget's).")
 OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. train.pose_lr_rot_init=1e-4.")

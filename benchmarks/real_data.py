@@ -37,7 +37,7 @@ ROOT = flags.DEFINE_string("root", None, "Folder holding one sub-folder per sequ
 SEQUENCES = flags.DEFINE_list("sequences", None, "Sub-folders of --root to run (default: every sub-folder with Scans/).")
 WORK = flags.DEFINE_string("work", "outputs/real_data", "Output folders of the runs go below this.")
 OUT = flags.DEFINE_string("out", "benchmarks/results/real_data.json", "JSON file with one entry per sequence.")
-BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu or gpu).")
+BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper).")
 MAX_MINUTES = flags.DEFINE_float("max_minutes", -1.0, "Override train.max_minutes (-1: the budget's).")
 RECORDED_STARTS = flags.DEFINE_list("recorded_starts", ["input", "baseline"],
                                     "Starts (train.init_poses) of the runs from the recorded odometry.")

@@ -2,9 +2,10 @@
 """Speed of the jitted NeLD-BA train step, and this machine's float32 matmul rate for comparison.
 
     python benchmarks/train_step.py --preset=cpu                  # the CPU budget's step
-    python benchmarks/train_step.py --preset=gpu --stage=2        # the paper's step, last sample stage
+    python benchmarks/train_step.py --preset=paper --stage=2      # the paper's step, last sample stage
     python benchmarks/train_step.py --preset=cpu --matmul_peak    # GFLOP/s of plain matmuls, same backend
     python benchmarks/train_step.py --preset=cpu --efficiency     # both, alternately: the step's share of the peak
+    python benchmarks/train_step.py --preset=cpu --fit --steps 200  # train.fit's loop against the bare step
     python benchmarks/train_step.py --rays 256 --coarse 16 --fine 8 --width 64 --depth 2
 
 Each run prints ONE JSON line on stdout (logs go to stderr). The train step runs on synthetic rays built in
@@ -27,6 +28,14 @@ achieved_gflops = mlp_flops_per_step * steps_per_s / 1e9; its fraction of `--mat
 step's efficiency. xla_flops_per_step is XLA's own count for the whole compiled step (all ops, for reference).
 On a machine shared with other jobs, compare the CPU-time rates instead (cpu_ms_per_step,
 achieved_gflops_per_cpu_s against the peak's gflops_per_cpu_s): they count the work done, not the waiting.
+
+--fit times `train.fit` (the fused loop: chunks of --log_every steps in one lax.scan each, with its logging)
+against the bare step at the same sizes, alternately in this process for --repeats rounds. Each round runs fit
+from a fresh state for --log_every + --steps steps (rounded up to whole chunks) and takes its rate from the
+wall and CPU clocks between the first and the last chunk end (a checkpoint_fn hook, called once a chunk's
+metrics are fetched), so the first chunk, which compiles, is left out; then it times the same number of bare
+steps (one jitted call each, as in the default mode). "ratio" is the median of the rounds' fit / step rates of
+wall time, "cpu_ratio" that of process CPU time (all threads; steadier where other jobs share the cores).
 
 --profile_dir traces a few steps with jax.profiler.trace (open it in TensorBoard / XProf) and adds "profile" to
 the JSON: thread-milliseconds per step by kind of XLA op (matmul, sin/cos, sort, gather, ...) and the top ops.
@@ -63,10 +72,12 @@ logger = logging.getLogger(__name__)
 # Flag defaults are used as they are with --preset=none; a preset replaces every size flag that is not
 # given on the command line. These defaults are the CPU budget's sizes without range-guided samples.
 SIZE_FLAGS = ("rays", "coarse", "fine", "guided", "width", "depth", "skip_layers", "pos_freqs", "dir_freqs")
+# model.matmul_dtype: taken from --matmul_dtype whatever the preset (the presets are all float32).
 
 FLAGS = flags.FLAGS
-flags.DEFINE_enum("preset", "none", ["cpu", "gpu", "none"],
-                  "cpu: apply_budget(base_config(), 'cpu') sizes; gpu: base_config() sizes; none: the flags only.")
+flags.DEFINE_enum("preset", "none", ["cpu", "gpu", "paper", "none"],
+                  "cpu, gpu, paper: the sizes of apply_budget(base_config(), preset) (paper: base_config() itself, "
+                  "called 'gpu' before the gpu budget existed); none: the flags only.")
 flags.DEFINE_integer("stage", 0, "Which sample-count stage of the preset (index into sampling.coarse_stages).")
 flags.DEFINE_integer("rays", 512, "Rays per step (train.batch_rays).")
 flags.DEFINE_integer("coarse", 32, "Stratified coarse samples per ray.")
@@ -77,6 +88,8 @@ flags.DEFINE_integer("depth", 4, "Hidden layers of the MLP.")
 flags.DEFINE_list("skip_layers", ["2"], "Hidden layers whose input gets the encoded position again.")
 flags.DEFINE_integer("pos_freqs", 10, "Fourier frequencies of the position encoding.")
 flags.DEFINE_integer("dir_freqs", 2, "Fourier frequencies of the view-direction encoding.")
+flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"],
+                  "model.matmul_dtype: bfloat16 = the MLP's matmuls on bfloat16 inputs, float32 parameters and sums.")
 flags.DEFINE_integer("steps", 20, "Timed steps per repeat.")
 flags.DEFINE_integer("repeats", 5, "Timed repeats; the median is reported.")
 flags.DEFINE_integer("scans", 8, "Scans in the synthetic ray set.")
@@ -85,6 +98,8 @@ flags.DEFINE_integer("seed", 0, "Seed of the synthetic rays and the parameters."
 flags.DEFINE_bool("matmul_peak", False, "Measure float32 matmul GFLOP/s instead of the train step.")
 flags.DEFINE_bool("efficiency", False, "Time the step and the matmul peak alternately in this process and report "
                   "the step's GFLOP/s as a fraction of the peak (median over --repeats rounds).")
+flags.DEFINE_bool("fit", False, "Time train.fit (the fused loop) against the bare step, alternately (see --fit above).")
+flags.DEFINE_integer("log_every", 0, "--fit: train.log_every, the steps per device call (0: the preset's).")
 flags.DEFINE_list("matmul_sizes", ["256", "512", "1024", "2048"], "Square matmul sizes for --matmul_peak.")
 flags.DEFINE_string("profile_dir", "", "If set, trace --profile_steps steps with jax.profiler.trace into it.")
 flags.DEFINE_integer("profile_steps", 5, "Steps inside the profiler trace.")
@@ -100,7 +115,7 @@ SYNTHETIC_SCALE = 1.0 / 40.0
 
 def preset_sizes(preset: str, stage: int = 0) -> tuple[ml_collections.ConfigDict, dict]:
     """(config, sizes) of a preset: the config supplies everything the size flags do not (losses, sampling)."""
-    config = base_config() if preset == "gpu" else apply_budget(base_config(), "cpu")
+    config = apply_budget(base_config(), preset)
     m, s = config.model, config.sampling
     sizes = {
         "rays": int(config.train.batch_rays),
@@ -112,6 +127,7 @@ def preset_sizes(preset: str, stage: int = 0) -> tuple[ml_collections.ConfigDict
         "skip_layers": tuple(int(k) for k in m.skip_layers),
         "pos_freqs": int(m.pos_freqs),
         "dir_freqs": int(m.dir_freqs),
+        "matmul_dtype": str(m.matmul_dtype),
     }
     return config, sizes
 
@@ -122,6 +138,7 @@ def configure(config: ml_collections.ConfigDict, sizes: dict, train_steps: int) 
     c.model.width, c.model.depth = sizes["width"], sizes["depth"]
     c.model.skip_layers = tuple(k for k in sizes["skip_layers"] if k < sizes["depth"])
     c.model.pos_freqs, c.model.dir_freqs = sizes["pos_freqs"], sizes["dir_freqs"]
+    c.model.matmul_dtype = sizes.get("matmul_dtype", "float32")
     c.sampling.coarse_stages, c.sampling.fine_stages = (sizes["coarse"],), (sizes["fine"],)
     c.sampling.guided_samples = sizes["guided"]
     c.train.batch_rays = sizes["rays"]
@@ -369,7 +386,7 @@ def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: 
         "config": {**sizes, "skip_layers": list(runner.config.model.skip_layers), "samples_per_ray": samples_per_ray,
                    "steps": steps, "repeats": repeats, "scans": num_scans, "rays_per_scan": rays_per_scan,
                    "hierarchical": str(runner.config.sampling.hierarchical),
-                   "use_view_dirs": bool(runner.config.model.use_view_dirs), "dtype": "float32"},
+                   "use_view_dirs": bool(runner.config.model.use_view_dirs)},
     }
 
 
@@ -407,19 +424,75 @@ def benchmark_efficiency(config: ml_collections.ConfigDict, sizes: dict, steps: 
         "compile_s": runner.compile_s,
         **device_info(),
         "config": {**sizes, "skip_layers": list(runner.config.model.skip_layers), "steps": steps,
-                   "repeats": repeats, "square_sizes": list(square_sizes), "dtype": "float32"},
+                   "repeats": repeats, "square_sizes": list(square_sizes)},
+    }
+
+
+def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
+                  num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0) -> dict:
+    """Steps/s of train.fit against the bare jitted step at `sizes`, alternately (module docstring, --fit)."""
+    log_every = max(int(log_every), 1)
+    chunks = max(1, math.ceil(steps / log_every))
+    fit_steps = log_every * (chunks + 1)  # the first chunk compiles and is not timed
+    timed_steps = log_every * chunks
+    runner = StepRunner(config, sizes, timed_steps * repeats + 2, num_scans, rays_per_scan, seed)
+    runner.run(1)  # warm-up
+    fit_config = configure(config, sizes, train_steps=fit_steps)
+    fit_config.seed = seed
+    fit_config.train.log_every = log_every
+    fit_config.train.checkpoint_every = log_every  # the hook below runs at every chunk end; no chunk is cut
+    fit_config.train.max_minutes = 0.0
+    fit_config.train.pose_start_freq = 0  # poses move from step 0: every chunk is log_every steps long
+    fit_config.train.pose_warmup_steps = 0
+    rounds = []
+    for _ in range(max(repeats, 1)):
+        marks = []  # (step, wall s, process CPU s) at each chunk end, after fit has fetched its metrics
+
+        def mark(state, history, seconds):
+            marks.append((int(state.step), time.perf_counter(), time.process_time()))
+
+        t0 = time.perf_counter()
+        result = train.fit(fit_config, runner.rays, runner.T_init, SYNTHETIC_SCALE, checkpoint_fn=mark, progress=False)
+        total_s = time.perf_counter() - t0
+        (first_step, first_wall, first_cpu), (last_step, last_wall, last_cpu) = marks[0], marks[-1]
+        fit_rate = (last_step - first_step) / (last_wall - first_wall)
+        fit_cpu_ms = 1e3 * (last_cpu - first_cpu) / (last_step - first_step)
+        step_s, _, step_cpu_s = median_seconds(lambda: runner.run(timed_steps), 1)
+        step_rate, step_cpu_ms = timed_steps / step_s, 1e3 * step_cpu_s / timed_steps
+        rounds.append({"fit_steps_per_s": fit_rate, "step_steps_per_s": step_rate, "ratio": fit_rate / step_rate,
+                       "fit_cpu_ms_per_step": fit_cpu_ms, "step_cpu_ms_per_step": step_cpu_ms,
+                       "cpu_ratio": step_cpu_ms / fit_cpu_ms, "fit_total_s": total_s,
+                       "fit_final_loss": result.history[-1]["loss"]})
+    median = lambda key: statistics.median(r[key] for r in rounds)  # noqa: E731
+    return {
+        "benchmark": "fit",
+        "ratio": median("ratio"),
+        "cpu_ratio": median("cpu_ratio"),  # step CPU time / fit CPU time per step: steadier on a shared machine
+        "fit_steps_per_s": median("fit_steps_per_s"),
+        "step_steps_per_s": median("step_steps_per_s"),
+        "fit_step_ms": 1e3 / median("fit_steps_per_s"),
+        "step_ms": 1e3 / median("step_steps_per_s"),
+        "fit_cpu_ms_per_step": median("fit_cpu_ms_per_step"),
+        "step_cpu_ms_per_step": median("step_cpu_ms_per_step"),
+        "rounds": rounds,
+        "compile_s": runner.compile_s,
+        **device_info(),
+        "config": {**sizes, "skip_layers": list(runner.config.model.skip_layers), "log_every": log_every,
+                   "fit_steps": fit_steps, "timed_steps": timed_steps, "repeats": repeats, "scans": num_scans,
+                   "rays_per_scan": rays_per_scan},
     }
 
 
 class MatmulTimer:
-    """A jitted float32 [m, k] @ [k, n] on random inputs; gflops() times a batch of calls lasting ~min_seconds."""
+    """A jitted [m, k] @ [k, n] on random inputs (float32, or bfloat16 inputs with float32 sums); gflops() times
+    a batch of calls lasting ~min_seconds."""
 
-    def __init__(self, m: int, k: int, n: int, seed: int = 0, min_seconds: float = 0.05):
+    def __init__(self, m: int, k: int, n: int, seed: int = 0, min_seconds: float = 0.05, dtype: str = "float32"):
         key_a, key_b = jax.random.split(jax.random.PRNGKey(seed))
-        self.a = jax.random.normal(key_a, (m, k), jnp.float32)
-        self.b = jax.random.normal(key_b, (k, n), jnp.float32)
+        self.a = jax.random.normal(key_a, (m, k), jnp.float32).astype(dtype)
+        self.b = jax.random.normal(key_b, (k, n), jnp.float32).astype(dtype)
         self.flops = 2.0 * m * k * n
-        self.matmul = jax.jit(jnp.matmul)
+        self.matmul = jax.jit(lambda a, b: jnp.matmul(a, b, preferred_element_type=jnp.float32))
         jax.block_until_ready(self.matmul(self.a, self.b))  # compile and warm up
         t0 = time.perf_counter()
         jax.block_until_ready(self.matmul(self.a, self.b))
@@ -440,17 +513,19 @@ class MatmulTimer:
         return self.flops * self.calls / median_s / 1e9, self.flops * self.calls / median_cpu_s / 1e9
 
 
-def matmul_gflops(m: int, k: int, n: int, repeats: int, min_seconds: float = 0.05, seed: int = 0) -> tuple[float, float]:
-    """(GFLOP/s, GFLOP per CPU second) of a jitted float32 [m, k] @ [k, n] (2 m k n FLOPs), medians of
-    `repeats` batches of calls lasting >= min_seconds each."""
-    return MatmulTimer(m, k, n, seed, min_seconds).rates(repeats)
+def matmul_gflops(m: int, k: int, n: int, repeats: int, min_seconds: float = 0.05, seed: int = 0,
+                  dtype: str = "float32") -> tuple[float, float]:
+    """(GFLOP/s, GFLOP per CPU second) of a jitted [m, k] @ [k, n] (2 m k n FLOPs), medians of `repeats` batches
+    of calls lasting >= min_seconds each."""
+    return MatmulTimer(m, k, n, seed, min_seconds, dtype).rates(repeats)
 
 
-def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int) -> dict:
-    """float32 matmul GFLOP/s: square n x n matmuls and the MLP's [points, width] @ [width, width] matmul."""
+def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int, dtype: str = "float32") -> dict:
+    """Matmul GFLOP/s (float32, or bfloat16 inputs with float32 sums): square n x n matmuls and the MLP's
+    [points, width] @ [width, width] matmul."""
     mlp_name, mlp_shape = mlp_shaped_matmul(sizes)
-    square = {str(n): matmul_gflops(n, n, n, repeats) for n in square_sizes}
-    mlp_shaped = {mlp_name: matmul_gflops(*mlp_shape, repeats)}
+    square = {str(n): matmul_gflops(n, n, n, repeats, dtype=dtype) for n in square_sizes}
+    mlp_shaped = {mlp_name: matmul_gflops(*mlp_shape, repeats, dtype=dtype)}
     rates = [*square.values(), *mlp_shaped.values()]
     return {
         "benchmark": "matmul_peak",
@@ -461,7 +536,7 @@ def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int) ->
         "square_gflops_per_cpu_s": {n: cpu for n, (_, cpu) in square.items()},
         "mlp_shaped_gflops_per_cpu_s": {s: cpu for s, (_, cpu) in mlp_shaped.items()},
         **device_info(),
-        "config": {"dtype": "float32", "repeats": repeats, "points": mlp_shape[0], "width": mlp_shape[1]},
+        "config": {"dtype": dtype, "repeats": repeats, "points": mlp_shape[0], "width": mlp_shape[1]},
     }
 
 
@@ -471,7 +546,7 @@ def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int) ->
 def resolve_sizes() -> tuple[ml_collections.ConfigDict, dict]:
     """The preset's config and sizes, with every size flag given on the command line taking precedence."""
     preset = "cpu" if FLAGS.preset == "none" else FLAGS.preset
-    preset_config = base_config() if preset == "gpu" else apply_budget(base_config(), "cpu")
+    preset_config = apply_budget(base_config(), preset)
     stages = len(preset_config.sampling.coarse_stages)
     if not 0 <= FLAGS.stage < stages:
         raise app.UsageError(f"--stage={FLAGS.stage}: the {preset} preset has stages 0..{stages - 1}")
@@ -480,6 +555,7 @@ def resolve_sizes() -> tuple[ml_collections.ConfigDict, dict]:
         if FLAGS.preset == "none" or FLAGS[name].present:
             value = FLAGS[name].value
             sizes[name] = tuple(int(v) for v in value) if name == "skip_layers" else int(value)
+    sizes["matmul_dtype"] = FLAGS.matmul_dtype
     for name in ("rays", "coarse", "width", "depth", "steps", "repeats", "scans", "rays_per_scan"):
         value = sizes[name] if name in sizes else FLAGS[name].value
         if value < 1:
@@ -494,10 +570,15 @@ def main(argv):
     del argv
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     config, sizes = resolve_sizes()
-    if FLAGS.matmul_peak and FLAGS.efficiency:
-        raise app.UsageError("--matmul_peak and --efficiency are two different modes: give one")
-    if FLAGS.matmul_peak:
-        record = benchmark_matmul_peak(sizes, [int(n) for n in FLAGS.matmul_sizes], FLAGS.repeats)
+    if FLAGS.matmul_peak + FLAGS.efficiency + FLAGS.fit > 1:
+        raise app.UsageError("--matmul_peak, --efficiency and --fit are different modes: give one")
+    if FLAGS.fit:
+        preset = "cpu" if FLAGS.preset == "none" else FLAGS.preset
+        log_every = FLAGS.log_every or int(preset_sizes(preset)[0].train.log_every)
+        record = benchmark_fit(config, sizes, FLAGS.steps, FLAGS.repeats, log_every, FLAGS.scans,
+                               FLAGS.rays_per_scan, FLAGS.seed)
+    elif FLAGS.matmul_peak:
+        record = benchmark_matmul_peak(sizes, [int(n) for n in FLAGS.matmul_sizes], FLAGS.repeats, FLAGS.matmul_dtype)
     elif FLAGS.efficiency:
         record = benchmark_efficiency(config, sizes, FLAGS.steps, FLAGS.repeats, [int(n) for n in FLAGS.matmul_sizes],
                                       FLAGS.scans, FLAGS.rays_per_scan, FLAGS.seed)

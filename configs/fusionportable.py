@@ -7,15 +7,16 @@ ROOT/algorithm_result/ouster00_undistort/points/{data/000000.pcd, timestamps.txt
 odometry.txt; ground truth groundtruth/traj/<sequence>.txt and groundtruth/map/<sequence>/merged_scan.pcd are found
 beside or above ROOT (or set data.gt_poses_path / data.gt_map_path). The ground truth is moved into the scans' frame
 with the dataset's published extrinsic (neld_jax/data/ground_truth.py; data.gt_from_scan overrides it).
-The paper's hyper-parameters (docs/method.md); `:cpu` selects the CPU budget.
+Budgets (neld_jax.config.apply_budget): none named = `:gpu` where JAX's default backend is a GPU, else `:paper`
+(the paper's hyper-parameters, docs/method.md); `:cpu` sizes it for 2 CPU cores.
 """
 
-from neld_jax.config import apply_budget, base_config
+from neld_jax.config import apply_budget, base_config, default_budget
 
 
-def get_config(budget: str = "gpu"):
+def get_config(budget: str = ""):
     c = base_config()
     c.data.format = "fusionportable"
     c.output_dir = "outputs/fusionportable"
     c.eval.map_icp_m = 1.0  # the GT map (a survey) is registered on its own: refine its alignment by ICP
-    return apply_budget(c, budget)
+    return apply_budget(c, budget or default_budget("paper"))

@@ -4,19 +4,20 @@ ROOT/Scans/NNNNNN.pcd (sensor frame), ROOT/odom_poses.txt (KITTI), ROOT/times.tx
     python bin/train.py --config=configs/lio_keyframes.py:cpu --config.data.root=/data/HKU_1_bag
     python bin/train.py --config=configs/lio_keyframes.py:cpu --config.data.root=... --config.data.pose_file=optimized_poses.txt
 
-The scans are already keyframes (the front-end chose them), so every one is trained on. On the cpu budget the
-pose steps are small and points are kept within 40 m (neld_jax.config.refine_odometry). Quality is judged
+The scans are already keyframes (the front-end chose them), so every one is trained on. On the cpu and gpu
+budgets the pose steps are small and points are kept within 40 m (neld_jax.config.refine_odometry). Quality is judged
 without ground truth: the crispness of the raw map (mean map entropy, plane thickness) before and after.
 """
 
-from neld_jax.config import apply_budget, base_config, refine_odometry
+from neld_jax.config import apply_budget, base_config, default_budget, refine_odometry
 
 
-def get_config(budget: str = "gpu"):
+def get_config(budget: str = ""):
     c = base_config()
     c.data.format = "lio_keyframes"
     c.data.keyframe_interval_s = 0.0
     c.output_dir = "outputs/lio_keyframes"
-    c = apply_budget(c, budget)
-    # The odometry is already good: small pose steps (measured on the cpu budget; see refine_odometry).
-    return refine_odometry(c) if budget == "cpu" else c
+    c = apply_budget(c, budget or default_budget("paper"))
+    # The odometry is already good: small pose steps (measured on the cpu budget; see refine_odometry). The gpu
+    # budget has the cpu budget's pose learning rates, so it gets them too.
+    return refine_odometry(c) if c.budget in ("cpu", "gpu") else c

@@ -18,7 +18,6 @@ import logging
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 
 from neld_jax.geometry import invert_poses, rotation_angles_deg
 
@@ -236,7 +235,11 @@ def associate_timestamps(stamps_est: np.ndarray, stamps_gt: np.ndarray, max_diff
 # ---------------------------------------------------------------------------------------------
 
 
-def _to_o3d(points: np.ndarray) -> o3d.geometry.PointCloud:
+def _to_o3d(points: np.ndarray):
+    """An open3d.geometry.PointCloud of points [N, 3]; open3d is imported here, so that the trajectory metrics
+    work where it is not installed (the GPU image, benchmarks/gpu_suite.py)."""
+    import open3d as o3d
+
     cloud = o3d.geometry.PointCloud()
     cloud.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
     return cloud

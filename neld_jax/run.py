@@ -35,9 +35,9 @@ from neld_jax.trajectory import propagate_corrections
 logger = logging.getLogger(__name__)
 
 # Fields that do not change what is computed; a resumed run may change them.
-_HASH_EXCLUDED = ("output_dir", "train.max_minutes", "train.log_every", "train.checkpoint_every", "mapping", "eval",
-                  "data.gt_poses_path", "data.gt_map_path", "data.gt_from_scan", "data.scan_frame",
-                  "data.gt_time_offset_s")  # ground truth only
+_HASH_EXCLUDED = ("output_dir", "budget", "train.max_minutes", "train.log_every", "train.checkpoint_every", "mapping",
+                  "eval", "data.gt_poses_path", "data.gt_map_path", "data.gt_from_scan", "data.scan_frame",
+                  "data.gt_time_offset_s")  # budget: a name (its fields are hashed); data.gt_*: ground truth only
 
 
 def config_hash(config: ml_collections.ConfigDict) -> str:
@@ -107,6 +107,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     out_dir = os.path.abspath(config.output_dir)
     os.makedirs(out_dir, exist_ok=True)
     chash = config_hash(config)
+    logger.info("budget %s (jax's default backend: %s)", config.get("budget", "?"), jax.default_backend())
     export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
 
     loaded, seq, norm = load_and_prepare(config)

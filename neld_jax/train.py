@@ -6,9 +6,10 @@ The pose of scan s is exp(poses[s]) @ T_init[s] in the normalised frame (neld_ja
 The optimiser is one optax transform over that pytree, partitioned by label: the field gets Adam with its
 own exponential decay; the poses get Adam with separate translation / rotation schedules that are exactly
 zero until the coarse-to-fine window activates frequency k* (BARF), and gauge-fixed rows are zeroed.
-The step is a single jitted function of (state, rays, T_init) with no Python branching on traced values;
-the only static argument is the sampler of the sample-count stage, so it compiles once per stage.
-`create_train_state` builds all of it (state, optimiser, schedules, step, field) from the config, in one place.
+The step is a pure function of (state, rays, T_init, sampler) with no Python branching on traced values
+(`make_step_body`); the only static argument is the sampler of the sample-count stage, so it compiles once per
+stage. `fit` runs it K = train.log_every steps per device call in a `lax.scan` (`jit_chunk`).
+`create_train_state` builds all of it (state, optimiser, schedules, step, chunk, field) from the config.
 """
 
 from __future__ import annotations
@@ -249,9 +250,15 @@ def ray_losses(out, ranges: jax.Array, loss: LossSettings) -> tuple[jax.Array, d
     return total, metrics
 
 
-def make_train_step(tx: optax.GradientTransformation, schedules: Schedules, field: DensityField, loss: LossSettings,
-                    batch_rays: int, scans_per_step: int = 0):
-    """Returns step(state, rays, T_init, sampler) -> (state, metrics), jitted with `sampler` static."""
+def make_step_body(tx: optax.GradientTransformation, schedules: Schedules, field: DensityField, loss: LossSettings,
+                   batch_rays: int, scans_per_step: int = 0) -> Callable:
+    """The pure, unjitted train step: step(state, rays, T_init, sampler) -> (state, metrics).
+
+    One Adam step on one batch of `batch_rays` rays (drawn with the state's key). metrics: a dict of float32
+    scalars (the loss terms of eq. 13, alpha, pose_grad_norm). `make_train_step` jits it, `make_train_chunk`
+    scans it; a caller that changes the loss (vmapped over submaps, say) wraps it and jits with `jit_step` /
+    `jit_chunk`, which keep the same static arguments and donation.
+    """
 
     def step(state: TrainState, rays: RayData, T_init: jax.Array, sampler: SamplerSettings):
         key, key_batch, key_render = jax.random.split(state.key, 3)
@@ -272,7 +279,45 @@ def make_train_step(tx: optax.GradientTransformation, schedules: Schedules, fiel
         new_state = TrainState(step=state.step + 1, params=params, opt_state=opt_state, key=key)
         return new_state, metrics
 
-    return jax.jit(step, static_argnames=("sampler",), donate_argnums=(0,))
+    return step
+
+
+def jit_step(step_body: Callable) -> Callable:
+    """step_body jitted: the sampler static (one compile per sample-count stage), the state donated."""
+    return jax.jit(step_body, static_argnames=("sampler",), donate_argnums=(0,))
+
+
+def jit_chunk(step_body: Callable) -> Callable:
+    """chunk(state, rays, T_init, sampler, num_steps) -> (state, metrics): `num_steps` steps in one device call.
+
+    The steps run in a `jax.lax.scan` over step_body, so the host dispatches once per chunk instead of once per
+    step (docs/design.md, "The loop"). The state after the chunk is the state after `num_steps` single steps
+    (the key travels in the state, so the batches are the same). metrics: the LAST step's values (the keys of
+    step_body's metrics; the others of the chunk are not kept), so a history logged at chunk ends holds
+    exactly what a per-step loop logged at those steps. Static: the sampler and num_steps (one compile per
+    pair); the state is donated.
+    """
+
+    def chunk(state: TrainState, rays: RayData, T_init: jax.Array, sampler: SamplerSettings, num_steps: int):
+        def body(s, _):
+            return step_body(s, rays, T_init, sampler)
+
+        state, metrics = jax.lax.scan(body, state, None, length=num_steps)  # metrics stacked: [num_steps]
+        return state, jax.tree.map(lambda m: m[-1], metrics)
+
+    return jax.jit(chunk, static_argnames=("sampler", "num_steps"), donate_argnums=(0,))
+
+
+def make_train_step(tx: optax.GradientTransformation, schedules: Schedules, field: DensityField, loss: LossSettings,
+                    batch_rays: int, scans_per_step: int = 0):
+    """Returns step(state, rays, T_init, sampler) -> (state, metrics), jitted with `sampler` static."""
+    return jit_step(make_step_body(tx, schedules, field, loss, batch_rays, scans_per_step))
+
+
+def make_train_chunk(tx: optax.GradientTransformation, schedules: Schedules, field: DensityField, loss: LossSettings,
+                     batch_rays: int, scans_per_step: int = 0):
+    """Returns chunk(state, rays, T_init, sampler, num_steps) -> (state, last step's metrics); see `jit_chunk`."""
+    return jit_chunk(make_step_body(tx, schedules, field, loss, batch_rays, scans_per_step))
 
 
 class TrainSetup(NamedTuple):
@@ -284,6 +329,7 @@ class TrainSetup(NamedTuple):
     step_fn: Callable  # step_fn(state, rays, T_init, sampler) -> (state, metrics); jitted, state donated
     field: DensityField
     sampler: Callable[[int], SamplerSettings]  # sampler(step): the sampler of the step's sample-count stage
+    chunk_fn: Callable | None = None  # chunk_fn(state, rays, T_init, sampler, num_steps): the steps fused; donated
 
 
 def create_train_state(config: ml_collections.ConfigDict, num_scans: int, scale: float) -> TrainSetup:
@@ -298,13 +344,13 @@ def create_train_state(config: ml_collections.ConfigDict, num_scans: int, scale:
     field_params = field.init(key_init, jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]
     params = {"field": field_params, "poses": jnp.zeros((num_scans, 6), jnp.float32)}
     state = TrainState(step=jnp.zeros([], jnp.int32), params=params, opt_state=tx.init(params), key=key_state)
-    step_fn = make_train_step(tx, schedules, field, LossSettings.from_config(config.loss),
-                              int(config.train.batch_rays), int(config.train.get("scans_per_step", 0)))
+    body = make_step_body(tx, schedules, field, LossSettings.from_config(config.loss), int(config.train.batch_rays),
+                          int(config.train.get("scans_per_step", 0)))
 
     def sampler(step: int) -> SamplerSettings:
         return sampler_settings(config, scale, *schedules.samples(step))
 
-    return TrainSetup(state, tx, schedules, step_fn, field, sampler)
+    return TrainSetup(state, tx, schedules, jit_step(body), field, sampler, jit_chunk(body))
 
 
 def initial_state(config: ml_collections.ConfigDict, num_scans: int, scale: float) -> TrainState:
@@ -328,15 +374,42 @@ def pose_start_message(config: ml_collections.ConfigDict, schedules: Schedules) 
     return f"step {step}: frequency {k_star} active, poses start moving"
 
 
+@jax.jit
+def _correction_translations(poses: jax.Array) -> jax.Array:
+    """[S, 6] -> [S, 3] translations of exp(xi); one device call (eager, its ops cost ~17 ms a log on a CPU)."""
+    return lie.se3_exp(poses)[:, :3, 3]
+
+
 def pose_correction_stats(poses: np.ndarray, scale: float) -> tuple[float, float]:
     """Mean translation (metres) and rotation (degrees) of the corrections exp(xi), xi = poses [S, 6] (rho, omega).
 
     The translation of exp(xi) is V(omega) rho, not rho; `scale` converts normalised units to metres.
     """
-    T = np.asarray(lie.se3_exp(jnp.asarray(poses)), np.float64)
-    trans_m = float(np.linalg.norm(T[:, :3, 3], axis=1).mean() / scale)
+    translations = np.asarray(_correction_translations(jnp.asarray(poses)), np.float64)
+    trans_m = float(np.linalg.norm(translations, axis=1).mean() / scale)
     rot_deg = float(np.degrees(np.linalg.norm(np.asarray(poses)[:, 3:], axis=1)).mean())
     return trans_m, rot_deg
+
+
+def chunk_bounds(start: int, total: int, log_every: int, checkpoint_every: int, schedules: Schedules) -> list:
+    """The (begin, end) step ranges that `fit` runs as one device call each, from `start` to `total`.
+
+    A chunk ends at the next multiple of log_every (K = log_every steps a call) and never straddles a
+    sample-count stage start (the sampler is static per chunk), the pose start step (it is logged before its
+    chunk), a multiple of checkpoint_every (checkpoints are written between chunks) or `total`. The ends are
+    absolute step counts, so a run resumed at a checkpoint cuts the same chunks as an uninterrupted one.
+    """
+    log_every = max(int(log_every), 1)
+    cuts = {*schedules.stage_starts, schedules.pose_start_step, total}
+    bounds, begin = [], start
+    while begin < total:
+        end = (begin // log_every + 1) * log_every
+        if checkpoint_every > 0:
+            end = min(end, (begin // checkpoint_every + 1) * checkpoint_every)
+        end = min([end, *(c for c in cuts if c > begin)])
+        bounds.append((begin, end))
+        begin = end
+    return bounds
 
 
 def fit(
@@ -354,6 +427,9 @@ def fit(
 
     rays: all training rays on the device; T_init: [S, 4, 4] initial poses, normalised frame; scale: the
     normalisation scale (metres -> normalised), used for the sampler and for the logs in metres.
+    The steps run in chunks of up to config.train.log_every steps, one device call each (`chunk_bounds`,
+    `jit_chunk`); the history gets the last step of each chunk that ends on a multiple of log_every (and the
+    last step), the progress bar and the train.max_minutes guard move at chunk ends.
     checkpoint_fn(state, history, train_seconds) is called every config.train.checkpoint_every steps and at
     the end. A resumed run passes the restored state with the history and elapsed_s saved with it, so that
     the history and the logged elapsed_s continue (train.max_minutes counts this call only).
@@ -361,7 +437,7 @@ def fit(
     from tqdm.auto import tqdm  # an effect at the edge; the step itself is pure
 
     setup = create_train_state(config, int(T_init.shape[0]), scale)
-    schedules, step_fn = setup.schedules, setup.step_fn
+    schedules, chunk_fn = setup.schedules, setup.chunk_fn
     if state is None:
         state = setup.state
 
@@ -379,18 +455,17 @@ def fit(
 
     current_stage = None
     bar = tqdm(total=total, initial=start, disable=not progress, unit="step", dynamic_ncols=True)
-    for step in range(start, total):
-        stage = schedules.stage(step)
+    for begin, done in chunk_bounds(start, total, log_every, ckpt_every, schedules):
+        stage = schedules.stage(begin)
         if stage != current_stage:
             current_stage = stage
-            sampler = setup.sampler(step)
+            sampler = setup.sampler(begin)
             logger.info("step %d: stage %d, %d coarse + %d fine (+%d guided) samples per ray, %d rays per step",
-                        step, stage, sampler.num_coarse, sampler.num_fine, sampler.guided_samples,
+                        begin, stage, sampler.num_coarse, sampler.num_fine, sampler.guided_samples,
                         config.train.batch_rays)
-        if step == schedules.pose_start_step and step > 0:
+        if begin == schedules.pose_start_step and begin > 0:
             logger.info(pose_start_message(config, schedules))
-        state, metrics = step_fn(state, rays, T_init, sampler)
-        done = step + 1
+        state, metrics = chunk_fn(state, rays, T_init, sampler, num_steps=done - begin)
         if done % log_every == 0 or done == total:
             m = {k: float(v) for k, v in jax.device_get(metrics).items()}
             m["step"] = done
@@ -402,7 +477,7 @@ def fit(
                 raise FloatingPointError(f"loss is {m['loss']} at step {done}; lower the learning rates")
             bar.set_postfix(loss=f"{m['loss']:.4f}", range_err=f"{m['range_err_m']:.3f}m", freq=f"{m['alpha']:.1f}",
                             dpose=f"{100 * m['pose_trans_mean_m']:.1f}cm/{m['pose_rot_mean_deg']:.2f}deg", refresh=False)
-        bar.update(1)
+        bar.update(done - begin)
         if checkpoint_fn is not None and ckpt_every > 0 and done % ckpt_every == 0 and done != total:
             checkpoint_fn(state, history, train_seconds())
         if max_seconds > 0 and time.perf_counter() - t0 > max_seconds and done != total:

@@ -5,6 +5,7 @@ No timing assertions: only that the benchmark runs, reports what it promises, an
 
 import importlib.util
 import json
+import math
 import os
 import subprocess
 import sys
@@ -63,8 +64,10 @@ def test_preset_fills_the_flags_and_a_given_flag_wins():
     config, sizes = bench.preset_sizes("cpu")
     assert (sizes["rays"], sizes["coarse"], sizes["guided"], sizes["fine"]) == (512, 32, 16, 16)
     assert (sizes["width"], sizes["depth"], sizes["pos_freqs"]) == (128, 4, 10)
-    _, gpu = bench.preset_sizes("gpu", stage=2)
-    assert (gpu["width"], gpu["depth"], gpu["coarse"], gpu["fine"]) == (512, 8, 64, 32)
+    _, paper = bench.preset_sizes("paper", stage=2)
+    assert (paper["width"], paper["depth"], paper["coarse"], paper["fine"]) == (512, 8, 64, 32)
+    gpu_config, gpu = bench.preset_sizes("gpu")
+    assert gpu == sizes and gpu_config.train.steps == 30_000  # the gpu budget: the cpu recipe, run longer
     configured = bench.configure(config, dict(sizes, depth=2, coarse=8), train_steps=5)
     assert configured.model.skip_layers == ()  # layer 2 is dropped at depth 2
     assert configured.sampling.coarse_stages == (8,) and configured.train.steps == 5
@@ -128,3 +131,28 @@ def test_step_runner_starts_from_the_trainers_state():
             assert jnp.array_equal(a, b)
     assert runner.state.params["field"]["hidden_0"]["kernel"].shape[1] == 8
     runner.run(1)
+
+
+def test_fit_mode_times_fit_and_the_bare_step_alternately():
+    config, sizes = bench.preset_sizes("cpu")
+    sizes = dict(sizes, rays=16, coarse=4, guided=0, fine=2, width=8, depth=1)
+    record = bench.benchmark_fit(config, sizes, steps=2, repeats=1, log_every=2, num_scans=2, rays_per_scan=64)
+    assert record["benchmark"] == "fit" and len(record["rounds"]) == 1
+    r = record["rounds"][0]
+    assert record["config"]["fit_steps"] == 4 and record["config"]["timed_steps"] == 2  # first chunk not timed
+    assert r["ratio"] == pytest.approx(r["fit_steps_per_s"] / r["step_steps_per_s"]) and r["ratio"] > 0
+    assert r["cpu_ratio"] == pytest.approx(r["step_cpu_ms_per_step"] / r["fit_cpu_ms_per_step"]) and r["cpu_ratio"] > 0
+    assert math.isfinite(r["fit_final_loss"])
+
+
+def test_gpu_suite_extrapolates_the_schedule_stage_by_stage():
+    sys.modules.setdefault("train_step", bench)  # the suite imports it by name; its flags are defined once
+    spec = importlib.util.spec_from_file_location("gpu_suite", ROOT / "benchmarks" / "gpu_suite.py")
+    suite = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(suite)
+    out = suite.extrapolate_schedule((0, 60_000, 120_000), 160_000, [300.0, 200.0, 100.0])
+    assert out["stage_steps"] == [60_000, 60_000, 40_000]
+    assert out["total_s"] == pytest.approx(200 + 300 + 400)
+    assert out["mean_steps_per_s"] == pytest.approx(160_000 / 900)
+    with pytest.raises(FileNotFoundError, match="--prepare"):
+        suite.load_demo(str(ROOT / "no_such_demo.npz"))

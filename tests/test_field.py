@@ -116,6 +116,8 @@ def test_surrogate_flag_changes_only_the_backward_pass():
 def test_unknown_activation_is_rejected():
     with pytest.raises(ValueError, match="density_activation"):
         DensityField(width=8, depth=1, density_activation="tanh").init(jax.random.key(0), *_inputs(2))
+    with pytest.raises(ValueError, match="matmul_dtype"):
+        DensityField(width=8, depth=1, matmul_dtype="float16").init(jax.random.key(0), *_inputs(2))
 
 
 def test_field_from_config_sets_every_architecture_field():
@@ -134,7 +136,7 @@ def test_field_from_config_sets_every_architecture_field():
     assert default == DensityField(), [o for o in options if getattr(default, o) != getattr(DensityField(), o)]
     # ... and a changed config value changes the module.
     changed = dict(width=8, depth=2, skip_layers=[1], pos_freqs=3, dir_freqs=1, surrogate_gradient=False,
-                   use_view_dirs=False, density_activation="relu", initial_density=0.5)
+                   use_view_dirs=False, density_activation="relu", initial_density=0.5, matmul_dtype="bfloat16")
     assert {names.get(o, o) for o in options} == set(changed)
     model.update(changed)
     field = field_from_config(model)

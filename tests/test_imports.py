@@ -10,7 +10,7 @@ class Block(importlib.abc.MetaPathFinder):
         if name.split(".")[0] in ("open3d", "scipy", "matplotlib"):
             raise ImportError("blocked " + name)
 sys.meta_path.insert(0, Block())
-import neld_jax.train, neld_jax.model, neld_jax.mapping, neld_jax.checkpoint
+import neld_jax.train, neld_jax.model, neld_jax.mapping, neld_jax.checkpoint, neld_jax.metrics
 bad = [m for m in sys.modules if m.split(".")[0] in ("open3d", "scipy", "matplotlib") or m.startswith("neld_jax.data")]
 assert not bad, bad
 print("ok")

@@ -1,5 +1,6 @@
 """The jitted train step: pose freezing before k*, the gauge, compiles per stage, schedules."""
 
+import functools
 import os
 
 import jax
@@ -93,15 +94,21 @@ def test_fit_and_initial_state_start_from_the_builders_state():
     assert train.LossSettings.from_config(config.loss) == train.LossSettings()  # the config's defaults
 
 
-def test_field_learns_ranges():
-    """A few hundred steps on the sphere scene bring the range error well below its initial value."""
+@functools.lru_cache(maxsize=None)
+def _sphere_fit():
+    """(config, rays, T_init, FitResult) of a field-only fit on the sphere scene, shared by two tests."""
     config = make_tiny_config(steps=300)
     config.model.width, config.model.depth = 32, 2
     config.train.batch_rays = 128
     config.train.field_lr_init, config.train.field_lr_final = 5e-3, 1e-3
     config.train.fixed_scans = (0, 1, 2)  # field only
     rays, T_init = _random_rays()
-    result = train.fit(config, rays, T_init, scale=1.0, progress=False)
+    return config, rays, T_init, train.fit(config, rays, T_init, scale=1.0, progress=False)
+
+
+def test_field_learns_ranges():
+    """A few hundred steps on the sphere scene bring the range error well below its initial value."""
+    _, _, _, result = _sphere_fit()
     first, last = result.history[0]["range_l1_fine"], result.history[-1]["range_l1_fine"]
     assert last < 0.5 * first, (first, last)
     assert np.all(np.asarray(result.state.params["poses"]) == 0.0)
@@ -195,3 +202,72 @@ def test_per_scan_batches_draw_whole_groups_of_one_scan():
     assert len(np.unique(scan_index[uniform])) > 1
     with pytest.raises(ValueError, match="grouped by scan"):
         train.device_rays(RaySet(rayset.directions[:3], rayset.ranges[:3], np.array([1, 0, 1], np.int32)))
+
+
+def test_chunks_end_at_log_steps_and_never_straddle_stages_pose_start_or_checkpoints():
+    config = make_tiny_config(steps=20)  # stages start at steps 0 and 10; poses start at step 8
+    schedules = train.make_schedules(config)
+    assert schedules.stage_starts == (0, 10) and schedules.pose_start_step == 8
+    bounds = train.chunk_bounds(0, 20, 4, 6, schedules)  # log every 4, checkpoint every 6
+    assert bounds == [(0, 4), (4, 6), (6, 8), (8, 10), (10, 12), (12, 16), (16, 18), (18, 20)]
+    assert train.chunk_bounds(0, 20, 100, 0, schedules) == [(0, 8), (8, 10), (10, 20)]
+    # A run resumed at a checkpoint cuts the same chunks from there on.
+    assert train.chunk_bounds(12, 20, 4, 6, schedules) == bounds[-3:]
+    assert train.chunk_bounds(20, 20, 4, 6, schedules) == []
+
+
+def test_fit_in_chunks_equals_single_steps():
+    """fit's fused loop (chunks of K = log_every steps, one lax.scan each) reaches the state of the jitted step
+    called once per step, bit for bit on XLA:CPU, and logs that step's metrics at the chunk ends."""
+    config = make_tiny_config(steps=10)
+    config.sampling.coarse_stages, config.sampling.fine_stages = (8,), (4,)  # one stage, poses move from step
+    config.train.pose_start_freq = 0  # 0 on, no checkpoints: every chunk is 5 steps, one compile
+    config.train.checkpoint_every, config.train.log_every = 0, 5
+    rays, T_init = _random_rays()
+    fitted = train.fit(config, rays, T_init, scale=1.0, progress=False)
+    assert [h["step"] for h in fitted.history] == [5, 10]
+    setup = train.create_train_state(config, 3, 1.0)
+    state, losses = setup.state, []
+    for step in range(10):
+        state, metrics = setup.step_fn(state, rays, T_init, setup.sampler(step))
+        losses.append(float(metrics["loss"]))
+    assert int(fitted.state.step) == int(state.step) == 10
+    assert np.abs(np.asarray(state.params["poses"])).max() > 0  # the poses moved inside the chunks too
+    # Bit-identical on XLA:CPU (measured); a backend that fuses the loop body differently may round differently.
+    _assert_trees_equal((fitted.state.params, fitted.state.opt_state), (state.params, state.opt_state))
+    np.testing.assert_array_equal(jax.random.key_data(fitted.state.key), jax.random.key_data(state.key))
+    assert [h["loss"] for h in fitted.history] == [losses[4], losses[9]]  # the last step of each chunk
+    assert set(fitted.history[0]) >= set(metrics) | {"step", "range_err_m", "pose_trans_mean_m", "elapsed_s"}
+
+
+def test_bfloat16_matmuls_render_depth_close_to_float32_and_give_gradients():
+    """model.matmul_dtype=bfloat16 on the trained sphere field (float32 parameters): rendered depths within ~1%
+    of float32's, and finite parameter gradients through the bfloat16 matmuls (the training path)."""
+    from neld_jax.model import render_rays, scan_poses, world_rays
+
+    config, rays, T_init, result = _sphere_fit()
+    params = result.state.params
+    field32 = train.make_field(config)
+    field16 = field32.clone(matmul_dtype="bfloat16")
+    assert field32.matmul_dtype == "float32"
+    sampler = train.sampler_settings(config, 1.0, 16, 8)
+    T = scan_poses(params["poses"], T_init)[rays.scan_index]
+    origins, directions = world_rays(T, rays.directions)
+    ranges = np.asarray(rays.ranges)
+
+    def depth_loss(field_params, field):
+        depth = render_rays(field_params, field, sampler, origins, directions, jnp.asarray(8.0)).fine.depth
+        return jnp.mean(jnp.abs(depth - rays.ranges)), depth
+
+    depth32 = np.asarray(jax.jit(lambda p: depth_loss(p, field32)[1])(params["field"]))
+    (_, depth16), grads = jax.jit(jax.value_and_grad(lambda p: depth_loss(p, field16), has_aux=True))(params["field"])
+    depth16 = np.asarray(depth16)
+    difference = np.abs(depth16 - depth32)
+    assert np.median(difference) < 0.01 * np.median(ranges), np.median(difference)
+    assert difference.max() > 0  # the two really ran different matmuls
+    assert np.median(np.abs(depth16 - ranges)) < 1.5 * np.median(np.abs(depth32 - ranges)) + 1e-3
+    leaves = jax.tree.leaves(grads)
+    assert all(g.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(g))) for g in leaves)
+    assert max(float(jnp.abs(g).max()) for g in leaves) > 0
+    lowered = jax.jit(lambda p: depth_loss(p, field16)[1]).lower(params["field"]).as_text()
+    assert "xbf16>" in lowered  # bfloat16 operands

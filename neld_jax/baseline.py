@@ -10,8 +10,9 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
 2. a pose graph on the chain's poses: one edge per consecutive pair (the chain's relative pose), and
    loop-closure edges between scans at least `window` apart that lie within `loop_radius_m` IN THE CHAIN'S
    FRAME (candidates found in a drifted frame are wrong or far off), each registered by the same multi-scale
-   ICP and kept only when its fitness (overlap fraction) reaches `min_loop_fitness`; loop edges are
-   "uncertain", so the line process may prune them;
+   ICP and kept only when its fitness (overlap fraction) reaches `min_loop_fitness` and it moves the scan by at
+   most `max_loop_correction_m` from where the chain puts it; loop edges are "uncertain", so the line process
+   may prune them;
 3. Levenberg-Marquardt `global_optimization`, scan 0 held fixed.
 
 Information matrices come from `get_information_matrix_from_point_clouds`. Open3D pose-graph convention: node s
@@ -56,6 +57,9 @@ class BaselineSettings:
     loop_radius_m: float = 10.0  # loop-closure candidates: scans closer than this in the chain's frame
     max_loops_per_scan: int = 4  # the nearest candidates only: dense trajectories give thousands of pairs
     min_loop_fitness: float = 0.3  # loop closures that overlap less are not added
+    # Loop closures whose ICP result moves scan i more than this from where the chain puts it (relative to j) are
+    # not added: in corridors ICP slides along the free axis and still overlaps well (docs/evaluation.md).
+    max_loop_correction_m: float = 0.2
     information_distance_m: float = 0.25  # correspondence distance of the information matrices and the pruning
     edge_prune_threshold: float = 0.25
 
@@ -162,7 +166,8 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
     for i, j in loop_pairs:
         guess = np.linalg.inv(chain_poses[j]) @ chain_poses[i]
         transform, result = multiscale_icp(clouds[i], clouds[j], guess, settings)
-        if result.fitness < settings.min_loop_fitness:
+        correction_m = np.linalg.norm((np.linalg.inv(guess) @ transform)[:3, 3])
+        if result.fitness < settings.min_loop_fitness or correction_m > settings.max_loop_correction_m:
             continue
         graph.edges.append(_reg.PoseGraphEdge(i, j, transform, _information(clouds[i], clouds[j], transform, settings),
                                               uncertain=True))
@@ -198,8 +203,9 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
         t1 = time.perf_counter()
         optimized, kept, tried = loop_closed_graph(clouds, chain, settings)
     logger.info("baseline: scan-to-map chain of %d scans in %.1f s (median overlap %.0f%%); pose graph with %d of "
-                "%d loop-closure candidates (overlap >= %.0f%%) in %.1f s", len(scans), t1 - t0,
-                100 * np.median(fitness[1:]), kept, tried, 100 * settings.min_loop_fitness, time.perf_counter() - t1)
+                "%d loop-closure candidates (overlap >= %.0f%%, correction <= %.2g m) in %.1f s", len(scans), t1 - t0,
+                100 * np.median(fitness[1:]), kept, tried, 100 * settings.min_loop_fitness,
+                settings.max_loop_correction_m, time.perf_counter() - t1)
     # Re-anchor exactly on scan 0 (the gauge), whatever the optimiser did with the reference node.
     optimized = init_poses[0] @ np.linalg.inv(optimized[0]) @ optimized
     # Remove the round-off that the optimiser leaves in the rotation blocks.

@@ -154,6 +154,7 @@ def base_config() -> ml_collections.ConfigDict:
     c.baseline.loop_radius_m = 10.0  # loop-closure candidates, in the chain's frame
     c.baseline.max_loops_per_scan = 4
     c.baseline.min_loop_fitness = 0.3
+    c.baseline.max_loop_correction_m = 0.2  # loop closures that move a scan further from the chain are dropped
 
     c.eval = ml_collections.ConfigDict()
     c.eval.f1_threshold_m = 0.2

@@ -85,8 +85,9 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> tuple[np.ndarray, 
     """The keyframe poses [K, 4, 4] training starts from (train.init_poses), and the seconds the baseline took
     (None when training starts from the input).
 
-    "input": the loaded poses (odometry). "baseline": the classical baseline's (Open3D scan-to-map ICP + loop-closed pose graph, config.baseline) run
-    from them first, for starts that drifted further than the field's basin of convergence."""
+    "input": the loaded poses (odometry). "baseline": the classical baseline's (Open3D scan-to-map ICP +
+    loop-closed pose graph, config.baseline) run from them first, for starts that drifted further than the
+    field's basin of convergence."""
     how = str(config.train.init_poses).lower()
     if how == "input":
         return seq.poses, None
@@ -99,6 +100,42 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> tuple[np.ndarray, 
     seconds = time.perf_counter() - t0
     logger.info("train.init_poses=baseline: the classical baseline took %.1f s; training starts from its poses", seconds)
     return poses, seconds
+
+
+def train_single_cube(config: ml_collections.ConfigDict, seq, norm, raysets, T_start: np.ndarray, out_dir: str,
+                      chash: str, progress: bool):
+    """Train one field over the whole sequence (resuming from out_dir's checkpoints), the paper's setting.
+
+    T_start: [K, 4, 4] world poses training starts from. Returns (FitResult, T_field_n [K, 4, 4] the poses in the
+    field's normalised frame, G_n [4, 4] the anchoring transform of train.anchor_scan)."""
+    rays = train.device_rays(raysets)
+    T_init = jnp.asarray(norm.poses_to_normalized(T_start), jnp.float32)
+
+    # Resume from the latest checkpoint of this output_dir, if any, with its history and training seconds; a
+    # checkpoint of other data (scan count, normalisation) is an error rather than a resume in another frame.
+    ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"))
+    metadata = {"config_hash": chash, "normalization": norm.to_dict(), "num_scans": seq.num_scans}
+    state, history, elapsed_s = None, [], 0.0
+    if ckpt.latest_step() is not None:
+        state, saved = ckpt.restore(train.initial_state(config, seq.num_scans, norm.scale),
+                                    expected_config_hash=chash, expected_data=metadata)
+        history, elapsed_s = list(saved.get("history", [])), float(saved.get("train_seconds", 0.0))
+
+    def save(s, history, seconds):
+        ckpt.save(s, {**metadata, "history": export.to_jsonable(history), "train_seconds": seconds})
+
+    result = train.fit(config, rays, T_init, norm.scale, state=state, checkpoint_fn=save, progress=progress,
+                       history=history, elapsed_s=elapsed_s)
+    ckpt.close()
+
+    # Poses in the field's frame (what the field renders with), then anchored (train.anchor_scan) so that the
+    # anchor scan keeps its initial pose, then back in the input's world frame and scale.
+    T_field_n = np.asarray(scan_poses(result.state.params["poses"], T_init), np.float64)
+    G_n = np.eye(4)
+    if config.train.anchor_scan >= 0:
+        G_n = np.asarray(anchor_transform(T_field_n, np.asarray(T_init, np.float64),
+                                          int(config.train.anchor_scan)))
+    return result, T_field_n, G_n
 
 
 def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
@@ -124,35 +161,8 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         train_seconds = result.train_seconds
         T_opt = trained.G @ trained.T_field
     else:
-        rays = train.device_rays(raysets)
-        T_init = jnp.asarray(norm.poses_to_normalized(T_start), jnp.float32)
-
-        # Resume from the latest checkpoint of this output_dir, if any, with its history and training seconds; a
-        # checkpoint of other data (scan count, normalisation) is an error rather than a resume in another frame.
-        ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"))
-        metadata = {"config_hash": chash, "normalization": norm.to_dict(), "num_scans": seq.num_scans}
-        state, history, elapsed_s = None, [], 0.0
-        if ckpt.latest_step() is not None:
-            state, saved = ckpt.restore(train.initial_state(config, seq.num_scans, norm.scale),
-                                        expected_config_hash=chash, expected_data=metadata)
-            history, elapsed_s = list(saved.get("history", [])), float(saved.get("train_seconds", 0.0))
-
-        def save(s, history, seconds):
-            ckpt.save(s, {**metadata, "history": export.to_jsonable(history), "train_seconds": seconds})
-
-        result = train.fit(config, rays, T_init, norm.scale, state=state, checkpoint_fn=save, progress=progress,
-                           history=history, elapsed_s=elapsed_s)
-        train_seconds = result.train_seconds
-        ckpt.close()
-        state = result.state
-
-        # Poses in the field's frame (what the field renders with), then anchored (train.anchor_scan) so that the
-        # anchor scan keeps its initial pose, then back in the input's world frame and scale.
-        T_field_n = np.asarray(scan_poses(state.params["poses"], T_init), np.float64)
-        G_n = np.eye(4)
-        if config.train.anchor_scan >= 0:
-            G_n = np.asarray(anchor_transform(T_field_n, np.asarray(T_init, np.float64),
-                                              int(config.train.anchor_scan)))
+        result, T_field_n, G_n = train_single_cube(config, seq, norm, raysets, T_start, out_dir, chash, progress)
+        state, train_seconds = result.state, result.train_seconds
         T_opt = norm.poses_to_world(G_n @ T_field_n)  # keyframes
 
     # Every input scan gets a pose: keyframes their own, the others their keyframes' interpolated correction.

@@ -3,8 +3,6 @@
 import logging
 import re
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation

@@ -46,6 +46,14 @@ def rotation_angles_deg(rotations: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(sin2, trace - 1.0))
 
 
+def moved_enough(last: np.ndarray, pose: np.ndarray, distance_m: float, angle_deg: float) -> bool:
+    """The spatial keyframe rule: pose [4, 4] lies at least distance_m from last [4, 4], or has turned at least
+    angle_deg from it. A rule whose threshold is <= 0 is off (both off: False)."""
+    relative = invert_poses(last) @ pose
+    return bool((distance_m > 0 and np.linalg.norm(relative[:3, 3]) >= distance_m)
+                or (angle_deg > 0 and rotation_angles_deg(relative[:3, :3]) >= angle_deg))
+
+
 def register_scans(scans: list[np.ndarray], poses: np.ndarray) -> np.ndarray:
     """Transform each scan into the world frame and stack them: the raw map.
 

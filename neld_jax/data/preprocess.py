@@ -13,7 +13,7 @@ import open3d as o3d
 
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
-from neld_jax.geometry import invert_poses, rotation_angles_deg
+from neld_jax.geometry import moved_enough
 
 logger = logging.getLogger(__name__)
 
@@ -45,9 +45,8 @@ def select_keyframes(
         # Small slack so that scans exactly interval_s apart (up to float rounding) are kept.
         keep = use_time and timestamps[i] - timestamps[last] >= interval_s - 1e-6
         if (use_distance or use_angle) and not keep:
-            relative = invert_poses(poses[last]) @ poses[i]
-            keep = (use_distance and np.linalg.norm(relative[:3, 3]) >= distance_m) or (
-                use_angle and rotation_angles_deg(relative[:3, :3]) >= angle_deg)
+            keep = moved_enough(poses[last], poses[i], distance_m if use_distance else 0.0,
+                                angle_deg if use_angle else 0.0)
         if keep:
             kept.append(i)
     return np.asarray(kept, dtype=np.int64)

@@ -46,8 +46,9 @@ import numpy as np
 
 from neld_jax.data.poses import make_poses, write_tum
 from neld_jax.data.scans import drop_invalid_points, write_scan
+from neld_jax.data.sequence import nearest_times
 from neld_jax.errors import DataError
-from neld_jax.geometry import invert_poses, rotation_angles_deg
+from neld_jax.geometry import moved_enough
 
 logger = logging.getLogger(__name__)
 
@@ -111,20 +112,11 @@ def pose_matrix(msg, msgtype: str) -> np.ndarray:
 
 
 def nearest_within(times: np.ndarray, query: float, tol: float) -> int | None:
-    """Index of the time in sorted `times` [P] nearest to `query`, or None when none is within `tol` seconds."""
+    """Index of the time in `times` [P] nearest to `query`, or None when none is within `tol` seconds."""
     if times.size == 0:
         return None
-    right = int(np.searchsorted(times, query))
-    candidates = [i for i in (right - 1, right) if 0 <= i < times.size]
-    best = min(candidates, key=lambda i: abs(times[i] - query))
-    return best if abs(times[best] - query) <= tol else None
-
-
-def moved_enough(last: np.ndarray, pose: np.ndarray, distance_m: float, angle_deg: float) -> bool:
-    """The spatial keyframe rule of preprocess.select_keyframes between two 4x4 poses (<= 0 turns a rule off)."""
-    relative = invert_poses(last) @ pose
-    return bool((distance_m > 0 and np.linalg.norm(relative[:3, 3]) >= distance_m)
-                or (angle_deg > 0 and rotation_angles_deg(relative[:3, :3]) >= angle_deg))
+    index, gap = nearest_times(np.array([query]), times)
+    return int(index[0]) if gap[0] <= tol else None
 
 
 # --------------------------------------------------------------------------------------------------

@@ -103,6 +103,24 @@ class Sequence:
         return int(sum(scan.shape[0] for scan in self.scans))
 
 
+def nearest_times(query_times: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each query time, the index of the nearest of `times` (any order; the earlier one on a tie) and the gap.
+
+    query_times: [Q], times: [P] with P >= 1 -> (indices [Q] int64 into times, |gaps| [Q] seconds)."""
+    query_times = np.asarray(query_times, dtype=np.float64).reshape(-1)
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    order = np.argsort(times, kind="stable")
+    sorted_times = times[order]
+    right = np.clip(np.searchsorted(sorted_times, query_times), 1, max(len(sorted_times) - 1, 1))
+    left = right - 1
+    if len(sorted_times) == 1:
+        nearest = np.zeros_like(right)
+    else:
+        pick_right = np.abs(sorted_times[right] - query_times) < np.abs(sorted_times[left] - query_times)
+        nearest = np.where(pick_right, right, left)
+    return order[nearest], np.abs(sorted_times[nearest] - query_times)
+
+
 def match_by_timestamp(
     scan_times: np.ndarray, pose_times: np.ndarray, tol: float = 0.05, what: str = "poses",
     scan_labels: list[str] | None = None,
@@ -116,16 +134,7 @@ def match_by_timestamp(
     pose_times = np.asarray(pose_times, dtype=np.float64).reshape(-1)
     if pose_times.size == 0:
         raise DataError(f"{what}: no pose timestamps to match {scan_times.size} scans against")
-    order = np.argsort(pose_times, kind="stable")
-    sorted_times = pose_times[order]
-    right = np.clip(np.searchsorted(sorted_times, scan_times), 1, max(len(sorted_times) - 1, 1))
-    left = right - 1
-    if len(sorted_times) == 1:
-        nearest = np.zeros_like(right)
-    else:
-        pick_right = np.abs(sorted_times[right] - scan_times) < np.abs(sorted_times[left] - scan_times)
-        nearest = np.where(pick_right, right, left)
-    gaps = np.abs(sorted_times[nearest] - scan_times)
+    nearest, gaps = nearest_times(scan_times, pose_times)
     unmatched = np.flatnonzero(gaps > tol)
     if unmatched.size:
         i = int(unmatched[0])
@@ -135,7 +144,7 @@ def match_by_timestamp(
             f"(first: {first} at t={scan_times[i]:.6f}, nearest pose {gaps[i]:.6f} s away); "
             f"{pose_times.size} poses for {scan_times.size} scans"
         )
-    return order[nearest]
+    return nearest
 
 
 # A step is a jump when it is JUMP_FACTOR times the 90th-percentile step, and at least MIN_JUMP_M.

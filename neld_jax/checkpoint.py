@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
+from typing import Any, Callable
 
 import jax
 import numpy as np
@@ -87,3 +88,29 @@ class Checkpointer:
 
     def close(self) -> None:
         self._manager.close()
+
+
+def fit_resuming(directory: str, metadata: dict, template_state: Callable[[], Any], fit_fn: Callable):
+    """Run fit_fn from the latest checkpoint under `directory` (or from scratch), checkpointing as it goes.
+
+    metadata: what every checkpoint records and a resume must match (its "config_hash" and the data's shape:
+    normalisation, scan count, ...); a checkpoint of other data is an error rather than a resume in another
+    frame. template_state(): the state a checkpoint restores into (built only when there is one).
+    fit_fn(state=, checkpoint_fn=, history=, elapsed_s=) -> its result (train.fit or submap_train.fit_submaps),
+    given the restored state with the history and training seconds saved with it, or None, [] and 0.
+    """
+    from neld_jax.export import to_jsonable
+
+    ckpt = Checkpointer(directory)
+    state, history, elapsed_s = None, [], 0.0
+    if ckpt.latest_step() is not None:
+        state, saved = ckpt.restore(template_state(), expected_config_hash=metadata["config_hash"],
+                                    expected_data=metadata)
+        history, elapsed_s = list(saved.get("history", [])), float(saved.get("train_seconds", 0.0))
+
+    def save(s, history, seconds):
+        ckpt.save(s, {**metadata, "history": to_jsonable(history), "train_seconds": seconds})
+
+    result = fit_fn(state=state, checkpoint_fn=save, history=history, elapsed_s=elapsed_s)
+    ckpt.close()
+    return result

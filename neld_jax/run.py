@@ -10,6 +10,7 @@ evaluation), history.json, scans_report.csv/.png, map_topdown.png, checkpoints/ 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -22,7 +23,7 @@ import ml_collections
 import numpy as np
 
 from neld_jax import export, quality, report, submap_run, submaps, train
-from neld_jax.checkpoint import Checkpointer
+from neld_jax.checkpoint import fit_resuming
 from neld_jax.errors import ConfigError
 from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.preprocess import load_preprocessed, voxel_downsample
@@ -111,22 +112,11 @@ def train_single_cube(config: ml_collections.ConfigDict, seq, norm, raysets, T_s
     rays = train.device_rays(raysets)
     T_init = jnp.asarray(norm.poses_to_normalized(T_start), jnp.float32)
 
-    # Resume from the latest checkpoint of this output_dir, if any, with its history and training seconds; a
-    # checkpoint of other data (scan count, normalisation) is an error rather than a resume in another frame.
-    ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"))
+    # Resume from the latest checkpoint of this output_dir, if any, with its history and training seconds.
     metadata = {"config_hash": chash, "normalization": norm.to_dict(), "num_scans": seq.num_scans}
-    state, history, elapsed_s = None, [], 0.0
-    if ckpt.latest_step() is not None:
-        state, saved = ckpt.restore(train.initial_state(config, seq.num_scans, norm.scale),
-                                    expected_config_hash=chash, expected_data=metadata)
-        history, elapsed_s = list(saved.get("history", [])), float(saved.get("train_seconds", 0.0))
-
-    def save(s, history, seconds):
-        ckpt.save(s, {**metadata, "history": export.to_jsonable(history), "train_seconds": seconds})
-
-    result = train.fit(config, rays, T_init, norm.scale, state=state, checkpoint_fn=save, progress=progress,
-                       history=history, elapsed_s=elapsed_s)
-    ckpt.close()
+    result = fit_resuming(os.path.join(out_dir, "checkpoints"), metadata,
+                          lambda: train.initial_state(config, seq.num_scans, norm.scale),
+                          functools.partial(train.fit, config, rays, T_init, norm.scale, progress=progress))
 
     # Poses in the field's frame (what the field renders with), then anchored (train.anchor_scan) so that the
     # anchor scan keeps its initial pose, then back in the input's world frame and scale.

@@ -6,6 +6,7 @@ stitched from the submaps. The outputs are the single cube's: one pose per keyfr
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import os
 from typing import NamedTuple
@@ -14,7 +15,7 @@ import jax
 import numpy as np
 
 from neld_jax import export, submap_train, submaps, train
-from neld_jax.checkpoint import Checkpointer
+from neld_jax.checkpoint import fit_resuming
 from neld_jax.data.normalize import Normalization
 from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.data.rays import build_rays
@@ -56,20 +57,11 @@ def train_submaps(config, seq, norm: Normalization, T_start: np.ndarray, plan: s
     rays = submap_train.place(rays, submap_train.data_sharding(rays, mesh))
     frames = submap_train.place(frames, submap_train.data_sharding(frames, mesh))
 
-    ckpt = Checkpointer(os.path.join(out_dir, "checkpoints"))
     metadata = {"config_hash": chash, "normalization": norm.to_dict(), "num_scans": seq.num_scans,
                 "submaps": plan.to_dict()}
-    state, history, elapsed_s = None, [], 0.0
-    if ckpt.latest_step() is not None:
-        state, saved = ckpt.restore(setup.state, expected_config_hash=chash, expected_data=metadata)
-        history, elapsed_s = list(saved.get("history", [])), float(saved.get("train_seconds", 0.0))
-
-    def save(s, history, seconds):
-        ckpt.save(s, {**metadata, "history": export.to_jsonable(history), "train_seconds": seconds})
-
-    result = submap_train.fit_submaps(config, setup, rays, frames, plan.ref_scale, state=state, checkpoint_fn=save,
-                                      progress=progress, history=history, elapsed_s=elapsed_s)
-    ckpt.close()
+    result = fit_resuming(os.path.join(out_dir, "checkpoints"), metadata, lambda: setup.state,
+                          functools.partial(submap_train.fit_submaps, config, setup, rays, frames, plan.ref_scale,
+                                            progress=progress))
     T_field = submaps.global_poses(T_start, np.asarray(result.state.params["poses"]), plan.ref_scale)
     G = np.eye(4)
     anchor = int(config.train.anchor_scan)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import time
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -31,8 +30,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from neld_jax import lie, rendering
 from neld_jax.field import DensityField
 from neld_jax.model import SamplerSettings, render_rays, world_rays
-from neld_jax.train import (FitResult, LossSettings, RayData, Schedules, TrainState, make_field, make_schedules,
-                            ray_losses, sample_batch, sampler_settings, scale_pose_columns, zero_rows)
+from neld_jax.train import (FitResult, LossSettings, RayData, Schedules, TrainState, jit_chunk, make_field,
+                            make_schedules, ray_losses, run_chunks, sample_batch, sampler_settings,
+                            scale_pose_columns, zero_rows)
 
 logger = logging.getLogger(__name__)
 
@@ -227,6 +227,7 @@ class SubmapSetup(NamedTuple):
     sampler: Callable[[int], SamplerSettings]  # sampler(step), in metres
     mesh: Mesh | None
     sharding: Any  # the state's NamedSharding tree, or None
+    chunk_fn: Callable | None = None  # train.jit_chunk(step_body): chunk(state, rays, frames, sampler, num_steps)
 
 
 def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_submaps: int,
@@ -254,7 +255,8 @@ def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_s
     def sampler(step: int) -> SamplerSettings:
         return sampler_settings(config, 1.0, *schedules.samples(step))
 
-    return SubmapSetup(state, tx, schedules, body, make_submap_train_step(body), field, sampler, mesh, sharding)
+    return SubmapSetup(state, tx, schedules, body, make_submap_train_step(body), field, sampler, mesh, sharding,
+                       jit_chunk(body))
 
 
 # ------------------------------------------------------------------------------------------------ the loop
@@ -264,53 +266,25 @@ def fit_submaps(config: ml_collections.ConfigDict, setup: SubmapSetup, rays: Sub
                 ref_scale: float, state: TrainState | None = None,
                 checkpoint_fn: Callable[[TrainState, list, float], None] | None = None, progress: bool = True,
                 history: list | None = None, elapsed_s: float = 0.0) -> FitResult:
-    """train.fit's loop for submaps: up to config.train.steps, logging, checkpoints, train.max_minutes.
+    """train.fit for submaps: the same loop (train.run_chunks: fused chunks, logging, checkpoints,
+    train.max_minutes) over the submaps' step.
 
     rays, frames: placed on setup.mesh (data_sharding) when there is one; ref_scale: s_ref (the logs in metres)."""
-    from tqdm.auto import tqdm
-
     from neld_jax.submaps import body_correction_matrices
 
-    schedules, step_fn = setup.schedules, setup.step_fn
-    state = setup.state if state is None else state
-    start, total = int(state.step), schedules.total_steps
-    log_every = max(int(config.train.log_every), 1)
-    ckpt_every = int(config.train.checkpoint_every)
-    max_seconds = float(config.train.max_minutes) * 60.0
-    history = [h for h in (history or []) if h.get("step", 0) <= start]
-    stopped_early, current_stage, t0 = False, None, time.perf_counter()
-    bar = tqdm(total=total, initial=start, disable=not progress, unit="step", dynamic_ncols=True)
-    for step in range(start, total):
-        if schedules.stage(step) != current_stage:
-            current_stage = schedules.stage(step)
-            sampler = setup.sampler(step)
-        state, metrics = step_fn(state, rays, frames, sampler)
-        done = step + 1
-        if done % log_every == 0 or done == total:
-            m = {k: float(v) for k, v in jax.device_get(metrics).items()}
-            m["step"] = done
-            C = body_correction_matrices(np.asarray(state.params["poses"]), ref_scale)
-            m["pose_trans_mean_m"] = float(np.linalg.norm(C[:, :3, 3], axis=1).mean())
-            m["pose_rot_mean_deg"] = float(np.degrees(np.linalg.norm(np.asarray(state.params["poses"])[:, 3:],
-                                                                     axis=1)).mean())
-            m["elapsed_s"] = elapsed_s + time.perf_counter() - t0
-            history.append(m)
-            if not np.isfinite(m["loss"]):
-                raise FloatingPointError(f"loss is {m['loss']} at step {done}; lower the learning rates")
-            bar.set_postfix(loss=f"{m['loss']:.4f}", range_err=f"{m['range_err_m']:.3f}m", refresh=False)
-        bar.update(1)
-        if checkpoint_fn is not None and ckpt_every > 0 and done % ckpt_every == 0 and done != total:
-            checkpoint_fn(state, history, elapsed_s + time.perf_counter() - t0)
-        if max_seconds > 0 and time.perf_counter() - t0 > max_seconds and done != total:
-            logger.warning("stopping at step %d of %d: train.max_minutes=%.1f reached", done, total,
-                           config.train.max_minutes)
-            stopped_early = True
-            break
-    bar.close()
-    seconds = elapsed_s + time.perf_counter() - t0
-    if checkpoint_fn is not None:
-        checkpoint_fn(state, history, seconds)
-    return FitResult(state, history, stopped_early, seconds)
+    def chunk(s: TrainState, sampler: SamplerSettings, num_steps: int):
+        return setup.chunk_fn(s, rays, frames, sampler, num_steps=num_steps)
+
+    def log(s: TrainState, m: dict) -> dict:
+        xi = np.asarray(s.params["poses"])
+        C = body_correction_matrices(xi, ref_scale)
+        return {"pose_trans_mean_m": float(np.linalg.norm(C[:, :3, 3], axis=1).mean()),
+                "pose_rot_mean_deg": float(np.degrees(np.linalg.norm(xi[:, 3:], axis=1)).mean())}
+
+    per_submap = int(config.submaps.get("batch_rays", 0)) or int(config.train.batch_rays)
+    rays_per_step = per_submap * int(frames.weight.shape[0])  # padding submaps draw rays too
+    return run_chunks(config, setup.schedules, setup.sampler, chunk, setup.state if state is None else state, log,
+                      rays_per_step, checkpoint_fn, progress, history, elapsed_s)
 
 
 # ------------------------------------------------------------------------------------------------ mapping

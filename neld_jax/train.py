@@ -412,34 +412,21 @@ def chunk_bounds(start: int, total: int, log_every: int, checkpoint_every: int, 
     return bounds
 
 
-def fit(
-    config: ml_collections.ConfigDict,
-    rays: RayData,
-    T_init: jax.Array,
-    scale: float,
-    state: TrainState | None = None,
-    checkpoint_fn: Callable[[TrainState, list, float], None] | None = None,
-    progress: bool = True,
-    history: list | None = None,
-    elapsed_s: float = 0.0,
-) -> FitResult:
-    """Run the bundle adjustment from `state` (or a fresh one) up to config.train.steps.
+def run_chunks(config: ml_collections.ConfigDict, schedules: Schedules, sampler_fn: Callable[[int], Any],
+               chunk_fn: Callable, state: TrainState, log_fn: Callable[[TrainState, dict], dict],
+               rays_per_step: int, checkpoint_fn: Callable[[TrainState, list, float], None] | None = None,
+               progress: bool = True, history: list | None = None, elapsed_s: float = 0.0) -> FitResult:
+    """The training loop shared by `fit` (one cube) and the submaps' fit: from state.step to config.train.steps.
 
-    rays: all training rays on the device; T_init: [S, 4, 4] initial poses, normalised frame; scale: the
-    normalisation scale (metres -> normalised), used for the sampler and for the logs in metres.
-    The steps run in chunks of up to config.train.log_every steps, one device call each (`chunk_bounds`,
-    `jit_chunk`); the history gets the last step of each chunk that ends on a multiple of log_every (and the
-    last step), the progress bar and the train.max_minutes guard move at chunk ends.
-    checkpoint_fn(state, history, train_seconds) is called every config.train.checkpoint_every steps and at
-    the end. A resumed run passes the restored state with the history and elapsed_s saved with it, so that
-    the history and the logged elapsed_s continue (train.max_minutes counts this call only).
+    chunk_fn(state, sampler, num_steps) -> (state, metrics) runs `num_steps` fused steps (one device call);
+    sampler_fn(step) gives the sampler of a step's stage; log_fn(state, metrics) adds the run's own figures
+    (metres, pose corrections) to the floats of a logged chunk's metrics, which must then hold "loss" and
+    "range_err_m"; rays_per_step is only logged. Chunks follow `chunk_bounds`; the history gets the last step of each chunk that ends on a
+    multiple of train.log_every (and the last step); the progress bar and the train.max_minutes guard move at
+    chunk ends; checkpoint_fn(state, history, train_seconds) runs every train.checkpoint_every steps and at the
+    end. A resumed run passes its restored history and elapsed_s (train.max_minutes counts this call only).
     """
     from tqdm.auto import tqdm  # an effect at the edge; the step itself is pure
-
-    setup = create_train_state(config, int(T_init.shape[0]), scale)
-    schedules, chunk_fn = setup.schedules, setup.chunk_fn
-    if state is None:
-        state = setup.state
 
     start = int(state.step)
     total = schedules.total_steps
@@ -459,18 +446,16 @@ def fit(
         stage = schedules.stage(begin)
         if stage != current_stage:
             current_stage = stage
-            sampler = setup.sampler(begin)
+            sampler = sampler_fn(begin)
             logger.info("step %d: stage %d, %d coarse + %d fine (+%d guided) samples per ray, %d rays per step",
-                        begin, stage, sampler.num_coarse, sampler.num_fine, sampler.guided_samples,
-                        config.train.batch_rays)
+                        begin, stage, sampler.num_coarse, sampler.num_fine, sampler.guided_samples, rays_per_step)
         if begin == schedules.pose_start_step and begin > 0:
             logger.info(pose_start_message(config, schedules))
-        state, metrics = chunk_fn(state, rays, T_init, sampler, num_steps=done - begin)
+        state, metrics = chunk_fn(state, sampler, done - begin)
         if done % log_every == 0 or done == total:
             m = {k: float(v) for k, v in jax.device_get(metrics).items()}
             m["step"] = done
-            m["range_err_m"] = m.get("range_l1_fine", m["range_l1_coarse"]) / scale
-            m["pose_trans_mean_m"], m["pose_rot_mean_deg"] = pose_correction_stats(state.params["poses"], scale)
+            m.update(log_fn(state, m))
             m["elapsed_s"] = train_seconds()
             history.append(m)
             if not np.isfinite(m["loss"]):
@@ -489,3 +474,36 @@ def fit(
     if checkpoint_fn is not None:
         checkpoint_fn(state, history, seconds)
     return FitResult(state, history, stopped_early, seconds)
+
+
+def fit(
+    config: ml_collections.ConfigDict,
+    rays: RayData,
+    T_init: jax.Array,
+    scale: float,
+    state: TrainState | None = None,
+    checkpoint_fn: Callable[[TrainState, list, float], None] | None = None,
+    progress: bool = True,
+    history: list | None = None,
+    elapsed_s: float = 0.0,
+) -> FitResult:
+    """Run the bundle adjustment of one cube from `state` (or a fresh one) up to config.train.steps.
+
+    rays: all training rays on the device; T_init: [S, 4, 4] initial poses, normalised frame; scale: the
+    normalisation scale (metres -> normalised), used for the sampler and for the logs in metres.
+    The steps run in chunks of up to config.train.log_every steps, one device call each (`run_chunks`,
+    `jit_chunk`). checkpoint_fn(state, history, train_seconds) is called every config.train.checkpoint_every
+    steps and at the end. A resumed run passes the restored state with the history and elapsed_s saved with it.
+    """
+    setup = create_train_state(config, int(T_init.shape[0]), scale)
+
+    def chunk(s: TrainState, sampler: SamplerSettings, num_steps: int):
+        return setup.chunk_fn(s, rays, T_init, sampler, num_steps=num_steps)
+
+    def log(s: TrainState, m: dict) -> dict:
+        trans_m, rot_deg = pose_correction_stats(s.params["poses"], scale)
+        return {"range_err_m": m.get("range_l1_fine", m["range_l1_coarse"]) / scale,
+                "pose_trans_mean_m": trans_m, "pose_rot_mean_deg": rot_deg}
+
+    return run_chunks(config, setup.schedules, setup.sampler, chunk, setup.state if state is None else state, log,
+                      int(config.train.batch_rays), checkpoint_fn, progress, history, elapsed_s)

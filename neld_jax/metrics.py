@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from neld_jax.data.sequence import nearest_times
 from neld_jax.geometry import invert_poses, rotation_angles_deg
 
 logger = logging.getLogger(__name__)
@@ -211,22 +212,15 @@ def associate_timestamps(stamps_est: np.ndarray, stamps_gt: np.ndarray, max_diff
     stamps_gt = np.asarray(stamps_gt, dtype=np.float64)
     if len(stamps_est) == 0 or len(stamps_gt) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    order = np.argsort(stamps_gt, kind="stable")
-    sorted_gt = stamps_gt[order]
-    right = np.clip(np.searchsorted(sorted_gt, stamps_est), 1, len(sorted_gt) - 1) if len(sorted_gt) > 1 \
-        else np.zeros(len(stamps_est), dtype=int)
-    left = np.maximum(right - 1, 0)
-    pick_left = np.abs(sorted_gt[left] - stamps_est) <= np.abs(sorted_gt[right] - stamps_est)
-    nearest = np.where(pick_left, left, right)
-    diffs = np.abs(sorted_gt[nearest] - stamps_est)
+    nearest, diffs = nearest_times(stamps_est, stamps_gt)  # indices into stamps_gt
     best_for_gt: dict[int, int] = {}
     for est_index in np.argsort(diffs, kind="stable"):
         if diffs[est_index] > max_diff:
             break
         best_for_gt.setdefault(int(nearest[est_index]), int(est_index))
     est_indices = np.array(sorted(best_for_gt.values()), dtype=int)
-    gt_lookup = {est_index: gt_sorted for gt_sorted, est_index in best_for_gt.items()}
-    gt_indices = np.array([order[gt_lookup[i]] for i in est_indices], dtype=int)
+    gt_of_est = {est_index: gt_index for gt_index, est_index in best_for_gt.items()}
+    gt_indices = np.array([gt_of_est[i] for i in est_indices], dtype=int)
     return est_indices, gt_indices
 
 

@@ -420,11 +420,12 @@ def run_chunks(config: ml_collections.ConfigDict, schedules: Schedules, sampler_
 
     chunk_fn(state, sampler, num_steps) -> (state, metrics) runs `num_steps` fused steps (one device call);
     sampler_fn(step) gives the sampler of a step's stage; log_fn(state, metrics) adds the run's own figures
-    (metres, pose corrections) to the floats of a logged chunk's metrics, which must then hold "loss" and
-    "range_err_m"; rays_per_step is only logged. Chunks follow `chunk_bounds`; the history gets the last step of each chunk that ends on a
-    multiple of train.log_every (and the last step); the progress bar and the train.max_minutes guard move at
-    chunk ends; checkpoint_fn(state, history, train_seconds) runs every train.checkpoint_every steps and at the
-    end. A resumed run passes its restored history and elapsed_s (train.max_minutes counts this call only).
+    (metres, pose corrections) to the floats of a logged chunk's metrics, which must then hold "loss",
+    "alpha", "range_err_m", "pose_trans_mean_m" and "pose_rot_mean_deg"; rays_per_step is only logged.
+    Chunks follow `chunk_bounds`; the history gets the last step of each chunk that ends on a multiple of
+    train.log_every (and the last step); the progress bar and the train.max_minutes guard move at chunk ends;
+    checkpoint_fn(state, history, train_seconds) runs every train.checkpoint_every steps and at the end. A
+    resumed run passes its restored history and elapsed_s (train.max_minutes counts this call only).
     """
     from tqdm.auto import tqdm  # an effect at the edge; the step itself is pure
 

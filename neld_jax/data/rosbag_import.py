@@ -46,9 +46,9 @@ import numpy as np
 
 from neld_jax.data.poses import make_poses, write_tum
 from neld_jax.data.scans import drop_invalid_points, write_scan
-from neld_jax.data.sequence import nearest_times
 from neld_jax.errors import DataError
 from neld_jax.geometry import moved_enough
+from neld_jax.metrics import nearest_times
 
 logger = logging.getLogger(__name__)
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from neld_jax.errors import DataError
+from neld_jax.metrics import nearest_times
 
 logger = logging.getLogger(__name__)
 
@@ -101,24 +102,6 @@ class Sequence:
     def num_points(self) -> int:
         """Total number of points over all scans."""
         return int(sum(scan.shape[0] for scan in self.scans))
-
-
-def nearest_times(query_times: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each query time, the index of the nearest of `times` (any order; the earlier one on a tie) and the gap.
-
-    query_times: [Q], times: [P] with P >= 1 -> (indices [Q] int64 into times, |gaps| [Q] seconds)."""
-    query_times = np.asarray(query_times, dtype=np.float64).reshape(-1)
-    times = np.asarray(times, dtype=np.float64).reshape(-1)
-    order = np.argsort(times, kind="stable")
-    sorted_times = times[order]
-    right = np.clip(np.searchsorted(sorted_times, query_times), 1, max(len(sorted_times) - 1, 1))
-    left = right - 1
-    if len(sorted_times) == 1:
-        nearest = np.zeros_like(right)
-    else:
-        pick_right = np.abs(sorted_times[right] - query_times) < np.abs(sorted_times[left] - query_times)
-        nearest = np.where(pick_right, right, left)
-    return order[nearest], np.abs(sorted_times[nearest] - query_times)
 
 
 def match_by_timestamp(

@@ -15,9 +15,9 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from absl import app, flags  # noqa: E402
+from absl import flags  # noqa: E402
 
-from neld_jax.errors import NeldError  # noqa: E402
+from neld_jax.cli import main_with_flags  # noqa: E402
 
 OUTPUT_DIR = flags.DEFINE_string("output_dir", None, "Folder written by bin/train.py or bin/baseline.py.",
                                  required=True)
@@ -30,24 +30,15 @@ MAP_ICP = flags.DEFINE_float("map_icp_m", 0.0, "Refine the map alignment by ICP 
                              "in metres (0: the trajectory alignment alone).")
 
 
-def main(argv):
-    if len(argv) > 1:
-        print(f"error: unexpected arguments: {' '.join(argv[1:])}", file=sys.stderr)
-        return 1
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s", force=True)
+def main():
     from neld_jax.evaluate import evaluate_run, format_table
 
-    try:
-        result = evaluate_run(OUTPUT_DIR.value, gt_poses_path=GT_POSES.value, gt_map_path=GT_MAP.value,
-                              threshold=THRESHOLD.value, raw_cutoff=RAW_CUTOFF.value,
-                              map_icp_m=MAP_ICP.value)
-    except NeldError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    result = evaluate_run(OUTPUT_DIR.value, gt_poses_path=GT_POSES.value, gt_map_path=GT_MAP.value,
+                          threshold=THRESHOLD.value, raw_cutoff=RAW_CUTOFF.value, map_icp_m=MAP_ICP.value)
     print(format_table(result))
     print(f"metrics written to {os.path.join(OUTPUT_DIR.value, 'metrics.json')}")
     return 0
 
 
 if __name__ == "__main__":
-    app.run(main)
+    main_with_flags(main, log_level=logging.WARNING)

@@ -13,16 +13,15 @@ Writes OUT/scans/NNNNNN.pcd (the clouds' own frame), OUT/poses.txt (TUM) and OUT
 counts); see neld_jax/data/rosbag_import.py for the matching rule and the time conventions.
 """
 
-import logging
 import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from absl import app, flags  # noqa: E402
+from absl import flags  # noqa: E402
 
+from neld_jax.cli import main_with_flags  # noqa: E402
 from neld_jax.data import rosbag_import as ri  # noqa: E402
-from neld_jax.errors import NeldError  # noqa: E402
 
 BAG = flags.DEFINE_multi_string("bag", None, "ROS1 .bag file or ROS2 bag folder (repeat for a split recording).",
                                 required=True)
@@ -38,18 +37,10 @@ DIST = flags.DEFINE_float("keyframe_distance_m", 0.0, "Keep a cloud only after m
 ANGLE = flags.DEFINE_float("keyframe_angle_deg", 0.0, "... or after turning this far (0: off).")
 
 
-def main(argv):
-    if len(argv) > 1:
-        print(f"error: unexpected arguments: {' '.join(argv[1:])}", file=sys.stderr)
-        return 1
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s", force=True)
-    try:
-        result = ri.import_bag(BAG.value, OUT.value, cloud_topic=CLOUD.value, odometry_topic=ODOM.value,
-                               tolerance_s=TOL.value, time_offset_s=OFFSET.value, drop_unmatched=DROP.value,
-                               stride=STRIDE.value, keyframe_distance_m=DIST.value, keyframe_angle_deg=ANGLE.value)
-    except (NeldError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+def main():
+    result = ri.import_bag(BAG.value, OUT.value, cloud_topic=CLOUD.value, odometry_topic=ODOM.value,
+                           tolerance_s=TOL.value, time_offset_s=OFFSET.value, drop_unmatched=DROP.value,
+                           stride=STRIDE.value, keyframe_distance_m=DIST.value, keyframe_angle_deg=ANGLE.value)
     print(f"wrote {result.scans_written} scans of {result.clouds_read} clouds to {OUT.value} "
           f"({result.dropped_unmatched} without odometry dropped, {result.skipped_by_keyframe_rule} skipped by "
           f"--stride/--keyframe_*)")
@@ -58,4 +49,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    main_with_flags(main)

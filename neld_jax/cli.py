@@ -16,6 +16,21 @@ def _fail(message: str) -> None:
     sys.exit(1)
 
 
+def _run_guarded(argv, run: Callable[[], int | None], log_level: int, log_format: str, interrupted: str):
+    """The body every entry point shares: no stray arguments, logging set up, and run() with its bad input or
+    bad file turned into one line on stderr (exit 1). Returns run()'s exit code."""
+    if len(argv) > 1:
+        _fail(f"unexpected arguments: {' '.join(argv[1:])}")
+    logging.basicConfig(level=log_level, format=log_format, datefmt="%H:%M:%S", force=True)
+    logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every file it writes at INFO
+    try:
+        return run()
+    except (NeldError, OSError) as e:
+        _fail(str(e))
+    except KeyboardInterrupt:
+        _fail(interrupted)
+
+
 def main_with_config(job: Callable) -> None:
     """Parse `--config=FILE[:budget]` and overrides, then run job(config); errors become one line on stderr."""
     from absl import app, flags
@@ -26,19 +41,20 @@ def main_with_config(job: Callable) -> None:
     flags.mark_flags_as_required(["config"])
 
     def main(argv):
-        if len(argv) > 1:
-            _fail(f"unexpected arguments: {' '.join(argv[1:])}")
-        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                            datefmt="%H:%M:%S", force=True)
-        logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every file it writes at INFO
-        try:
-            job(flags.FLAGS.config)
-        except NeldError as e:
-            _fail(str(e))
-        except OSError as e:
-            _fail(str(e))
-        except KeyboardInterrupt:
-            _fail("interrupted; rerun the same command to resume from the last checkpoint")
+        _run_guarded(argv, lambda: job(flags.FLAGS.config), logging.INFO,
+                     "%(asctime)s %(levelname)s %(name)s: %(message)s",
+                     "interrupted; rerun the same command to resume from the last checkpoint")
+
+    app.run(main, flags_parser=_parse_flags)
+
+
+def main_with_flags(job: Callable[[], int | None], log_level: int = logging.INFO) -> None:
+    """For entry points with plain absl flags and no config: run job() (its return value is the exit code);
+    a bad flag, bad input or a missing file is one line on stderr."""
+    from absl import app
+
+    def main(argv):
+        return _run_guarded(argv, job, log_level, "%(levelname)s %(name)s: %(message)s", "interrupted")
 
     app.run(main, flags_parser=_parse_flags)
 

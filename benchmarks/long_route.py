@@ -4,6 +4,7 @@
     python benchmarks/long_route.py                                  # the full target: 200 keyframes, 600 m
     python benchmarks/long_route.py --num_scans=66 --route_length_m=200 --steps=600   # a shortened run
     python benchmarks/long_route.py --parts=throughput --devices=1,2,4,8               # steps/s only
+    python benchmarks/long_route.py --parts=accuracy --init_poses=baseline --submap_batch_rays=128
 
 accuracy: the generic cpu budget on a synthetic `courtyards` route (data.synthetic.route), run twice on the same
 sequence: with submaps (switched on by the rule, not by a flag) and as one cube (submaps.enabled=off,
@@ -33,6 +34,9 @@ ROUTE_M = flags.DEFINE_float("route_length_m", 600.0, "Length of the closed rout
 STEPS = flags.DEFINE_integer("steps", 0, "train.steps (0: the cpu budget's).")
 SUBMAP_BATCH = flags.DEFINE_integer("submap_batch_rays", 256, "submaps.batch_rays: rays per submap per step.")
 SINGLE = flags.DEFINE_bool("single_cube", True, "Also run the single cube on the same route.")
+INIT_POSES = flags.DEFINE_enum("init_poses", "input", ["input", "baseline", "crisper"],
+                               "train.init_poses of both runs: the drifted odometry, or the classical baseline's "
+                               "poses (its pose graph closes the loop that the drift hides).")
 OUTPUT_ROOT = flags.DEFINE_string("output_root", "outputs/long_route", "Run directories below this.")
 OUTPUT = flags.DEFINE_string("output", "", "Also write the JSON here.")
 DEVICES = flags.DEFINE_list("devices", ["1", "2", "4", "8"], "Device counts for the throughput part.")
@@ -53,6 +57,7 @@ def route_config(output_dir: str, submaps_on: bool):
     c.data.keyframe_interval_s = 0.0
     c.train.max_minutes = 0.0  # measure the whole run, not the guard
     c.submaps.batch_rays = SUBMAP_BATCH.value
+    c.train.init_poses = INIT_POSES.value
     if STEPS.value:
         c.train.steps = STEPS.value
     if not submaps_on:
@@ -80,7 +85,12 @@ def accuracy() -> dict:
             "ate_optimized_m": methods["optimized"]["ate"]["translation_rmse_m"],
             "rot_initial_deg": methods["initial"]["ate"]["rotation_rmse_deg"],
             "rot_optimized_deg": methods["optimized"]["ate"]["rotation_rmse_deg"],
+            "init_poses": INIT_POSES.value, "baseline_seconds": summary.get("baseline_seconds"),
+            "crispness": {m: round(v["mean_map_entropy"], 4) for m, v in summary["crispness"].items()
+                          if v.get("mean_map_entropy") is not None},
         }
+        if "baseline" in methods and "ate" in methods["baseline"]:
+            out[name]["ate_baseline_m"] = methods["baseline"]["ate"]["translation_rmse_m"]
         out[name]["ate_ratio"] = out[name]["ate_optimized_m"] / out[name]["ate_initial_m"]
         logging.warning("%s: %s", name, out[name])
     return out

@@ -1,6 +1,7 @@
 """The classical baseline reduces the drift of a small synthetic sequence, its answer does not depend on how far
 the start drifted; bin/baseline.py end to end."""
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -119,10 +120,54 @@ def test_training_starts_from_the_baseline_of_config_baseline(drifted_sequence):
     config = base_config()
     config.baseline.window, config.baseline.voxel_size_m = SETTINGS.window, SETTINGS.voxel_size_m
     config.train.init_poses = "baseline"
-    poses, seconds = starting_poses(config, drifted_sequence)
-    assert seconds > 0
-    np.testing.assert_allclose(poses, register_sequence(drifted_sequence.scans, drifted_sequence.poses, SETTINGS),
-                               atol=1e-9)
+    start = starting_poses(config, drifted_sequence)
+    assert start.baseline_seconds > 0 and start.chosen == "baseline"
+    np.testing.assert_allclose(start.poses, register_sequence(drifted_sequence.scans, drifted_sequence.poses,
+                                                              SETTINGS), atol=1e-9)
     config.train.init_poses = "input"
-    poses, seconds = starting_poses(config, drifted_sequence)
-    assert seconds is None and poses is drifted_sequence.poses
+    start = starting_poses(config, drifted_sequence)
+    assert start.baseline_seconds is None and start.poses is drifted_sequence.poses and start.chosen == "input"
+
+
+def test_crisper_start_takes_the_crisper_map(drifted_sequence, monkeypatch):
+    # train.init_poses=crisper: the baseline runs, and training starts from whichever poses give the crisper raw
+    # map. From the drifted poses the baseline's map is the crisper one (entropy about -5.1 against -3.5); from the
+    # ground truth, with a baseline made to return the drifted poses (a stand-in for a baseline that failed), the
+    # input is.
+    import neld_jax.baseline
+    from neld_jax.config import base_config
+    from neld_jax.run import starting_poses
+
+    config = base_config()
+    config.baseline.window, config.baseline.voxel_size_m = SETTINGS.window, SETTINGS.voxel_size_m
+    config.train.init_poses = "crisper"
+    start = starting_poses(config, drifted_sequence)
+    assert start.chosen == "baseline" and start.poses is start.baseline_poses
+
+    from_truth = dataclasses.replace(drifted_sequence, poses=drifted_sequence.gt_poses)
+    monkeypatch.setattr(neld_jax.baseline, "register_sequence", lambda scans, poses, settings: drifted_sequence.poses)
+    start = starting_poses(config, from_truth)
+    assert start.chosen == "input" and start.poses is from_truth.poses
+    assert start.baseline_poses is drifted_sequence.poses  # still written as poses_baseline by the run
+
+
+def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence, monkeypatch, caplog):
+    # A link whose ICP result lies further than max_link_correction_m from the odometry's increment (with a good
+    # overlap, as in a corridor) keeps the increment. ICP is replaced by one that slides 2 m along x.
+    import neld_jax.baseline as baseline
+
+    seq = drifted_sequence
+    clouds = [baseline._prepare_scan(scan, SETTINGS.voxel_size_m, SETTINGS.normal_radius_m) for scan in seq.scans]
+    slide = np.eye(4)
+    slide[0, 3] = 2.0
+
+    class Result:
+        fitness = 0.9
+
+    monkeypatch.setattr(baseline, "multiscale_icp", lambda source, target, guess, settings: (guess @ slide, Result()))
+    chain, fitness = baseline.scan_to_map_chain(clouds, seq.poses, SETTINGS)
+    np.testing.assert_allclose(chain, seq.poses, atol=1e-9)  # every link kept the odometry's increment
+    assert "max_link_correction_m" in caplog.text
+    chain, _ = baseline.scan_to_map_chain(clouds, seq.poses, dataclasses.replace(SETTINGS, max_link_correction_m=3.0))
+    np.testing.assert_allclose(np.linalg.inv(seq.poses[0]) @ chain[1], np.linalg.inv(seq.poses[0]) @ seq.poses[1] @ slide,
+                               atol=1e-9)  # under a looser bound the slide is taken

@@ -135,3 +135,31 @@ def test_cli_data_with_errors_is_one_clear_line(tmp_path):
     assert "Traceback" not in proc.stderr, proc.stderr
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("error:") and "2" in last and "3" in last, proc.stderr
+
+
+def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch):
+    # train.init_poses=baseline: the baseline's poses are written for every input scan, its map's crispness is
+    # reported, and the normalisation cube is fitted to the poses training starts from (from a drifted start the
+    # baseline moves scans by metres), not to the input's.
+    fitted = []
+    real_fit = run.fit_normalization
+
+    def spy(scans, poses, margin):
+        fitted.append(np.array(poses))
+        return real_fit(scans, poses, margin=margin)
+
+    monkeypatch.setattr(run, "fit_normalization", spy)
+    config = make_tiny_config(str(tmp_path / "run"), steps=4)
+    config.train.init_poses = "baseline"
+    config.baseline.window, config.baseline.voxel_size_m = 2, 0.2
+    synthetic = config.data.synthetic  # dense enough scans for ICP, and a drift for it to undo
+    synthetic.num_beams, synthetic.num_columns, synthetic.drift_trans_m, synthetic.drift_rot_deg = 32, 512, 0.15, 1.0
+    config.mapping.enabled = False  # not what this test is about
+    summary = run.run(config, progress=False)
+    assert summary["started_from"] == "baseline" and summary["baseline_seconds"] > 0
+    assert {"initial", "baseline", "optimized"} <= set(summary["crispness"])
+    _, T_baseline = read_tum(tmp_path / "run" / "poses_baseline.txt")
+    _, T_initial = read_tum(tmp_path / "run" / "poses_initial.txt")
+    assert len(T_baseline) == len(T_initial) == 4
+    assert np.abs(T_baseline[1:, :3, 3] - T_initial[1:, :3, 3]).max() > 1e-3  # the baseline did move the scans
+    np.testing.assert_allclose(fitted[-1], T_baseline, atol=1e-5)

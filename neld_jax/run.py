@@ -2,9 +2,10 @@
 
 This is the effectful edge that `bin/train.py` calls; the maths lives in the pure modules.
 Outputs in config.output_dir (docs/design.md): poses_initial/optimized (.txt TUM, .kitti; one line per input
-scan), poses_baseline when the baseline ran (train.init_poses=baseline or crisper), poses_gt.txt when ground truth exists, map_raw.ply,
-map_raw_initial.ply, map_rendered.ply, map_gt.ply, config.json, metrics.json (run, crispness, scans_report,
-evaluation), history.json, scans_report.csv/.png, map_topdown.png, checkpoints/ and the evaluation plots.
+scan), poses_baseline when the baseline ran (train.init_poses=baseline or crisper), poses_gt.txt when ground
+truth exists, map_raw.ply, map_raw_initial.ply, map_rendered.ply, map_gt.ply, config.json, metrics.json (run,
+crispness, scans_report, evaluation), history.json, scans_report.csv/.png, map_topdown.png, checkpoints/ and
+the evaluation plots.
 """
 
 from __future__ import annotations

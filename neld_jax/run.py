@@ -88,12 +88,15 @@ class Start:
     """Where training starts (train.init_poses): poses [K, 4, 4] of the keyframes, and what chose them.
 
     baseline_poses [K, 4, 4] and baseline_seconds are set whenever the classical baseline ran (init_poses
-    "baseline" or "crisper"), whichever start won; chosen is "input" or "baseline"."""
+    "baseline" or "crisper"), whichever start won; chosen is "input" or "baseline". judged: the crispness that
+    chose the start ("crisper": quality.map_crispness's ({method: summary}, {method: per-keyframe entropy}) for
+    "initial" and "baseline"), so that the run does not measure it again; ({}, {}) otherwise."""
 
     poses: np.ndarray
     chosen: str
     baseline_poses: np.ndarray | None = None
     baseline_seconds: float | None = None
+    judged: tuple = ({}, {})
 
 
 START_CHOICES = ("input", "baseline", "crisper")
@@ -121,13 +124,13 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
     logger.info("train.init_poses=%s: the classical baseline took %.1f s", how, seconds)
     if how == "baseline":
         return Start(poses, "baseline", poses, seconds)
-    crisp, _ = quality.map_crispness(seq, {"input": seq.poses, "baseline": poses}, config.eval)
-    entropy = {name: crisp[name]["mean_map_entropy"] for name in crisp}
-    chosen = "baseline" if entropy["input"] is None or (
-        entropy["baseline"] is not None and entropy["baseline"] < entropy["input"]) else "input"
+    judged = quality.map_crispness(seq, {"initial": seq.poses, "baseline": poses}, config.eval)
+    entropy = {name: summary["mean_map_entropy"] for name, summary in judged[0].items()}
+    chosen = "baseline" if entropy["initial"] is None or (
+        entropy["baseline"] is not None and entropy["baseline"] < entropy["initial"]) else "input"
     logger.info("train.init_poses=crisper: training starts from the %s poses (raw-map entropy: input %s, "
-                "baseline %s)", chosen, entropy["input"], entropy["baseline"])
-    return Start(poses if chosen == "baseline" else seq.poses, chosen, poses, seconds)
+                "baseline %s)", chosen, entropy["initial"], entropy["baseline"])
+    return Start(poses if chosen == "baseline" else seq.poses, chosen, poses, seconds, judged)
 
 
 def train_single_cube(config: ml_collections.ConfigDict, seq, norm, raysets, T_start: np.ndarray, out_dir: str,
@@ -210,10 +213,14 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         rendered = _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress)
 
     # Quality without ground truth: crispness of the keyframes' raw map, and the per-scan report.
+    # The same query points for every method, so the starts' figures from starting_poses are reused as they are.
     methods = {"initial": seq.poses, "optimized": T_opt}
     if start.baseline_poses is not None:
         methods["baseline"] = start.baseline_poses
-    crisp, per_scan_entropy = quality.map_crispness(seq, methods, config.eval)
+    judged, judged_per_scan = start.judged
+    crisp, per_scan_entropy = quality.map_crispness(
+        seq, {name: poses for name, poses in methods.items() if name not in judged}, config.eval)
+    crisp, per_scan_entropy = {**judged, **crisp}, {**judged_per_scan, **per_scan_entropy}
     rows = quality.write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rendered, norm,
                                      per_scan_entropy, min_opacity=float(config.mapping.min_opacity))
     quality.write_topdown(out_dir, seq, {"input poses": seq.poses, "after NeLD-BA": T_opt})

@@ -110,6 +110,12 @@ def multiscale_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCl
     return np.asarray(transform), result
 
 
+def correction_m(guess: np.ndarray, transform: np.ndarray) -> float:
+    """How far [m] an ICP result transform [4, 4] moves the scan's origin from where its guess [4, 4] put it
+    (both map the scan into the same target frame): the gates on chain links and loop closures."""
+    return float(np.linalg.norm((np.linalg.inv(guess) @ transform)[:3, 3]))
+
+
 def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSettings
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Register each scan to the local map of the `settings.window` scans before it.
@@ -127,15 +133,15 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
             local_map += o3d.geometry.PointCloud(clouds[k]).transform(poses[k])  # normals rotate along
         transform, result = multiscale_icp(clouds[s], local_map, guess, settings)
         fitness[s] = result.fitness
-        correction_m = np.linalg.norm((np.linalg.inv(guess) @ transform)[:3, 3])
+        moved_m = correction_m(guess, transform)
         if result.fitness < settings.min_chain_fitness:
             logger.warning("baseline: scan %d overlaps the map of the %d scans before it by only %.0f%%; keeping "
                            "the odometry's increment", s, settings.window, 100 * result.fitness)
             transform = guess
-        elif correction_m > settings.max_link_correction_m:
+        elif moved_m > settings.max_link_correction_m:
             logger.warning("baseline: ICP moved scan %d by %.2f m from the odometry's increment (more than "
                            "max_link_correction_m=%.2g m, a slide along a featureless direction?); keeping the "
-                           "increment", s, correction_m, settings.max_link_correction_m)
+                           "increment", s, moved_m, settings.max_link_correction_m)
             transform = guess
         poses.append(transform)
     return np.stack(poses), fitness
@@ -183,8 +189,8 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
     for i, j in loop_pairs:
         guess = np.linalg.inv(chain_poses[j]) @ chain_poses[i]
         transform, result = multiscale_icp(clouds[i], clouds[j], guess, loop_icp)
-        correction_m = np.linalg.norm((np.linalg.inv(guess) @ transform)[:3, 3])
-        if result.fitness < settings.min_loop_fitness or correction_m > settings.max_loop_correction_m:
+        moved_m = correction_m(guess, transform)
+        if result.fitness < settings.min_loop_fitness or moved_m > settings.max_loop_correction_m:
             continue
         graph.edges.append(_reg.PoseGraphEdge(i, j, transform, _information(clouds[i], clouds[j], transform, settings),
                                               uncertain=True))

@@ -87,6 +87,28 @@ def record_crispness(out_dir, summaries: dict) -> dict:
     return merged
 
 
+POSE_FILES = {"initial": "poses_initial.txt", "baseline": "poses_baseline.txt", "optimized": "poses_optimized.txt"}
+
+
+def crispest(summaries: dict) -> str | None:
+    """The method of {method: crispness summary} with the lowest mean map entropy (None when none has one)."""
+    scored = {name: s["mean_map_entropy"] for name, s in summaries.items() if s.get("mean_map_entropy") is not None}
+    return min(scored, key=scored.get) if scored else None
+
+
+def warn_if_not_crispest(summaries: dict) -> str | None:
+    """Log a warning when the refined poses ("optimized") do not give the crispest raw map of the run's methods,
+    naming the poses file that does: a user must not take poses_optimized for the best answer when the run
+    measured otherwise. Returns the crispest method."""
+    best = crispest(summaries)
+    if best is not None and "optimized" in summaries and best != "optimized":
+        entropy = summaries["optimized"]["mean_map_entropy"]
+        logger.warning("the raw map is crisper with the %s poses (%s) than after NeLD-BA: mean map entropy %.3f "
+                       "against %s", best, POSE_FILES.get(best, best), summaries[best]["mean_map_entropy"],
+                       "-" if entropy is None else f"{entropy:.3f}")
+    return best
+
+
 def format_crispness_table(summaries: dict) -> str:
     """Plain-text table of {method: crispness summary}: entropy and plane thickness of the raw map."""
     order = [m for m in ("initial", "baseline", "optimized") if m in summaries] + sorted(

@@ -239,6 +239,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         "final": result.history[-1] if result.history else {},
     }
     summary["started_from"] = start.chosen
+    summary["crispest"] = quality.warn_if_not_crispest(crisp)  # the method whose poses give the crispest raw map
     if start.baseline_seconds is not None:
         summary["baseline_seconds"] = round(start.baseline_seconds, 2)
     scans_summary = report.summarize(rows)

@@ -61,3 +61,19 @@ def test_query_sampling_and_per_scan_means():
     means = per_scan_means(values, np.array([0, 1, 2, 3]), np.array([0, 0, 1, 1]), num_scans=3)
     np.testing.assert_allclose(means[:2], [2.0, 5.0])
     assert np.isnan(means[2])
+
+
+def test_a_run_names_the_crispest_poses_and_warns_when_they_are_not_its_own(caplog):
+    from neld_jax.quality import crispest, warn_if_not_crispest
+
+    summaries = {"initial": {"mean_map_entropy": -3.42}, "baseline": {"mean_map_entropy": -3.49},
+                 "optimized": {"mean_map_entropy": -3.475}}
+    with caplog.at_level("WARNING", logger="neld_jax.quality"):
+        assert warn_if_not_crispest(summaries) == "baseline"
+    assert "poses_baseline.txt" in caplog.text and "-3.490" in caplog.text and "-3.475" in caplog.text
+    caplog.clear()
+    summaries["optimized"]["mean_map_entropy"] = -3.5
+    with caplog.at_level("WARNING", logger="neld_jax.quality"):
+        assert warn_if_not_crispest(summaries) == "optimized"
+    assert caplog.text == ""
+    assert crispest({"initial": {"mean_map_entropy": None}}) is None

@@ -79,7 +79,7 @@ class BaselineSettings:
     information_distance_m: float = 0.25  # correspondence distance of the information matrices and the pruning
     edge_prune_threshold: float = 0.25
     # Multi-view refinement after the graph (module docstring, step 4); 0 switches it off. On HKU_2 the rounds took
-    # the map's entropy -3.405 -> -3.480 -> -3.491 -> -3.493, about 65 s each (docs/evaluation.md).
+    # the map's entropy -3.405 -> -3.480 -> -3.491 -> -3.493, about 40-65 s each on 2 cores (docs/evaluation.md).
     map_rounds: int = 2
     map_icp_distances_m: tuple = (0.25, 0.1)
     # The ICP target: the map_gather_points map points nearest to each scan point and within map_gather_m of it
@@ -273,7 +273,8 @@ def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettin
 
 def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
                       settings: BaselineSettings = BaselineSettings()) -> np.ndarray:
-    """The baseline: scan-to-map chain, then the loop-closed pose graph (module docstring).
+    """The baseline: scan-to-map chain, the loop-closed pose graph, then the multi-view refinement (module
+    docstring).
 
     scans: list of S arrays [N_i, 3] in the sensor frame; init_poses: [S, 4, 4] sensor -> world.
     Returns refined poses [S, 4, 4] with pose 0 equal to init_poses[0] and orthonormal rotations.

@@ -46,6 +46,7 @@ from neld_jax.data.preprocess import load_preprocessed
 from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
 from neld_jax import quality
 from neld_jax.export import write_json, write_point_cloud, write_poses, write_raw_map
+from neld_jax.geometry import register_scans, transform_points
 from neld_jax.trajectory import propagate_corrections
 
 logger = logging.getLogger(__name__)
@@ -223,7 +224,7 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
 def _world_map(clouds: list, poses: np.ndarray, scans, settings: BaselineSettings) -> o3d.geometry.PointCloud:
     """The scans `scans` (indices) in the world frame at poses [S, 4, 4], merged, voxel-downsampled, with normals
     estimated again (averaging the normals of overlapping scans would blur or cancel them)."""
-    points = np.concatenate([np.asarray(clouds[k].points) @ poses[k][:3, :3].T + poses[k][:3, 3] for k in scans])
+    points = register_scans([np.asarray(clouds[k].points) for k in scans], poses[list(scans)])
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     if settings.voxel_size_m > 0:
         cloud = cloud.voxel_down_sample(settings.voxel_size_m)
@@ -250,7 +251,7 @@ def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettin
             for s in range(half, len(clouds), 2):
                 if s == 0:  # the gauge
                     continue
-                scan_in_world = np.asarray(clouds[s].points) @ poses[s][:3, :3].T + poses[s][:3, 3]
+                scan_in_world = transform_points(np.asarray(clouds[s].points), poses[s])
                 # The target: each scan point's nearest map points (one vectorised query; "missing" ones come back
                 # as index len(world_points)).
                 _, near = tree.query(scan_in_world, k=settings.map_gather_points,

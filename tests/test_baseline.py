@@ -16,6 +16,7 @@ from neld_jax.baseline import (BaselineSettings, _prepare_scan, candidate_pairs,
 from neld_jax.data.preprocess import preprocess
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.synthetic import make_sequence
+from neld_jax.geometry import invert_poses, rotation_angles_deg
 from neld_jax.metrics import ate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -194,9 +195,8 @@ def test_multi_view_refinement_pulls_a_scan_onto_the_others_map_and_gates_a_far_
 
     def errors(poses):
         """-> (translation errors [S] m, rotation errors [S] deg) against the truth."""
-        relative = np.linalg.inv(seq.gt_poses) @ poses
-        cos_angle = np.clip((np.trace(relative[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)
-        return np.linalg.norm(relative[:, :3, 3], axis=1), np.degrees(np.arccos(cos_angle))
+        relative = invert_poses(seq.gt_poses) @ poses
+        return np.linalg.norm(relative[:, :3, 3], axis=1), rotation_angles_deg(relative[:, :3, :3])
 
     (t_before, r_before), (t_after, r_after) = errors(start), errors(refined)
     assert t_before[2] > 0.09 and r_before[2] > 0.55

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from neld_jax.crispness import crispness, per_scan_means, sample_queries
+from neld_jax.quality import crispest, warn_if_not_crispest
 
 
 def _brute_force(points, radius, min_neighbors):
@@ -64,8 +65,6 @@ def test_query_sampling_and_per_scan_means():
 
 
 def test_a_run_names_the_crispest_poses_and_warns_when_they_are_not_its_own(caplog):
-    from neld_jax.quality import crispest, warn_if_not_crispest
-
     summaries = {"initial": {"mean_map_entropy": -3.42}, "baseline": {"mean_map_entropy": -3.49},
                  "optimized": {"mean_map_entropy": -3.475}}
     with caplog.at_level("WARNING", logger="neld_jax.quality"):

@@ -30,7 +30,7 @@ from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.preprocess import load_preprocessed, voxel_downsample
 from neld_jax.data.rays import build_rays
 from neld_jax.geometry import transform_points
-from neld_jax.mapping import render_map
+from neld_jax.mapping import rays_per_scan, render_map
 from neld_jax.model import anchor_transform, scan_poses
 from neld_jax.trajectory import propagate_corrections
 
@@ -262,7 +262,8 @@ def _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progr
 
     Returns (the mapping rays, their MapRender) for the per-scan residuals."""
     m = config.mapping
-    mapping_rays = build_rays(seq, norm, max_rays_per_scan=(m.max_rays_per_scan or None), seed=config.seed + 1)
+    per_scan = rays_per_scan(int(m.max_rays_per_scan), int(m.get("max_rays", 0)), seq.num_scans)
+    mapping_rays = build_rays(seq, norm, max_rays_per_scan=per_scan, seed=config.seed + 1)
     sampler = train.sampler_settings(config, norm.scale, m.num_coarse, m.num_fine)
     # The map is rendered with the paper's sampler (no measured ranges), whatever the training options.
     sampler = dataclasses.replace(sampler, guided_samples=0)

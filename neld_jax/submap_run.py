@@ -19,7 +19,7 @@ from neld_jax.checkpoint import fit_resuming
 from neld_jax.data.normalize import Normalization
 from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.data.rays import build_rays
-from neld_jax.mapping import MapRender
+from neld_jax.mapping import MapRender, rays_per_scan
 
 logger = logging.getLogger(__name__)
 
@@ -80,7 +80,8 @@ def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, 
     from tqdm.auto import tqdm
 
     m = config.mapping
-    mapping_rays = build_rays(seq, norm, max_rays_per_scan=(m.max_rays_per_scan or None), seed=config.seed + 1)
+    per_scan = rays_per_scan(int(m.max_rays_per_scan), int(m.get("max_rays", 0)), seq.num_scans)
+    mapping_rays = build_rays(seq, norm, max_rays_per_scan=per_scan, seed=config.seed + 1)
     sampler = dataclasses.replace(train.sampler_settings(config, 1.0, m.num_coarse, m.num_fine), guided_samples=0)
     state, setup = trained.result.state, trained.setup
     alpha = float(setup.schedules.alpha(int(state.step)))

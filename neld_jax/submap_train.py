@@ -31,8 +31,8 @@ from neld_jax import lie, rendering
 from neld_jax.field import DensityField
 from neld_jax.model import SamplerSettings, render_rays, world_rays
 from neld_jax.train import (FitResult, LossSettings, RayData, Schedules, TrainState, jit_chunk, make_field,
-                            make_schedules, ray_losses, run_chunks, sample_batch, sampler_settings,
-                            scale_pose_columns, zero_rows)
+                            make_schedules, pose_transform, ray_losses, run_chunks, sample_batch,
+                            sampler_settings)
 
 logger = logging.getLogger(__name__)
 
@@ -113,13 +113,7 @@ def make_submap_optimizer(config: ml_collections.ConfigDict, schedules: Schedule
     """train.make_optimizer's transform for {"fields", "poses"}: Adam with the field decay on every stacked field
     leaf (element-wise, so each submap's field has its own moments), the pose chain (Adam, translation / rotation
     schedules, train.fixed_scans rows zeroed) on the one [S, 6] pose array."""
-    fixed = np.zeros(num_scans, bool)
-    for s in config.train.fixed_scans:
-        if not -num_scans <= int(s) < num_scans:
-            raise ValueError(f"train.fixed_scans names scan {s}, but the sequence has {num_scans} scans")
-        fixed[int(s)] = True
-    pose_tx = optax.chain(optax.scale_by_adam(), scale_pose_columns(schedules.pose_lr_trans, schedules.pose_lr_rot),
-                          zero_rows(fixed))
+    pose_tx = pose_transform(config, schedules, num_scans)
 
     def labels(params):
         return {"fields": jax.tree.map(lambda _: "fields", params["fields"]), "poses": "poses"}

@@ -174,17 +174,23 @@ def zero_rows(row_mask: np.ndarray) -> optax.GradientTransformation:
     return optax.stateless(lambda updates, params: jax.tree.map(lambda u: u * keep.astype(u.dtype), updates))
 
 
-def make_optimizer(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int):
+def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int) -> optax.GradientTransformation:
+    """The [S, 6] poses' update: Adam, the translation / rotation learning rate schedules, and train.fixed_scans'
+    rows zeroed. Shared by the single cube and the submaps."""
     fixed = np.zeros(num_scans, bool)
     for s in config.train.fixed_scans:
         if not -num_scans <= int(s) < num_scans:
             raise ValueError(f"train.fixed_scans names scan {s}, but the sequence has {num_scans} scans")
         fixed[int(s)] = True
-    pose_tx = optax.chain(
+    return optax.chain(
         optax.scale_by_adam(),
         scale_pose_columns(schedules.pose_lr_trans, schedules.pose_lr_rot),
         zero_rows(fixed),
     )
+
+
+def make_optimizer(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int):
+    pose_tx = pose_transform(config, schedules, num_scans)
     field_tx = optax.adam(schedules.field_lr)
 
     def labels(params):

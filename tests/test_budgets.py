@@ -45,7 +45,7 @@ def test_gpu_budget_is_the_cpu_recipe_run_longer():
         assert gpu.train[name] == cpu.train[name], name
     assert (gpu.mapping.num_coarse, gpu.mapping.num_fine) == (128, 128)  # the paper's map
     # lio_keyframes: the gpu budget keeps the cpu budget's small pose steps for good odometry.
-    assert _parse("lio_keyframes.py:gpu").train.pose_lr_rot_init == 2e-5
+    assert _parse("lio_keyframes.py:gpu").train.pose_lr_rot_init == 5e-6
     # ... and both start from the crisper of the odometry and the classical baseline; the paper budget as given.
     assert _parse("lio_keyframes.py:gpu").train.init_poses == _parse("lio_keyframes.py:cpu").train.init_poses == "crisper"
     assert _parse("lio_keyframes.py:paper").train.init_poses == "input"

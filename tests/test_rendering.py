@@ -84,3 +84,15 @@ def test_map_range_uses_density_not_weight_and_guards_zero_spacing():
     # A zero spacing (last sample at z_far) never wins and never divides by zero.
     out = rendering.map_range(jnp.array([[0.1, 0.0]]), jnp.array([[0.1, 0.0]]), jnp.array([[0.5, 0.6]]))
     np.testing.assert_allclose(out, [0.5])
+
+
+def test_rendered_map_rays_per_scan_caps_the_sequence_total():
+    from neld_jax.mapping import rays_per_scan
+
+    assert rays_per_scan(0, 0, 10) is None  # every ray
+    assert rays_per_scan(2048, 0, 266) == 2048  # only the per-scan limit
+    assert rays_per_scan(2048, 262_144, 24) == 2048  # a short sequence stays under the total
+    assert rays_per_scan(2048, 262_144, 266) == 262_144 // 266  # a long one shares the total
+    assert rays_per_scan(0, 262_144, 266) == 262_144 // 266
+    assert rays_per_scan(2048, 262_144, 5000) == 256  # the floor a scan keeps for its residuals
+    assert rays_per_scan(64, 262_144, 5000) == 64  # the floor never overrides a smaller per-scan limit

@@ -161,3 +161,25 @@ def test_a_scene_too_large_for_one_field_is_one_clear_line(tmp_path):
     lines = result.stderr.strip().splitlines()
     assert lines[-1].startswith("error: ") and "more than data.max_extent_m=10 m" in lines[-1]
     assert "data.first_scan" in lines[-1]
+
+
+def test_entropy_trajectory_benchmark_follows_the_poses(tmp_path):
+    """benchmarks/entropy_trajectory.py: the map's entropy before the poses start equals the start's, and moves
+    once they do; one record per --every steps and one at the end."""
+    _write_layout(tmp_path / "seq", _tiny_synthetic(num_scans=4))
+    out = tmp_path / "trajectory.json"
+    tiny = ["model.width=16", "model.depth=2", "model.skip_layers=(1,)", "model.pos_freqs=6", "model.dir_freqs=2",
+            "sampling.coarse_stages=(8,)", "sampling.fine_stages=(4,)", "sampling.guided_samples=4", "train.steps=8",
+            "train.batch_rays=64", "train.log_every=4", "data.max_rays_per_scan=128", "eval.crispness_queries=300",
+            "eval.crispness_radius_m=3.0", "train.pose_lr_trans_init=1e-3", "train.pose_lr_rot_init=1e-3"]
+    proc = subprocess.run([sys.executable, os.path.join(REPO, "benchmarks", "entropy_trajectory.py"),
+                           f"--root={tmp_path / 'seq'}", "--every=4", f"--out={out}", *[f"--set={s}" for s in tiny]],
+                          capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    result = json.loads(out.read_text())
+    records = result["records"]
+    assert [r["step"] for r in records] == [0, 4, 8] and result["scans"] == 4
+    # Poses start with frequency 6 of 6, at step 4 (c2f over half the steps): frozen until then.
+    assert records[1]["mean_map_entropy"] == records[0]["mean_map_entropy"]
+    assert records[1]["pose_trans_mean_m"] == 0.0 < records[2]["pose_trans_mean_m"]
+    assert records[2]["mean_map_entropy"] != records[0]["mean_map_entropy"]

@@ -174,7 +174,8 @@ def zero_rows(row_mask: np.ndarray) -> optax.GradientTransformation:
     return optax.stateless(lambda updates, params: jax.tree.map(lambda u: u * keep.astype(u.dtype), updates))
 
 
-def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int) -> optax.GradientTransformation:
+def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules,
+                   num_scans: int) -> optax.GradientTransformation:
     """The [S, 6] poses' update: Adam, the translation / rotation learning rate schedules, and train.fixed_scans'
     rows zeroed. Shared by the single cube and the submaps."""
     fixed = np.zeros(num_scans, bool)

@@ -181,6 +181,12 @@ def candidate_pairs(positions: np.ndarray, loop_radius_m: float, max_loops_per_s
     return odometry, loops
 
 
+def _passes_loop_gates(result, moved_m: float, settings: BaselineSettings) -> bool:
+    """A loop closure's (or a multi-view refinement's) ICP result is kept when it overlaps enough and moves the scan
+    at most max_loop_correction_m (moved_m) from where it started."""
+    return not (result.fitness < settings.min_loop_fitness or moved_m > settings.max_loop_correction_m)
+
+
 def _information(source, target, transform, settings: BaselineSettings) -> np.ndarray:
     return _reg.get_information_matrix_from_point_clouds(source, target, settings.information_distance_m, transform)
 
@@ -206,7 +212,7 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
         guess = np.linalg.inv(chain_poses[j]) @ chain_poses[i]
         transform, result = multiscale_icp(clouds[i], clouds[j], guess, loop_icp)
         moved_m = correction_m(guess, transform)
-        if result.fitness < settings.min_loop_fitness or moved_m > settings.max_loop_correction_m:
+        if not _passes_loop_gates(result, moved_m, settings):
             continue
         graph.edges.append(_reg.PoseGraphEdge(i, j, transform, _information(clouds[i], clouds[j], transform, settings),
                                               uncertain=True))
@@ -264,8 +270,7 @@ def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettin
                 target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world_points[near]))
                 target.normals = o3d.utility.Vector3dVector(world_normals[near])
                 transform, result = multiscale_icp(clouds[s], target, poses[s], map_icp)  # sensor -> world
-                if result.fitness < settings.min_loop_fitness or correction_m(poses[s], transform) > \
-                        settings.max_loop_correction_m:
+                if not _passes_loop_gates(result, correction_m(poses[s], transform), settings):
                     rejected += 1
                     continue
                 poses[s] = transform

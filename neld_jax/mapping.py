@@ -30,15 +30,6 @@ def render_map_points(params_field, field: DensityField, sampler: SamplerSetting
     return origins + z_map[:, None] * directions, rendered.opacity
 
 
-def rays_per_scan(max_rays_per_scan: int, max_rays: int, num_scans: int) -> int | None:
-    """How many rays of each scan the rendered map casts: at most `max_rays_per_scan` (0: every ray), and with
-    `max_rays` > 0 at most that many over the whole sequence (a floor of 256 a scan), so that the map's cost
-    stops growing with the number of scans. None: every ray."""
-    share = max(max_rays // max(num_scans, 1), 256) if max_rays > 0 else 0
-    limits = [n for n in (max_rays_per_scan, share) if n > 0]
-    return min(limits) if limits else None
-
-
 class MapRender(NamedTuple):
     """points: [N, 3] map points of the rays that end on a surface (normalised frame); ranges, opacity: [R]
     rendered map range (normalised units) and opacity of every ray, for per-ray residuals."""

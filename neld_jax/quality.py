@@ -87,11 +87,9 @@ def record_crispness(out_dir, summaries: dict) -> dict:
     return merged
 
 
-POSE_FILES = {"initial": "poses_initial.txt", "baseline": "poses_baseline.txt", "optimized": "poses_optimized.txt"}
-
-
 def crispest(summaries: dict) -> str | None:
-    """The method of {method: crispness summary} with the lowest mean map entropy (None when none has one)."""
+    """The method of {method: crispness summary} with the lowest mean map entropy (the first of equals; None when
+    none has one)."""
     scored = {name: s["mean_map_entropy"] for name, s in summaries.items() if s.get("mean_map_entropy") is not None}
     return min(scored, key=scored.get) if scored else None
 
@@ -104,7 +102,7 @@ def warn_if_not_crispest(summaries: dict) -> str | None:
     if best is not None and "optimized" in summaries and best != "optimized":
         entropy = summaries["optimized"]["mean_map_entropy"]
         logger.warning("the raw map is crisper with the %s poses (%s) than after NeLD-BA: mean map entropy %.3f "
-                       "against %s", best, POSE_FILES.get(best, best), summaries[best]["mean_map_entropy"],
+                       "against %s", best, f"poses_{best}.txt", summaries[best]["mean_map_entropy"],
                        "-" if entropy is None else f"{entropy:.3f}")
     return best
 

@@ -28,9 +28,9 @@ from neld_jax.checkpoint import fit_resuming
 from neld_jax.errors import ConfigError
 from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.preprocess import load_preprocessed, voxel_downsample
-from neld_jax.data.rays import build_rays
+from neld_jax.data.rays import build_mapping_rays, build_rays
 from neld_jax.geometry import transform_points
-from neld_jax.mapping import rays_per_scan, render_map
+from neld_jax.mapping import render_map
 from neld_jax.model import anchor_transform, scan_poses
 from neld_jax.trajectory import propagate_corrections
 
@@ -126,8 +126,8 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
         return Start(poses, "baseline", poses, seconds)
     judged = quality.map_crispness(seq, {"initial": seq.poses, "baseline": poses}, config.eval)
     entropy = {name: summary["mean_map_entropy"] for name, summary in judged[0].items()}
-    chosen = "baseline" if entropy["initial"] is None or (
-        entropy["baseline"] is not None and entropy["baseline"] < entropy["initial"]) else "input"
+    # A tie keeps the input; the baseline when neither map could be judged.
+    chosen = "baseline" if quality.crispest(judged[0]) in ("baseline", None) else "input"
     logger.info("train.init_poses=crisper: training starts from the %s poses (raw-map entropy: input %s, "
                 "baseline %s)", chosen, entropy["initial"], entropy["baseline"])
     return Start(poses if chosen == "baseline" else seq.poses, chosen, poses, seconds, judged)
@@ -262,8 +262,7 @@ def _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progr
 
     Returns (the mapping rays, their MapRender) for the per-scan residuals."""
     m = config.mapping
-    per_scan = rays_per_scan(int(m.max_rays_per_scan), int(m.get("max_rays", 0)), seq.num_scans)
-    mapping_rays = build_rays(seq, norm, max_rays_per_scan=per_scan, seed=config.seed + 1)
+    mapping_rays = build_mapping_rays(config, seq, norm)
     sampler = train.sampler_settings(config, norm.scale, m.num_coarse, m.num_fine)
     # The map is rendered with the paper's sampler (no measured ranges), whatever the training options.
     sampler = dataclasses.replace(sampler, guided_samples=0)

@@ -18,8 +18,8 @@ from neld_jax import export, submap_train, submaps, train
 from neld_jax.checkpoint import fit_resuming
 from neld_jax.data.normalize import Normalization
 from neld_jax.data.preprocess import voxel_downsample
-from neld_jax.data.rays import build_rays
-from neld_jax.mapping import MapRender, rays_per_scan
+from neld_jax.data.rays import build_mapping_rays, build_rays
+from neld_jax.mapping import MapRender
 
 logger = logging.getLogger(__name__)
 
@@ -80,8 +80,7 @@ def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, 
     from tqdm.auto import tqdm
 
     m = config.mapping
-    per_scan = rays_per_scan(int(m.max_rays_per_scan), int(m.get("max_rays", 0)), seq.num_scans)
-    mapping_rays = build_rays(seq, norm, max_rays_per_scan=per_scan, seed=config.seed + 1)
+    mapping_rays = build_mapping_rays(config, seq, norm)
     sampler = dataclasses.replace(train.sampler_settings(config, 1.0, m.num_coarse, m.num_fine), guided_samples=0)
     state, setup = trained.result.state, trained.setup
     alpha = float(setup.schedules.alpha(int(state.step)))

@@ -66,6 +66,23 @@ def build_rays(
     return rays
 
 
+def rays_per_scan(max_rays_per_scan: int, max_rays: int, num_scans: int) -> int | None:
+    """How many rays of each scan the rendered map casts: at most `max_rays_per_scan` (0: every ray), and with
+    `max_rays` > 0 at most that many over the whole sequence (a floor of 256 a scan), so that the map's cost
+    stops growing with the number of scans. None: every ray."""
+    share = max(max_rays // max(num_scans, 1), 256) if max_rays > 0 else 0
+    limits = [n for n in (max_rays_per_scan, share) if n > 0]
+    return min(limits) if limits else None
+
+
+def build_mapping_rays(config, seq: Sequence, norm: Normalization) -> RaySet:
+    """The rays the rendered map casts: each scan's own directions, config.mapping's share of them
+    (`rays_per_scan`), drawn with a seed of their own (config.seed + 1, not the training rays')."""
+    m = config.mapping
+    per_scan = rays_per_scan(int(m.max_rays_per_scan), int(m.get("max_rays", 0)), seq.num_scans)
+    return build_rays(seq, norm, max_rays_per_scan=per_scan, seed=config.seed + 1)
+
+
 def sphere_scene_rays(num_scans: int, rays_per_scan: int, seed: int = 0, radius: float = 0.8,
                       spread: float = 0.3) -> tuple[RaySet, np.ndarray]:
     """An analytic ray set for tests and benchmarks, already in the normalised frame: `num_scans` sensors at

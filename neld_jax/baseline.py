@@ -7,13 +7,18 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
    map is far more accurate than scan to scan on sparse keyframes (a few thousand points each), and every
    registration starts from the odometry's relative motion only, so the chain does not depend on how far the
    odometry drifted overall (measured on real keyframes: two starts 1.5 m apart give chains 1 cm apart); a link
-   that moves the scan more than `max_link_correction_m` from that increment keeps the increment;
+   that moves the scan more than `max_link_correction_m` from that increment keeps the increment. Every ICP here
+   pairs points only where their normals agree (`point_to_plane_icp`: thin walls);
 2. a pose graph on the chain's poses: one edge per consecutive pair (the chain's relative pose), and
    loop-closure edges between scans at least `window` apart that lie within `loop_radius_m` IN THE CHAIN'S
    FRAME (candidates found in a drifted frame are wrong or far off), each registered by multi-scale ICP
    (`loop_icp_distances_m`, without the chain's coarsest scale) and kept only when its fitness (overlap
    fraction) reaches `min_loop_fitness` and it moves the scan by at most `max_loop_correction_m` from where the
-   chain puts it; loop edges are "uncertain", so the line process may prune them;
+   chain puts it; loop edges are "uncertain", so the line process may prune them. Where ICP found too little
+   overlap and no closure joins the same two stretches of the route, the chain may have drifted beyond ICP's
+   reach: the nearest such pair per scan is registered again from FPFH features + RANSAC (`global_registration`)
+   and kept, as a certain edge, within the drift a LiDAR odometry can build up over the path between the two
+   scans (`loop_drift_fraction`);
 3. Levenberg-Marquardt `global_optimization`, scan 0 held fixed;
 4. `map_rounds` rounds of multi-view refinement: each scan is registered again, by point-to-plane ICP at
    `map_icp_distances_m`, to the map of the OTHER scans (voxel-downsampled, normals re-estimated). A round has two
@@ -36,6 +41,7 @@ import dataclasses
 import logging
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import ml_collections
 import numpy as np
@@ -62,6 +68,9 @@ class BaselineSettings:
     window: int = 10  # scans in the local map of the scan-to-map chain; loop closures are at least this far apart
     icp_distances_m: tuple = (1.0, 0.5, 0.25, 0.1)  # correspondence distances of the multi-scale ICP, coarse first
     icp_iterations: int = 30  # per scale
+    # ICP pairs points only where their normals agree this well (cosine): at thin walls seen from both sides
+    # Open3D's plain nearest-neighbour pairs slide scans by the wall's thickness (point_to_plane_icp).
+    min_normal_cos: float = 0.5
     min_chain_fitness: float = 0.1  # below this overlap a chain link keeps the odometry's increment (and warns)
     # A chain link whose ICP result moves the scan more than this from the odometry's increment keeps the increment
     # (and warns): in corridors and stairwells ICP slides along the free axis with a good overlap (measured on
@@ -77,6 +86,23 @@ class BaselineSettings:
     # Loop closures whose ICP result moves scan i more than this from where the chain puts it (relative to j) are
     # not added: in corridors ICP slides along the free axis and still overlaps well (docs/evaluation.md).
     max_loop_correction_m: float = 0.2
+    # A loop candidate whose ICP from the chain overlaps less than min_loop_fitness (the chain drifted beyond ICP's
+    # basin: 4.5 m at the long synthetic route's loop), over a path long enough for loop_drift_fraction of it to
+    # exceed max_loop_correction_m, and with no kept closure between the same stretches of the route, is registered
+    # again from FPFH features + RANSAC, then multi-scale ICP (global_icp_distances_m), for at most
+    # global_loops_per_scan of each scan's candidates, the nearest. Such a closure is kept when it overlaps at least
+    # min_loop_fitness and moves the scan at most max_loop_correction_m + loop_drift_fraction x the chain's path
+    # between the two scans (the drift a LiDAR odometry builds up, about 1 % of the distance travelled). Candidates
+    # whose ICP overlapped well but slid (corridors) are not tried again: a slide is no drift. 0 switches it off.
+    global_loops_per_scan: int = 1
+    global_voxel_m: float = 0.5  # the features' grid: coarser than ICP's, for speed and repeatable neighbourhoods
+    global_feature_radius_m: float = 2.5  # FPFH radius (5 voxels)
+    global_icp_distances_m: tuple = (1.0, 0.5, 0.25, 0.1)
+    loop_drift_fraction: float = 0.01
+    global_seed: int = 0  # RANSAC's random draws (Open3D's global seed), for repeatable runs
+    # RANSAC stops at 99.9 % confidence or after this many draws: pairs that share no surface (most candidates that
+    # failed ICP on real data: rooms either side of a wall) run to the cap.
+    global_ransac_iterations: int = 20000
     information_distance_m: float = 0.25  # correspondence distance of the information matrices and the pruning
     edge_prune_threshold: float = 0.25
     # Multi-view refinement after the graph (module docstring, step 4); 0 switches it off. On HKU_2 the rounds took
@@ -95,7 +121,7 @@ class BaselineSettings:
         unknown = set(cfg) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise ValueError(f"config.baseline: unknown field(s) {sorted(unknown)}")
-        for name in ("icp_distances_m", "loop_icp_distances_m", "map_icp_distances_m"):
+        for name in ("icp_distances_m", "loop_icp_distances_m", "map_icp_distances_m", "global_icp_distances_m"):
             if name in cfg:
                 cfg[name] = tuple(float(d) for d in cfg[name])
         return cls(**cfg)
@@ -112,16 +138,107 @@ def _prepare_scan(points: np.ndarray, voxel_size: float, normal_radius: float) -
     return cloud
 
 
-def multiscale_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, guess: np.ndarray,
-                   settings: BaselineSettings):
-    """Point-to-plane ICP at each of settings.icp_distances_m in turn, each from the previous result.
+@dataclasses.dataclass(frozen=True)
+class IcpResult:
+    """The outcome of one ICP scale. fitness: the fraction of source points with a target point within the
+    correspondence distance (Open3D's definition, whatever the normals: the gates' thresholds mean what they meant
+    with Open3D's ICP); inlier_rmse [m]: of the correspondences used; num_correspondences: those used (normals
+    compatible)."""
 
-    Returns (transform [4, 4] mapping source into target's frame, Open3D result of the finest scale)."""
+    transformation: np.ndarray
+    fitness: float
+    inlier_rmse: float
+    num_correspondences: int
+
+
+class TargetIndex:
+    """Open3D's nearest-neighbour index of a target cloud's points, for searches up to max_distance.
+
+    Which search is fastest depends on how many points lie within the distance (measured on HKU_2, 4,000-point scans
+    as queries): a radius search ("hybrid", nearest within the radius) took 0.8 ms against one scan at 0.5 m (the
+    nearest-neighbour search 1.9 ms), but 13-14 ms against a refinement target of 25-29k map points at 0.25 m (the
+    nearest 4-7 ms) and 130-200 ms against a 40k-point local map at 1 m (the nearest 3 ms; scipy's KD-tree 5-7 ms).
+    So the radius search for scan-sized targets and short distances, the nearest otherwise."""
+
+    RADIUS_SEARCH_MAX_M = 0.5
+    RADIUS_SEARCH_MAX_POINTS = 15_000
+
+    def __init__(self, target: o3d.geometry.PointCloud, max_distance: float):
+        self.max_distance = float(max_distance)
+        points = np.asarray(target.points)
+        self._search = o3d.core.nns.NearestNeighborSearch(o3d.core.Tensor(points))
+        self._radius = self.max_distance <= self.RADIUS_SEARCH_MAX_M and len(points) <= self.RADIUS_SEARCH_MAX_POINTS
+        if self._radius:
+            self._search.hybrid_index(self.max_distance)
+        else:
+            self._search.knn_index()
+
+    def nearest(self, points: np.ndarray, distance: float) -> tuple[np.ndarray, np.ndarray]:
+        """points [N, 3] -> (index [N] of the nearest target point, squared distance [N]); index -1 where none lies
+        within distance (<= max_distance)."""
+        if self._radius:
+            nearest, squared, _ = self._search.hybrid_search(o3d.core.Tensor(points), distance, 1)
+            return nearest.numpy()[:, 0], squared.numpy()[:, 0]
+        nearest, squared = self._search.knn_search(o3d.core.Tensor(points), 1)
+        nearest, squared = nearest.numpy()[:, 0], squared.numpy()[:, 0]
+        return np.where(squared <= distance ** 2, nearest, -1), squared
+
+
+def point_to_plane_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, guess: np.ndarray,
+                       distance: float, max_iterations: int, min_normal_cos: float, oriented: bool,
+                       index: TargetIndex | None = None) -> IcpResult:
+    """Point-to-plane ICP whose correspondences must also agree in normal direction.
+
+    Open3D's registration_icp pairs each source point with its nearest target point within `distance`, whatever the
+    surfaces' orientations. At a thin wall seen from both sides (a gate, a door) that pairs one face with the other
+    and slides the scan by the wall's thickness, to a pose that overlaps BETTER than the true one (measured on the
+    long synthetic route: 0.3-0.4 m at 6 of 199 chain links, docs/evaluation.md). Here a pair counts only when the
+    normals' cosine (after moving the source) is at least min_normal_cos, |cosine| when `oriented` is False (target
+    normals of unknown sign). Open3D does the search (index: a TargetIndex of target, built here if None)
+    and the point-to-plane step; this function only filters the pairs between them. Stops like Open3D's
+    ICPConvergenceCriteria (fitness and rmse changing by less than 1e-6) or after max_iterations steps.
+
+    source, target: Open3D clouds with normals; guess, returned transformation: [4, 4], source -> target frame.
+    """
+    source_points, source_normals = np.asarray(source.points), np.asarray(source.normals)
+    target_normals = np.asarray(target.normals)
+    index = index if index is not None else TargetIndex(target, distance)
+    estimation = _reg.TransformationEstimationPointToPlane()
+    transform = np.array(guess, dtype=np.float64)
+    previous = None
+    for iteration in range(max_iterations + 1):  # the last pass only measures the final transform
+        moved = source_points @ transform[:3, :3].T + transform[:3, 3]
+        nearest, squared = index.nearest(moved, distance)
+        within = nearest >= 0
+        cosines = np.einsum("ij,ij->i", source_normals[within] @ transform[:3, :3].T, target_normals[nearest[within]])
+        compatible = np.zeros_like(within)
+        compatible[within] = (cosines if oriented else np.abs(cosines)) >= min_normal_cos
+        fitness = float(within.mean()) if len(within) else 0.0
+        rmse = float(np.sqrt(np.mean(squared[compatible]))) if compatible.any() else 0.0
+        result = IcpResult(transform.copy(), fitness, rmse, int(compatible.sum()))
+        converged = previous is not None and (abs(fitness - previous.fitness) < 1e-6
+                                              and abs(rmse - previous.inlier_rmse) < 1e-6)
+        if converged or result.num_correspondences < 6 or iteration == max_iterations:
+            return result
+        previous = result
+        pairs = np.stack([np.flatnonzero(compatible), nearest[compatible]], axis=1).astype(np.int32)
+        step = estimation.compute_transformation(o3d.geometry.PointCloud(source).transform(transform), target,
+                                                 o3d.utility.Vector2iVector(pairs))
+        transform = step @ transform
+    return result
+
+
+def multiscale_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, guess: np.ndarray,
+                   settings: BaselineSettings, oriented: bool = True) -> tuple[np.ndarray, IcpResult]:
+    """point_to_plane_icp at each of settings.icp_distances_m in turn, each from the previous result (one index).
+
+    oriented: whether target's normals face its sensors like the source's (False for re-estimated map normals).
+    Returns (transform [4, 4] mapping source into target's frame, the IcpResult of the finest scale)."""
     transform, result = np.asarray(guess, np.float64), None
-    criteria = _reg.ICPConvergenceCriteria(max_iteration=settings.icp_iterations)
+    index = TargetIndex(target, max(settings.icp_distances_m))
     for distance in settings.icp_distances_m:
-        result = _reg.registration_icp(source, target, distance, transform,
-                                       _reg.TransformationEstimationPointToPlane(), criteria)
+        result = point_to_plane_icp(source, target, transform, distance, settings.icp_iterations,
+                                    settings.min_normal_cos, oriented, index)
         transform = result.transformation
     return np.asarray(transform), result
 
@@ -191,32 +308,103 @@ def _information(source, target, transform, settings: BaselineSettings) -> np.nd
     return _reg.get_information_matrix_from_point_clouds(source, target, settings.information_distance_m, transform)
 
 
-def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineSettings) -> tuple[np.ndarray, int, int]:
+def _fpfh(cloud: o3d.geometry.PointCloud, settings: BaselineSettings):
+    """cloud (sensor frame) -> (the cloud on the global_voxel_m grid with normals, its FPFH features)."""
+    coarse = cloud.voxel_down_sample(settings.global_voxel_m)
+    coarse.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * settings.global_voxel_m, max_nn=30))
+    features = _reg.compute_fpfh_feature(
+        coarse, o3d.geometry.KDTreeSearchParamHybrid(radius=settings.global_feature_radius_m, max_nn=100))
+    return coarse, features
+
+
+def global_registration(source, target, source_features, target_features, settings: BaselineSettings):
+    """FPFH + RANSAC, then multi-scale ICP at global_icp_distances_m: registration from no initial guess.
+
+    source, target: Open3D clouds with normals (sensor frames); source_features, target_features: their
+    (coarse cloud, FPFH features) from _fpfh. Returns (transform [4, 4] mapping source into target's frame, the
+    IcpResult of the finest ICP scale)."""
+    (source_coarse, source_fpfh), (target_coarse, target_fpfh) = source_features, target_features
+    distance = 1.5 * settings.global_voxel_m
+    o3d.utility.random.seed(settings.global_seed)
+    ransac = _reg.registration_ransac_based_on_feature_matching(
+        source_coarse, target_coarse, source_fpfh, target_fpfh, True, distance,
+        _reg.TransformationEstimationPointToPoint(False), 3,
+        [_reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), _reg.CorrespondenceCheckerBasedOnDistance(distance)],
+        _reg.RANSACConvergenceCriteria(settings.global_ransac_iterations, 0.999))
+    refine = dataclasses.replace(settings, icp_distances_m=settings.global_icp_distances_m)
+    return multiscale_icp(source, target, ransac.transformation, refine)
+
+
+class LoopClosures(NamedTuple):
+    """What loop_closed_graph did: candidates registered by ICP, closures kept (all), pairs registered globally
+    and closures kept of those."""
+
+    tried: int
+    kept: int
+    global_tried: int
+    global_kept: int
+
+
+def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineSettings
+                      ) -> tuple[np.ndarray, LoopClosures]:
     """The pose graph of the chain plus loop closures, optimised (scan 0 fixed).
 
-    Returns (poses [S, 4, 4] with poses[0] = chain_poses[0], loop edges kept, loop candidates tried)."""
+    Returns (poses [S, 4, 4] with poses[0] = chain_poses[0], what the loop closures did)."""
     graph = _reg.PoseGraph()
     for pose in chain_poses:
         graph.nodes.append(_reg.PoseGraphNode(pose))
-    odometry_pairs, loop_pairs = candidate_pairs(chain_poses[:, :3, 3], settings.loop_radius_m,
-                                                 settings.max_loops_per_scan, min_index_gap=settings.window)
+    positions = chain_poses[:, :3, 3]
+    odometry_pairs, loop_pairs = candidate_pairs(positions, settings.loop_radius_m, settings.max_loops_per_scan,
+                                                 min_index_gap=settings.window)
     for s, following in odometry_pairs:  # the chain's links: edge (source s + 1, target s) maps s + 1 into s
         relative = np.linalg.inv(chain_poses[s]) @ chain_poses[following]
         information = _information(clouds[following], clouds[s], relative, settings)
         if information[5, 5] <= 0:  # no correspondences at all: keep the link, weakly, so the graph stays connected
             information = np.eye(6)
         graph.edges.append(_reg.PoseGraphEdge(following, s, relative, information, uncertain=False))
-    kept = 0
+    # The chain's path length up to each scan: the drift allowance of a global loop closure.
+    path_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
+    kept = kept_global = 0
+    drifted, closed = [], []  # loop pairs for the global registration (below); those ICP closed
     loop_icp = dataclasses.replace(settings, icp_distances_m=settings.loop_icp_distances_m)
     for i, j in loop_pairs:
         guess = np.linalg.inv(chain_poses[j]) @ chain_poses[i]
         transform, result = multiscale_icp(clouds[i], clouds[j], guess, loop_icp)
         moved_m = correction_m(guess, transform)
         if not _passes_loop_gates(result, moved_m, settings):
+            # Too little overlap where the chain can have drifted further than ICP's closures may move a scan: a
+            # case for the global registration. Over a short path a failed ICP means the scans share too little.
+            if (result.fitness < settings.min_loop_fitness and settings.loop_drift_fraction * abs(path_m[j] - path_m[i])
+                    > settings.max_loop_correction_m):
+                drifted.append((i, j))
             continue
         graph.edges.append(_reg.PoseGraphEdge(i, j, transform, _information(clouds[i], clouds[j], transform, settings),
                                               uncertain=True))
+        closed.append((i, j))
         kept += 1
+    features = {}
+    # Where ICP closed a loop between the same two stretches of the route, the chain is within ICP's reach there:
+    # a failed neighbouring pair only lacks overlap (HKU_2 without this test: 196 global registrations, none kept).
+    closed = np.array(closed, dtype=np.int64).reshape(-1, 2)
+    near_closed = [np.any((np.abs(closed[:, 0] - i) <= settings.window) & (np.abs(closed[:, 1] - j) <= settings.window))
+                   for i, j in drifted]
+    unexplained = [pair for pair, explained in zip(drifted, near_closed) if not explained]
+    global_pairs = _nearest_per_scan(unexplained, positions, settings.global_loops_per_scan)
+    for i, j in global_pairs:
+        for k in (i, j):
+            if k not in features:
+                features[k] = _fpfh(clouds[k], settings)
+        guess = np.linalg.inv(chain_poses[j]) @ chain_poses[i]
+        transform, result = global_registration(clouds[i], clouds[j], features[i], features[j], settings)
+        allowed_m = settings.max_loop_correction_m + settings.loop_drift_fraction * abs(path_m[j] - path_m[i])
+        if result.fitness < settings.min_loop_fitness or correction_m(guess, transform) > allowed_m:
+            continue
+        # Certain: the line process would prune a closure this far from the chain (its residual is the whole
+        # drift), and the gates above are what vouch for it.
+        graph.edges.append(_reg.PoseGraphEdge(i, j, transform, _information(clouds[i], clouds[j], transform, settings),
+                                              uncertain=False))
+        kept += 1
+        kept_global += 1
     option = _reg.GlobalOptimizationOption(max_correspondence_distance=settings.information_distance_m,
                                            edge_prune_threshold=settings.edge_prune_threshold,
                                            preference_loop_closure=1.0, reference_node=0)
@@ -224,7 +412,17 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
         _reg.global_optimization(graph, _reg.GlobalOptimizationLevenbergMarquardt(),
                                  _reg.GlobalOptimizationConvergenceCriteria(), option)
     optimized = np.stack([np.asarray(node.pose) for node in graph.nodes])
-    return optimized, kept, len(loop_pairs)
+    return optimized, LoopClosures(len(loop_pairs), kept, len(global_pairs), kept_global)
+
+
+def _nearest_per_scan(pairs: list[tuple[int, int]], positions: np.ndarray, per_scan: int) -> list[tuple[int, int]]:
+    """Of the pairs [(i, j)], each scan i's `per_scan` nearest (positions [S, 3]; ties by j), in (i, j) order."""
+    chosen = []
+    for i in sorted({i for i, _ in pairs}):
+        partners = sorted((j for a, j in pairs if a == i),
+                          key=lambda j: (float(np.linalg.norm(positions[i] - positions[j])), j))
+        chosen.extend((i, j) for j in sorted(partners[:max(per_scan, 0)]))
+    return chosen
 
 
 def _world_map(clouds: list, poses: np.ndarray, scans, settings: BaselineSettings) -> o3d.geometry.PointCloud:
@@ -269,7 +467,8 @@ def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettin
                     continue
                 target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world_points[near]))
                 target.normals = o3d.utility.Vector3dVector(world_normals[near])
-                transform, result = multiscale_icp(clouds[s], target, poses[s], map_icp)  # sensor -> world
+                # sensor -> world; the map's normals were estimated again, their signs unknown
+                transform, result = multiscale_icp(clouds[s], target, poses[s], map_icp, oriented=False)
                 if not _passes_loop_gates(result, correction_m(poses[s], transform), settings):
                     rejected += 1
                     continue
@@ -297,12 +496,12 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
         t0 = time.perf_counter()
         chain, fitness = scan_to_map_chain(clouds, init_poses, settings)
         t1 = time.perf_counter()
-        optimized, kept, tried = loop_closed_graph(clouds, chain, settings)
+        optimized, loops = loop_closed_graph(clouds, chain, settings)
         t2 = time.perf_counter()
         logger.info("baseline: scan-to-map chain of %d scans in %.1f s (median overlap %.0f%%); pose graph with %d of "
-                    "%d loop-closure candidates (overlap >= %.0f%%, correction <= %.2g m) in %.1f s", len(scans),
-                    t1 - t0, 100 * np.median(fitness[1:]), kept, tried, 100 * settings.min_loop_fitness,
-                    settings.max_loop_correction_m, t2 - t1)
+                    "%d loop-closure candidates (overlap >= %.0f%%), %d of them from %d global registrations, in "
+                    "%.1f s", len(scans), t1 - t0, 100 * np.median(fitness[1:]), loops.kept, loops.tried,
+                    100 * settings.min_loop_fitness, loops.global_kept, loops.global_tried, t2 - t1)
         if settings.map_rounds > 0:
             # The graph's poses carry round-off in the rotations; re-orthonormalise before moving clouds with them.
             optimized = _orthonormal(optimized)

@@ -159,6 +159,10 @@ def base_config() -> ml_collections.ConfigDict:
     c.baseline.max_loops_per_scan = 4
     c.baseline.min_loop_fitness = 0.3
     c.baseline.max_loop_correction_m = 0.2  # loop closures that move a scan further from the chain are dropped
+    # Loops ICP cannot reach from the chain: FPFH + RANSAC for the nearest pair per scan (0: off), kept within
+    # this fraction of the path between the two scans (the drift a LiDAR odometry builds up).
+    c.baseline.global_loops_per_scan = 1
+    c.baseline.loop_drift_fraction = 0.01
     c.baseline.map_rounds = 2  # rounds of multi-view refinement (each scan against the others' map); 0: none
 
     c.eval = ml_collections.ConfigDict()

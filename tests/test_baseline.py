@@ -9,10 +9,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 import pytest
 
-from neld_jax.baseline import (BaselineSettings, _prepare_scan, candidate_pairs, refine_against_map,
-                              register_sequence)
+from neld_jax.baseline import (BaselineSettings, TargetIndex, _prepare_scan, candidate_pairs, loop_closed_graph,
+                              multiscale_icp, point_to_plane_icp, refine_against_map, register_sequence)
 from neld_jax.data.preprocess import preprocess
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.synthetic import make_sequence
@@ -205,3 +206,97 @@ def test_multi_view_refinement_pulls_a_scan_onto_the_others_map_and_gates_a_far_
     np.testing.assert_array_equal(refined[0], start[0])  # the gauge scan
     np.testing.assert_array_equal(refined[3], start[3])  # gated: ICP would move it by about 1 m
     assert rejected >= 2 / 10  # scan 3 in both rounds, of 5 registrations a round
+
+
+def _plane_points(origin, u, v, size_u, size_v, spacing=0.1):
+    """Points [N, 3] on origin + a u + b v, a in [0, size_u], b in [0, size_v], on a grid."""
+    a, b = np.meshgrid(np.arange(0, size_u, spacing), np.arange(0, size_v, spacing), indexing="ij")
+    return np.asarray(origin) + a.reshape(-1, 1) * np.asarray(u) + b.reshape(-1, 1) * np.asarray(v)
+
+
+def _cloud(parts):
+    """parts: [(points [N, 3], normal [3])] -> an Open3D cloud with those normals."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate([p for p, _ in parts])))
+    cloud.normals = o3d.utility.Vector3dVector(np.concatenate([np.tile(n, (len(p), 1)) for p, n in parts]))
+    return cloud
+
+
+def test_icp_does_not_pair_the_two_faces_of_a_thin_wall():
+    # A floor, a side wall and a far wall fix the pose. The target saw the FRONT face of a 0.3 m thick wall (normal
+    # towards -x), the source, from the other side, its BACK face (normal +x): the same pose for both, but the
+    # plain nearest-neighbour pairing (Open3D's ICP) pulls the back face onto the front face and slides the scan
+    # along x. Pairing only compatible normals keeps the true pose.
+    floor = (_plane_points([-6, -4, 0], [1, 0, 0], [0, 1, 0], 12, 8, 0.25), [0, 0, 1])
+    side = (_plane_points([-6, -4, 0], [1, 0, 0], [0, 0, 1], 12, 3, 0.25), [0, 1, 0])
+    far = (_plane_points([-6, -4, 0], [0, 1, 0], [0, 0, 1], 8, 3, 0.5), [1, 0, 0])
+    front = (_plane_points([5.0, -4, 0], [0, 1, 0], [0, 0, 1], 8, 3), [-1, 0, 0])
+    back = (_plane_points([5.3, -4, 0], [0, 1, 0], [0, 0, 1], 8, 3), [1, 0, 0])
+    target, source = _cloud([floor, side, far, front]), _cloud([floor, side, far, back])
+    settings = BaselineSettings(icp_distances_m=(1.0, 0.5, 0.25, 0.1))
+
+    transform, result = multiscale_icp(source, target, np.eye(4), settings)
+    assert np.linalg.norm(transform[:3, 3]) < 0.01
+    assert result.fitness < 1.0  # the back face has no partner within 0.1 m: Open3D's fitness definition
+    plain = np.eye(4)
+    for distance in settings.icp_distances_m:
+        plain = o3d.pipelines.registration.registration_icp(
+            source, target, distance, plain, o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30)).transformation
+    assert plain[0, 3] < -0.1  # what the normal check prevents
+
+    # Map normals of unknown sign (oriented=False) pair by |cosine|: a flipped target still registers, and a
+    # nudge of 5 cm along x is undone.
+    flipped = o3d.geometry.PointCloud(target)
+    flipped.normals = o3d.utility.Vector3dVector(-np.asarray(target.normals))
+    nudge = np.eye(4)
+    nudge[0, 3] = 0.05
+    result = point_to_plane_icp(source, flipped, nudge, 0.25, 30, 0.5, oriented=False)
+    assert np.linalg.norm(result.transformation[:3, 3]) < 0.01 and result.num_correspondences > 0
+
+
+@pytest.fixture(scope="module")
+def short_courtyard_route():
+    seq = make_sequence(dict(route="courtyards", route_length_m=100.0, num_scans=34, num_beams=32, num_columns=512,
+                             gt_map_points=0, max_range_m=30.0, drift_trans_m=0.0, drift_rot_deg=0.0))
+    return preprocess(seq, keyframe_interval_s=0.0, min_range=0.5, max_range=30.0, voxel_size=0.1)
+
+
+def test_global_registration_closes_a_loop_beyond_icps_reach(short_courtyard_route):
+    # A chain that drifted linearly to 2.5 m at the loop's end (the truth with a growing offset; 2.5 % of the path,
+    # so the drift allowance is raised to 3 %). On this short route the end scans overlap the first ones by 20-30 %
+    # only, so closures need 20 %. ICP from the chain cannot reach some pairs (overlap 8-9 %), FPFH + RANSAC can, and
+    # its closure pulls the graph back; without the global stage the graph keeps the drift.
+    seq = short_courtyard_route
+    num_scans = seq.num_scans
+    chain = seq.gt_poses.copy()
+    chain[:, :3, 3] += np.linspace(0.0, 1.0, num_scans)[:, None] * np.array([2.0, 1.5, 0.0])
+    settings = BaselineSettings(window=10, map_rounds=0, loop_drift_fraction=0.03, min_loop_fitness=0.2)
+    clouds = [_prepare_scan(scan, settings.voxel_size_m, settings.normal_radius_m) for scan in seq.scans]
+
+    poses, loops = loop_closed_graph(clouds, chain, settings)
+    drifted = ate(chain, seq.gt_poses)["translation_rmse_m"]
+    assert drifted > 0.5 and loops.tried > 0 and loops.global_tried >= loops.global_kept >= 1
+    assert ate(poses, seq.gt_poses)["translation_rmse_m"] < 0.2 * drifted
+
+    poses, loops = loop_closed_graph(clouds, chain, dataclasses.replace(settings, global_loops_per_scan=0))
+    assert loops.global_tried == loops.global_kept == 0
+    assert ate(poses, seq.gt_poses)["translation_rmse_m"] > 0.5 * drifted
+
+
+@pytest.mark.parametrize("num_targets, max_distance", [(2_000, 0.5), (2_000, 1.0), (20_000, 0.5)])
+def test_target_index_finds_the_nearest_point_within_the_distance(num_targets, max_distance):
+    # Each of the search kinds (radius search for small targets and short distances, nearest search otherwise)
+    # against scipy's KD-tree: the same nearest point, -1 beyond the distance.
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(0)
+    targets = rng.uniform(-5.0, 5.0, (num_targets, 3))
+    queries = rng.uniform(-5.5, 5.5, (500, 3))
+    index = TargetIndex(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(targets)), max_distance)
+    for distance in (max_distance, 0.1):
+        nearest, squared = index.nearest(queries, distance)
+        expected_distance, expected = cKDTree(targets).query(queries, distance_upper_bound=distance)
+        found = np.isfinite(expected_distance)
+        np.testing.assert_array_equal(nearest >= 0, found)
+        np.testing.assert_array_equal(nearest[found], expected[found])
+        np.testing.assert_allclose(np.sqrt(squared[found]), expected_distance[found], atol=1e-9)

@@ -71,7 +71,7 @@ class BaselineSettings:
     # At the ICP scales above normal_check_above_m, points pair only where their normals agree this well (cosine):
     # at thin walls seen from both sides Open3D's plain nearest-neighbour pairs slide scans by the wall's thickness
     # (point_to_plane_icp). The finer scales pair as Open3D does: their distances do not reach across a wall, and
-    # the check there cost accuracy (hard synthetic: 0.52 -> 1.0 mm ATE with it at every scale, even at cosine 0).
+    # the check there cost accuracy (hard synthetic: 0.52 -> 1.0-1.1 mm ATE with it at every scale, cosine 0-0.5).
     min_normal_cos: float = 0.5
     normal_check_above_m: float = 0.25
     min_chain_fitness: float = 0.1  # below this overlap a chain link keeps the odometry's increment (and warns)

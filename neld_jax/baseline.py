@@ -225,7 +225,8 @@ def point_to_plane_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.Poi
             return result
         previous = result
         pairs = np.stack([np.flatnonzero(compatible), nearest[compatible]], axis=1).astype(np.int32)
-        step = estimation.compute_transformation(o3d.geometry.PointCloud(source).transform(transform), target,
+        # The step needs the moved source points only (point-to-plane uses the target's normals).
+        step = estimation.compute_transformation(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(moved)), target,
                                                  o3d.utility.Vector2iVector(pairs))
         transform = step @ transform
     return result
@@ -295,18 +296,16 @@ def candidate_pairs(positions: np.ndarray, loop_radius_m: float, max_loops_per_s
     num_scans = len(positions)
     odometry = [(s, s + 1) for s in range(num_scans - 1)]
     distances = np.linalg.norm(positions[:, None, :] - positions[None, :, :], axis=-1)
-    loops = []
-    for i in range(num_scans):
-        partners = [j for j in range(i + max(min_index_gap, 1), num_scans) if distances[i, j] < loop_radius_m]
-        partners = sorted(partners, key=lambda j: (distances[i, j], j))[:max(max_loops_per_scan, 0)]
-        loops.extend((i, j) for j in sorted(partners))
-    return odometry, loops
+    within = [(i, j) for i in range(num_scans) for j in range(i + max(min_index_gap, 1), num_scans)
+              if distances[i, j] < loop_radius_m]
+    return odometry, _nearest_per_scan(within, positions, max_loops_per_scan)
 
 
-def _passes_loop_gates(result, moved_m: float, settings: BaselineSettings) -> bool:
+def _passes_loop_gates(result, moved_m: float, settings: BaselineSettings, drift_allowance_m: float = 0.0) -> bool:
     """A loop closure's (or a multi-view refinement's) ICP result is kept when it overlaps enough and moves the scan
-    at most max_loop_correction_m (moved_m) from where it started."""
-    return not (result.fitness < settings.min_loop_fitness or moved_m > settings.max_loop_correction_m)
+    at most max_loop_correction_m (+ drift_allowance_m, for global closures) from where it started (moved_m)."""
+    return not (result.fitness < settings.min_loop_fitness
+                or moved_m > settings.max_loop_correction_m + drift_allowance_m)
 
 
 def _information(source, target, transform, settings: BaselineSettings) -> np.ndarray:
@@ -367,8 +366,12 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
         if information[5, 5] <= 0:  # no correspondences at all: keep the link, weakly, so the graph stays connected
             information = np.eye(6)
         graph.edges.append(_reg.PoseGraphEdge(following, s, relative, information, uncertain=False))
-    # The chain's path length up to each scan: the drift allowance of a global loop closure.
+    # The chain's path length up to each scan: a global loop closure may correct loop_drift_fraction of the path.
     path_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
+
+    def drift_allowance_m(i: int, j: int) -> float:
+        return settings.loop_drift_fraction * abs(path_m[j] - path_m[i])
+
     kept = kept_global = 0
     drifted, closed = [], []  # loop pairs for the global registration (below); those ICP closed
     loop_icp = dataclasses.replace(settings, icp_distances_m=settings.loop_icp_distances_m)
@@ -379,8 +382,7 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
         if not _passes_loop_gates(result, moved_m, settings):
             # Too little overlap where the chain can have drifted further than ICP's closures may move a scan: a
             # case for the global registration. Over a short path a failed ICP means the scans share too little.
-            if (result.fitness < settings.min_loop_fitness and settings.loop_drift_fraction * abs(path_m[j] - path_m[i])
-                    > settings.max_loop_correction_m):
+            if result.fitness < settings.min_loop_fitness and drift_allowance_m(i, j) > settings.max_loop_correction_m:
                 drifted.append((i, j))
             continue
         graph.edges.append(_reg.PoseGraphEdge(i, j, transform, _information(clouds[i], clouds[j], transform, settings),
@@ -401,8 +403,7 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
                 features[k] = _fpfh(clouds[k], settings)
         guess = np.linalg.inv(chain_poses[j]) @ chain_poses[i]
         transform, result = global_registration(clouds[i], clouds[j], features[i], features[j], settings)
-        allowed_m = settings.max_loop_correction_m + settings.loop_drift_fraction * abs(path_m[j] - path_m[i])
-        if result.fitness < settings.min_loop_fitness or correction_m(guess, transform) > allowed_m:
+        if not _passes_loop_gates(result, correction_m(guess, transform), settings, drift_allowance_m(i, j)):
             continue
         # Certain: the line process would prune a closure this far from the chain (its residual is the whole
         # drift), and the gates above are what vouch for it.
@@ -422,10 +423,12 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
 
 def _nearest_per_scan(pairs: list[tuple[int, int]], positions: np.ndarray, per_scan: int) -> list[tuple[int, int]]:
     """Of the pairs [(i, j)], each scan i's `per_scan` nearest (positions [S, 3]; ties by j), in (i, j) order."""
+    partners_of: dict[int, list[int]] = {}
+    for i, j in pairs:
+        partners_of.setdefault(i, []).append(j)
     chosen = []
-    for i in sorted({i for i, _ in pairs}):
-        partners = sorted((j for a, j in pairs if a == i),
-                          key=lambda j: (float(np.linalg.norm(positions[i] - positions[j])), j))
+    for i in sorted(partners_of):
+        partners = sorted(partners_of[i], key=lambda j: (float(np.linalg.norm(positions[i] - positions[j])), j))
         chosen.extend((i, j) for j in sorted(partners[:max(per_scan, 0)]))
     return chosen
 

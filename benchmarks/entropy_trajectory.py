@@ -8,9 +8,9 @@
 Trains the lio_keyframes config (cpu budget) from the poses in --pose_file (KITTI, one line per scan of ROOT;
 default: the layout's odom_poses.txt) exactly as `bin/train.py` would from those poses (train.init_poses=input,
 no wall-clock guard), and every --every steps measures the mean map entropy of the keyframes' raw map under the
-current poses (anchored on scan 0, as the run writes them; the same 10,000 query points each time). Writes one
-JSON object: the overrides and, per measurement, the step, the entropy, the last batch's range error and the
-mean pose correction so far. Nothing is written besides --out.
+current poses (anchored on train.anchor_scan, 0, as the run writes them; the same 10,000 query points each
+time). Writes one JSON object: the overrides and, per measurement, the step, the entropy, the last batch's range
+error and the mean pose correction so far. Nothing is written besides --out.
 """
 
 import json
@@ -32,13 +32,11 @@ OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE, e.
 def main(argv):
     del argv
     import jax.numpy as jnp
-    import numpy as np
 
     from configs import lio_keyframes
     from neld_jax import quality, run, train
     from neld_jax.config import apply_overrides
     from neld_jax.data.rays import build_rays
-    from neld_jax.model import anchor_transform, scan_poses
 
     config = lio_keyframes.get_config("cpu")
     config.data.root, config.data.pose_file = ROOT.value, POSE_FILE.value
@@ -48,12 +46,11 @@ def main(argv):
     rays = train.device_rays(build_rays(seq, norm, max_rays_per_scan=(config.data.max_rays_per_scan or None),
                                         seed=config.seed))
     T_init = jnp.asarray(norm.poses_to_normalized(seq.poses), jnp.float32)
-    T_init64 = np.asarray(T_init, np.float64)
     records = []
 
     def measure(step: int, poses, history: list) -> None:
-        T_n = np.asarray(scan_poses(poses, T_init), np.float64)
-        T_world = norm.poses_to_world(np.asarray(anchor_transform(T_n, T_init64, 0)) @ T_n)
+        T_n, G_n = run.field_poses(poses, T_init, config.train.anchor_scan)
+        T_world = norm.poses_to_world(G_n @ T_n)
         summary, _ = quality.map_crispness(seq, {"poses": T_world}, config.eval)
         last = history[-1] if history else {}
         records.append({"step": step, "mean_map_entropy": summary["poses"]["mean_map_entropy"],

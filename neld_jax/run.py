@@ -148,14 +148,20 @@ def train_single_cube(config: ml_collections.ConfigDict, seq, norm, raysets, T_s
                           lambda: train.initial_state(config, seq.num_scans, norm.scale),
                           functools.partial(train.fit, config, rays, T_init, norm.scale, progress=progress))
 
-    # Poses in the field's frame (what the field renders with), then anchored (train.anchor_scan) so that the
-    # anchor scan keeps its initial pose, then back in the input's world frame and scale.
-    T_field_n = np.asarray(scan_poses(result.state.params["poses"], T_init), np.float64)
-    G_n = np.eye(4)
-    if config.train.anchor_scan >= 0:
-        G_n = np.asarray(anchor_transform(T_field_n, np.asarray(T_init, np.float64),
-                                          int(config.train.anchor_scan)))
+    T_field_n, G_n = field_poses(result.state.params["poses"], T_init, config.train.anchor_scan)
     return result, T_field_n, G_n
+
+
+def field_poses(pose_params, T_init, anchor_scan: int) -> tuple[np.ndarray, np.ndarray]:
+    """The scans' poses in the field's normalised frame (what the field renders with) and the anchoring transform
+    that keeps scan `anchor_scan` at its initial pose (identity when anchor_scan < 0); the world poses are
+    norm.poses_to_world(G_n @ T_field_n). pose_params: [K, 6]; T_init: [K, 4, 4] normalised.
+    Returns (T_field_n [K, 4, 4], G_n [4, 4]), float64."""
+    T_field_n = np.asarray(scan_poses(pose_params, T_init), np.float64)
+    G_n = np.eye(4)
+    if anchor_scan >= 0:
+        G_n = np.asarray(anchor_transform(T_field_n, np.asarray(T_init, np.float64), int(anchor_scan)))
+    return T_field_n, G_n
 
 
 def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:

@@ -4,7 +4,7 @@
     python benchmarks/long_route.py                                  # the full target: 200 keyframes, 600 m
     python benchmarks/long_route.py --num_scans=66 --route_length_m=200 --steps=600   # a shortened run
     python benchmarks/long_route.py --parts=throughput --devices=1,2,4,8               # steps/s only
-    python benchmarks/long_route.py --parts=accuracy --init_poses=baseline --submap_batch_rays=128
+    python benchmarks/long_route.py --parts=accuracy --init_poses=crisper --single_cube=false
 
 accuracy: the generic cpu budget on a synthetic `courtyards` route (data.synthetic.route), run twice on the same
 sequence: with submaps (switched on by the rule, not by a flag) and as one cube (submaps.enabled=off,
@@ -32,8 +32,10 @@ PARTS = flags.DEFINE_list("parts", ["split", "accuracy", "throughput"], "split, 
 NUM_SCANS = flags.DEFINE_integer("num_scans", 200, "Keyframes of the route (one every 3 s).")
 ROUTE_M = flags.DEFINE_float("route_length_m", 600.0, "Length of the closed route.")
 STEPS = flags.DEFINE_integer("steps", 0, "train.steps (0: the cpu budget's).")
-SUBMAP_BATCH = flags.DEFINE_integer("submap_batch_rays", 256, "submaps.batch_rays: rays per submap per step.")
+SUBMAP_BATCH = flags.DEFINE_integer("submap_batch_rays", 0, "submaps.batch_rays: rays per submap per step (0: the "
+                                    "config's rule, train.batch_rays shared among the submaps).")
 SINGLE = flags.DEFINE_bool("single_cube", True, "Also run the single cube on the same route.")
+WITH_SUBMAPS = flags.DEFINE_bool("submaps", True, "Run with submaps (false: only the single cube, with --single_cube).")
 INIT_POSES = flags.DEFINE_enum("init_poses", "input", ["input", "baseline", "crisper"],
                                "train.init_poses of both runs: the drifted odometry, or the classical baseline's "
                                "poses (its pose graph closes the loop that the drift hides).")
@@ -72,7 +74,7 @@ def accuracy() -> dict:
 
     out = {}
     for name, on in (("submaps", True), ("single_cube", False)):
-        if name == "single_cube" and not SINGLE.value:
+        if (name == "single_cube" and not SINGLE.value) or (name == "submaps" and not WITH_SUBMAPS.value):
             continue
         config = route_config(os.path.join(OUTPUT_ROOT.value, f"{name}_{NUM_SCANS.value}"), on)
         t0 = time.perf_counter()
@@ -91,6 +93,7 @@ def accuracy() -> dict:
         }
         if "baseline" in methods and "ate" in methods["baseline"]:
             out[name]["ate_baseline_m"] = methods["baseline"]["ate"]["translation_rmse_m"]
+            out[name]["rot_baseline_deg"] = methods["baseline"]["ate"]["rotation_rmse_deg"]
         out[name]["ate_ratio"] = out[name]["ate_optimized_m"] / out[name]["ate_initial_m"]
         logging.warning("%s: %s", name, out[name])
     return out
@@ -159,8 +162,9 @@ def throughput_worker(devices: int) -> dict:
     jax.block_until_ready(metrics)
     seconds = time.perf_counter() - t0
     steps_per_s = TP_STEPS.value / seconds
-    return {"devices": devices, "submaps": plan.num_submaps, "rays_per_submap": SUBMAP_BATCH.value,
-            "steps_per_s": steps_per_s, "rays_per_s": steps_per_s * plan.num_submaps * SUBMAP_BATCH.value,
+    per_submap = submap_train.submap_batch_rays(config, plan.num_submaps)
+    return {"devices": devices, "submaps": plan.num_submaps, "rays_per_submap": per_submap,
+            "steps_per_s": steps_per_s, "rays_per_s": steps_per_s * plan.num_submaps * per_submap,
             "compile_s": round(compile_s, 2), "platform": jax.devices()[0].platform, "collectives": collectives,
             "loss_finite": bool(np.isfinite(float(metrics["loss"])))}
 

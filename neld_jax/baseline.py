@@ -234,17 +234,27 @@ def point_to_plane_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.Poi
 
 def multiscale_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, guess: np.ndarray,
                    settings: BaselineSettings, oriented: bool = True) -> tuple[np.ndarray, IcpResult]:
-    """point_to_plane_icp at each of settings.icp_distances_m in turn, each from the previous result (one index); the
-    normal check (settings.min_normal_cos) at the distances above settings.normal_check_above_m only.
+    """Point-to-plane ICP at each of settings.icp_distances_m in turn, each from the previous result: at the distances
+    above settings.normal_check_above_m point_to_plane_icp with its normal check (settings.min_normal_cos; one
+    index for those), at the others Open3D's registration_icp, the same pairs and steps in one C++ loop (HKU_2's
+    baseline: 247 -> 224-234 s, the map as crisp).
 
     oriented: whether target's normals face its sensors like the source's (False for re-estimated map normals).
     Returns (transform [4, 4] mapping source into target's frame, the IcpResult of the finest scale)."""
-    transform, result = np.asarray(guess, np.float64), None
-    index = TargetIndex(target, max(settings.icp_distances_m))
+    transform, result, index = np.asarray(guess, np.float64), None, None
+    checked = [d for d in settings.icp_distances_m if d > settings.normal_check_above_m]
     for distance in settings.icp_distances_m:
-        min_cos = settings.min_normal_cos if distance > settings.normal_check_above_m else -1.0
-        result = point_to_plane_icp(source, target, transform, distance, settings.icp_iterations,
-                                    min_cos, oriented, index)
+        if distance in checked:
+            if index is None:
+                index = TargetIndex(target, max(checked))
+            result = point_to_plane_icp(source, target, transform, distance, settings.icp_iterations,
+                                        settings.min_normal_cos, oriented, index)
+        else:
+            icp = _reg.registration_icp(source, target, distance, transform,
+                                        _reg.TransformationEstimationPointToPlane(),
+                                        _reg.ICPConvergenceCriteria(max_iteration=settings.icp_iterations))
+            result = IcpResult(np.asarray(icp.transformation), icp.fitness, icp.inlier_rmse,
+                               len(icp.correspondence_set))
         transform = result.transformation
     return np.asarray(transform), result
 
@@ -261,10 +271,12 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
 
     clouds: S Open3D clouds (sensor frame, with normals); init_poses: [S, 4, 4] sensor -> world.
     Returns (poses [S, 4, 4] with poses[0] = init_poses[0], fitness [S] of each link, fitness[0] = 1). A link
-    whose fitness is below settings.min_chain_fitness keeps the odometry's increment and is warned about.
+    whose fitness is below settings.min_chain_fitness, or whose ICP moved the scan further than
+    settings.max_link_correction_m, keeps the odometry's increment; one warning per reason lists those scans.
     """
     poses = [np.asarray(init_poses[0], np.float64)]
     fitness = np.ones(len(clouds))
+    kept = {"overlap": [], "slide": []}  # links that kept the odometry's increment, by reason: one warning each
     for s in range(1, len(clouds)):
         guess = poses[s - 1] @ np.linalg.inv(init_poses[s - 1]) @ init_poses[s]  # the odometry's increment
         local_map = o3d.geometry.PointCloud()
@@ -274,16 +286,27 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
         fitness[s] = result.fitness
         moved_m = correction_m(guess, transform)
         if result.fitness < settings.min_chain_fitness:
-            logger.warning("baseline: scan %d overlaps the map of the %d scans before it by only %.0f%%; keeping "
-                           "the odometry's increment", s, settings.window, 100 * result.fitness)
+            kept["overlap"].append(f"{s} ({100 * result.fitness:.1f}%)")
             transform = guess
         elif moved_m > settings.max_link_correction_m:
-            logger.warning("baseline: ICP moved scan %d by %.2f m from the odometry's increment (more than "
-                           "max_link_correction_m=%.2g m, a slide along a featureless direction?); keeping the "
-                           "increment", s, moved_m, settings.max_link_correction_m)
+            kept["slide"].append(f"{s} ({moved_m:.2f} m)")
             transform = guess
         poses.append(transform)
+    if kept["overlap"]:
+        logger.warning("baseline: %d scan(s) overlap the map of the %d scans before them by less than "
+                       "min_chain_fitness=%.0f%% and keep the odometry's increment: %s", len(kept["overlap"]),
+                       settings.window, 100 * settings.min_chain_fitness, _first(kept["overlap"]))
+    if kept["slide"]:
+        logger.warning("baseline: ICP moved %d scan(s) further than max_link_correction_m=%.2g m from the odometry's "
+                       "increment (a slide along a featureless direction?); they keep the increment: %s",
+                       len(kept["slide"]), settings.max_link_correction_m, _first(kept["slide"]))
     return np.stack(poses), fitness
+
+
+def _first(items: list[str], count: int = 12) -> str:
+    """The first `count` items, comma-separated, and how many more (for one log line)."""
+    more = f" and {len(items) - count} more" if len(items) > count else ""
+    return ", ".join(items[:count]) + more
 
 
 def candidate_pairs(positions: np.ndarray, loop_radius_m: float, max_loops_per_scan: int = 4,

@@ -14,6 +14,8 @@ import ml_collections
 from neld_jax.errors import ConfigError
 
 BUDGETS = ("paper", "gpu", "cpu")
+# (init, final) pose learning rates for poses that are already good (refine_odometry; train.pose_lr_from_baseline)
+REFINE_POSE_LR = (5e-6, 2.5e-7)
 
 
 def default_budget(cpu_default: str = "paper") -> str:
@@ -73,8 +75,11 @@ def base_config() -> ml_collections.ConfigDict:
     # A revisit (keyframes 2+ windows apart, initial positions within this many metres) gets a submap holding
     # both visits, which ties the two ends of a loop together; 0: off.
     c.submaps.closure_radius_m = 10.0
-    c.submaps.batch_rays = 0  # rays per submap per step; 0: train.batch_rays
+    c.submaps.batch_rays = 0  # rays per submap per step; 0: train.batch_rays shared among the submaps (>= 8 each)
     c.submaps.devices = 0  # devices the submaps are sharded over; 0: every visible device
+    # At most this many submaps (0: no limit): a longer sequence gets longer windows, in larger cubes (coarser than
+    # max_detail_m; the log says so). Unless submaps.keyframes is set.
+    c.submaps.max_submaps = 0
 
     c.model = ml_collections.ConfigDict()
     c.model.width = 512
@@ -134,6 +139,15 @@ def base_config() -> ml_collections.ConfigDict:
     # from it first; for starts that drifted beyond the field's basin of convergence) or "crisper" (the baseline
     # runs, and training starts from whichever of the two gives the crisper raw map; neld_jax.run.starting_poses).
     c.train.init_poses = "input"
+    # (init, final) caps on the pose learning rates when training starts from the baseline's poses (init_poses
+    # baseline, or crisper choosing it): they are registered to a few mm, and larger pose steps walk them away
+    # (long synthetic route: ATE 0.0064 -> 0.0366 m at the cpu budget's 1e-3; docs/method.md "Which start").
+    # refine_odometry's own rates; () = no cap.
+    c.train.pose_lr_from_baseline = REFINE_POSE_LR
+    # A baseline trajectory that departs from the input's by more than this fraction of the path (largest position
+    # difference after rigid alignment) is warned about, and init_poses=crisper keeps the input: the drift expected
+    # of a LiDAR odometry (refine_odometry: 1 %). 0: no check (the input may have drifted arbitrarily).
+    c.train.max_baseline_departure = 0.0
     c.train.checkpoint_every = 5000
     c.train.log_every = 100
     c.train.max_minutes = 0.0  # 0: no wall-clock limit; else stop (and checkpoint) after this long
@@ -224,10 +238,13 @@ def refine_odometry(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     baseline's ICP against every other scan (docs/method.md, "Pose steps on real recordings").
     """
     for part in ("rot", "trans"):
-        c.train[f"pose_lr_{part}_init"] = 5e-6
-        c.train[f"pose_lr_{part}_final"] = 2.5e-7
+        c.train[f"pose_lr_{part}_init"], c.train[f"pose_lr_{part}_final"] = REFINE_POSE_LR
     c.data.max_range_m = 40.0
     c.train.init_poses = "crisper"
+    # On MulRan Riverside02 (2.6 km, sparse outdoor scans overlapping 19 % at the chain's 0.1 m scale) the
+    # baseline's chain bent the route by up to 33.7 m (1.28 % of the path) and still gave the crisper local map;
+    # on HKU_1 and HKU_2 it departs 0.25 % and 0.11 % (docs/method.md, "Which start").
+    c.train.max_baseline_departure = 0.01
     return c
 
 
@@ -287,11 +304,15 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
     # took 160 s to render on 2 cores, as long as half the training).
     c.mapping.max_rays = 262_144
     c.mapping.voxel_size_m = 0.1
+    # A step's rays are shared among the submaps; beyond 32 each field sees too few (16 a step) and a step costs
+    # more than the single cube's (Riverside02's 0.25 m rule: 340 submaps, 2.4 s a step on 2 cores).
+    c.submaps.max_submaps = 32
     c.data.synthetic.gt_map_points = 100_000
     if budget == "gpu":
         c.train.steps = 30_000
         c.train.log_every = 500  # K: steps per device call of the fused loop
         c.train.checkpoint_every = 5000
+        c.submaps.max_submaps = 0  # a GPU runs hundreds of submaps' rays a step (not measured there yet)
         paper = base_config().mapping  # the paper's map: 128 + 128 samples per ray, every ray, 5 cm voxels
         for field in ("num_coarse", "num_fine", "max_rays_per_scan", "max_rays", "voxel_size_m"):
             c.mapping[field] = paper[field]

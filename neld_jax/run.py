@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from neld_jax import export, quality, report, submap_run, submaps, train
+from neld_jax import export, metrics, quality, report, submap_run, submaps, train
 from neld_jax.checkpoint import fit_resuming
 from neld_jax.errors import ConfigError
 from neld_jax.data.normalize import fit_normalization
@@ -97,6 +97,7 @@ class Start:
     baseline_poses: np.ndarray | None = None
     baseline_seconds: float | None = None
     judged: tuple = ({}, {})
+    departure_m: float | None = None  # trajectory_departure of the baseline from the input (when it ran)
 
 
 START_CHOICES = ("input", "baseline", "crisper")
@@ -122,15 +123,58 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
     poses = register_sequence(seq.scans, seq.poses, BaselineSettings.from_config(config.get("baseline")))
     seconds = time.perf_counter() - t0
     logger.info("train.init_poses=%s: the classical baseline took %.1f s", how, seconds)
+    departure_m, path_m = trajectory_departure(seq.poses, poses)
+    limit = float(config.train.get("max_baseline_departure", 0.0))
+    bent = limit > 0 and departure_m > limit * path_m
+    if bent:
+        logger.warning("the baseline's trajectory departs from the input's by up to %.2f m after alignment, %.2f%% of "
+                       "the %.0f m path (more than train.max_baseline_departure=%g of it, the drift expected of the "
+                       "input): its chain may have bent on scans that overlap too little; compare poses_baseline "
+                       "with poses_initial", departure_m, 100 * departure_m / max(path_m, 1e-9), path_m, limit)
     if how == "baseline":
-        return Start(poses, "baseline", poses, seconds)
+        return Start(poses, "baseline", poses, seconds, departure_m=departure_m)
     judged = quality.map_crispness(seq, {"initial": seq.poses, "baseline": poses}, config.eval)
     entropy = {name: summary["mean_map_entropy"] for name, summary in judged[0].items()}
-    # A tie keeps the input; the baseline when neither map could be judged.
-    chosen = "baseline" if quality.crispest(judged[0]) in ("baseline", None) else "input"
+    # A tie keeps the input; the baseline when neither map could be judged. The judge is local (0.3 m
+    # neighbourhoods): a baseline that bent the whole trajectory can still give the crisper map, hence `bent`.
+    chosen = "baseline" if quality.crispest(judged[0]) in ("baseline", None) and not bent else "input"
     logger.info("train.init_poses=crisper: training starts from the %s poses (raw-map entropy: input %s, "
-                "baseline %s)", chosen, entropy["initial"], entropy["baseline"])
-    return Start(poses if chosen == "baseline" else seq.poses, chosen, poses, seconds, judged)
+                "baseline %s%s)", chosen, entropy["initial"], entropy["baseline"],
+                "; the baseline departs too far from the input" if bent else "")
+    return Start(poses if chosen == "baseline" else seq.poses, chosen, poses, seconds, judged, departure_m)
+
+
+def trajectory_departure(T_input: np.ndarray, T_other: np.ndarray) -> tuple[float, float]:
+    """How far another trajectory departs from the input's: (the largest position difference [m] after the best
+    rigid alignment of the two, the input's path length [m]). T_input, T_other: [K, 4, 4] matched poses.
+
+    Local crispness cannot see a trajectory bent as a whole; this can, against a prior on the input's drift."""
+    if len(T_input) < 3:
+        return 0.0, 0.0
+    errors, _, _, _ = metrics.ate_errors(np.asarray(T_other), np.asarray(T_input), "se3")
+    path_m = float(np.linalg.norm(np.diff(np.asarray(T_input)[:, :3, 3], axis=0), axis=1).sum())
+    return float(errors.max()), path_m
+
+
+def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str) -> ml_collections.ConfigDict:
+    """config, or a copy with its pose learning rates capped at train.pose_lr_from_baseline = (init, final) when
+    training starts from the classical baseline's poses (chosen == "baseline"). Those poses are registered to a
+    few mm and the field only refines them: the cpu budget's pose steps (1e-3) walked the long synthetic route's
+    baseline from 0.0064 to 0.0366 m ATE (docs/method.md, "Which start")."""
+    cap = tuple(config.train.get("pose_lr_from_baseline", ()) or ())
+    if chosen != "baseline" or not cap:
+        return config
+    if len(cap) != 2:
+        raise ConfigError(f"train.pose_lr_from_baseline: expected (init, final) or (), got {cap!r}")
+    capped = ml_collections.ConfigDict(config.to_dict())
+    for part in ("rot", "trans"):
+        for which, limit in zip(("init", "final"), cap):
+            key = f"pose_lr_{part}_{which}"
+            capped.train[key] = min(float(config.train[key]), float(limit))
+    if capped.train.to_dict() != config.train.to_dict():
+        logger.info("training starts from the baseline's poses: pose learning rates capped at %g -> %g "
+                    "(train.pose_lr_from_baseline)", *cap)
+    return capped
 
 
 def train_single_cube(config: ml_collections.ConfigDict, seq, norm, raysets, T_start: np.ndarray, out_dir: str,
@@ -171,10 +215,12 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     os.makedirs(out_dir, exist_ok=True)
     chash = config_hash(config)
     logger.info("budget %s (jax's default backend: %s)", config.get("budget", "?"), jax.default_backend())
-    export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
 
     loaded, seq, norm = load_and_prepare(config)
     start = starting_poses(config, seq)
+    config = pose_steps_for_start(config, start.chosen)
+    # The config as trained (the start can cap the pose steps); the hash above stays the user's, for resuming.
+    export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
     T_start = start.poses
     if start.chosen != "input":
         # The cube and the submaps are fitted to the poses training starts from: from a drifted start the
@@ -248,6 +294,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     summary["crispest"] = quality.warn_if_not_crispest(crisp)  # the method whose poses give the crispest raw map
     if start.baseline_seconds is not None:
         summary["baseline_seconds"] = round(start.baseline_seconds, 2)
+        summary["baseline_departure_m"] = round(start.departure_m, 3)
     scans_summary = report.summarize(rows)
     export.write_json(os.path.join(out_dir, "metrics.json"), {"run": summary, "scans_report": scans_summary})
     summary["scans_report"] = scans_summary

@@ -224,6 +224,22 @@ class SubmapSetup(NamedTuple):
     chunk_fn: Callable | None = None  # train.jit_chunk(step_body): chunk(state, rays, frames, sampler, num_steps)
 
 
+MIN_SUBMAP_BATCH_RAYS = 8
+
+
+def submap_batch_rays(config: ml_collections.ConfigDict, num_submaps: int) -> int:
+    """Rays each of the M submaps (padding ones included: they cost as much) draws per step: submaps.batch_rays,
+    or when that is 0 train.batch_rays shared among them, at least MIN_SUBMAP_BATCH_RAYS each. A step then costs
+    about what the single cube's does however the sequence is split, so a budget's steps take about the time they
+    take on one cube (a 600 m route's 13 submaps at the cpu budget's 512 rays each were 13x the single cube's
+    rays). The floor matters only for hundreds of small submaps, which the cpu budget avoids (submaps.max_submaps:
+    Riverside02's 0.25 m rule alone made 340, 8 rays each)."""
+    explicit = int(config.submaps.get("batch_rays", 0))
+    if explicit > 0:
+        return explicit
+    return max(int(config.train.batch_rays) // max(int(num_submaps), 1), MIN_SUBMAP_BATCH_RAYS)
+
+
 def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_submaps: int,
                         mesh: Mesh | None = None) -> SubmapSetup:
     """State, optimiser, schedules and step of M submaps over S keyframes (seeded by config.seed).
@@ -242,7 +258,7 @@ def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_s
     if mesh is not None:
         sharding = state_sharding(state, mesh)
         state = place(state, sharding)
-    batch = int(config.submaps.get("batch_rays", 0)) or int(config.train.batch_rays)
+    batch = submap_batch_rays(config, num_submaps)
     body = make_submap_step_body(tx, schedules, field, LossSettings.from_config(config.loss), batch,
                                  int(config.train.get("scans_per_step", 0)), sharding)
 
@@ -275,8 +291,8 @@ def fit_submaps(config: ml_collections.ConfigDict, setup: SubmapSetup, rays: Sub
         return {"pose_trans_mean_m": float(np.linalg.norm(C[:, :3, 3], axis=1).mean()),
                 "pose_rot_mean_deg": float(np.degrees(np.linalg.norm(xi[:, 3:], axis=1)).mean())}
 
-    per_submap = int(config.submaps.get("batch_rays", 0)) or int(config.train.batch_rays)
-    rays_per_step = per_submap * int(frames.weight.shape[0])  # padding submaps draw rays too
+    num_submaps = int(frames.weight.shape[0])  # padding submaps draw rays too
+    rays_per_step = submap_batch_rays(config, num_submaps) * num_submaps
     return run_chunks(config, setup.schedules, setup.sampler, chunk, setup.state if state is None else state, log,
                       rays_per_step, checkpoint_fn, progress, history, elapsed_s)
 

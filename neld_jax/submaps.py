@@ -212,11 +212,37 @@ def plan_from_config(seq, norm: Normalization, config, num_devices: int = 1) -> 
                 "data.max_range_m or set submaps.keyframes to choose)", seq.source or seq.name, max_extent,
                 sc.max_detail_m, config.model.pos_freqs, int(sc.overlap) + 1, largest, int(sc.overlap) + 1)
             window = int(sc.overlap) + 1
-    plan = plan_submaps(seq.scans, seq.poses, window, int(sc.overlap), margin, num_devices,
-                        float(sc.get("closure_radius_m", 0.0)))
+    closure_radius = float(sc.get("closure_radius_m", 0.0))
+    limit = int(sc.get("max_submaps", 0))
+    if limit > 0 and int(sc.keyframes) <= 0:
+        wanted = window
+        window = window_for_limit(seq.poses, window, int(sc.overlap), closure_radius, limit)
+        if window > wanted:
+            logger.info("%s: windows of %d keyframes would make more than submaps.max_submaps=%d submaps; "
+                        "using %d keyframes a window, in larger cubes (coarser detail, below)",
+                        seq.source or seq.name, wanted, limit, window)
+    plan = plan_submaps(seq.scans, seq.poses, window, int(sc.overlap), margin, num_devices, closure_radius)
     logger.info(describe(plan, extent_m, single_cube_detail_m(extent_m, config.model.pos_freqs, margin),
                          float(sc.max_detail_m), config.model.pos_freqs, margin))
     return plan
+
+
+def count_submaps(poses: np.ndarray, window: int, overlap: int, closure_radius_m: float) -> int:
+    """How many real submaps plan_submaps makes of S keyframes (poses [S, 4, 4]) with these windows."""
+    window = int(min(max(window, 1), len(poses)))
+    return len(window_starts(len(poses), window, overlap)) + len(closure_pairs(poses, window, closure_radius_m))
+
+
+def window_for_limit(poses: np.ndarray, window: int, overlap: int, closure_radius_m: float, limit: int) -> int:
+    """The smallest window >= `window` whose plan has at most `limit` submaps (the whole sequence at worst).
+
+    Every submap draws rays each step (submap_train.submap_batch_rays), so their number sets what a step costs
+    and how few rays each field sees: on 2 CPU cores, Riverside02's 0.25 m detail rule made 340 submaps of 3
+    keyframes (2.4 s a step). Larger windows mean larger cubes, so coarser detail than submaps.max_detail_m."""
+    s = len(poses)
+    while window < s and count_submaps(poses, window, overlap, closure_radius_m) > limit:
+        window += 1
+    return window
 
 
 def describe(plan: SubmapPlan, extent_m: float, detail_m: float, max_detail_m: float, pos_freqs: int,

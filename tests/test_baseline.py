@@ -148,6 +148,13 @@ def test_crisper_start_takes_the_crisper_map(drifted_sequence, monkeypatch):
     config.train.init_poses = "crisper"
     start = starting_poses(config, drifted_sequence)
     assert start.chosen == "baseline" and start.poses is start.baseline_poses
+    # Its trajectory departs from the drifted input by the drift it undid; an input trusted to drift less than
+    # that (train.max_baseline_departure) is kept, whatever the crispness says.
+    assert start.departure_m > 0.01
+    config.train.max_baseline_departure = 1e-6
+    kept = starting_poses(config, drifted_sequence)
+    assert kept.chosen == "input" and kept.poses is drifted_sequence.poses
+    config.train.max_baseline_departure = 0.0
 
     from_truth = dataclasses.replace(drifted_sequence, poses=drifted_sequence.gt_poses)
     monkeypatch.setattr(neld_jax.baseline, "register_sequence", lambda scans, poses, settings: drifted_sequence.poses)
@@ -172,7 +179,8 @@ def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence
     monkeypatch.setattr(baseline, "multiscale_icp", lambda source, target, guess, settings: (guess @ slide, Result()))
     chain, fitness = baseline.scan_to_map_chain(clouds, seq.poses, SETTINGS)
     np.testing.assert_allclose(chain, seq.poses, atol=1e-9)  # every link kept the odometry's increment
-    assert "max_link_correction_m" in caplog.text
+    warned = [r.getMessage() for r in caplog.records if "max_link_correction_m" in r.getMessage()]
+    assert len(warned) == 1 and f"moved {len(clouds) - 1} scan(s)" in warned[0]  # one line for all of them
     chain, _ = baseline.scan_to_map_chain(clouds, seq.poses, dataclasses.replace(SETTINGS, max_link_correction_m=3.0))
     np.testing.assert_allclose(np.linalg.inv(seq.poses[0]) @ chain[1], np.linalg.inv(seq.poses[0]) @ seq.poses[1] @ slide,
                                atol=1e-9)  # under a looser bound the slide is taken

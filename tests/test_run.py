@@ -12,7 +12,7 @@ import pytest
 from neld_jax import checkpoint, run
 from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.poses import read_kitti, read_tum
-from neld_jax.errors import DataError
+from neld_jax.errors import ConfigError, DataError
 
 from conftest import make_tiny_config
 
@@ -163,3 +163,40 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     assert len(T_baseline) == len(T_initial) == 4
     assert np.abs(T_baseline[1:, :3, 3] - T_initial[1:, :3, 3]).max() > 1e-3  # the baseline did move the scans
     np.testing.assert_allclose(fitted[-1], T_baseline, atol=1e-5)
+    # From the baseline's poses the pose steps are capped, and config.json holds the config as trained.
+    trained = json.loads((tmp_path / "run" / "config.json").read_text())["train"]
+    assert trained["pose_lr_trans_init"] == trained["pose_lr_rot_init"] == config.train.pose_lr_from_baseline[0]
+    assert config.train.pose_lr_trans_init > trained["pose_lr_trans_init"]  # the caller's config is not changed
+
+
+def test_trajectory_departure_ignores_a_rigid_motion_and_sees_a_bend():
+    from scipy.spatial.transform import Rotation
+
+    angle = np.linspace(0.0, np.pi / 2, 21)
+    poses = np.tile(np.eye(4), (21, 1, 1))
+    poses[:, :3, 3] = np.stack([20 * np.cos(angle), 20 * np.sin(angle), 0.1 * angle], axis=1)  # a 31 m arc
+    moved = np.eye(4)
+    moved[:3, :3], moved[:3, 3] = Rotation.from_euler("zx", (30, 5), degrees=True).as_matrix(), (5.0, -2.0, 1.0)
+    departure, path = run.trajectory_departure(poses, moved @ poses)
+    assert departure < 1e-9 and path == pytest.approx(10 * np.pi, rel=1e-2)
+    bent = poses.copy()
+    bent[:, 2, 3] += 0.03 * np.arange(21.0) ** 2  # rising 12 m by the end, 0.8 m of it left after alignment
+    departure, _ = run.trajectory_departure(poses, bent)
+    assert 0.5 < departure < 12.0
+
+
+def test_pose_steps_are_capped_only_from_the_baseline():
+    config = make_tiny_config("unused", steps=4)
+    config.train.pose_lr_rot_init, config.train.pose_lr_trans_init = 1e-3, 1e-6  # one above the cap, one below
+    config.train.pose_lr_rot_final = config.train.pose_lr_trans_final = 1e-5
+    config.train.pose_lr_from_baseline = (5e-6, 2.5e-7)
+    assert run.pose_steps_for_start(config, "input") is config
+    capped = run.pose_steps_for_start(config, "baseline")
+    assert capped.train.pose_lr_rot_init == 5e-6 and capped.train.pose_lr_trans_init == 1e-6  # min(rate, cap)
+    assert capped.train.pose_lr_rot_final == capped.train.pose_lr_trans_final == 2.5e-7
+    assert capped.train.field_lr_init == config.train.field_lr_init and config.train.pose_lr_rot_init == 1e-3
+    config.train.pose_lr_from_baseline = ()
+    assert run.pose_steps_for_start(config, "baseline") is config
+    config.train.pose_lr_from_baseline = (1e-6,)
+    with pytest.raises(ConfigError, match="pose_lr_from_baseline"):
+        run.pose_steps_for_start(config, "baseline")

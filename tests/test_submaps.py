@@ -125,6 +125,26 @@ def test_switch_rule_and_log_line(caplog):
     assert plan.window == 3 and any("data.max_range_m" in r.message for r in caplog.records)
 
 
+def test_max_submaps_lengthens_the_windows(caplog):
+    # A step draws rays from every submap, so the cpu budget caps their number: the windows grow instead.
+    c = base_config()
+    c.model.pos_freqs, c.submaps.max_detail_m, c.submaps.overlap = 10, 0.04, 1  # 18 m cubes: 6 windows of 3
+    scans, poses = _line_of_scans(12)
+    seq = Sequence(scans=scans, poses=poses, name="line")
+    norm = fit_normalization(scans, poses, 0.9)
+    free = submaps.plan_from_config(seq, norm, c)
+    assert free.num_submaps > 3
+    c.submaps.max_submaps = 3
+    with caplog.at_level(logging.INFO, logger="neld_jax.submaps"):
+        capped = submaps.plan_from_config(seq, norm, c)
+    assert capped.num_submaps <= 3 and capped.window > free.window
+    assert submaps.count_submaps(poses, capped.window - 1, 1, c.submaps.closure_radius_m) > 3  # the smallest such
+    assert any("max_submaps=3" in r.message for r in caplog.records)
+    assert submaps.window_for_limit(poses, 2, 1, 0.0, 1) == 12  # at worst one window holds the whole sequence
+    c.submaps.keyframes = 2  # an explicit window is kept
+    assert submaps.plan_from_config(seq, norm, c).window == 2
+
+
 def test_submap_arrays_hold_each_window_s_rays_in_its_units():
     rays, T = sphere_scene_rays(6, 20, seed=0)
     rays.ranges = rays.ranges.astype(np.float32)
@@ -155,6 +175,16 @@ def test_sharded_step_shared_scan_and_resume_on_8_devices(tmp_path):
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     for check in ("sharded step equals unsharded", "shared scan gradient", "resume with sharded state"):
         assert f"OK {check}" in proc.stdout, proc.stdout
+
+
+def test_submaps_share_the_step_s_rays():
+    c = base_config()
+    c.train.batch_rays, c.submaps.batch_rays = 512, 0
+    assert submap_train.submap_batch_rays(c, 1) == 512
+    assert submap_train.submap_batch_rays(c, 13) == 39  # 507 rays a step, about the single cube's 512
+    assert submap_train.submap_batch_rays(c, 172) == submap_train.MIN_SUBMAP_BATCH_RAYS == 8
+    c.submaps.batch_rays = 128  # set explicitly: each submap draws that many
+    assert submap_train.submap_batch_rays(c, 13) == 128
 
 
 def test_run_with_submaps_writes_the_single_cube_outputs(tmp_path):

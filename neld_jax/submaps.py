@@ -165,6 +165,16 @@ def closure_members(i: int, j: int, window: int, num_scans: int) -> np.ndarray:
     return np.concatenate([np.arange(a, a + h), np.arange(b, b + window - h)])
 
 
+def submap_members(poses: np.ndarray, window: int, overlap: int, closure_radius_m: float = 0.0) -> np.ndarray:
+    """The keyframes [M, W] of each real submap of S keyframes (poses [S, 4, 4] initial): the windows of `window`
+    (clipped to 1..S) consecutive keyframes, then one loop-closure submap per revisit (closure_pairs)."""
+    s = len(poses)
+    window = int(min(max(window, 1), s))
+    members = window_starts(s, window, int(overlap))[:, None] + np.arange(window)[None, :]
+    closures = [closure_members(i, j, window, s) for i, j in closure_pairs(poses, window, closure_radius_m)]
+    return np.vstack([members] + [c[None] for c in closures]) if closures else members
+
+
 def plan_submaps(scans: list[np.ndarray], poses: np.ndarray, window: int, overlap: int, margin: float,
                  num_devices: int = 1, closure_radius_m: float = 0.0) -> SubmapPlan:
     """Split S keyframes (scans [N_i, 3] sensor frame, poses [S, 4, 4] initial) into windows of `window`.
@@ -173,13 +183,7 @@ def plan_submaps(scans: list[np.ndarray], poses: np.ndarray, window: int, overla
     so that the field of that place ties the two ends of a loop together; windows alone tie only neighbours.
     Each submap gets its own normalisation fitted to its scans (fit_normalization with `margin`); s_ref is the
     median submap scale. M is padded up to a multiple of num_devices with weight-0 copies of the last submap."""
-    s = len(scans)
-    window = int(min(max(window, 1), s))
-    starts = window_starts(s, window, int(overlap))
-    members = starts[:, None] + np.arange(window)[None, :]
-    closures = [closure_members(i, j, window, s) for i, j in closure_pairs(poses, window, closure_radius_m)]
-    if closures:
-        members = np.vstack([members] + [c[None] for c in closures])
+    members = submap_members(poses, window, overlap, closure_radius_m)
     norms = [fit_normalization([scans[i] for i in row], poses[row], margin=margin) for row in members]
     ref_scale = float(np.median([n.scale for n in norms]))
     weight = np.ones(len(members))
@@ -229,8 +233,7 @@ def plan_from_config(seq, norm: Normalization, config, num_devices: int = 1) -> 
 
 def count_submaps(poses: np.ndarray, window: int, overlap: int, closure_radius_m: float) -> int:
     """How many real submaps plan_submaps makes of S keyframes (poses [S, 4, 4]) with these windows."""
-    window = int(min(max(window, 1), len(poses)))
-    return len(window_starts(len(poses), window, overlap)) + len(closure_pairs(poses, window, closure_radius_m))
+    return len(submap_members(poses, window, overlap, closure_radius_m))
 
 
 def window_for_limit(poses: np.ndarray, window: int, overlap: int, closure_radius_m: float, limit: int) -> int:

@@ -125,12 +125,16 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
     logger.info("train.init_poses=%s: the classical baseline took %.1f s", how, seconds)
     departure_m, path_m = trajectory_departure(seq.poses, poses)
     limit = float(config.train.get("max_baseline_departure", 0.0))
-    bent = limit > 0 and departure_m > limit * path_m
+    # A short path (Hilti quick-shack: 7 m walked in a room, the baseline 0.27 m from FAST-LIO2's poses and far
+    # crisper) says little about the odometry's drift, which also grows with time: at least the floor is allowed.
+    allowed_m = max(limit * path_m, float(config.train.get("baseline_departure_floor_m", 0.0)))
+    bent = limit > 0 and departure_m > allowed_m
     if bent:
         logger.warning("the baseline's trajectory departs from the input's by up to %.2f m after alignment, %.2f%% of "
-                       "the %.0f m path (more than train.max_baseline_departure=%g of it, the drift expected of the "
-                       "input): its chain may have bent on scans that overlap too little; compare poses_baseline "
-                       "with poses_initial", departure_m, 100 * departure_m / max(path_m, 1e-9), path_m, limit)
+                       "the %.0f m path (more than the %.2f m allowed: train.max_baseline_departure=%g of the path, "
+                       "at least train.baseline_departure_floor_m; the drift expected of the input): its chain may "
+                       "have bent on scans that overlap too little; compare poses_baseline with poses_initial",
+                       departure_m, 100 * departure_m / max(path_m, 1e-9), path_m, allowed_m, limit)
     if how == "baseline":
         return Start(poses, "baseline", poses, seconds, departure_m=departure_m)
     judged = quality.map_crispness(seq, {"initial": seq.poses, "baseline": poses}, config.eval)
@@ -177,12 +181,28 @@ def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str) -> ml_c
     return capped
 
 
+# Training always gets at least this share of train.max_minutes, however long the run took before it.
+MIN_TRAINING_SHARE = 0.25
+
+
+def training_seconds(config: ml_collections.ConfigDict, spent_s: float) -> float:
+    """The wall-clock seconds training may take in a run that has spent `spent_s` before it (loading, the
+    classical baseline): train.max_minutes counts from the run's start, so that a budget's whole run keeps its
+    time whatever the baseline took (HKU main building: about 5 minutes of baseline), but training gets at least
+    MIN_TRAINING_SHARE of it. 0 when train.max_minutes is 0 (no limit)."""
+    limit = float(config.train.max_minutes) * 60.0
+    if limit <= 0:
+        return 0.0
+    return max(limit - float(spent_s), MIN_TRAINING_SHARE * limit)
+
+
 def train_single_cube(config: ml_collections.ConfigDict, seq, norm, raysets, T_start: np.ndarray, out_dir: str,
-                      chash: str, progress: bool):
+                      chash: str, progress: bool, max_seconds: float | None = None):
     """Train one field over the whole sequence (resuming from out_dir's checkpoints), the paper's setting.
 
-    T_start: [K, 4, 4] world poses training starts from. Returns (FitResult, T_field_n [K, 4, 4] the poses in the
-    field's normalised frame, G_n [4, 4] the anchoring transform of train.anchor_scan)."""
+    T_start: [K, 4, 4] world poses training starts from; max_seconds: the training guard (None: train.max_minutes).
+    Returns (FitResult, T_field_n [K, 4, 4] the poses in the field's normalised frame, G_n [4, 4] the anchoring
+    transform of train.anchor_scan)."""
     rays = train.device_rays(raysets)
     T_init = jnp.asarray(norm.poses_to_normalized(T_start), jnp.float32)
 
@@ -190,7 +210,8 @@ def train_single_cube(config: ml_collections.ConfigDict, seq, norm, raysets, T_s
     metadata = {"config_hash": chash, "normalization": norm.to_dict(), "num_scans": seq.num_scans}
     result = fit_resuming(os.path.join(out_dir, "checkpoints"), metadata,
                           lambda: train.initial_state(config, seq.num_scans, norm.scale),
-                          functools.partial(train.fit, config, rays, T_init, norm.scale, progress=progress))
+                          functools.partial(train.fit, config, rays, T_init, norm.scale, progress=progress,
+                                            max_seconds=max_seconds))
 
     T_field_n, G_n = field_poses(result.state.params["poses"], T_init, config.train.anchor_scan)
     return result, T_field_n, G_n
@@ -232,15 +253,25 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
                 1.0 / norm.scale)
     plan = submaps.plan_from_config(dataclasses.replace(seq, poses=T_start), norm, config,
                                     num_devices=submap_run.num_devices(config))
+    spent_s = time.perf_counter() - t_start
+    max_seconds = training_seconds(config, spent_s)
+    if max_seconds > 0 and max_seconds < float(config.train.max_minutes) * 60.0:
+        logger.info("the run spent %.0f s before training: training may take %.1f of the run's %g minutes "
+                    "(train.max_minutes)", spent_s, max_seconds / 60.0, config.train.max_minutes)
     if plan is not None:  # the sequence outgrows one cube: submaps (neld_jax.submap_run), same outputs
-        trained = submap_run.train_submaps(config, seq, norm, T_start, plan, out_dir, chash, progress)
+        trained = submap_run.train_submaps(config, seq, norm, T_start, plan, out_dir, chash, progress, max_seconds)
         result, state = trained.result, trained.result.state
         train_seconds = result.train_seconds
         T_opt = trained.G @ trained.T_field
     else:
-        result, T_field_n, G_n = train_single_cube(config, seq, norm, raysets, T_start, out_dir, chash, progress)
+        result, T_field_n, G_n = train_single_cube(config, seq, norm, raysets, T_start, out_dir, chash, progress,
+                                                   max_seconds)
         state, train_seconds = result.state, result.train_seconds
         T_opt = norm.poses_to_world(G_n @ T_field_n)  # keyframes
+    if result.total_steps and result.total_steps != int(config.train.steps):
+        # The guard compressed the schedule: the rendered map's window and config.json follow the plan that ran.
+        config = train.with_steps(config, result.total_steps)
+        export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
 
     # Every input scan gets a pose: keyframes their own, the others their keyframes' interpolated correction.
     keyframe_index = seq.loaded_index
@@ -283,6 +314,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         "num_scans": seq.num_scans,  # keyframes: the scans trained on
         "num_rays": int(raysets.num_rays),
         "steps": int(state.step),
+        "schedule_steps": int(config.train.steps),  # the plan that ran: fewer than asked when compressed to time
         "stopped_early": bool(result.stopped_early),
         "train_seconds": round(train_seconds, 2),
         "total_seconds": round(time.perf_counter() - t_start, 2),

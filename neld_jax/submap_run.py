@@ -42,8 +42,9 @@ class SubmapResult(NamedTuple):
 
 
 def train_submaps(config, seq, norm: Normalization, T_start: np.ndarray, plan: submaps.SubmapPlan, out_dir: str,
-                  chash: str, progress: bool) -> SubmapResult:
+                  chash: str, progress: bool, max_seconds: float | None = None) -> SubmapResult:
     """Train the plan's submaps from the keyframe poses T_start [S, 4, 4] (world); resumes from out_dir/checkpoints.
+    max_seconds: the training guard (None: train.max_minutes).
 
     The rays are the single cube's (same seed and subset), ranges in each submap's units (submaps.submap_arrays)."""
     rays_metres = build_rays(seq, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
@@ -62,7 +63,7 @@ def train_submaps(config, seq, norm: Normalization, T_start: np.ndarray, plan: s
                 "submaps": plan.to_dict()}
     result = fit_resuming(os.path.join(out_dir, "checkpoints"), metadata, lambda: setup.state,
                           functools.partial(submap_train.fit_submaps, config, setup, rays, frames, plan.ref_scale,
-                                            progress=progress))
+                                            progress=progress, max_seconds=max_seconds))
     T_field = submaps.global_poses(T_start, np.asarray(result.state.params["poses"]), plan.ref_scale)
     G = np.eye(4)
     anchor = int(config.train.anchor_scan)
@@ -84,7 +85,8 @@ def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, 
     mapping_rays = build_mapping_rays(config, seq, norm)
     sampler = dataclasses.replace(train.sampler_settings(config, 1.0, m.num_coarse, m.num_fine), guided_samples=0)
     state, setup = trained.result.state, trained.setup
-    alpha = float(setup.schedules.alpha(int(state.step)))
+    # The window the fields were trained with (config's train.steps: the plan that ran, neld_jax.run)
+    alpha = float(train.make_schedules(config).alpha(int(state.step)))
     scan_index = np.asarray(mapping_rays.scan_index)
     r = len(scan_index)
     best_r = np.full(r, np.inf)

@@ -32,7 +32,7 @@ from neld_jax.field import DensityField
 from neld_jax.model import SamplerSettings, render_rays, world_rays
 from neld_jax.train import (FitResult, LossSettings, RayData, Schedules, TrainState, jit_chunk, make_field,
                             make_schedules, pose_transform, ray_losses, run_chunks, sample_batch,
-                            sampler_settings)
+                            sampler_settings, with_steps)
 
 logger = logging.getLogger(__name__)
 
@@ -275,9 +275,9 @@ def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_s
 def fit_submaps(config: ml_collections.ConfigDict, setup: SubmapSetup, rays: SubmapRays, frames: SubmapFrames,
                 ref_scale: float, state: TrainState | None = None,
                 checkpoint_fn: Callable[[TrainState, list, float], None] | None = None, progress: bool = True,
-                history: list | None = None, elapsed_s: float = 0.0) -> FitResult:
+                history: list | None = None, elapsed_s: float = 0.0, max_seconds: float | None = None) -> FitResult:
     """train.fit for submaps: the same loop (train.run_chunks: fused chunks, logging, checkpoints,
-    train.max_minutes) over the submaps' step.
+    train.max_minutes and the schedule compressed to fit it) over the submaps' step.
 
     rays, frames: placed on setup.mesh (data_sharding) when there is one; ref_scale: s_ref (the logs in metres)."""
     from neld_jax.submaps import body_correction_matrices
@@ -293,8 +293,15 @@ def fit_submaps(config: ml_collections.ConfigDict, setup: SubmapSetup, rays: Sub
 
     num_submaps = int(frames.weight.shape[0])  # padding submaps draw rays too
     rays_per_step = submap_batch_rays(config, num_submaps) * num_submaps
+
+    def replan(steps: int):
+        planned = create_submap_state(with_steps(config, steps), int(setup.state.params["poses"].shape[0]),
+                                      num_submaps, setup.mesh)
+        return planned.schedules, planned.sampler, lambda s, sampler, num_steps: planned.chunk_fn(
+            s, rays, frames, sampler, num_steps=num_steps)
+
     return run_chunks(config, setup.schedules, setup.sampler, chunk, setup.state if state is None else state, log,
-                      rays_per_step, checkpoint_fn, progress, history, elapsed_s)
+                      rays_per_step, checkpoint_fn, progress, history, elapsed_s, max_seconds, replan)
 
 
 # ------------------------------------------------------------------------------------------------ mapping

@@ -370,6 +370,7 @@ class FitResult(NamedTuple):
     history: list  # one dict of floats per logged step, from step 1 (across resumes)
     stopped_early: bool
     train_seconds: float = 0.0  # wall-clock seconds in fit, summed over resumes
+    total_steps: int = 0  # the schedule's steps: train.steps, or fewer when the guard compressed it (run_chunks)
 
 
 def pose_start_message(config: ml_collections.ConfigDict, schedules: Schedules) -> str:
@@ -419,10 +420,29 @@ def chunk_bounds(start: int, total: int, log_every: int, checkpoint_every: int, 
     return bounds
 
 
+def steps_that_fit(done: int, total: int, seconds_left: float, seconds_per_step: float, min_total: int) -> int:
+    """The total step count of a plan that, `done` steps in, ends within `seconds_left` at `seconds_per_step`
+    (10 % kept in hand): `total` when every remaining step fits, else fewer, but at least `min_total`."""
+    if seconds_per_step <= 0 or (total - done) * seconds_per_step <= 0.9 * seconds_left:
+        return total
+    fitting = done + int(0.9 * max(seconds_left, 0.0) / seconds_per_step)
+    return int(min(total, max(fitting, min_total)))
+
+
+def with_steps(config: ml_collections.ConfigDict, steps: int) -> ml_collections.ConfigDict:
+    """A copy of config with train.steps = steps (every schedule follows: coarse-to-fine, pose start, decays)."""
+    if int(config.train.steps) == int(steps):
+        return config
+    planned = ml_collections.ConfigDict(config.to_dict())
+    planned.train.steps = int(steps)
+    return planned
+
+
 def run_chunks(config: ml_collections.ConfigDict, schedules: Schedules, sampler_fn: Callable[[int], Any],
                chunk_fn: Callable, state: TrainState, log_fn: Callable[[TrainState, dict], dict],
                rays_per_step: int, checkpoint_fn: Callable[[TrainState, list, float], None] | None = None,
-               progress: bool = True, history: list | None = None, elapsed_s: float = 0.0) -> FitResult:
+               progress: bool = True, history: list | None = None, elapsed_s: float = 0.0,
+               max_seconds: float | None = None, replan: Callable[[int], tuple] | None = None) -> FitResult:
     """The training loop shared by `fit` (one cube) and the submaps' fit: from state.step to config.train.steps.
 
     chunk_fn(state, sampler, num_steps) -> (state, metrics) runs `num_steps` fused steps (one device call);
@@ -433,6 +453,13 @@ def run_chunks(config: ml_collections.ConfigDict, schedules: Schedules, sampler_
     train.log_every (and the last step); the progress bar and the train.max_minutes guard move at chunk ends;
     checkpoint_fn(state, history, train_seconds) runs every train.checkpoint_every steps and at the end. A
     resumed run passes its restored history and elapsed_s (train.max_minutes counts this call only).
+    max_seconds: the guard's limit in seconds when the caller narrows it (`neld_jax.run` deducts what the run
+    spent before training); None: train.max_minutes; <= 0: none.
+    replan(total_steps) -> (schedules, sampler_fn, chunk_fn) of the same run with `total_steps` steps. Given it,
+    the loop times its second chunk (the first compiles) and, when the remaining steps would overrun the guard,
+    compresses the schedule to the steps that fit (`steps_that_fit`): the coarse-to-fine window, the pose start
+    and the learning-rate decays then end within the time instead of being cut off. Each history entry records
+    the plan's total_steps, and a resumed run continues the plan its history holds.
     """
     from tqdm.auto import tqdm  # an effect at the edge; the step itself is pure
 
@@ -440,7 +467,8 @@ def run_chunks(config: ml_collections.ConfigDict, schedules: Schedules, sampler_
     total = schedules.total_steps
     log_every = max(int(config.train.log_every), 1)
     ckpt_every = int(config.train.checkpoint_every)
-    max_seconds = float(config.train.max_minutes) * 60.0
+    if max_seconds is None:
+        max_seconds = float(config.train.max_minutes) * 60.0
     history = [h for h in (history or []) if h.get("step", 0) <= start]  # a resumed run's, up to its step
     stopped_early = False
     t0 = time.perf_counter()
@@ -448,9 +476,15 @@ def run_chunks(config: ml_collections.ConfigDict, schedules: Schedules, sampler_
     def train_seconds() -> float:
         return elapsed_s + time.perf_counter() - t0
 
+    planned = int(history[-1].get("total_steps", total)) if history else total
+    if replan is not None and planned != total:  # a resumed run keeps the plan it was compressed to
+        schedules, sampler_fn, chunk_fn = replan(planned)
+        total = planned
     current_stage = None
     bar = tqdm(total=total, initial=start, disable=not progress, unit="step", dynamic_ncols=True)
-    for begin, done in chunk_bounds(start, total, log_every, ckpt_every, schedules):
+    bounds, chunk_seconds = chunk_bounds(start, total, log_every, ckpt_every, schedules), []
+    while bounds:
+        begin, done = bounds.pop(0)
         stage = schedules.stage(begin)
         if stage != current_stage:
             current_stage = stage
@@ -459,10 +493,11 @@ def run_chunks(config: ml_collections.ConfigDict, schedules: Schedules, sampler_
                         begin, stage, sampler.num_coarse, sampler.num_fine, sampler.guided_samples, rays_per_step)
         if begin == schedules.pose_start_step and begin > 0:
             logger.info(pose_start_message(config, schedules))
+        t_chunk = time.perf_counter()
         state, metrics = chunk_fn(state, sampler, done - begin)
         if done % log_every == 0 or done == total:
             m = {k: float(v) for k, v in jax.device_get(metrics).items()}
-            m["step"] = done
+            m["step"], m["total_steps"] = done, total
             m.update(log_fn(state, m))
             m["elapsed_s"] = train_seconds()
             history.append(m)
@@ -471,17 +506,39 @@ def run_chunks(config: ml_collections.ConfigDict, schedules: Schedules, sampler_
             bar.set_postfix(loss=f"{m['loss']:.4f}", range_err=f"{m['range_err_m']:.3f}m", freq=f"{m['alpha']:.1f}",
                             dpose=f"{100 * m['pose_trans_mean_m']:.1f}cm/{m['pose_rot_mean_deg']:.2f}deg", refresh=False)
         bar.update(done - begin)
+        if len(chunk_seconds) < 2:  # dispatch is asynchronous: wait for the chunk itself when timing it
+            jax.block_until_ready(state)
+        chunk_seconds.append((done - begin, time.perf_counter() - t_chunk))
+        if replan is not None and max_seconds > 0 and len(chunk_seconds) == 2 and done < total:
+            (first_steps, first_s), (steps, seconds) = chunk_seconds
+            per_step = seconds / max(steps, 1)
+            # The new plan compiles its chunk again, and the chunks cut at its pose start have other lengths (up
+            # to two more compiles): HKU main building's first plan overran by 89 of 614 steps without them.
+            compile_s = max(first_s - first_steps * per_step, 0.0)
+            left_s = max_seconds - (time.perf_counter() - t0)
+            fitting = steps_that_fit(done, total, left_s - 3 * compile_s, per_step,
+                                     min_total=max(done + 1, total // 4))
+            if fitting < total:
+                logger.warning("the remaining %d steps would take %.1f min at %.2f s a step, and %.1f min are left "
+                               "(10%% of them and %.0f s for three compiles kept in hand): the schedule is compressed "
+                               "to %d steps (train.max_minutes)", total - done, (total - done) * per_step / 60.0,
+                               per_step, left_s / 60.0, 3 * compile_s, fitting)
+                schedules, sampler_fn, chunk_fn = replan(fitting)
+                total, current_stage = fitting, None
+                bounds = chunk_bounds(done, total, log_every, ckpt_every, schedules)
+                bar.total = total
         if checkpoint_fn is not None and ckpt_every > 0 and done % ckpt_every == 0 and done != total:
             checkpoint_fn(state, history, train_seconds())
         if max_seconds > 0 and time.perf_counter() - t0 > max_seconds and done != total:
-            logger.warning("stopping at step %d of %d: train.max_minutes=%.1f reached", done, total, config.train.max_minutes)
+            logger.warning("stopping at step %d of %d: the %.1f minutes training may take are over (train.max_minutes=%g)",
+                           done, total, max_seconds / 60.0, config.train.max_minutes)
             stopped_early = True
             break
     bar.close()
     seconds = train_seconds()
     if checkpoint_fn is not None:
         checkpoint_fn(state, history, seconds)
-    return FitResult(state, history, stopped_early, seconds)
+    return FitResult(state, history, stopped_early, seconds, total)
 
 
 def fit(
@@ -494,6 +551,7 @@ def fit(
     progress: bool = True,
     history: list | None = None,
     elapsed_s: float = 0.0,
+    max_seconds: float | None = None,
 ) -> FitResult:
     """Run the bundle adjustment of one cube from `state` (or a fresh one) up to config.train.steps.
 
@@ -502,6 +560,7 @@ def fit(
     The steps run in chunks of up to config.train.log_every steps, one device call each (`run_chunks`,
     `jit_chunk`). checkpoint_fn(state, history, train_seconds) is called every config.train.checkpoint_every
     steps and at the end. A resumed run passes the restored state with the history and elapsed_s saved with it.
+    max_seconds: the wall-clock guard (`run_chunks`); None: train.max_minutes.
     """
     setup = create_train_state(config, int(T_init.shape[0]), scale)
 
@@ -513,5 +572,10 @@ def fit(
         return {"range_err_m": m.get("range_l1_fine", m["range_l1_coarse"]) / scale,
                 "pose_trans_mean_m": trans_m, "pose_rot_mean_deg": rot_deg}
 
+    def replan(steps: int):
+        planned = create_train_state(with_steps(config, steps), int(T_init.shape[0]), scale)
+        return planned.schedules, planned.sampler, lambda s, sampler, num_steps: planned.chunk_fn(
+            s, rays, T_init, sampler, num_steps=num_steps)
+
     return run_chunks(config, setup.schedules, setup.sampler, chunk, setup.state if state is None else state, log,
-                      int(config.train.batch_rays), checkpoint_fn, progress, history, elapsed_s)
+                      int(config.train.batch_rays), checkpoint_fn, progress, history, elapsed_s, max_seconds, replan)

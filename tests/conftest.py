@@ -40,6 +40,32 @@ def make_tiny_config(output_dir: str = "", steps: int = 20):
     return c
 
 
+def fake_training_clock(monkeypatch, seconds_per_step: float = 1.0, compile_s: float = 5.0) -> list:
+    """Make neld_jax.train's clock a fake one that only the fused chunks (train's and submap_train's) move: `seconds_per_step` a step, plus
+    `compile_s` on each jitted chunk's first call. Returns the clock, [seconds]."""
+    import types
+
+    from neld_jax import submap_train, train
+
+    clock = [0.0]
+    monkeypatch.setattr(train, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
+    real_jit_chunk = train.jit_chunk
+
+    def timed_jit_chunk(body):
+        chunk, calls = real_jit_chunk(body), []
+
+        def timed(state, *args, num_steps, **kwargs):
+            clock[0] += num_steps * seconds_per_step + (0.0 if calls else compile_s)
+            calls.append(num_steps)
+            return chunk(state, *args, num_steps=num_steps, **kwargs)
+
+        return timed
+
+    monkeypatch.setattr(train, "jit_chunk", timed_jit_chunk)
+    monkeypatch.setattr(submap_train, "jit_chunk", timed_jit_chunk)  # imported by name there
+    return clock
+
+
 @pytest.fixture
 def tiny_config(tmp_path):
     return make_tiny_config(str(tmp_path / "run"))

@@ -154,7 +154,9 @@ def test_crisper_start_takes_the_crisper_map(drifted_sequence, monkeypatch):
     config.train.max_baseline_departure = 1e-6
     kept = starting_poses(config, drifted_sequence)
     assert kept.chosen == "input" and kept.poses is drifted_sequence.poses
-    config.train.max_baseline_departure = 0.0
+    config.train.baseline_departure_floor_m = 10.0 * start.departure_m  # a short path: the floor allows it
+    assert starting_poses(config, drifted_sequence).chosen == "baseline"
+    config.train.max_baseline_departure, config.train.baseline_departure_floor_m = 0.0, 0.0
 
     from_truth = dataclasses.replace(drifted_sequence, poses=drifted_sequence.gt_poses)
     monkeypatch.setattr(neld_jax.baseline, "register_sequence", lambda scans, poses, settings: drifted_sequence.poses)

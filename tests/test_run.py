@@ -149,6 +149,9 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
         return real_fit(scans, poses, margin=margin)
 
     monkeypatch.setattr(run, "fit_normalization", spy)
+    spent = []  # what the run passes to the training guard: the baseline's seconds count
+    real_training_seconds = run.training_seconds
+    monkeypatch.setattr(run, "training_seconds", lambda c, s: spent.append(s) or real_training_seconds(c, s))
     config = make_tiny_config(str(tmp_path / "run"), steps=4)
     config.train.init_poses = "baseline"
     config.baseline.window, config.baseline.voxel_size_m = 2, 0.2
@@ -157,6 +160,7 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     config.mapping.enabled = False  # not what this test is about
     summary = run.run(config, progress=False)
     assert summary["started_from"] == "baseline" and summary["baseline_seconds"] > 0
+    assert spent[0] >= summary["baseline_seconds"]
     assert {"initial", "baseline", "optimized"} <= set(summary["crispness"])
     _, T_baseline = read_tum(tmp_path / "run" / "poses_baseline.txt")
     _, T_initial = read_tum(tmp_path / "run" / "poses_initial.txt")
@@ -167,6 +171,16 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     trained = json.loads((tmp_path / "run" / "config.json").read_text())["train"]
     assert trained["pose_lr_trans_init"] == trained["pose_lr_rot_init"] == config.train.pose_lr_from_baseline[0]
     assert config.train.pose_lr_trans_init > trained["pose_lr_trans_init"]  # the caller's config is not changed
+
+
+def test_training_time_counts_from_the_run_start_with_a_floor():
+    config = make_tiny_config("unused", steps=4)
+    config.train.max_minutes = 8.0
+    assert run.training_seconds(config, 0.0) == 480.0
+    assert run.training_seconds(config, 200.0) == 280.0  # the baseline's 200 s count
+    assert run.training_seconds(config, 400.0) == 120.0  # but training gets at least a quarter
+    config.train.max_minutes = 0.0
+    assert run.training_seconds(config, 400.0) == 0.0  # no limit
 
 
 def test_trajectory_departure_ignores_a_rigid_motion_and_sees_a_bend():

@@ -187,20 +187,29 @@ def test_submaps_share_the_step_s_rays():
     assert submap_train.submap_batch_rays(c, 13) == 128
 
 
-def test_run_with_submaps_writes_the_single_cube_outputs(tmp_path):
+def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_path, monkeypatch):
     """A run whose submaps are switched on: one pose per input scan, one raw and one rendered map (resume with
-    sharded state is checked in test_sharded_step_shared_scan_and_resume_on_8_devices)."""
-    from conftest import make_tiny_config
+    sharded state is checked in test_sharded_step_shared_scan_and_resume_on_8_devices). On a fake training clock (1 s
+    a step, 5 s a compile) its 100 steps do not fit in train.max_minutes=1.5: the submaps' loop trains a shorter
+    plan whole, and metrics.json and config.json say which (the rendered map uses that plan's window)."""
+    import json
+
+    from conftest import fake_training_clock, make_tiny_config
     from neld_jax import run
     from neld_jax.data.poses import read_tum
 
-    cfg = make_tiny_config(str(tmp_path / "run"), steps=4)
+    fake_training_clock(monkeypatch)
+    cfg = make_tiny_config(str(tmp_path / "run"), steps=100)
     cfg.data.synthetic.num_scans = 5
-    cfg.sampling.coarse_stages, cfg.sampling.fine_stages = (8,), (4,)  # one stage: the step compiles once
+    cfg.sampling.coarse_stages, cfg.sampling.fine_stages = (8,), (4,)  # one stage
     cfg.train.fixed_scans, cfg.train.anchor_scan = (), 0
+    cfg.train.log_every, cfg.train.checkpoint_every, cfg.train.max_minutes = 10, 0, 1.5
     cfg.submaps.enabled, cfg.submaps.keyframes, cfg.submaps.overlap = "on", 3, 1
     summary = run.run(cfg, progress=False)
-    assert summary["submaps"] == 2 and summary["steps"] == 4
+    assert summary["submaps"] == 2 and not summary["stopped_early"]
+    assert 30 <= summary["schedule_steps"] < 100 and summary["steps"] == summary["schedule_steps"]
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["steps"] == summary["schedule_steps"]
+    assert json.loads((tmp_path / "run" / "history.json").read_text())[-1]["alpha"] == cfg.model.pos_freqs
     for name in ("poses_optimized.txt", "map_raw.ply", "map_rendered.ply", "metrics.json", "scans_report.csv"):
         assert (tmp_path / "run" / name).is_file(), name
     _, T_opt = read_tum(tmp_path / "run" / "poses_optimized.txt")

@@ -13,7 +13,7 @@ from neld_jax.data.rays import sphere_scene_rays
 from neld_jax.errors import ConfigError
 from neld_jax.field import DensityField
 
-from conftest import make_tiny_config
+from conftest import fake_training_clock, make_tiny_config
 
 
 def _random_rays(num_scans=3, per_scan=64, seed=0):
@@ -152,6 +152,52 @@ def test_no_positional_frequencies_trains():
     rays, T_init = _random_rays()
     result = train.fit(config, rays, T_init, scale=1.0, progress=False)
     assert int(result.state.step) == 2 and np.isfinite(result.history[-1]["loss"])
+
+
+def test_wall_clock_guard_stops_at_a_chunk_end_and_max_seconds_overrides_the_config(caplog):
+    """The guard moves at chunk ends: a limit already spent stops after the first chunk, stopped_early says so, and
+    the state is the first chunk's; max_seconds=0 (a caller's "no limit") runs every step whatever the config says."""
+    config = make_tiny_config(steps=6)
+    config.sampling.coarse_stages, config.sampling.fine_stages = (8,), (4,)
+    config.train.log_every, config.train.checkpoint_every = 2, 0
+    config.train.max_minutes = 1e-9
+    rays, T_init = _random_rays()
+    with caplog.at_level("WARNING", logger="neld_jax.train"):
+        stopped = train.fit(config, rays, T_init, scale=1.0, progress=False)
+    assert stopped.stopped_early and int(stopped.state.step) == 2
+    assert "stopping at step 2 of 6" in caplog.text
+    unlimited = train.fit(config, rays, T_init, scale=1.0, progress=False, max_seconds=0.0)
+    assert not unlimited.stopped_early and int(unlimited.state.step) == 6
+    config.train.max_minutes = 0.0
+    narrowed = train.fit(config, rays, T_init, scale=1.0, progress=False, max_seconds=1e-9)
+    assert narrowed.stopped_early and int(narrowed.state.step) == 2
+
+
+def test_steps_that_fit():
+    assert train.steps_that_fit(20, 100, 100.0, 1.0, 25) == 100  # 80 steps in 100 s fit
+    assert train.steps_that_fit(20, 100, 30.0, 1.0, 25) == 47  # 27 more in 30 s, 10 % in hand
+    assert train.steps_that_fit(20, 100, 2.0, 1.0, 25) == 25  # never below min_total
+    assert train.steps_that_fit(20, 100, 30.0, 0.0, 25) == 100  # no rate: no plan
+
+
+def test_the_guard_compresses_the_schedule_and_a_resumed_run_keeps_the_plan(monkeypatch):
+    """On a fake clock (1 s a step, 5 s to compile each plan's chunk) 100 planned steps cannot fit in 60 s: after
+    the second chunk (35 s left, three compiles of 5 s kept in hand) the schedule is compressed to the 38 that fit,
+    and it runs whole (the coarse-to-fine window ends, the guard does not cut it). A run resumed from that history
+    keeps 38."""
+    clock = fake_training_clock(monkeypatch)
+    config = make_tiny_config(steps=100)
+    config.sampling.coarse_stages, config.sampling.fine_stages = (8,), (4,)
+    config.train.log_every, config.train.checkpoint_every, config.train.max_minutes = 10, 0, 1.0
+    rays, T_init = _random_rays()
+    result = train.fit(config, rays, T_init, scale=1.0, progress=False)
+    assert result.total_steps == 38 and int(result.state.step) == 38 and not result.stopped_early
+    assert [h["total_steps"] for h in result.history[:2]] == [100, 100] and result.history[-1]["total_steps"] == 38
+    assert result.history[-1]["alpha"] == config.model.pos_freqs  # the compressed window ended
+    assert clock[0] <= 60.0
+    config.train.max_minutes = 0.0
+    resumed = train.fit(config, rays, T_init, scale=1.0, progress=False, history=[{"step": 0, "total_steps": 38}])
+    assert resumed.total_steps == 38 and int(resumed.state.step) == 38
 
 
 def test_fit_logs_why_poses_start_and_reports_the_translation_of_exp_xi(caplog):

@@ -94,11 +94,16 @@ def crispest(summaries: dict) -> str | None:
     return min(scored, key=scored.get) if scored else None
 
 
-def warn_if_not_crispest(summaries: dict) -> str | None:
+def warn_if_not_crispest(summaries: dict, refused: dict | None = None) -> str | None:
     """Log a warning when the refined poses ("optimized") do not give the crispest raw map of the run's methods,
     naming the poses file that does: a user must not take poses_optimized for the best answer when the run
-    measured otherwise. Returns the crispest method."""
-    best = crispest(summaries)
+    measured otherwise. refused: {method: why} the run did not trust whatever their crispness (a baseline bent
+    as a whole: the judge is local); they are not named as the crispest. Returns the crispest trusted method."""
+    refused = refused or {}
+    best = crispest({name: s for name, s in summaries.items() if name not in refused})
+    for name, why in refused.items():
+        if name in summaries and crispest(summaries) == name:
+            logger.info("the %s poses give a locally crisper raw map, but the run does not trust them: %s", name, why)
     if best is not None and "optimized" in summaries and best != "optimized":
         entropy = summaries["optimized"]["mean_map_entropy"]
         logger.warning("the raw map is crisper with the %s poses (%s) than after NeLD-BA: mean map entropy %.3f "

@@ -98,6 +98,7 @@ class Start:
     baseline_seconds: float | None = None
     judged: tuple = ({}, {})
     departure_m: float | None = None  # trajectory_departure of the baseline from the input (when it ran)
+    bent: bool = False  # the departure exceeds what train.max_baseline_departure allows
 
 
 START_CHOICES = ("input", "baseline", "crisper")
@@ -136,7 +137,7 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
                        "have bent on scans that overlap too little; compare poses_baseline with poses_initial",
                        departure_m, 100 * departure_m / max(path_m, 1e-9), path_m, allowed_m, limit)
     if how == "baseline":
-        return Start(poses, "baseline", poses, seconds, departure_m=departure_m)
+        return Start(poses, "baseline", poses, seconds, departure_m=departure_m, bent=bent)
     judged = quality.map_crispness(seq, {"initial": seq.poses, "baseline": poses}, config.eval)
     entropy = {name: summary["mean_map_entropy"] for name, summary in judged[0].items()}
     # A tie keeps the input; the baseline when neither map could be judged. The judge is local (0.3 m
@@ -145,7 +146,7 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
     logger.info("train.init_poses=crisper: training starts from the %s poses (raw-map entropy: input %s, "
                 "baseline %s%s)", chosen, entropy["initial"], entropy["baseline"],
                 "; the baseline departs too far from the input" if bent else "")
-    return Start(poses if chosen == "baseline" else seq.poses, chosen, poses, seconds, judged, departure_m)
+    return Start(poses if chosen == "baseline" else seq.poses, chosen, poses, seconds, judged, departure_m, bent)
 
 
 def trajectory_departure(T_input: np.ndarray, T_other: np.ndarray) -> tuple[float, float]:
@@ -323,7 +324,10 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         "final": result.history[-1] if result.history else {},
     }
     summary["started_from"] = start.chosen
-    summary["crispest"] = quality.warn_if_not_crispest(crisp)  # the method whose poses give the crispest raw map
+    # The method whose poses give the crispest raw map, of those the run trusts (not a bent baseline)
+    refused = {} if not start.bent else {"baseline": f"its trajectory departs {start.departure_m:.2f} m from the "
+                                                     "input's (train.max_baseline_departure)"}
+    summary["crispest"] = quality.warn_if_not_crispest(crisp, refused)
     if start.baseline_seconds is not None:
         summary["baseline_seconds"] = round(start.baseline_seconds, 2)
         summary["baseline_departure_m"] = round(start.departure_m, 3)

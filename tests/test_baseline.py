@@ -153,7 +153,7 @@ def test_crisper_start_takes_the_crisper_map(drifted_sequence, monkeypatch):
     assert start.departure_m > 0.01
     config.train.max_baseline_departure = 1e-6
     kept = starting_poses(config, drifted_sequence)
-    assert kept.chosen == "input" and kept.poses is drifted_sequence.poses
+    assert kept.chosen == "input" and kept.poses is drifted_sequence.poses and kept.bent and not start.bent
     config.train.baseline_departure_floor_m = 10.0 * start.departure_m  # a short path: the floor allows it
     assert starting_poses(config, drifted_sequence).chosen == "baseline"
     config.train.max_baseline_departure, config.train.baseline_departure_floor_m = 0.0, 0.0

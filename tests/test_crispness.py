@@ -75,4 +75,10 @@ def test_a_run_names_the_crispest_poses_and_warns_when_they_are_not_its_own(capl
     with caplog.at_level("WARNING", logger="neld_jax.quality"):
         assert warn_if_not_crispest(summaries) == "optimized"
     assert caplog.text == ""
+    # A baseline the run refused (bent as a whole) is not named, whatever its local crispness: the input is.
+    summaries["optimized"]["mean_map_entropy"] = -3.40
+    with caplog.at_level("INFO", logger="neld_jax.quality"):
+        assert warn_if_not_crispest(summaries, {"baseline": "it departs 33.68 m"}) == "initial"
+    assert "poses_initial.txt" in caplog.text and "poses_baseline.txt" not in caplog.text
+    assert "does not trust them: it departs 33.68 m" in caplog.text
     assert crispest({"initial": {"mean_map_entropy": None}}) is None

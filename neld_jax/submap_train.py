@@ -282,8 +282,8 @@ def fit_submaps(config: ml_collections.ConfigDict, setup: SubmapSetup, rays: Sub
     rays, frames: placed on setup.mesh (data_sharding) when there is one; ref_scale: s_ref (the logs in metres)."""
     from neld_jax.submaps import body_correction_matrices
 
-    def chunk(s: TrainState, sampler: SamplerSettings, num_steps: int):
-        return setup.chunk_fn(s, rays, frames, sampler, num_steps=num_steps)
+    def chunk_of(built: SubmapSetup) -> Callable:  # run_chunks' chunk(state, sampler, num_steps) over this data
+        return lambda s, sampler, num_steps: built.chunk_fn(s, rays, frames, sampler, num_steps=num_steps)
 
     def log(s: TrainState, m: dict) -> dict:
         xi = np.asarray(s.params["poses"])
@@ -297,11 +297,10 @@ def fit_submaps(config: ml_collections.ConfigDict, setup: SubmapSetup, rays: Sub
     def replan(steps: int):
         planned = create_submap_state(with_steps(config, steps), int(setup.state.params["poses"].shape[0]),
                                       num_submaps, setup.mesh)
-        return planned.schedules, planned.sampler, lambda s, sampler, num_steps: planned.chunk_fn(
-            s, rays, frames, sampler, num_steps=num_steps)
+        return planned.schedules, planned.sampler, chunk_of(planned)
 
-    return run_chunks(config, setup.schedules, setup.sampler, chunk, setup.state if state is None else state, log,
-                      rays_per_step, checkpoint_fn, progress, history, elapsed_s, max_seconds, replan)
+    return run_chunks(config, setup.schedules, setup.sampler, chunk_of(setup), setup.state if state is None else state,
+                      log, rays_per_step, checkpoint_fn, progress, history, elapsed_s, max_seconds, replan)
 
 
 # ------------------------------------------------------------------------------------------------ mapping

@@ -530,8 +530,8 @@ def run_chunks(config: ml_collections.ConfigDict, schedules: Schedules, sampler_
         if checkpoint_fn is not None and ckpt_every > 0 and done % ckpt_every == 0 and done != total:
             checkpoint_fn(state, history, train_seconds())
         if max_seconds > 0 and time.perf_counter() - t0 > max_seconds and done != total:
-            logger.warning("stopping at step %d of %d: the %.1f minutes training may take are over (train.max_minutes=%g)",
-                           done, total, max_seconds / 60.0, config.train.max_minutes)
+            logger.warning("stopping at step %d of %d: the %.1f minutes training may take are over "
+                           "(train.max_minutes=%g)", done, total, max_seconds / 60.0, config.train.max_minutes)
             stopped_early = True
             break
     bar.close()
@@ -564,8 +564,8 @@ def fit(
     """
     setup = create_train_state(config, int(T_init.shape[0]), scale)
 
-    def chunk(s: TrainState, sampler: SamplerSettings, num_steps: int):
-        return setup.chunk_fn(s, rays, T_init, sampler, num_steps=num_steps)
+    def chunk_of(built: TrainSetup) -> Callable:  # run_chunks' chunk(state, sampler, num_steps) over this data
+        return lambda s, sampler, num_steps: built.chunk_fn(s, rays, T_init, sampler, num_steps=num_steps)
 
     def log(s: TrainState, m: dict) -> dict:
         trans_m, rot_deg = pose_correction_stats(s.params["poses"], scale)
@@ -574,8 +574,8 @@ def fit(
 
     def replan(steps: int):
         planned = create_train_state(with_steps(config, steps), int(T_init.shape[0]), scale)
-        return planned.schedules, planned.sampler, lambda s, sampler, num_steps: planned.chunk_fn(
-            s, rays, T_init, sampler, num_steps=num_steps)
+        return planned.schedules, planned.sampler, chunk_of(planned)
 
-    return run_chunks(config, setup.schedules, setup.sampler, chunk, setup.state if state is None else state, log,
-                      int(config.train.batch_rays), checkpoint_fn, progress, history, elapsed_s, max_seconds, replan)
+    return run_chunks(config, setup.schedules, setup.sampler, chunk_of(setup), setup.state if state is None else state,
+                      log, int(config.train.batch_rays), checkpoint_fn, progress, history, elapsed_s, max_seconds,
+                      replan)

@@ -25,7 +25,9 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
    halves, the even scans against the odd scans' map, then the odd against the even, so that no scan meets its own
    points and one map (one KD-tree) serves half the scans. The gates of the loop closures apply. This is what makes
    the map crisp: the chain and the graph only align scans in pairs or to a few neighbours, and their errors of
-   about a centimetre per link add up (measured on real keyframes: docs/evaluation.md).
+   about a centimetre per link add up (measured on real keyframes: docs/evaluation.md). The rounds start from the
+   graph's poses, or from those the caller's `refine_from` picks (the run and bin/baseline.py: the graph's or the
+   input's, whichever gives the crisper raw map, never a bent graph: `neld_jax.run.refinement_start`).
 
 Information matrices come from `get_information_matrix_from_point_clouds`. Open3D pose-graph convention: node s
 holds T_world_scan[s]; an edge (source i, target j) holds T_j^-1 T_i, the ICP transform that maps scan i's
@@ -41,7 +43,7 @@ import dataclasses
 import logging
 import time
 from pathlib import Path
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import ml_collections
 import numpy as np
@@ -116,6 +118,11 @@ class BaselineSettings:
     # (one KD-tree query); 16 points at the 0.1 m grid cover a plane to about 0.2 m around each scan point.
     map_gather_points: int = 16
     map_gather_m: float = 0.5
+    # Where the refinement starts: "graph": the graph's poses; "crisper": the graph's or the input's, whichever gives
+    # the crisper raw map, and never a graph bent away from the input (train.max_baseline_departure). FAST-LIO2's
+    # inertial odometry can be locally better than the chain between sparse keyframes (docs/evaluation.md, "Where
+    # the refinement starts"). Read by neld_jax.run.refinement_start, which the run and bin/baseline.py pass.
+    refine_from: str = "crisper"
 
     @classmethod
     def from_config(cls, cfg) -> "BaselineSettings":
@@ -508,11 +515,14 @@ def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettin
 
 
 def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
-                      settings: BaselineSettings = BaselineSettings()) -> np.ndarray:
+                      settings: BaselineSettings = BaselineSettings(),
+                      refine_from: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
     """The baseline: scan-to-map chain, the loop-closed pose graph, then the multi-view refinement (module
     docstring).
 
     scans: list of S arrays [N_i, 3] in the sensor frame; init_poses: [S, 4, 4] sensor -> world.
+    refine_from(graph_poses [S, 4, 4]) -> [S, 4, 4]: the poses the multi-view refinement starts from, given the
+    graph's (None: the graph's). neld_jax.run's `refinement_start` chooses between the graph's and init_poses.
     Returns refined poses [S, 4, 4] with pose 0 equal to init_poses[0] and orthonormal rotations.
     """
     init_poses = np.asarray(init_poses, dtype=np.float64)
@@ -536,6 +546,8 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
         if settings.map_rounds > 0:
             # The graph's poses carry round-off in the rotations; re-orthonormalise before moving clouds with them.
             optimized = _orthonormal(optimized)
+            if refine_from is not None:
+                optimized = _orthonormal(refine_from(optimized))
             optimized, rejected = refine_against_map(clouds, optimized, settings)
             logger.info("baseline: %d round(s) of multi-view refinement in %.1f s (%.0f%% of the registrations "
                         "rejected by the gates)", settings.map_rounds, time.perf_counter() - t2, 100 * rejected)
@@ -568,10 +580,13 @@ def run_baseline(config: ml_collections.ConfigDict) -> dict:
     that the folder can be evaluated on its own.
     Returns {"seconds", "crispness": {method: summary}, "evaluation": evaluate_run's result or None}.
     """
+    from neld_jax.run import refinement_start  # the run's own rule, so that both give the same baseline
+
     loaded, sequence = load_preprocessed(config.data)
     t0 = time.perf_counter()
     settings = BaselineSettings.from_config(config.get("baseline"))
-    poses = register_sequence(sequence.scans, sequence.poses, settings)
+    decided = {}
+    poses = register_sequence(sequence.scans, sequence.poses, settings, refinement_start(config, sequence, decided))
     seconds = time.perf_counter() - t0
     poses_all = propagate_corrections(loaded.poses, sequence.loaded_index, poses, loaded.timestamps)
 
@@ -591,6 +606,7 @@ def run_baseline(config: ml_collections.ConfigDict) -> dict:
     crisp, _ = quality.map_crispness(sequence, {"initial": sequence.poses, "baseline": poses}, evaluation)
     crisp = quality.record_crispness(output_dir, crisp)
     write_json(output_dir / "metrics.json", {"baseline": {"seconds": round(seconds, 2),
+                                                          "refined_from": decided.get("refined_from"),
                                                           **dataclasses.asdict(settings)}})
     logger.info("baseline outputs written to %s (registration took %.1f s)", output_dir, seconds)
 

@@ -182,6 +182,9 @@ def base_config() -> ml_collections.ConfigDict:
     c.baseline.global_loops_per_scan = 1
     c.baseline.loop_drift_fraction = 0.01
     c.baseline.map_rounds = 2  # rounds of multi-view refinement (each scan against the others' map); 0: none
+    # ... started from the pose graph's poses or the input's, whichever gives the crisper raw map, never from a graph
+    # bent away from the input (train.max_baseline_departure) | graph: always the graph's (neld_jax.run)
+    c.baseline.refine_from = "crisper"
 
     c.eval = ml_collections.ConfigDict()
     c.eval.f1_threshold_m = 0.2
@@ -324,6 +327,16 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
         for field in ("num_coarse", "num_fine", "max_rays_per_scan", "max_rays", "voxel_size_m"):
             c.mapping[field] = paper[field]
     return c
+
+
+def with_train(c: ml_collections.ConfigDict, **fields) -> ml_collections.ConfigDict:
+    """c itself when its train fields already hold `fields`, else a copy with them set (c is left as it is)."""
+    if all(key in c.train and c.train[key] == value for key, value in fields.items()):
+        return c
+    changed = ml_collections.ConfigDict(c.to_dict())
+    for key, value in fields.items():
+        changed.train[key] = value
+    return changed
 
 
 def apply_overrides(c: ml_collections.ConfigDict, items) -> ml_collections.ConfigDict:

@@ -17,6 +17,7 @@ import json
 import logging
 import os
 import time
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -25,6 +26,7 @@ import numpy as np
 
 from neld_jax import export, metrics, quality, report, submap_run, submaps, train
 from neld_jax.checkpoint import fit_resuming
+from neld_jax.config import with_train
 from neld_jax.errors import ConfigError
 from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.preprocess import load_preprocessed, voxel_downsample
@@ -99,6 +101,7 @@ class Start:
     judged: tuple = ({}, {})
     departure_m: float | None = None  # trajectory_departure of the baseline from the input (when it ran)
     bent: bool = False  # the departure exceeds what train.max_baseline_departure allows
+    refined_from: str | None = None  # where the baseline's multi-view refinement started ("graph" | "input")
 
 
 START_CHOICES = ("input", "baseline", "crisper")
@@ -108,7 +111,8 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
     """The keyframe poses training starts from (train.init_poses).
 
     "input": the loaded poses (odometry). "baseline": the classical baseline's (Open3D scan-to-map ICP +
-    loop-closed pose graph, config.baseline) run from them first, for starts that drifted further than the
+    loop-closed pose graph + multi-view refinement, config.baseline; the refinement starts from the graph's or
+    the input's poses: `refinement_start`) run from them first, for starts that drifted further than the
     field's basin of convergence. "crisper": the baseline runs, and training starts from whichever of the two
     gives the crisper raw map (lower mean map entropy, config.eval's crispness settings). The field refines
     within a few cm and cannot undo a blurrier start (docs/method.md, "Which start"); without ground truth the
@@ -121,15 +125,13 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
     from neld_jax.baseline import BaselineSettings, register_sequence
 
     t0 = time.perf_counter()
-    poses = register_sequence(seq.scans, seq.poses, BaselineSettings.from_config(config.get("baseline")))
+    decided = {}
+    poses = register_sequence(seq.scans, seq.poses, BaselineSettings.from_config(config.get("baseline")),
+                              refinement_start(config, seq, decided))
     seconds = time.perf_counter() - t0
     logger.info("train.init_poses=%s: the classical baseline took %.1f s", how, seconds)
-    departure_m, path_m = trajectory_departure(seq.poses, poses)
+    bent, departure_m, path_m, allowed_m = departure_check(config, seq.poses, poses)
     limit = float(config.train.get("max_baseline_departure", 0.0))
-    # A short path (Hilti quick-shack: 7 m walked in a room, the baseline 0.27 m from FAST-LIO2's poses and far
-    # crisper) says little about the odometry's drift, which also grows with time: at least the floor is allowed.
-    allowed_m = max(limit * path_m, float(config.train.get("baseline_departure_floor_m", 0.0)))
-    bent = limit > 0 and departure_m > allowed_m
     if bent:
         logger.warning("the baseline's trajectory departs from the input's by up to %.2f m after alignment, %.2f%% of "
                        "the %.0f m path (more than the %.2f m allowed: train.max_baseline_departure=%g of the path, "
@@ -137,16 +139,78 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
                        "have bent on scans that overlap too little; compare poses_baseline with poses_initial",
                        departure_m, 100 * departure_m / max(path_m, 1e-9), path_m, allowed_m, limit)
     if how == "baseline":
-        return Start(poses, "baseline", poses, seconds, departure_m=departure_m, bent=bent)
+        return Start(poses, "baseline", poses, seconds, departure_m=departure_m, bent=bent,
+                     refined_from=decided.get("refined_from"))
     judged = quality.map_crispness(seq, {"initial": seq.poses, "baseline": poses}, config.eval)
     entropy = {name: summary["mean_map_entropy"] for name, summary in judged[0].items()}
     # A tie keeps the input; the baseline when neither map could be judged. The judge is local (0.3 m
     # neighbourhoods): a baseline that bent the whole trajectory can still give the crisper map, hence `bent`.
     chosen = "baseline" if quality.crispest(judged[0]) in ("baseline", None) and not bent else "input"
     logger.info("train.init_poses=crisper: training starts from the %s poses (raw-map entropy: input %s, "
-                "baseline %s%s)", chosen, entropy["initial"], entropy["baseline"],
+                "baseline %s%s)", chosen, _entropy_text(entropy["initial"]), _entropy_text(entropy["baseline"]),
                 "; the baseline departs too far from the input" if bent else "")
-    return Start(poses if chosen == "baseline" else seq.poses, chosen, poses, seconds, judged, departure_m, bent)
+    return Start(poses if chosen == "baseline" else seq.poses, chosen, poses, seconds, judged, departure_m, bent,
+                 decided.get("refined_from"))
+
+
+def _entropy_text(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
+def departure_check(config: ml_collections.ConfigDict, T_input: np.ndarray,
+                    T_other: np.ndarray) -> tuple[bool, float, float, float]:
+    """Whether another trajectory (the baseline's, or its pose graph's) is bent away from the input's: (bent,
+    departure_m, path_m, allowed_m), with `trajectory_departure`'s figures and the departure allowed,
+    train.max_baseline_departure of the input's path and at least train.baseline_departure_floor_m. Never bent
+    when train.max_baseline_departure is 0."""
+    departure_m, path_m = trajectory_departure(T_input, T_other)
+    train_cfg = config.get("train", {})
+    limit = float(train_cfg.get("max_baseline_departure", 0.0))
+    # A short path (Hilti quick-shack: 7 m walked in a room, the baseline 0.27 m from FAST-LIO2's poses and far
+    # crisper) says little about the odometry's drift, which also grows with time: at least the floor is allowed.
+    allowed_m = max(limit * path_m, float(train_cfg.get("baseline_departure_floor_m", 0.0)))
+    return limit > 0 and departure_m > allowed_m, departure_m, path_m, allowed_m
+
+
+def refinement_start(config: ml_collections.ConfigDict, seq,
+                     decided: dict | None = None) -> Callable[[np.ndarray], np.ndarray] | None:
+    """baseline.register_sequence's `refine_from` for config.baseline.refine_from="crisper" (None for "graph"):
+    given the pose graph's poses [K, 4, 4] (chain + loop closures), the poses its multi-view refinement starts
+    from: the graph's, unless they give a blurrier raw map than the input's (seq.poses; mean map entropy,
+    config.eval's settings) or depart from them further than `departure_check` allows; then the input's.
+
+    The refinement moves each scan by at most the loop closures' gate, so from the input it cannot bend the
+    trajectory. Measured (docs/evaluation.md, "Where the refinement starts"): HKU main building, graph -3.256 and
+    FAST-LIO2's odometry -3.310, refined from the graph -3.368 and from the odometry -3.395; MulRan Riverside02,
+    the graph bent by 33.7 m, refined from the odometry -3.331 against the odometry's -3.307. `decided`, when
+    given, receives {"refined_from": "graph" | "input", "graph_entropy", "input_entropy", "graph_departure_m"}."""
+    choice = str(config.get("baseline", {}).get("refine_from", "crisper")).lower()
+    if choice not in ("crisper", "graph"):
+        raise ConfigError(f"baseline.refine_from: unknown value {choice!r} (crisper | graph)")
+    if choice == "graph":
+        return None
+    decided = {} if decided is None else decided
+
+    def choose(graph_poses: np.ndarray) -> np.ndarray:
+        bent, departure_m, _, allowed_m = departure_check(config, seq.poses, graph_poses)
+        judged, _ = quality.map_crispness(seq, {"graph": graph_poses, "input": seq.poses}, config.get("eval", {}))
+        entropy = {name: summary["mean_map_entropy"] for name, summary in judged.items()}
+        # A tie (or no judge) keeps the graph, as the baseline always did.
+        from_input = bent or quality.crispest(judged) == "input"
+        decided.update(refined_from="input" if from_input else "graph", graph_entropy=entropy["graph"],
+                       input_entropy=entropy["input"], graph_departure_m=departure_m)
+        logger.info("baseline: the multi-view refinement starts from the %s poses (raw-map entropy: input %s, pose "
+                    "graph %s; the graph departs %.2f m from the input, %.2f m allowed%s)",
+                    decided["refined_from"], _entropy_text(entropy["input"]), _entropy_text(entropy["graph"]),
+                    departure_m, allowed_m, ": bent" if bent else "")
+        if bent:
+            logger.warning("the baseline's pose graph departs %.2f m from the input's trajectory, more than the %.2f m "
+                           "allowed (train.max_baseline_departure, train.baseline_departure_floor_m): its chain may "
+                           "have bent, so the input's poses are refined instead; if the input drifts more than that, "
+                           "set train.max_baseline_departure=0", departure_m, allowed_m)
+        return seq.poses if from_input else graph_poses
+
+    return choose
 
 
 def trajectory_departure(T_input: np.ndarray, T_other: np.ndarray) -> tuple[float, float]:
@@ -171,12 +235,10 @@ def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str) -> ml_c
         return config
     if len(cap) != 2:
         raise ConfigError(f"train.pose_lr_from_baseline: expected (init, final) or (), got {cap!r}")
-    capped = ml_collections.ConfigDict(config.to_dict())
-    for part in ("rot", "trans"):
-        for which, limit in zip(("init", "final"), cap):
-            key = f"pose_lr_{part}_{which}"
-            capped.train[key] = min(float(config.train[key]), float(limit))
-    if capped.train.to_dict() != config.train.to_dict():
+    capped = with_train(config, **{f"pose_lr_{part}_{which}": min(float(config.train[f"pose_lr_{part}_{which}"]),
+                                                                     float(limit))
+                                   for part in ("rot", "trans") for which, limit in zip(("init", "final"), cap)})
+    if capped is not config:
         logger.info("training starts from the baseline's poses: pose learning rates capped at %g -> %g "
                     "(train.pose_lr_from_baseline)", *cap)
     return capped
@@ -331,6 +393,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     if start.baseline_seconds is not None:
         summary["baseline_seconds"] = round(start.baseline_seconds, 2)
         summary["baseline_departure_m"] = round(start.departure_m, 3)
+        summary["baseline_refined_from"] = start.refined_from  # "graph" | "input" (refinement_start), or None
     scans_summary = report.summarize(rows)
     export.write_json(os.path.join(out_dir, "metrics.json"), {"run": summary, "scans_report": scans_summary})
     summary["scans_report"] = scans_summary

@@ -28,6 +28,7 @@ import numpy as np
 import optax
 
 from neld_jax import lie, losses
+from neld_jax.config import with_train
 from neld_jax.field import DensityField, field_from_config
 from neld_jax.model import SamplerSettings, render_rays, scan_poses, world_rays
 
@@ -431,11 +432,7 @@ def steps_that_fit(done: int, total: int, seconds_left: float, seconds_per_step:
 
 def with_steps(config: ml_collections.ConfigDict, steps: int) -> ml_collections.ConfigDict:
     """A copy of config with train.steps = steps (every schedule follows: coarse-to-fine, pose start, decays)."""
-    if int(config.train.steps) == int(steps):
-        return config
-    planned = ml_collections.ConfigDict(config.to_dict())
-    planned.train.steps = int(steps)
-    return planned
+    return with_train(config, steps=int(steps))
 
 
 def run_chunks(config: ml_collections.ConfigDict, schedules: Schedules, sampler_fn: Callable[[int], Any],
@@ -506,10 +503,11 @@ def run_chunks(config: ml_collections.ConfigDict, schedules: Schedules, sampler_
             bar.set_postfix(loss=f"{m['loss']:.4f}", range_err=f"{m['range_err_m']:.3f}m", freq=f"{m['alpha']:.1f}",
                             dpose=f"{100 * m['pose_trans_mean_m']:.1f}cm/{m['pose_rot_mean_deg']:.2f}deg", refresh=False)
         bar.update(done - begin)
-        if len(chunk_seconds) < 2:  # dispatch is asynchronous: wait for the chunk itself when timing it
+        timing = len(chunk_seconds) < 2  # the first two chunks time the plan (the first one compiles)
+        if timing:  # dispatch is asynchronous: wait for the chunk itself
             jax.block_until_ready(state)
-        chunk_seconds.append((done - begin, time.perf_counter() - t_chunk))
-        if replan is not None and max_seconds > 0 and len(chunk_seconds) == 2 and done < total:
+            chunk_seconds.append((done - begin, time.perf_counter() - t_chunk))
+        if replan is not None and max_seconds > 0 and timing and len(chunk_seconds) == 2 and done < total:
             (first_steps, first_s), (steps, seconds) = chunk_seconds
             per_step = seconds / max(steps, 1)
             # The new plan compiles its chunk again, and the chunks cut at its pose start have other lengths (up

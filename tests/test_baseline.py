@@ -125,6 +125,7 @@ def test_training_starts_from_the_baseline_of_config_baseline(drifted_sequence):
     config.train.init_poses = "baseline"
     start = starting_poses(config, drifted_sequence)
     assert start.baseline_seconds > 0 and start.chosen == "baseline"
+    assert start.refined_from == "graph"  # the drifted input's map is the blurrier: refined from the pose graph
     # Two runs agree to round-off, not bit for bit: the refinement's voxel-downsampled map may order its points
     # differently each time (a hash map), and ICP sums over them in that order.
     np.testing.assert_allclose(start.poses, register_sequence(drifted_sequence.scans, drifted_sequence.poses,
@@ -159,10 +160,39 @@ def test_crisper_start_takes_the_crisper_map(drifted_sequence, monkeypatch):
     config.train.max_baseline_departure, config.train.baseline_departure_floor_m = 0.0, 0.0
 
     from_truth = dataclasses.replace(drifted_sequence, poses=drifted_sequence.gt_poses)
-    monkeypatch.setattr(neld_jax.baseline, "register_sequence", lambda scans, poses, settings: drifted_sequence.poses)
+    monkeypatch.setattr(neld_jax.baseline, "register_sequence", lambda scans, poses, settings, refine_from=None: drifted_sequence.poses)
     start = starting_poses(config, from_truth)
     assert start.chosen == "input" and start.poses is from_truth.poses
     assert start.baseline_poses is drifted_sequence.poses  # still written as poses_baseline by the run
+
+
+def test_the_refinement_starts_from_the_crisper_of_the_graph_and_the_input_and_never_from_a_bent_graph(
+        drifted_sequence):
+    # refinement_start (the run's and bin/baseline.py's refine_from) gets the pose graph's poses and returns what
+    # the multi-view refinement starts from. Here the "graph" is the ground truth or the drifted poses.
+    from neld_jax.config import base_config
+    from neld_jax.errors import ConfigError
+    from neld_jax.run import refinement_start
+
+    config = base_config()
+    truth, drifted = drifted_sequence.gt_poses, drifted_sequence.poses
+    decided = {}
+    choose = refinement_start(config, drifted_sequence, decided)  # the input is the drifted sequence
+    assert choose(truth) is truth and decided["refined_from"] == "graph"
+    assert decided["graph_entropy"] < decided["input_entropy"]
+    from_truth = dataclasses.replace(drifted_sequence, poses=truth)  # an input crisper than its graph
+    choose = refinement_start(config, from_truth, decided)
+    assert choose(drifted) is truth and decided["refined_from"] == "input"
+    # A graph bent away from the input (more than train.max_baseline_departure allows) is not refined, however
+    # crisp: the judge is local.
+    config.train.max_baseline_departure = 1e-6
+    choose = refinement_start(config, drifted_sequence, decided)
+    assert choose(truth) is drifted and decided["refined_from"] == "input" and decided["graph_departure_m"] > 0.01
+    config.baseline.refine_from = "graph"  # the graph's, always
+    assert refinement_start(config, drifted_sequence) is None
+    config.baseline.refine_from = "odometry"
+    with pytest.raises(ConfigError, match="baseline.refine_from"):
+        refinement_start(config, drifted_sequence)
 
 
 def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence, monkeypatch, caplog):

@@ -586,7 +586,8 @@ def run_baseline(config: ml_collections.ConfigDict) -> dict:
     t0 = time.perf_counter()
     settings = BaselineSettings.from_config(config.get("baseline"))
     decided = {}
-    poses = register_sequence(sequence.scans, sequence.poses, settings, refinement_start(config, sequence, decided))
+    poses = register_sequence(sequence.scans, sequence.poses, settings,
+                              refine_from=refinement_start(config, sequence, decided))
     seconds = time.perf_counter() - t0
     poses_all = propagate_corrections(loaded.poses, sequence.loaded_index, poses, loaded.timestamps)
 

@@ -47,6 +47,17 @@ def test_register_sequence_reduces_ate(drifted_sequence):
                                atol=1e-10)
 
 
+def test_the_refinement_starts_from_what_refine_from_gives(drifted_sequence):
+    # refine_from gets the pose graph's poses and its answer is what the multi-view rounds refine: given the drifted
+    # input back, the rounds (gated at 0.2 m a scan) leave most of its drift, where the graph's start ends near 1 mm.
+    seq = drifted_sequence
+    graphs = []
+    from_input = register_sequence(seq.scans, seq.poses, SETTINGS, lambda graph: (graphs.append(graph), seq.poses)[1])
+    before = ate(seq.poses, seq.gt_poses)["translation_rmse_m"]
+    assert len(graphs) == 1 and ate(graphs[0], seq.gt_poses)["translation_rmse_m"] < 0.25 * before
+    assert ate(from_input, seq.gt_poses)["translation_rmse_m"] > 0.5 * before
+
+
 def test_answer_does_not_depend_on_the_start(drifted_sequence):
     # Two starts whose drift differs (a further random walk on top) give the same answer: every registration
     # starts from the odometry's increment, which both starts get within ICP's basin.
@@ -160,7 +171,8 @@ def test_crisper_start_takes_the_crisper_map(drifted_sequence, monkeypatch):
     config.train.max_baseline_departure, config.train.baseline_departure_floor_m = 0.0, 0.0
 
     from_truth = dataclasses.replace(drifted_sequence, poses=drifted_sequence.gt_poses)
-    monkeypatch.setattr(neld_jax.baseline, "register_sequence", lambda scans, poses, settings, refine_from=None: drifted_sequence.poses)
+    monkeypatch.setattr(neld_jax.baseline, "register_sequence",
+                        lambda scans, poses, settings, refine_from=None: drifted_sequence.poses)
     start = starting_poses(config, from_truth)
     assert start.chosen == "input" and start.poses is from_truth.poses
     assert start.baseline_poses is drifted_sequence.poses  # still written as poses_baseline by the run

@@ -141,7 +141,13 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
     if how == "baseline":
         return Start(poses, "baseline", poses, seconds, departure_m=departure_m, bent=bent,
                      refined_from=decided.get("refined_from"))
-    judged = quality.map_crispness(seq, {"initial": seq.poses, "baseline": poses}, config.eval)
+    # The input's crispness, measured when the refinement's start was chosen, is not measured again.
+    measured = decided.get("input_judged")
+    if measured is None:
+        judged = quality.map_crispness(seq, {"initial": seq.poses, "baseline": poses}, config.eval)
+    else:
+        baseline_judged = quality.map_crispness(seq, {"baseline": poses}, config.eval)
+        judged = tuple({**first, **then} for first, then in zip(measured, baseline_judged))
     entropy = {name: summary["mean_map_entropy"] for name, summary in judged[0].items()}
     # A tie keeps the input; the baseline when neither map could be judged. The judge is local (0.3 m
     # neighbourhoods): a baseline that bent the whole trajectory can still give the crisper map, hence `bent`.
@@ -183,7 +189,8 @@ def refinement_start(config: ml_collections.ConfigDict, seq,
     trajectory. Measured (docs/evaluation.md, "Where the refinement starts"): HKU main building, graph -3.256 and
     FAST-LIO2's odometry -3.310, refined from the graph -3.368 and from the odometry -3.395; MulRan Riverside02,
     the graph bent by 33.7 m, refined from the odometry -3.331 against the odometry's -3.307. `decided`, when
-    given, receives {"refined_from": "graph" | "input", "graph_entropy", "input_entropy", "graph_departure_m"}."""
+    given, receives {"refined_from": "graph" | "input", "graph_entropy", "input_entropy", "graph_departure_m",
+    "input_judged": quality.map_crispness's pair for the input alone, as "initial" (`starting_poses` reuses it)}."""
     choice = str(config.get("baseline", {}).get("refine_from", "crisper")).lower()
     if choice not in ("crisper", "graph"):
         raise ConfigError(f"baseline.refine_from: unknown value {choice!r} (crisper | graph)")
@@ -193,15 +200,16 @@ def refinement_start(config: ml_collections.ConfigDict, seq,
 
     def choose(graph_poses: np.ndarray) -> np.ndarray:
         bent, departure_m, _, allowed_m = departure_check(config, seq.poses, graph_poses)
-        judged, _ = quality.map_crispness(seq, {"graph": graph_poses, "input": seq.poses}, config.get("eval", {}))
-        entropy = {name: summary["mean_map_entropy"] for name, summary in judged.items()}
+        judged = quality.map_crispness(seq, {"graph": graph_poses, "initial": seq.poses}, config.get("eval", {}))
+        entropy = {name: summary["mean_map_entropy"] for name, summary in judged[0].items()}
         # A tie (or no judge) keeps the graph, as the baseline always did.
-        from_input = bent or quality.crispest(judged) == "input"
+        from_input = bent or quality.crispest(judged[0]) == "initial"
         decided.update(refined_from="input" if from_input else "graph", graph_entropy=entropy["graph"],
-                       input_entropy=entropy["input"], graph_departure_m=departure_m)
+                       input_entropy=entropy["initial"], graph_departure_m=departure_m,
+                       input_judged=tuple({"initial": part["initial"]} for part in judged))
         logger.info("baseline: the multi-view refinement starts from the %s poses (raw-map entropy: input %s, pose "
                     "graph %s; the graph departs %.2f m from the input, %.2f m allowed%s)",
-                    decided["refined_from"], _entropy_text(entropy["input"]), _entropy_text(entropy["graph"]),
+                    decided["refined_from"], _entropy_text(entropy["initial"]), _entropy_text(entropy["graph"]),
                     departure_m, allowed_m, ": bent" if bent else "")
         if bent:
             logger.warning("the baseline's pose graph departs %.2f m from the input's trajectory, more than the %.2f m "

@@ -160,6 +160,14 @@ def test_crisper_start_takes_the_crisper_map(drifted_sequence, monkeypatch):
     config.train.init_poses = "crisper"
     start = starting_poses(config, drifted_sequence)
     assert start.chosen == "baseline" and start.poses is start.baseline_poses
+    # The input's crispness, measured once when the baseline chose where its refinement starts, is the one a
+    # fresh measurement gives.
+    from neld_jax import quality
+    fresh = quality.map_crispness(drifted_sequence, {"initial": drifted_sequence.poses,
+                                                     "baseline": start.baseline_poses}, config.eval)
+    assert list(start.judged[0]) == ["initial", "baseline"] and start.judged[0] == fresh[0]
+    for name in fresh[1]:
+        np.testing.assert_array_equal(start.judged[1][name], fresh[1][name])
     # Its trajectory departs from the drifted input by the drift it undid; an input trusted to drift less than
     # that (train.max_baseline_departure) is kept, whatever the crispness says.
     assert start.departure_m > 0.01

@@ -10,7 +10,7 @@ default: the layout's odom_poses.txt) exactly as `bin/train.py` would from those
 no wall-clock guard), and every --every steps measures the mean map entropy of the keyframes' raw map under the
 current poses (anchored on train.anchor_scan, 0, as the run writes them; the same 10,000 query points each
 time). Writes one JSON object: the overrides and, per measurement, the step, the entropy, the last batch's range
-error and the mean pose correction so far. Nothing is written besides --out.
+error (mean and median) and the mean pose correction so far. Nothing is written besides --out.
 """
 
 import json
@@ -55,7 +55,9 @@ def main(argv):
         last = history[-1] if history else {}
         records.append({"step": step, "mean_map_entropy": summary["poses"]["mean_map_entropy"],
                         "mean_plane_thickness_m": summary["poses"]["mean_plane_thickness_m"],
-                        "range_err_m": last.get("range_err_m"), "pose_trans_mean_m": last.get("pose_trans_mean_m", 0.0),
+                        "range_err_m": last.get("range_err_m"),
+                        "range_residual_median_m": last.get("range_residual_median_m"),
+                        "pose_trans_mean_m": last.get("pose_trans_mean_m", 0.0),
                         "pose_rot_mean_deg": last.get("pose_rot_mean_deg", 0.0)})
         print(json.dumps(records[-1]), flush=True)
         with open(OUT.value, "w") as f:

@@ -263,7 +263,7 @@ def make_step_body(tx: optax.GradientTransformation, schedules: Schedules, field
     """The pure, unjitted train step: step(state, rays, T_init, sampler) -> (state, metrics).
 
     One Adam step on one batch of `batch_rays` rays (drawn with the state's key). metrics: a dict of float32
-    scalars (the loss terms of eq. 13, alpha, pose_grad_norm). `make_train_step` jits it, `make_train_chunk`
+    scalars (the loss terms of eq. 13, alpha, pose_grad_norm, the batch's median absolute range residual). `make_train_step` jits it, `make_train_chunk`
     scans it; a caller that changes the loss (vmapped over submaps, say) wraps it and jits with `jit_step` /
     `jit_chunk`, which keep the same static arguments and donation.
     """
@@ -278,7 +278,10 @@ def make_step_body(tx: optax.GradientTransformation, schedules: Schedules, field
             T = scan_poses(params["poses"], T_init)[scan]  # exp of S poses, then a gather: cheaper than exp per ray
             origins, directions = world_rays(T, directions_local)
             out = render_rays(params["field"], field, sampler, origins, directions, alpha, key_render, ranges)
-            return ray_losses(out, ranges, loss)
+            total, metrics = ray_losses(out, ranges, loss)
+            final = out.fine if out.fine is not None else out.coarse
+            # The mean hides how well most rays fit: real scans have a tail of rays through glass and people.
+            return total, dict(metrics, range_residual_median=jnp.median(jnp.abs(final.depth - ranges)))
 
         (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
@@ -568,6 +571,7 @@ def fit(
     def log(s: TrainState, m: dict) -> dict:
         trans_m, rot_deg = pose_correction_stats(s.params["poses"], scale)
         return {"range_err_m": m.get("range_l1_fine", m["range_l1_coarse"]) / scale,
+                "range_residual_median_m": m["range_residual_median"] / scale,
                 "pose_trans_mean_m": trans_m, "pose_rot_mean_deg": rot_deg}
 
     def replan(steps: int):

@@ -209,7 +209,9 @@ def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_pat
     assert summary["submaps"] == 2 and not summary["stopped_early"]
     assert 30 <= summary["schedule_steps"] < 100 and summary["steps"] == summary["schedule_steps"]
     assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["steps"] == summary["schedule_steps"]
-    assert json.loads((tmp_path / "run" / "history.json").read_text())[-1]["alpha"] == cfg.model.pos_freqs
+    last = json.loads((tmp_path / "run" / "history.json").read_text())[-1]
+    assert last["alpha"] == cfg.model.pos_freqs
+    assert 0 < last["range_residual_median_m"] < float("inf")  # logged beside the mean, as a single cube's
     for name in ("poses_optimized.txt", "map_raw.ply", "map_rendered.ply", "metrics.json", "scans_report.csv"):
         assert (tmp_path / "run" / name).is_file(), name
     _, T_opt = read_tum(tmp_path / "run" / "poses_optimized.txt")

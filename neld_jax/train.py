@@ -263,9 +263,9 @@ def make_step_body(tx: optax.GradientTransformation, schedules: Schedules, field
     """The pure, unjitted train step: step(state, rays, T_init, sampler) -> (state, metrics).
 
     One Adam step on one batch of `batch_rays` rays (drawn with the state's key). metrics: a dict of float32
-    scalars (the loss terms of eq. 13, alpha, pose_grad_norm, the batch's median absolute range residual). `make_train_step` jits it, `make_train_chunk`
-    scans it; a caller that changes the loss (vmapped over submaps, say) wraps it and jits with `jit_step` /
-    `jit_chunk`, which keep the same static arguments and donation.
+    scalars (the loss terms of eq. 13, alpha, pose_grad_norm, the batch's median absolute range residual).
+    `make_train_step` jits it, `make_train_chunk` scans it; a caller that changes the loss (vmapped over submaps,
+    say) wraps it and jits with `jit_step` / `jit_chunk`, which keep the same static arguments and donation.
     """
 
     def step(state: TrainState, rays: RayData, T_init: jax.Array, sampler: SamplerSettings):
@@ -280,7 +280,7 @@ def make_step_body(tx: optax.GradientTransformation, schedules: Schedules, field
             out = render_rays(params["field"], field, sampler, origins, directions, alpha, key_render, ranges)
             total, metrics = ray_losses(out, ranges, loss)
             final = out.fine if out.fine is not None else out.coarse
-            # The mean hides how well most rays fit: real scans have a tail of rays through glass and people.
+            # The mean hides how well most rays fit: on real scans a tail of badly fitted rays holds it up.
             return total, dict(metrics, range_residual_median=jnp.median(jnp.abs(final.depth - ranges)))
 
         (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)

@@ -97,7 +97,8 @@ def run_sequence(name: str, root: str) -> dict:
             "baseline_wall_s": summary.get("baseline_seconds"),
             "started_from": summary.get("started_from"), "crispness": _crisp(summary["crispness"]),
             "final_range_err_m": round(summary["final"].get("range_err_m", float("nan")), 4),
-            "final_range_residual_median_m": round(summary["final"].get("range_residual_median_m", float("nan")), 4)}
+            "final_range_residual_median_m": round(summary["final"].get("range_residual_median_m", float("nan")),
+                                                   4)}
         print(json.dumps(entry), flush=True)
     if SKIP_DRIFT.value:
         return entry

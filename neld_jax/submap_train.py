@@ -163,8 +163,7 @@ def make_submap_loss(field: DensityField, loss: LossSettings, batch_rays: int, s
                           alpha, kr, ranges)
         total, metrics = ray_losses(out, ranges, loss)
         metrics["range_err_m"] = metrics.get("range_l1_fine", metrics["range_l1_coarse"]) / frames_m.scale
-        final = out.fine if out.fine is not None else out.coarse
-        metrics["range_residual_median_m"] = jnp.median(jnp.abs(final.depth - ranges)) / frames_m.scale
+        metrics["range_residual_median_m"] = metrics["range_residual_median"] / frames_m.scale
         return total * frames_m.weight, metrics
 
     def loss_fn(params, rays: SubmapRays, frames: SubmapFrames, key, alpha, sampler: SamplerSettings):

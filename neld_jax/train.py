@@ -245,7 +245,10 @@ def _pass_losses(rendered, z: jax.Array, ranges: jax.Array, termination: bool) -
 
 
 def ray_losses(out, ranges: jax.Array, loss: LossSettings) -> tuple[jax.Array, dict]:
-    """Eq. 13: lambda_coarse (l_d L_range^c + l_h L_term^c) + (l_d L_range^f + l_h L_term^f)."""
+    """Eq. 13: lambda_coarse (l_d L_range^c + l_h L_term^c) + (l_d L_range^f + l_h L_term^f).
+
+    Returns (total, metrics): each term, the total as "loss", and the median absolute range residual of the
+    last pass ("range_residual_median"; not part of the loss)."""
     l_d, l_h = loss.lambda_range, loss.lambda_termination
     lc_range, lc_term = _pass_losses(out.coarse, out.z_coarse, ranges, loss.termination)
     total = loss.lambda_coarse * (l_d * lc_range + l_h * lc_term)
@@ -254,6 +257,9 @@ def ray_losses(out, ranges: jax.Array, loss: LossSettings) -> tuple[jax.Array, d
         lf_range, lf_term = _pass_losses(out.fine, out.z_fine, ranges, loss.termination)
         total = total + l_d * lf_range + l_h * lf_term
         metrics.update(range_l1_fine=lf_range, term_fine=lf_term)
+    final = out.fine if out.fine is not None else out.coarse
+    # The mean L1 hides how well most rays fit: on real scans a tail of badly fitted rays holds it up.
+    metrics["range_residual_median"] = jnp.median(jnp.abs(final.depth - ranges))
     metrics["loss"] = total
     return total, metrics
 
@@ -278,10 +284,7 @@ def make_step_body(tx: optax.GradientTransformation, schedules: Schedules, field
             T = scan_poses(params["poses"], T_init)[scan]  # exp of S poses, then a gather: cheaper than exp per ray
             origins, directions = world_rays(T, directions_local)
             out = render_rays(params["field"], field, sampler, origins, directions, alpha, key_render, ranges)
-            total, metrics = ray_losses(out, ranges, loss)
-            final = out.fine if out.fine is not None else out.coarse
-            # The mean hides how well most rays fit: on real scans a tail of badly fitted rays holds it up.
-            return total, dict(metrics, range_residual_median=jnp.median(jnp.abs(final.depth - ranges)))
+            return ray_losses(out, ranges, loss)
 
         (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)

@@ -31,7 +31,7 @@ from neld_jax import lie, rendering
 from neld_jax.field import DensityField
 from neld_jax.model import SamplerSettings, render_rays, world_rays
 from neld_jax.train import (FitResult, LossSettings, RayData, Schedules, TrainState, jit_chunk, make_field,
-                            make_schedules, pose_transform, ray_losses, run_chunks, sample_batch,
+                            make_schedules, pose_transform, range_errors_m, ray_losses, run_chunks, sample_batch,
                             sampler_settings, with_steps)
 
 logger = logging.getLogger(__name__)
@@ -162,8 +162,7 @@ def make_submap_loss(field: DensityField, loss: LossSettings, batch_rays: int, s
         out = render_rays(field_params, field, scaled_sampler(sampler, frames_m.scale), origins, directions,
                           alpha, kr, ranges)
         total, metrics = ray_losses(out, ranges, loss)
-        metrics["range_err_m"] = metrics.get("range_l1_fine", metrics["range_l1_coarse"]) / frames_m.scale
-        metrics["range_residual_median_m"] = metrics["range_residual_median"] / frames_m.scale
+        metrics.update(range_errors_m(metrics, frames_m.scale))
         return total * frames_m.weight, metrics
 
     def loss_fn(params, rays: SubmapRays, frames: SubmapFrames, key, alpha, sampler: SamplerSettings):

@@ -264,6 +264,13 @@ def ray_losses(out, ranges: jax.Array, loss: LossSettings) -> tuple[jax.Array, d
     return total, metrics
 
 
+def range_errors_m(metrics: dict, scale) -> dict:
+    """The batch's range residuals of `ray_losses`' metrics in metres (scale: metres -> normalised): the mean L1
+    of the last pass ("range_err_m") and the median ("range_residual_median_m")."""
+    return {"range_err_m": metrics.get("range_l1_fine", metrics["range_l1_coarse"]) / scale,
+            "range_residual_median_m": metrics["range_residual_median"] / scale}
+
+
 def make_step_body(tx: optax.GradientTransformation, schedules: Schedules, field: DensityField, loss: LossSettings,
                    batch_rays: int, scans_per_step: int = 0) -> Callable:
     """The pure, unjitted train step: step(state, rays, T_init, sampler) -> (state, metrics).
@@ -573,9 +580,7 @@ def fit(
 
     def log(s: TrainState, m: dict) -> dict:
         trans_m, rot_deg = pose_correction_stats(s.params["poses"], scale)
-        return {"range_err_m": m.get("range_l1_fine", m["range_l1_coarse"]) / scale,
-                "range_residual_median_m": m["range_residual_median"] / scale,
-                "pose_trans_mean_m": trans_m, "pose_rot_mean_deg": rot_deg}
+        return {**range_errors_m(m, scale), "pose_trans_mean_m": trans_m, "pose_rot_mean_deg": rot_deg}
 
     def replan(steps: int):
         planned = create_train_state(with_steps(config, steps), int(T_init.shape[0]), scale)

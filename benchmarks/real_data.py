@@ -94,6 +94,7 @@ def run_sequence(name: str, root: str) -> dict:
         entry["recorded"][start] = {
             "scans": summary["num_input_scans"], "keyframes": summary["num_scans"], "steps": summary["steps"],
             "schedule_steps": summary.get("schedule_steps"), "wall_s": round(time.perf_counter() - t0, 1),
+            "map_rays": summary.get("map_rays"), "map_rays_rendered": summary.get("map_rays_rendered"),
             "baseline_wall_s": summary.get("baseline_seconds"),
             "started_from": summary.get("started_from"), "crispness": _crisp(summary["crispness"]),
             "final_range_err_m": round(summary["final"].get("range_err_m", float("nan")), 4),
@@ -126,6 +127,7 @@ def run_sequence(name: str, root: str) -> dict:
         "ate_vs_odometry_m": {m: _ate(evaluation, m) for m in ("initial", "baseline", "optimized")},
         "crispness": _crisp(summary["crispness"]),
         "neld_wall_s": round(t_neld, 1), "baseline_wall_s": summary.get("baseline_seconds"),
+        "map_rays": summary.get("map_rays"), "map_rays_rendered": summary.get("map_rays_rendered"),
         "steps": summary["steps"], "schedule_steps": summary.get("schedule_steps"), "init_poses": drift_start,
         "started_from": summary.get("started_from"),
     }

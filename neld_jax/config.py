@@ -165,6 +165,8 @@ def base_config() -> ml_collections.ConfigDict:
     c.mapping.max_rays = 0  # > 0: at most this many rays over the sequence (each scan an equal share, >= 256)
     c.mapping.voxel_size_m = 0.05  # voxel grid on the written maps (0 = none)
     c.mapping.min_opacity = 0.5  # rendered points of rays whose opacity is below this are dropped
+    # > 0: the render stops after this many seconds, with a uniform sample of the rays (logged, metrics.json)
+    c.mapping.max_seconds = 0.0
 
     # The classical baseline (neld_jax.baseline.BaselineSettings: bin/baseline.py and train.init_poses=baseline).
     c.baseline = ml_collections.ConfigDict()
@@ -313,6 +315,9 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
     # Sequences of hundreds of keyframes: the map's rays stop growing at 2^18 (HKU_2's 266 scans x 2048 rays
     # took 160 s to render on 2 cores, as long as half the training).
     c.mapping.max_rays = 262_144
+    # The render is outside train.max_minutes: 75 s for these 2^18 rays on an idle machine, 160 s in a slow spell
+    # of the same VM (HKU_1, 2026-12-02), which took that run to 11.2 minutes. A limit keeps the run's 10.
+    c.mapping.max_seconds = 60.0
     c.mapping.voxel_size_m = 0.1
     # A step's rays are shared among the submaps; beyond 32 each field sees too few (16 a step) and a step costs
     # more than the single cube's (Riverside02's 0.25 m rule: 340 submaps, 2.4 s a step on 2 cores).
@@ -324,7 +329,7 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
         c.train.checkpoint_every = 5000
         c.submaps.max_submaps = 0  # a GPU runs hundreds of submaps' rays a step (not measured there yet)
         paper = base_config().mapping  # the paper's map: 128 + 128 samples per ray, every ray, 5 cm voxels
-        for field in ("num_coarse", "num_fine", "max_rays_per_scan", "max_rays", "voxel_size_m"):
+        for field in ("num_coarse", "num_fine", "max_rays_per_scan", "max_rays", "voxel_size_m", "max_seconds"):
             c.mapping[field] = paper[field]
     return c
 

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from neld_jax import export, metrics, quality, report, submap_run, submaps, train
+from neld_jax import export, mapping, metrics, quality, report, submap_run, submaps, train
 from neld_jax.checkpoint import fit_resuming
 from neld_jax.config import with_train
 from neld_jax.errors import ConfigError
@@ -391,6 +391,9 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         "total_seconds": round(time.perf_counter() - t_start, 2),
         "device": str(jax.devices()[0]),
         "submaps": None if plan is None else int((plan.weight > 0).sum()),
+        # The rendered map's rays, and how many of them its time limit (mapping.max_seconds) let render
+        "map_rays": None if rendered is None else int(rendered[0].num_rays),
+        "map_rays_rendered": None if rendered is None else rendered[1].num_rendered,
         "final": result.history[-1] if result.history else {},
     }
     summary["started_from"] = start.chosen
@@ -429,9 +432,10 @@ def _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progr
     alpha = float(train.make_schedules(config).alpha(int(state.step)))  # the window the field was trained with
     rendered = render_map(state.params["field"], train.make_field(config), sampler, T_field_n,
                           mapping_rays.directions, mapping_rays.scan_index, alpha, rays_per_batch=int(m.rays_per_batch),
-                          min_opacity=float(m.min_opacity), progress=progress)
+                          min_opacity=float(m.min_opacity), progress=progress, max_seconds=float(m.max_seconds),
+                          seed=config.seed + 1)
     points_n = rendered.points
-    logger.info("rendered map: %d of %d rays end on a surface", len(points_n), mapping_rays.num_rays)
+    mapping.log_rendered_rays(len(points_n), rendered.num_rendered, mapping_rays.num_rays, float(m.max_seconds))
     if len(points_n) == 0:
         logger.warning("rendered map is empty: no ray reached opacity %.2f (train longer or lower "
                        "mapping.min_opacity); map_rendered.ply not written", m.min_opacity)

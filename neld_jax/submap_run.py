@@ -9,19 +9,24 @@ import dataclasses
 import functools
 import logging
 import os
+import time
 from typing import NamedTuple
 
 import jax
 import numpy as np
 
-from neld_jax import export, submap_train, submaps, train
+from neld_jax import export, mapping, submap_train, submaps, train
 from neld_jax.checkpoint import fit_resuming
 from neld_jax.data.normalize import Normalization
 from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.data.rays import build_mapping_rays, build_rays
-from neld_jax.mapping import MapRender
+from neld_jax.mapping import MapRender, log_rendered_rays
 
 logger = logging.getLogger(__name__)
+
+# Parts of the rendered map's rays under a time limit (mapping.max_seconds): the finer, the closer the stop to the
+# limit, but each part costs every submap a padded batch of its own.
+RENDER_PARTS = 4
 
 
 def num_devices(config) -> int:
@@ -90,34 +95,49 @@ def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, 
     scan_index = np.asarray(mapping_rays.scan_index)
     r = len(scan_index)
     best_r = np.full(r, np.inf)
-    points_w, ranges_m, opacity = np.zeros((r, 3)), np.zeros(r), np.zeros(r)
+    points_w, ranges_m, opacity = np.zeros((r, 3)), np.full(r, np.nan), np.full(r, np.nan)
     real = np.flatnonzero(plan.weight > 0)
-    for sub in tqdm(real, disable=not progress, desc="rendered map (submaps)", unit="submap"):
-        row, norm_m = plan.members[sub], plan.norms[sub]
+    slots = []  # per submap: its keyframes' slot of each scan (-1: not a member), its poses
+    for sub in real:
         slot_of = np.full(seq.num_scans, -1)
-        slot_of[row] = np.arange(len(row))
-        sel = np.flatnonzero(slot_of[scan_index] >= 0)
-        fields_m = jax.tree.map(lambda x: x[sub], state.params["fields"])
-        T_n = norm_m.poses_to_normalized(trained.T_field[row])
-        p_n, op = submap_train.render_submap_rays(fields_m, setup.field, sampler, norm_m.scale, T_n,
-                                                  mapping_rays.directions[sel], slot_of[scan_index[sel]], alpha,
-                                                  int(m.rays_per_batch))
-        centrality = np.abs(p_n).max(axis=1)
-        better = centrality < best_r[sel]
-        idx = sel[better]
-        best_r[idx] = centrality[better]
-        points_w[idx] = norm_m.points_to_world(p_n[better])
-        origins_n = T_n[slot_of[scan_index[idx]], :3, 3]
-        ranges_m[idx] = np.linalg.norm(p_n[better] - origins_n, axis=1) / norm_m.scale
-        opacity[idx] = op[better]
-    kept = opacity >= float(m.min_opacity)
+        slot_of[plan.members[sub]] = np.arange(len(plan.members[sub]))
+        slots.append((slot_of, plan.norms[sub].poses_to_normalized(trained.T_field[plan.members[sub]])))
+    # Under a time limit the rays go in RENDER_PARTS parts of a random order, every submap rendering each part's
+    # rays, so that the parts rendered before the limit are a uniform sample of the map; the clock is read
+    # between parts.
+    max_seconds = float(m.max_seconds)
+    order = mapping.render_order(r, max_seconds, config.seed + 1)
+    parts = np.array_split(order, RENDER_PARTS if max_seconds > 0 else 1)
+    t0 = time.perf_counter()
+    with tqdm(total=len(real) * len(parts), disable=not progress, desc="rendered map (submaps)", unit="submap") as bar:
+        for part in parts:
+            for sub, (slot_of, T_n) in zip(real, slots):
+                sel = part[slot_of[scan_index[part]] >= 0]
+                fields_m = jax.tree.map(lambda x: x[sub], state.params["fields"])
+                norm_m = plan.norms[sub]
+                p_n, op = submap_train.render_submap_rays(fields_m, setup.field, sampler, norm_m.scale, T_n,
+                                                          mapping_rays.directions[sel], slot_of[scan_index[sel]],
+                                                          alpha, int(m.rays_per_batch))
+                centrality = np.abs(p_n).max(axis=1)
+                better = centrality < best_r[sel]
+                idx = sel[better]
+                best_r[idx] = centrality[better]
+                points_w[idx] = norm_m.points_to_world(p_n[better])
+                origins_n = T_n[slot_of[scan_index[idx]], :3, 3]
+                ranges_m[idx] = np.linalg.norm(p_n[better] - origins_n, axis=1) / norm_m.scale
+                opacity[idx] = op[better]
+                bar.update()
+            if max_seconds > 0 and time.perf_counter() - t0 > max_seconds:
+                break
+    kept = opacity >= float(m.min_opacity)  # NaN (not rendered) is not kept
     points = points_w[kept] @ trained.G[:3, :3].T + trained.G[:3, 3]
-    logger.info("rendered map (stitched from %d submaps): %d of %d rays end on a surface", len(real), int(kept.sum()), r)
+    render = MapRender(norm.points_to_normalized(points), ranges_m * norm.scale, opacity)
+    logger.info("rendered map stitched from %d submaps", len(real))
+    log_rendered_rays(int(kept.sum()), render.num_rendered, r, max_seconds)
     if kept.any():
         export.write_point_cloud(os.path.join(out_dir, "map_rendered.ply"),
                                  voxel_downsample(points, float(m.voxel_size_m)))
     else:
         logger.warning("rendered map is empty: no ray reached opacity %.2f; map_rendered.ply not written",
                        m.min_opacity)
-    render = MapRender(norm.points_to_normalized(points), ranges_m * norm.scale, opacity)
     return mapping_rays, render

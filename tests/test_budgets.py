@@ -44,6 +44,7 @@ def test_gpu_budget_is_the_cpu_recipe_run_longer():
     for name in ("batch_rays", "field_lr_init", "pose_lr_rot_init", "c2f_end_fraction", "fixed_scans"):
         assert gpu.train[name] == cpu.train[name], name
     assert (gpu.mapping.num_coarse, gpu.mapping.num_fine) == (128, 128)  # the paper's map
+    assert gpu.mapping.max_seconds == 0 and cpu.mapping.max_seconds > 0  # every ray; on 2 cores, a time limit
     assert cpu.submaps.max_submaps == 32 and gpu.submaps.max_submaps == 0  # the cpu budget's step stays small
     # lio_keyframes: the gpu budget keeps the cpu budget's small pose steps for good odometry.
     assert _parse("lio_keyframes.py:gpu").train.pose_lr_rot_init == 5e-6

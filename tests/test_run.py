@@ -47,6 +47,7 @@ def test_run_writes_outputs_and_resumes_after_a_kill(tmp_path, monkeypatch):
     assert np.abs(T_opt[1:] - T_initial[1:]).max() > 1e-6
     metrics = json.loads((tmp_path / "ref" / "metrics.json").read_text())
     assert metrics["run"]["steps"] == 12
+    assert metrics["run"]["map_rays_rendered"] == metrics["run"]["map_rays"] > 0  # no time limit: every ray
 
     # A run killed right after its first checkpoint (step 5) ...
     cfg = _free_gauge(make_tiny_config(str(out), steps=12))

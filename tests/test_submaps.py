@@ -205,8 +205,12 @@ def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_pat
     cfg.train.fixed_scans, cfg.train.anchor_scan = (), 0
     cfg.train.log_every, cfg.train.checkpoint_every, cfg.train.max_minutes = 10, 0, 1.5
     cfg.submaps.enabled, cfg.submaps.keyframes, cfg.submaps.overlap = "on", 3, 1
+    # The map's time limit, already over after the first of its parts: every submap renders that quarter of
+    # the rays (a uniform sample), and the run says how many it rendered.
+    cfg.mapping.max_seconds = 1e-9
     summary = run.run(cfg, progress=False)
     assert summary["submaps"] == 2 and not summary["stopped_early"]
+    assert summary["map_rays_rendered"] == len(np.array_split(np.arange(summary["map_rays"]), 4)[0])
     assert 30 <= summary["schedule_steps"] < 100 and summary["steps"] == summary["schedule_steps"]
     assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["steps"] == summary["schedule_steps"]
     last = json.loads((tmp_path / "run" / "history.json").read_text())[-1]

@@ -65,8 +65,9 @@ def render_map(params_field, field: DensityField, sampler: SamplerSettings, T_sc
 
     T_scans: [S, 4, 4] optimised poses; directions_local: [R, 3]; scan_index: [R]. Rays whose opacity is below
     `min_opacity` (they pass through empty space and end nowhere) give no map point.
-    max_seconds > 0: a time limit. The rays are rendered in a random order (render_order) and rendering stops
-    after the batch during which the limit passes; the rays left out get NaN range and opacity.
+    max_seconds > 0: a time limit. The rays are rendered in a random order (render_order), and no batch is started
+    that would end past the limit if it took as long as the one before (the first always runs); the rays left out
+    get NaN range and opacity.
     Batches are padded to one size so that the renderer compiles once.
     """
     from tqdm.auto import tqdm
@@ -79,6 +80,7 @@ def render_map(params_field, field: DensityField, sampler: SamplerSettings, T_sc
     kept = [np.zeros((0, 3))]
     t0 = time.perf_counter()
     for start in tqdm(range(0, r, rays_per_batch), disable=not progress, desc="rendered map", unit="batch"):
+        t_batch = time.perf_counter()
         idx = order[start:start + rays_per_batch]
         pad = rays_per_batch - len(idx)
         d = np.pad(directions_local[idx], ((0, pad), (0, 0)), mode="edge")
@@ -89,7 +91,8 @@ def render_map(params_field, field: DensityField, sampler: SamplerSettings, T_sc
         kept.append(points[opacity >= min_opacity])
         ranges[idx] = np.linalg.norm(points - origins_of_scan[s[: len(idx)]], axis=1)
         opacities[idx] = opacity
-        if max_seconds > 0 and time.perf_counter() - t0 > max_seconds:
+        now = time.perf_counter()
+        if max_seconds > 0 and (now - t0) + (now - t_batch) > max_seconds:
             break
     return MapRender(np.concatenate(kept, axis=0), ranges, opacities)
 

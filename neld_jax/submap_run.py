@@ -103,14 +103,15 @@ def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, 
         slot_of[plan.members[sub]] = np.arange(len(plan.members[sub]))
         slots.append((slot_of, plan.norms[sub].poses_to_normalized(trained.T_field[plan.members[sub]])))
     # Under a time limit the rays go in RENDER_PARTS parts of a random order, every submap rendering each part's
-    # rays, so that the parts rendered before the limit are a uniform sample of the map; the clock is read
-    # between parts.
+    # rays, so that the parts rendered before the limit are a uniform sample of the map; as for one cube, no part
+    # is started that would end past the limit if it took as long as the one before.
     max_seconds = float(m.max_seconds)
     order = mapping.render_order(r, max_seconds, config.seed + 1)
     parts = np.array_split(order, RENDER_PARTS if max_seconds > 0 else 1)
     t0 = time.perf_counter()
     with tqdm(total=len(real) * len(parts), disable=not progress, desc="rendered map (submaps)", unit="submap") as bar:
         for part in parts:
+            t_part = time.perf_counter()
             for sub, (slot_of, T_n) in zip(real, slots):
                 sel = part[slot_of[scan_index[part]] >= 0]
                 fields_m = jax.tree.map(lambda x: x[sub], state.params["fields"])
@@ -127,7 +128,8 @@ def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, 
                 ranges_m[idx] = np.linalg.norm(p_n[better] - origins_n, axis=1) / norm_m.scale
                 opacity[idx] = op[better]
                 bar.update()
-            if max_seconds > 0 and time.perf_counter() - t0 > max_seconds:
+            now = time.perf_counter()
+            if max_seconds > 0 and (now - t0) + (now - t_part) > max_seconds:
                 break
     kept = opacity >= float(m.min_opacity)  # NaN (not rendered) is not kept
     points = points_w[kept] @ trained.G[:3, :3].T + trained.G[:3, 3]

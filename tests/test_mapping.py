@@ -42,6 +42,20 @@ def test_a_time_limit_renders_a_uniform_sample_and_marks_the_rest():
     np.testing.assert_allclose(limited.opacity[rendered], full.opacity[rendered], rtol=1e-5, atol=1e-6)
 
 
+def test_no_batch_is_started_that_would_end_past_the_limit(monkeypatch):
+    """On a clock that moves 1 s at every reading (the render reads it at its start and at each batch's start and
+    end), each batch takes 1 s and the third ends at 6 s. With a 6.5 s limit a fourth, as long, would end past it,
+    so three batches run (a rule that only stopped once the limit had passed would start the fourth)."""
+    import types
+
+    from neld_jax import mapping
+
+    ticks = iter(range(10_000))
+    monkeypatch.setattr(mapping, "time", types.SimpleNamespace(perf_counter=lambda: float(next(ticks))))
+    limited, _ = _render(max_seconds=6.5)
+    assert limited.num_rendered == 3 * 64
+
+
 def test_render_order_is_the_rays_own_order_without_a_limit():
     np.testing.assert_array_equal(render_order(10, 0.0, seed=1), np.arange(10))
     order = render_order(10, 5.0, seed=1)

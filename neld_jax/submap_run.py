@@ -20,7 +20,7 @@ from neld_jax.checkpoint import fit_resuming
 from neld_jax.data.normalize import Normalization
 from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.data.rays import build_mapping_rays, build_rays
-from neld_jax.mapping import MapRender, log_rendered_rays
+from neld_jax.mapping import MapRender
 
 logger = logging.getLogger(__name__)
 
@@ -135,7 +135,7 @@ def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, 
     points = points_w[kept] @ trained.G[:3, :3].T + trained.G[:3, 3]
     render = MapRender(norm.points_to_normalized(points), ranges_m * norm.scale, opacity)
     logger.info("rendered map stitched from %d submaps", len(real))
-    log_rendered_rays(int(kept.sum()), render.num_rendered, r, max_seconds)
+    mapping.log_rendered_rays(int(kept.sum()), render.num_rendered, r, max_seconds)
     if kept.any():
         export.write_point_cloud(os.path.join(out_dir, "map_rendered.ply"),
                                  voxel_downsample(points, float(m.voxel_size_m)))

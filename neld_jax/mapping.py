@@ -57,6 +57,14 @@ def render_order(num_rays: int, max_seconds: float, seed: int) -> np.ndarray:
     return np.arange(num_rays)
 
 
+def out_of_time(started: float, last_started: float, max_seconds: float) -> bool:
+    """The render's stop rule under a time limit (max_seconds > 0; 0: never): stop rather than start another piece
+    of work (a batch, a part of the rays) that would end past the limit if it took as long as the last one.
+    started: time.perf_counter() when the render began; last_started: when the last piece began."""
+    now = time.perf_counter()
+    return max_seconds > 0 and (now - started) + (now - last_started) > max_seconds
+
+
 def render_map(params_field, field: DensityField, sampler: SamplerSettings, T_scans: np.ndarray,
                directions_local: np.ndarray, scan_index: np.ndarray, alpha: float, rays_per_batch: int = 4096,
                min_opacity: float = 0.5, progress: bool = False, max_seconds: float = 0.0,
@@ -91,8 +99,7 @@ def render_map(params_field, field: DensityField, sampler: SamplerSettings, T_sc
         kept.append(points[opacity >= min_opacity])
         ranges[idx] = np.linalg.norm(points - origins_of_scan[s[: len(idx)]], axis=1)
         opacities[idx] = opacity
-        now = time.perf_counter()
-        if max_seconds > 0 and (now - t0) + (now - t_batch) > max_seconds:
+        if out_of_time(t0, t_batch, max_seconds):
             break
     return MapRender(np.concatenate(kept, axis=0), ranges, opacities)
 

@@ -97,11 +97,14 @@ def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, 
     best_r = np.full(r, np.inf)
     points_w, ranges_m, opacity = np.zeros((r, 3)), np.full(r, np.nan), np.full(r, np.nan)
     real = np.flatnonzero(plan.weight > 0)
-    slots = []  # per submap: its keyframes' slot of each scan (-1: not a member), its poses
+    # Per submap, once: its keyframes' slot of each scan (-1: not a member), its field, frame and poses in it.
+    slots = []
     for sub in real:
         slot_of = np.full(seq.num_scans, -1)
         slot_of[plan.members[sub]] = np.arange(len(plan.members[sub]))
-        slots.append((slot_of, plan.norms[sub].poses_to_normalized(trained.T_field[plan.members[sub]])))
+        norm_m = plan.norms[sub]
+        slots.append((slot_of, jax.tree.map(lambda x: x[sub], state.params["fields"]), norm_m,
+                      norm_m.poses_to_normalized(trained.T_field[plan.members[sub]])))
     # Under a time limit the rays go in RENDER_PARTS parts of a random order, every submap rendering each part's
     # rays, so that the parts rendered before the limit are a uniform sample of the map; as for one cube, no part
     # is started that would end past the limit if it took as long as the one before.
@@ -112,10 +115,8 @@ def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, 
     with tqdm(total=len(real) * len(parts), disable=not progress, desc="rendered map (submaps)", unit="submap") as bar:
         for part in parts:
             t_part = time.perf_counter()
-            for sub, (slot_of, T_n) in zip(real, slots):
+            for slot_of, fields_m, norm_m, T_n in slots:
                 sel = part[slot_of[scan_index[part]] >= 0]
-                fields_m = jax.tree.map(lambda x: x[sub], state.params["fields"])
-                norm_m = plan.norms[sub]
                 p_n, op = submap_train.render_submap_rays(fields_m, setup.field, sampler, norm_m.scale, T_n,
                                                           mapping_rays.directions[sel], slot_of[scan_index[sel]],
                                                           alpha, int(m.rays_per_batch))
@@ -128,8 +129,7 @@ def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, 
                 ranges_m[idx] = np.linalg.norm(p_n[better] - origins_n, axis=1) / norm_m.scale
                 opacity[idx] = op[better]
                 bar.update()
-            now = time.perf_counter()
-            if max_seconds > 0 and (now - t0) + (now - t_part) > max_seconds:
+            if mapping.out_of_time(t0, t_part, max_seconds):
                 break
     kept = opacity >= float(m.min_opacity)  # NaN (not rendered) is not kept
     points = points_w[kept] @ trained.G[:3, :3].T + trained.G[:3, 3]

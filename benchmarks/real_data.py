@@ -12,7 +12,8 @@ Per sequence (one JSON object each, also printed as a line):
   scan-to-map ICP + a loop-closed pose graph (neld_jax.baseline); the raw map's crispness (mean map entropy,
   plane thickness) under the odometry, the baseline and each NeLD-BA run, and which start each run took.
 - "drift" (unless --skip_drift): the same scans with odometry-like drift added (bin/perturb.py's random walk,
-  --drift_trans_m / --drift_rot_deg per keyframe, --seed), the recorded odometry as pseudo ground truth, run
+  --drift_trans_m / --drift_rot_deg per keyframe, --seed; --keep_tilt: position and heading only, and every run
+  with baseline.keep_input_tilt), the recorded odometry as pseudo ground truth, run
   with the first of --recorded_starts and no prior on the input's drift (train.max_baseline_departure=0): ATE
   of the baseline and of NeLD-BA against the odometry, the crispness of each map, and how far the baseline's and
   NeLD-BA's answers lie from the same configuration's answers from the recorded odometry (ATE between the two,
@@ -46,6 +47,9 @@ SKIP_DRIFT = flags.DEFINE_bool("skip_drift", False, "Only the recorded-odometry 
 DRIFT_TRANS = flags.DEFINE_float("drift_trans_m", 0.05, "Injected drift per keyframe: translation sigma [m].")
 DRIFT_ROT = flags.DEFINE_float("drift_rot_deg", 0.5, "Injected drift per keyframe: rotation sigma [deg].")
 SEED = flags.DEFINE_integer("seed", 0, "Seed of the injected drift.")
+KEEP_TILT = flags.DEFINE_bool("keep_tilt", False, "The drift of an IMU-aided odometry: position and heading only "
+                              "(bin/perturb.py --keep_tilt), and every run, recorded and drifted, with "
+                              "baseline.keep_input_tilt=True (the same configuration from both starts).")
 OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. train.steps=2000.")
 flags.mark_flag_as_required("root")
 
@@ -62,6 +66,8 @@ def _config(fmt_config: str, root: str, out_dir: str):
     c.output_dir = out_dir
     if MAX_MINUTES.value >= 0:
         c.train.max_minutes = MAX_MINUTES.value
+    if KEEP_TILT.value:
+        c.baseline.keep_input_tilt = True
     return apply_overrides(c, OVERRIDES.value)
 
 
@@ -96,7 +102,8 @@ def run_sequence(name: str, root: str) -> dict:
             "schedule_steps": summary.get("schedule_steps"), "wall_s": round(time.perf_counter() - t0, 1),
             "map_rays": summary.get("map_rays"), "map_rays_rendered": summary.get("map_rays_rendered"),
             "baseline_wall_s": summary.get("baseline_seconds"),
-            "started_from": summary.get("started_from"), "crispness": _crisp(summary["crispness"]),
+            "started_from": summary.get("started_from"), "baseline_refined_from": summary.get("baseline_refined_from"),
+            "crispness": _crisp(summary["crispness"]),
             "final_range_err_m": round(summary["final"].get("range_err_m", float("nan")), 4),
             "final_range_residual_median_m": round(summary["final"].get("range_residual_median_m", float("nan")),
                                                    4)}
@@ -105,7 +112,7 @@ def run_sequence(name: str, root: str) -> dict:
         return entry
 
     drift_root = os.path.join(out, "drifted_input")
-    seq = with_drift(load_sequence(recorded.data), DRIFT_TRANS.value, DRIFT_ROT.value, SEED.value)
+    seq = with_drift(load_sequence(recorded.data), DRIFT_TRANS.value, DRIFT_ROT.value, SEED.value, KEEP_TILT.value)
     write_generic(seq, drift_root)
     config = _config("generic", drift_root, os.path.join(out, "drift"))
     drift_start = RECORDED_STARTS.value[0]
@@ -122,14 +129,15 @@ def run_sequence(name: str, root: str) -> dict:
     t_neld = time.perf_counter() - t0
     evaluation = summary["evaluation"]
     entry["drift"] = {
-        "drift_per_keyframe": {"trans_m": DRIFT_TRANS.value, "rot_deg": DRIFT_ROT.value, "seed": SEED.value},
+        "drift_per_keyframe": {"trans_m": DRIFT_TRANS.value, "rot_deg": DRIFT_ROT.value, "seed": SEED.value,
+                               "keep_tilt": KEEP_TILT.value},
         "max_baseline_departure": 0.0,
         "ate_vs_odometry_m": {m: _ate(evaluation, m) for m in ("initial", "baseline", "optimized")},
         "crispness": _crisp(summary["crispness"]),
         "neld_wall_s": round(t_neld, 1), "baseline_wall_s": summary.get("baseline_seconds"),
         "map_rays": summary.get("map_rays"), "map_rays_rendered": summary.get("map_rays_rendered"),
         "steps": summary["steps"], "schedule_steps": summary.get("schedule_steps"), "init_poses": drift_start,
-        "started_from": summary.get("started_from"),
+        "started_from": summary.get("started_from"), "baseline_refined_from": summary.get("baseline_refined_from"),
     }
     def apart(method: str, recorded_run: str) -> float:
         _, T_rec = read_tum(os.path.join(out, recorded_run, f"poses_{method}.txt"))
@@ -164,7 +172,8 @@ def main(argv):
         results.append(entry)
         os.makedirs(os.path.dirname(os.path.abspath(OUT.value)), exist_ok=True)
         with open(OUT.value, "w") as f:
-            json.dump({"budget": BUDGET.value, "overrides": OVERRIDES.value, "sequences": results}, f, indent=1)
+            json.dump({"budget": BUDGET.value, "overrides": OVERRIDES.value, "keep_tilt": KEEP_TILT.value,
+                       "sequences": results}, f, indent=1)
 
 
 if __name__ == "__main__":

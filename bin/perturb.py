@@ -3,7 +3,7 @@
 truth, so that pose recovery can be measured on real scans.
 
     python bin/perturb.py --config=configs/lio_keyframes.py --config.data.root=/data/HKU_1_bag \\
-        --out=/tmp/HKU_1_drift --trans_m=0.05 --rot_deg=0.5 --seed=0
+        --out=/tmp/HKU_1_drift --trans_m=0.05 --rot_deg=0.5 --seed=0 [--keep_tilt]
     python bin/train.py --config=configs/generic.py:cpu --config.data.root=/tmp/HKU_1_drift --config.data.keyframe_interval_s=0
 
 Reads any format the config names (every input scan, before keyframe selection); writes OUT/scans/%06d.pcd,
@@ -23,6 +23,9 @@ OUT = flags.DEFINE_string("out", None, "Folder to write the perturbed copy to (g
 TRANS_M = flags.DEFINE_float("trans_m", 0.05, "Drift per scan: translation sigma per axis [m].")
 ROT_DEG = flags.DEFINE_float("rot_deg", 0.5, "Drift per scan: rotation-vector sigma per axis [deg].")
 SEED = flags.DEFINE_integer("seed", 0, "Seed of the random walk.")
+KEEP_TILT = flags.DEFINE_bool("keep_tilt", False, "Drift in position and heading only, as an IMU-aided odometry "
+                              "drifts (gravity keeps roll and pitch); --rot_deg is then the heading's sigma. Train "
+                              "with --config.baseline.keep_input_tilt=True to use the kept tilt.")
 flags.mark_flag_as_required("out")
 
 
@@ -33,11 +36,11 @@ def job(config):
     from neld_jax.data.synthetic import write_generic
     from neld_jax.metrics import ate
 
-    seq = with_drift(load_sequence(config.data), TRANS_M.value, ROT_DEG.value, SEED.value)
+    seq = with_drift(load_sequence(config.data), TRANS_M.value, ROT_DEG.value, SEED.value, KEEP_TILT.value)
     write_generic(seq, OUT.value)
     error = ate(seq.poses, seq.gt_poses, align="se3")
     print(f"wrote {seq.num_scans} scans to {OUT.value}: drift {TRANS_M.value} m / {ROT_DEG.value} deg per scan "
-          f"(seed {SEED.value}), initial ATE {error['translation_rmse_m']:.3f} m, "
+          f"{' (position and heading only)' if KEEP_TILT.value else ''} (seed {SEED.value}), initial ATE {error['translation_rmse_m']:.3f} m, "
           f"{error['rotation_rmse_deg']:.2f} deg after SE(3) alignment")
 
 

@@ -187,6 +187,9 @@ def base_config() -> ml_collections.ConfigDict:
     # ... started from the pose graph's poses or the input's, whichever gives the crisper raw map, never from a graph
     # bent away from the input (train.max_baseline_departure) | graph: always the graph's (neld_jax.run)
     c.baseline.refine_from = "crisper"
+    # The input's roll and pitch are trusted (an IMU-aided odometry: gravity keeps them): the chain keeps each scan's
+    # up axis from the input, and the refinement may start from the chain (neld_jax.baseline, keep_input_tilt).
+    c.baseline.keep_input_tilt = False
 
     c.eval = ml_collections.ConfigDict()
     c.eval.f1_threshold_m = 0.2

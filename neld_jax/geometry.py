@@ -46,6 +46,33 @@ def rotation_angles_deg(rotations: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(sin2, trace - 1.0))
 
 
+def with_up_axis_of(poses: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """poses tilted onto the reference's up axis: each rotation turned, about a horizontal axis, by the smallest
+    angle that gives its sensor the world's up direction (+z) where the reference's sensor has it, so heading and
+    position stay. For an input from an IMU-aided odometry, whose roll and pitch gravity keeps from drifting
+    (docs/evaluation.md, "Keeping the input's tilt").
+
+    poses, reference: [..., 4, 4] -> [..., 4, 4] with orthonormal rotations (re-orthonormalised: the result is
+    composed with later registrations, and round-off would grow along a chain)."""
+    poses = np.array(poses, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
+    up = np.array([0.0, 0.0, 1.0])
+    # Where the pose sends the direction that the reference sends to world up: the tilt to undo is from a to up.
+    a = np.einsum("...ij,...kj,k->...i", poses[..., :3, :3], reference[..., :3, :3], up)
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    axis = np.cross(a, up)  # |axis| = sin(angle)
+    sin = np.linalg.norm(axis, axis=-1)[..., None, None]
+    cos = a[..., 2][..., None, None]
+    skew = np.zeros(a.shape[:-1] + (3, 3))
+    skew[..., 0, 1], skew[..., 0, 2], skew[..., 1, 2] = -axis[..., 2], axis[..., 1], -axis[..., 0]
+    skew = skew - np.swapaxes(skew, -1, -2)
+    # Rodrigues' formula with an unnormalised axis; (1 - cos) / sin^2 = 1 / (1 + cos) holds also as sin -> 0.
+    turn = np.eye(3) + skew + skew @ skew / (1.0 + cos)
+    u, _, vt = np.linalg.svd(turn @ poses[..., :3, :3])
+    poses[..., :3, :3] = u @ vt
+    return poses
+
+
 def moved_enough(last: np.ndarray, pose: np.ndarray, distance_m: float, angle_deg: float) -> bool:
     """The spatial keyframe rule: pose [4, 4] lies at least distance_m from last [4, 4], or has turned at least
     angle_deg from it. A rule whose threshold is <= 0 is off (both off: False)."""

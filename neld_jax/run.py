@@ -101,7 +101,7 @@ class Start:
     judged: tuple = ({}, {})
     departure_m: float | None = None  # trajectory_departure of the baseline from the input (when it ran)
     bent: bool = False  # the departure exceeds what train.max_baseline_departure allows
-    refined_from: str | None = None  # where the baseline's multi-view refinement started ("graph" | "input")
+    refined_from: str | None = None  # where the baseline's multi-view refinement started ("graph" | "chain" | "input")
 
 
 START_CHOICES = ("input", "baseline", "crisper")
@@ -183,14 +183,15 @@ def refinement_start(config: ml_collections.ConfigDict, seq,
     """baseline.register_sequence's `refine_from` for config.baseline.refine_from="crisper" (None for "graph"):
     given the pose graph's poses [K, 4, 4] (chain + loop closures), the poses its multi-view refinement starts
     from: the graph's, unless they give a blurrier raw map than the input's (seq.poses; mean map entropy,
-    config.eval's settings) or depart from them further than `departure_check` allows; then the input's.
+    config.eval's settings) or depart from them further than `departure_check` allows; then the input's. Given
+    the chain's poses too (baseline.keep_input_tilt), the crispest of the three that is not bent.
 
     The refinement moves each scan by at most the loop closures' gate, so from the input it cannot bend the
     trajectory. Measured (docs/evaluation.md, "Where the refinement starts"): HKU main building, graph -3.256 and
     FAST-LIO2's odometry -3.310, refined from the graph -3.368 and from the odometry -3.395; MulRan Riverside02,
     the graph bent by 33.7 m, refined from the odometry -3.331 against the odometry's -3.307. `decided`, when
-    given, receives {"refined_from": "graph" | "input", "graph_entropy", "input_entropy", "graph_departure_m",
-    "input_judged": quality.map_crispness's pair for the input alone, as "initial" (`starting_poses` reuses it)}."""
+    given, receives {"refined_from": "graph" | "chain" | "input", "graph_entropy", "input_entropy",
+    "graph_departure_m", with the chain "chain_entropy" and "chain_departure_m", "input_judged": quality.map_crispness's pair for the input alone, as "initial" (`starting_poses` reuses it)}."""
     choice = str(config.get("baseline", {}).get("refine_from", "crisper")).lower()
     if choice not in ("crisper", "graph"):
         raise ConfigError(f"baseline.refine_from: unknown value {choice!r} (crisper | graph)")
@@ -198,25 +199,31 @@ def refinement_start(config: ml_collections.ConfigDict, seq,
         return None
     decided = {} if decided is None else decided
 
-    def choose(graph_poses: np.ndarray) -> np.ndarray:
-        bent, departure_m, _, allowed_m = departure_check(config, seq.poses, graph_poses)
-        judged = quality.map_crispness(seq, {"graph": graph_poses, "initial": seq.poses}, config.get("eval", {}))
+    def choose(graph_poses: np.ndarray, chain_poses: np.ndarray | None = None) -> np.ndarray:
+        candidates = {"graph": graph_poses} if chain_poses is None else {"graph": graph_poses, "chain": chain_poses}
+        checked = {name: departure_check(config, seq.poses, poses) for name, poses in candidates.items()}
+        judged = quality.map_crispness(seq, {**candidates, "initial": seq.poses}, config.get("eval", {}))
         entropy = {name: summary["mean_map_entropy"] for name, summary in judged[0].items()}
-        # A tie (or no judge) keeps the graph, as the baseline always did.
-        from_input = bent or quality.crispest(judged[0]) == "initial"
-        decided.update(refined_from="input" if from_input else "graph", graph_entropy=entropy["graph"],
+        unbent = {name: summary for name, summary in judged[0].items() if name == "initial" or not checked[name][0]}
+        bent, departure_m, _, allowed_m = checked["graph"]
+        # A tie (or no judge) keeps the graph, as the baseline always did; a bent candidate is never taken.
+        picked = quality.crispest(unbent) or ("initial" if bent else "graph")
+        decided.update(refined_from="input" if picked == "initial" else picked, graph_entropy=entropy["graph"],
                        input_entropy=entropy["initial"], graph_departure_m=departure_m,
                        input_judged=tuple({"initial": part["initial"]} for part in judged))
+        if chain_poses is not None:
+            decided.update(chain_entropy=entropy["chain"], chain_departure_m=checked["chain"][1])
         logger.info("baseline: the multi-view refinement starts from the %s poses (raw-map entropy: input %s, pose "
-                    "graph %s; the graph departs %.2f m from the input, %.2f m allowed%s)",
+                    "graph %s%s; the graph departs %.2f m from the input, %.2f m allowed%s)",
                     decided["refined_from"], _entropy_text(entropy["initial"]), _entropy_text(entropy["graph"]),
+                    "" if chain_poses is None else f", chain {_entropy_text(entropy['chain'])}",
                     departure_m, allowed_m, ": bent" if bent else "")
         if bent:
             logger.warning("the baseline's pose graph departs %.2f m from the input's trajectory, more than the %.2f m "
                            "allowed (train.max_baseline_departure, train.baseline_departure_floor_m): its chain may "
                            "have bent, so the input's poses are refined instead; if the input drifts more than that, "
                            "set train.max_baseline_departure=0", departure_m, allowed_m)
-        return seq.poses if from_input else graph_poses
+        return {"graph": graph_poses, "chain": chain_poses, "initial": seq.poses}[picked]
 
     return choose
 
@@ -404,7 +411,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     if start.baseline_seconds is not None:
         summary["baseline_seconds"] = round(start.baseline_seconds, 2)
         summary["baseline_departure_m"] = round(start.departure_m, 3)
-        summary["baseline_refined_from"] = start.refined_from  # "graph" | "input" (refinement_start), or None
+        summary["baseline_refined_from"] = start.refined_from  # "graph" | "chain" | "input" (refinement_start), or None
     scans_summary = report.summarize(rows)
     export.write_json(os.path.join(out_dir, "metrics.json"), {"run": summary, "scans_report": scans_summary})
     summary["scans_report"] = scans_summary

@@ -52,7 +52,7 @@ def test_the_refinement_starts_from_what_refine_from_gives(drifted_sequence):
     # input back, the rounds (gated at 0.2 m a scan) leave most of its drift, where the graph's start ends near 1 mm.
     seq = drifted_sequence
     graphs = []
-    from_input = register_sequence(seq.scans, seq.poses, SETTINGS, lambda graph: (graphs.append(graph), seq.poses)[1])
+    from_input = register_sequence(seq.scans, seq.poses, SETTINGS, lambda graph, chain: (graphs.append(graph), seq.poses)[1])
     before = ate(seq.poses, seq.gt_poses)["translation_rmse_m"]
     assert len(graphs) == 1 and ate(graphs[0], seq.gt_poses)["translation_rmse_m"] < 0.25 * before
     assert ate(from_input, seq.gt_poses)["translation_rmse_m"] > 0.5 * before
@@ -213,6 +213,48 @@ def test_the_refinement_starts_from_the_crisper_of_the_graph_and_the_input_and_n
     config.baseline.refine_from = "odometry"
     with pytest.raises(ConfigError, match="baseline.refine_from"):
         refinement_start(config, drifted_sequence)
+
+
+def test_a_chain_that_keeps_the_input_tilt_gives_every_scan_the_inputs_up_axis(drifted_sequence):
+    # An input that drifted in position and heading only (an IMU-aided odometry): with keep_input_tilt the chain's
+    # scans have the input's up axes exactly and its drift is undone as without; the multi-view refinement is then
+    # offered the chain beside the graph, and only then.
+    import neld_jax.baseline as baseline
+
+    truth = drifted_sequence.gt_poses
+    kept_tilt = with_drift(dataclasses.replace(drifted_sequence, poses=truth), 0.15, 1.0, seed=3, keep_tilt=True)
+    np.testing.assert_allclose(kept_tilt.poses[:, 2, :3], truth[:, 2, :3], atol=1e-12)
+    clouds = [baseline._prepare_scan(scan, SETTINGS.voxel_size_m, SETTINGS.normal_radius_m)
+              for scan in kept_tilt.scans]
+    levelled = dataclasses.replace(SETTINGS, keep_input_tilt=True)
+    chain, _ = baseline.scan_to_map_chain(clouds, kept_tilt.poses, levelled)
+    free, _ = baseline.scan_to_map_chain(clouds, kept_tilt.poses, SETTINGS)
+    np.testing.assert_allclose(chain[:, 2, :3], kept_tilt.poses[:, 2, :3], atol=1e-9)
+    assert np.abs(free[:, 2, :3] - kept_tilt.poses[:, 2, :3]).max() > 1e-6  # ICP alone tilts them a little
+    before = ate(kept_tilt.poses, truth)["translation_rmse_m"]
+    assert before > 0.1 and ate(chain, truth)["translation_rmse_m"] < 0.25 * before
+    offered = []
+    for settings in (levelled, SETTINGS):
+        register_sequence(kept_tilt.scans, kept_tilt.poses, dataclasses.replace(settings, map_rounds=1),
+                          lambda graph, chain: (offered.append(chain), graph)[1])
+    assert offered[0] is not None and offered[1] is None
+    np.testing.assert_allclose(offered[0][:, 2, :3], kept_tilt.poses[:, 2, :3], atol=1e-9)
+
+
+def test_the_refinement_may_start_from_the_chain_when_it_is_the_crispest_and_not_bent(drifted_sequence):
+    from neld_jax.config import base_config
+    from neld_jax.run import refinement_start
+
+    config = base_config()
+    truth, drifted = drifted_sequence.gt_poses, drifted_sequence.poses
+    decided = {}
+    choose = refinement_start(config, drifted_sequence, decided)
+    assert choose(drifted, truth) is truth and decided["refined_from"] == "chain"
+    assert decided["chain_entropy"] < decided["graph_entropy"] and decided["chain_departure_m"] > 0.01
+    assert choose(truth, drifted) is truth and decided["refined_from"] == "graph"
+    config.train.max_baseline_departure = 1e-6  # the chain departs from the input: bent, not taken (the "graph"
+    choose = refinement_start(config, drifted_sequence, decided)  # here is the input itself, a tie: the graph)
+    assert choose(drifted, truth) is drifted and decided["refined_from"] == "graph"
 
 
 def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence, monkeypatch, caplog):

@@ -4,6 +4,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from neld_jax.data.datasets import load_generic
 from neld_jax.data.preprocess import select_keyframes
@@ -77,6 +78,28 @@ def test_drift_starts_exact_and_grows_with_length():
     rel_gt = np.linalg.inv(gt[:-1]) @ gt[1:]
     rel_init = np.linalg.inv(init[:-1]) @ init[1:]
     assert np.abs(rel_gt[:, :3, 3] - rel_init[:, :3, 3]).max() < 0.3
+
+
+def test_drift_that_keeps_the_tilt_moves_position_and_heading_only():
+    # The drift of an IMU-aided odometry: every scan keeps its true up axis; positions and headings drift as much as
+    # in the six-axis walk, and the six-axis walk is what it always was (the same formula, the same draws).
+    gt = smooth_trajectory(40, 15.0, seed=0)
+    kept = add_odometry_drift(gt, 0.05, 0.5, 0, keep_tilt=True)
+    free = add_odometry_drift(gt, 0.05, 0.5, 0)
+    np.testing.assert_array_equal(kept[0], gt[0])
+    np.testing.assert_allclose(kept[:, 2, :3], gt[:, 2, :3], atol=1e-12)  # up, seen from each sensor
+    assert np.abs(free[:, 2, :3] - gt[:, 2, :3]).max() > 1e-3  # the six-axis walk tilts the scans
+    assert np.linalg.norm(kept[:, :3, 3] - gt[:, :3, 3], axis=1)[-1] > 0.05
+    heading = lambda poses: np.arctan2(poses[:, 1, 0], poses[:, 0, 0])  # noqa: E731
+    assert np.degrees(np.abs(heading(kept) - heading(gt))).max() > 0.5
+    rng = np.random.default_rng(0)
+    rotation_noise, translation_noise = rng.normal(0, np.deg2rad(0.5), (39, 3)), rng.normal(0, 0.05, (39, 3))
+    expected = gt.copy()
+    for s in range(1, 40):
+        noise = np.eye(4)
+        noise[:3, :3], noise[:3, 3] = Rotation.from_rotvec(rotation_noise[s - 1]).as_matrix(), translation_noise[s - 1]
+        expected[s] = expected[s - 1] @ np.linalg.inv(gt[s - 1]) @ gt[s] @ noise
+    np.testing.assert_allclose(free, expected, atol=1e-9)
 
 
 def test_sequence_is_deterministic(small_sequence):

@@ -228,17 +228,25 @@ def smooth_trajectory(num_scans: int, radius_m: float, seed: int) -> np.ndarray:
     return poses
 
 
-def add_odometry_drift(gt_poses: np.ndarray, trans_sigma_m: float, rot_sigma_deg: float, seed: int) -> np.ndarray:
+def add_odometry_drift(gt_poses: np.ndarray, trans_sigma_m: float, rot_sigma_deg: float, seed: int,
+                       keep_tilt: bool = False) -> np.ndarray:
     """Initial poses [S, 4, 4] that drift from gt_poses [S, 4, 4] like odometry.
 
     T_init[0] = T_gt[0]; T_init[s] = T_init[s-1] @ rel_gt(s-1, s) @ exp(noise_s), where the noise has
     rotation vector ~ N(0, rot_sigma_deg) and translation ~ N(0, trans_sigma_m) per axis and step
-    (exp taken as [Exp(omega) | rho], which is the SE(3) exponential to first order)."""
+    (exp taken as [Exp(omega) | rho], which is the SE(3) exponential to first order): the drift of a LiDAR-only
+    odometry, in all six degrees of freedom.
+
+    keep_tilt: the drift of an IMU-aided odometry instead, whose roll and pitch gravity keeps: each step's rotation
+    noise is a turn ~ N(0, rot_sigma_deg) about the world's up axis (+z) through the scan, and the translation
+    noise ~ N(0, trans_sigma_m) per world axis; every scan keeps gt's up axis (position and heading drift)."""
     gt_poses = np.asarray(gt_poses, dtype=np.float64)
     rng = np.random.default_rng(seed)
     num_steps = max(gt_poses.shape[0] - 1, 0)
     rotation_noise = rng.normal(0.0, np.deg2rad(rot_sigma_deg), size=(num_steps, 3))
     translation_noise = rng.normal(0.0, trans_sigma_m, size=(num_steps, 3))
+    if keep_tilt:
+        rotation_noise[:, :2] = 0.0  # the same draws, so that seed s drifts the same headings either way
     noise = np.tile(np.eye(4), (num_steps, 1, 1))
     if num_steps:
         noise[:, :3, :3] = Rotation.from_rotvec(rotation_noise).as_matrix()
@@ -246,8 +254,14 @@ def add_odometry_drift(gt_poses: np.ndarray, trans_sigma_m: float, rot_sigma_deg
 
     init = gt_poses.copy()
     for s in range(1, gt_poses.shape[0]):
-        relative = np.linalg.inv(gt_poses[s - 1]) @ gt_poses[s]
-        init[s] = init[s - 1] @ relative @ noise[s - 1]
+        moved = init[s - 1] @ np.linalg.inv(gt_poses[s - 1]) @ gt_poses[s]
+        if keep_tilt:  # noise in the world frame, its turn about the vertical through the scan
+            turn = noise[s - 1][:3, :3]
+            init[s] = moved
+            init[s, :3, :3] = turn @ moved[:3, :3]
+            init[s, :3, 3] = moved[:3, 3] + noise[s - 1][:3, 3]
+        else:
+            init[s] = moved @ noise[s - 1]
     return init
 
 

@@ -8,7 +8,9 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
    registration starts from the odometry's relative motion only, so the chain does not depend on how far the
    odometry drifted overall (measured on real keyframes: two starts 1.5 m apart give chains 1 cm apart); a link
    that moves the scan more than `max_link_correction_m` from that increment keeps the increment. At their coarse
-   scales the ICPs here pair points only where their normals agree (`point_to_plane_icp`: thin walls);
+   scales the ICPs here pair points only where their normals agree (`point_to_plane_icp`: thin walls). With
+   `keep_input_tilt` (an IMU-aided odometry's input) every link keeps the input's up axis, so that the links' pitch
+   errors do not bow the route (docs/evaluation.md, "Keeping the input's tilt");
 2. a pose graph on the chain's poses: one edge per consecutive pair (the chain's relative pose), and
    loop-closure edges between scans at least `window` apart that lie within `loop_radius_m` IN THE CHAIN'S
    FRAME (candidates found in a drifted frame are wrong or far off), each registered by multi-scale ICP

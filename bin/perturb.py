@@ -39,8 +39,9 @@ def job(config):
     seq = with_drift(load_sequence(config.data), TRANS_M.value, ROT_DEG.value, SEED.value, KEEP_TILT.value)
     write_generic(seq, OUT.value)
     error = ate(seq.poses, seq.gt_poses, align="se3")
-    print(f"wrote {seq.num_scans} scans to {OUT.value}: drift {TRANS_M.value} m / {ROT_DEG.value} deg per scan "
-          f"{' (position and heading only)' if KEEP_TILT.value else ''} (seed {SEED.value}), initial ATE {error['translation_rmse_m']:.3f} m, "
+    kind = " (position and heading only)" if KEEP_TILT.value else ""
+    print(f"wrote {seq.num_scans} scans to {OUT.value}: drift {TRANS_M.value} m / {ROT_DEG.value} deg per scan{kind} "
+          f"(seed {SEED.value}), initial ATE {error['translation_rmse_m']:.3f} m, "
           f"{error['rotation_rmse_deg']:.2f} deg after SE(3) alignment")
 
 

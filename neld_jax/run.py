@@ -191,7 +191,8 @@ def refinement_start(config: ml_collections.ConfigDict, seq,
     FAST-LIO2's odometry -3.310, refined from the graph -3.368 and from the odometry -3.395; MulRan Riverside02,
     the graph bent by 33.7 m, refined from the odometry -3.331 against the odometry's -3.307. `decided`, when
     given, receives {"refined_from": "graph" | "chain" | "input", "graph_entropy", "input_entropy",
-    "graph_departure_m", with the chain "chain_entropy" and "chain_departure_m", "input_judged": quality.map_crispness's pair for the input alone, as "initial" (`starting_poses` reuses it)}."""
+    "graph_departure_m", with the chain "chain_entropy" and "chain_departure_m", "input_judged":
+    quality.map_crispness's pair for the input alone, as "initial" (`starting_poses` reuses it)}."""
     choice = str(config.get("baseline", {}).get("refine_from", "crisper")).lower()
     if choice not in ("crisper", "graph"):
         raise ConfigError(f"baseline.refine_from: unknown value {choice!r} (crisper | graph)")

@@ -52,7 +52,8 @@ def test_the_refinement_starts_from_what_refine_from_gives(drifted_sequence):
     # input back, the rounds (gated at 0.2 m a scan) leave most of its drift, where the graph's start ends near 1 mm.
     seq = drifted_sequence
     graphs = []
-    from_input = register_sequence(seq.scans, seq.poses, SETTINGS, lambda graph, chain: (graphs.append(graph), seq.poses)[1])
+    from_input = register_sequence(seq.scans, seq.poses, SETTINGS,
+                                   lambda graph, chain: (graphs.append(graph), seq.poses)[1])
     before = ate(seq.poses, seq.gt_poses)["translation_rmse_m"]
     assert len(graphs) == 1 and ate(graphs[0], seq.gt_poses)["translation_rmse_m"] < 0.25 * before
     assert ate(from_input, seq.gt_poses)["translation_rmse_m"] > 0.5 * before

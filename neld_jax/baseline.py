@@ -56,7 +56,7 @@ from neld_jax.data.preprocess import load_preprocessed
 from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
 from neld_jax import quality
 from neld_jax.export import write_json, write_point_cloud, write_poses, write_raw_map
-from neld_jax.geometry import register_scans, transform_points, with_up_axis_of
+from neld_jax.geometry import nearest_rotations, register_scans, transform_points, with_up_axis_of
 from neld_jax.trajectory import propagate_corrections
 
 logger = logging.getLogger(__name__)
@@ -573,8 +573,7 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
 def _orthonormal(poses: np.ndarray) -> np.ndarray:
     """poses [S, 4, 4] with the nearest rotations in their rotation blocks (removes an optimiser's round-off)."""
     poses = np.array(poses, dtype=np.float64)
-    u, _, vt = np.linalg.svd(poses[:, :3, :3])
-    poses[:, :3, :3] = u @ vt
+    poses[:, :3, :3] = nearest_rotations(poses[:, :3, :3])
     return poses
 
 

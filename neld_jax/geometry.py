@@ -46,6 +46,13 @@ def rotation_angles_deg(rotations: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(sin2, trace - 1.0))
 
 
+def nearest_rotations(matrices: np.ndarray) -> np.ndarray:
+    """The rotation nearest to each nearly orthonormal matrix (SVD projection onto SO(3)): removes the round-off of
+    an optimiser, of text files or of composing many transforms. matrices: [..., 3, 3] -> [..., 3, 3]."""
+    u, _, vt = np.linalg.svd(np.asarray(matrices, dtype=np.float64))
+    return u @ vt
+
+
 def with_up_axis_of(poses: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """poses tilted onto the reference's up axis: each rotation turned, about a horizontal axis, by the smallest
     angle that gives its sensor the world's up direction (+z) where the reference's sensor has it, so heading and
@@ -68,8 +75,7 @@ def with_up_axis_of(poses: np.ndarray, reference: np.ndarray) -> np.ndarray:
     skew = skew - np.swapaxes(skew, -1, -2)
     # Rodrigues' formula with an unnormalised axis; (1 - cos) / sin^2 = 1 / (1 + cos) holds also as sin -> 0.
     turn = np.eye(3) + skew + skew @ skew / (1.0 + cos)
-    u, _, vt = np.linalg.svd(turn @ poses[..., :3, :3])
-    poses[..., :3, :3] = u @ vt
+    poses[..., :3, :3] = nearest_rotations(turn @ poses[..., :3, :3])
     return poses
 
 

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from neld_jax.errors import DataError
+from neld_jax.geometry import nearest_rotations
 
 QUATERNION_NORM_TOLERANCE = 1e-3
 ROTATION_TOLERANCE = 1e-4
@@ -70,12 +71,6 @@ def rotation_error(R: np.ndarray) -> tuple[float, float]:
 def _is_rotation(R: np.ndarray) -> bool:
     orthogonality, det = rotation_error(R)
     return orthogonality <= ROTATION_TOLERANCE and abs(det - 1.0) <= ROTATION_TOLERANCE
-
-
-def _nearest_rotation(R: np.ndarray) -> np.ndarray:
-    """Project a nearly orthonormal R: [3, 3] onto SO(3) (removes the rounding of text files)."""
-    u, _, vt = np.linalg.svd(R)
-    return u @ vt
 
 
 # --------------------------------------------------------------------------------------------------
@@ -219,7 +214,7 @@ def read_kitti(path: str | os.PathLike) -> np.ndarray:
                 f"{path}, line {line_numbers[i]}: rotation block is not a rotation "
                 f"(max |R^T R - I| = {orthogonality:.3g}, det = {det:.6g})"
             )
-        pose[:3, :3] = _nearest_rotation(pose[:3, :3])
+        pose[:3, :3] = nearest_rotations(pose[:3, :3])  # removes the rounding of text files
     return poses
 
 

@@ -13,7 +13,7 @@ Per sequence (one JSON object each, also printed as a line):
   plane thickness) under the odometry, the baseline and each NeLD-BA run, and which start each run took.
 - "drift" (unless --skip_drift): the same scans with odometry-like drift added (bin/perturb.py's random walk,
   --drift_trans_m / --drift_rot_deg per keyframe, --seed; --keep_tilt: position and heading only, and every run
-  with baseline.keep_input_tilt), the recorded odometry as pseudo ground truth, run
+  with baseline.keep_input_tilt; without it every run has the option off), the recorded odometry as pseudo ground truth, run
   with the first of --recorded_starts and no prior on the input's drift (train.max_baseline_departure=0): ATE
   of the baseline and of NeLD-BA against the odometry, the crispness of each map, and how far the baseline's and
   NeLD-BA's answers lie from the same configuration's answers from the recorded odometry (ATE between the two,
@@ -66,8 +66,9 @@ def _config(fmt_config: str, root: str, out_dir: str):
     c.output_dir = out_dir
     if MAX_MINUTES.value >= 0:
         c.train.max_minutes = MAX_MINUTES.value
-    if KEEP_TILT.value:
-        c.baseline.keep_input_tilt = True
+    # configs/lio_keyframes.py keeps the input's tilt; six-axis drift must not (it would keep a drifted tilt), and
+    # both starts run with the same setting
+    c.baseline.keep_input_tilt = KEEP_TILT.value
     return apply_overrides(c, OVERRIDES.value)
 
 

@@ -214,11 +214,13 @@ def refinement_start(config: ml_collections.ConfigDict, seq,
                        input_judged=tuple({"initial": part["initial"]} for part in judged))
         if chain_poses is not None:
             decided.update(chain_entropy=entropy["chain"], chain_departure_m=checked["chain"][1])
+        chain_departure = "" if chain_poses is None else (
+            f"; the chain {checked['chain'][1]:.2f} m{': bent' if checked['chain'][0] else ''}")
         logger.info("baseline: the multi-view refinement starts from the %s poses (raw-map entropy: input %s, pose "
-                    "graph %s%s; the graph departs %.2f m from the input, %.2f m allowed%s)",
+                    "graph %s%s; the graph departs %.2f m from the input%s%s, %.2f m allowed)",
                     decided["refined_from"], _entropy_text(entropy["initial"]), _entropy_text(entropy["graph"]),
                     "" if chain_poses is None else f", chain {_entropy_text(entropy['chain'])}",
-                    departure_m, allowed_m, ": bent" if bent else "")
+                    departure_m, ": bent" if bent else "", chain_departure, allowed_m)
         if bent:
             logger.warning("the baseline's pose graph departs %.2f m from the input's trajectory, more than the %.2f m "
                            "allowed (train.max_baseline_departure, train.baseline_departure_floor_m): its chain may "

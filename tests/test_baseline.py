@@ -242,7 +242,9 @@ def test_a_chain_that_keeps_the_input_tilt_gives_every_scan_the_inputs_up_axis(d
     np.testing.assert_allclose(offered[0][:, 2, :3], kept_tilt.poses[:, 2, :3], atol=1e-9)
 
 
-def test_the_refinement_may_start_from_the_chain_when_it_is_the_crispest_and_not_bent(drifted_sequence):
+def test_the_refinement_may_start_from_the_chain_when_it_is_the_crispest_and_not_bent(drifted_sequence, caplog):
+    import logging
+
     from neld_jax.config import base_config
     from neld_jax.run import refinement_start
 
@@ -255,7 +257,9 @@ def test_the_refinement_may_start_from_the_chain_when_it_is_the_crispest_and_not
     assert choose(truth, drifted) is truth and decided["refined_from"] == "graph"
     config.train.max_baseline_departure = 1e-6  # the chain departs from the input: bent, not taken (the "graph"
     choose = refinement_start(config, drifted_sequence, decided)  # here is the input itself, a tie: the graph)
-    assert choose(drifted, truth) is drifted and decided["refined_from"] == "graph"
+    with caplog.at_level(logging.INFO, logger="neld_jax.run"):
+        assert choose(drifted, truth) is drifted and decided["refined_from"] == "graph"
+    assert f"the chain {decided['chain_departure_m']:.2f} m: bent" in caplog.text  # the log says why it was not taken
 
 
 def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence, monkeypatch, caplog):

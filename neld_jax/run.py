@@ -15,6 +15,7 @@ import functools
 import hashlib
 import json
 import logging
+import math
 import os
 import time
 from typing import Callable
@@ -168,14 +169,14 @@ def departure_check(config: ml_collections.ConfigDict, T_input: np.ndarray,
     """Whether another trajectory (the baseline's, or its pose graph's) is bent away from the input's: (bent,
     departure_m, path_m, allowed_m), with `trajectory_departure`'s figures and the departure allowed,
     train.max_baseline_departure of the input's path and at least train.baseline_departure_floor_m. Never bent
-    when train.max_baseline_departure is 0."""
+    when train.max_baseline_departure is 0 (allowed_m: infinite)."""
     departure_m, path_m = trajectory_departure(T_input, T_other)
     train_cfg = config.get("train", {})
     limit = float(train_cfg.get("max_baseline_departure", 0.0))
     # A short path (Hilti quick-shack: 7 m walked in a room, the baseline 0.27 m from FAST-LIO2's poses and far
     # crisper) says little about the odometry's drift, which also grows with time: at least the floor is allowed.
-    allowed_m = max(limit * path_m, float(train_cfg.get("baseline_departure_floor_m", 0.0)))
-    return limit > 0 and departure_m > allowed_m, departure_m, path_m, allowed_m
+    allowed_m = max(limit * path_m, float(train_cfg.get("baseline_departure_floor_m", 0.0))) if limit > 0 else math.inf
+    return departure_m > allowed_m, departure_m, path_m, allowed_m
 
 
 def refinement_start(config: ml_collections.ConfigDict, seq,
@@ -216,11 +217,13 @@ def refinement_start(config: ml_collections.ConfigDict, seq,
             decided.update(chain_entropy=entropy["chain"], chain_departure_m=checked["chain"][1])
         chain_departure = "" if chain_poses is None else (
             f"; the chain {checked['chain'][1]:.2f} m{': bent' if checked['chain'][0] else ''}")
+        allowed = (f"{allowed_m:.2f} m allowed" if math.isfinite(allowed_m)
+                   else "no limit: train.max_baseline_departure=0")
         logger.info("baseline: the multi-view refinement starts from the %s poses (raw-map entropy: input %s, pose "
-                    "graph %s%s; the graph departs %.2f m from the input%s%s, %.2f m allowed)",
+                    "graph %s%s; the graph departs %.2f m from the input%s%s, %s)",
                     decided["refined_from"], _entropy_text(entropy["initial"]), _entropy_text(entropy["graph"]),
                     "" if chain_poses is None else f", chain {_entropy_text(entropy['chain'])}",
-                    departure_m, ": bent" if bent else "", chain_departure, allowed_m)
+                    departure_m, ": bent" if bent else "", chain_departure, allowed)
         if bent:
             logger.warning("the baseline's pose graph departs %.2f m from the input's trajectory, more than the %.2f m "
                            "allowed (train.max_baseline_departure, train.baseline_departure_floor_m): its chain may "

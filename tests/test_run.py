@@ -198,6 +198,13 @@ def test_trajectory_departure_ignores_a_rigid_motion_and_sees_a_bend():
     bent[:, 2, 3] += 0.03 * np.arange(21.0) ** 2  # rising 12 m by the end, 0.8 m of it left after alignment
     departure, _ = run.trajectory_departure(poses, bent)
     assert 0.5 < departure < 12.0
+    # departure_check: bent beyond the share of the path allowed; max_baseline_departure=0 switches the check off
+    config = make_tiny_config("unused")
+    config.train.max_baseline_departure, config.train.baseline_departure_floor_m = 0.01, 0.1
+    assert run.departure_check(config, poses, bent)[0] and run.departure_check(config, poses, bent)[3] > 0.1
+    config.train.max_baseline_departure = 0.0
+    is_bent, checked_m, _, allowed_m = run.departure_check(config, poses, bent)
+    assert not is_bent and checked_m == pytest.approx(departure) and allowed_m == np.inf
 
 
 def test_pose_steps_are_capped_only_from_the_baseline():

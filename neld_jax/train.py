@@ -177,14 +177,17 @@ def zero_rows(row_mask: np.ndarray) -> optax.GradientTransformation:
 
 def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules,
                    num_scans: int) -> optax.GradientTransformation:
-    """The [S, 6] poses' update: Adam, the translation / rotation learning rate schedules, and train.fixed_scans'
-    rows zeroed. Shared by the single cube and the submaps."""
+    """The [S, 6] poses' update: train.pose_prior_weight's pull toward the start (docs/method.md, "A prior on the
+    pose corrections"), Adam, the translation / rotation learning rate schedules, and train.fixed_scans' rows
+    zeroed. Shared by the single cube and the submaps."""
     fixed = np.zeros(num_scans, bool)
     for s in config.train.fixed_scans:
         if not -num_scans <= int(s) < num_scans:
             raise ValueError(f"train.fixed_scans names scan {s}, but the sequence has {num_scans} scans")
         fixed[int(s)] = True
     return optax.chain(
+        # before Adam, so the prior's pull is normalised with the data's gradient (L2, not decoupled decay)
+        optax.add_decayed_weights(float(config.train.get("pose_prior_weight", 0.0))),
         optax.scale_by_adam(),
         scale_pose_columns(schedules.pose_lr_trans, schedules.pose_lr_rot),
         zero_rows(fixed),

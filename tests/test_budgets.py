@@ -51,6 +51,11 @@ def test_gpu_budget_is_the_cpu_recipe_run_longer():
     # ... and both start from the crisper of the odometry and the classical baseline; the paper budget as given.
     assert _parse("lio_keyframes.py:gpu").train.init_poses == _parse("lio_keyframes.py:cpu").train.init_poses == "crisper"
     assert _parse("lio_keyframes.py:paper").train.init_poses == "input"
+    # ... the prior holding good poses near their start on those two, none elsewhere; the input's tilt kept
+    lio_cpu = _parse("lio_keyframes.py:cpu")
+    assert _parse("lio_keyframes.py:gpu").train.pose_prior_weight == lio_cpu.train.pose_prior_weight > 0
+    assert _parse("lio_keyframes.py:paper").train.pose_prior_weight == cpu.train.pose_prior_weight == 0
+    assert lio_cpu.baseline.keep_input_tilt and not cpu.baseline.keep_input_tilt
 
 
 def test_no_budget_named_is_gpu_on_a_gpu_and_unchanged_on_a_cpu(monkeypatch):

@@ -137,6 +137,29 @@ def test_fixed_scan_out_of_range_is_an_error():
         train.make_optimizer(config, train.make_schedules(config), 3)
 
 
+def test_pose_prior_pulls_corrections_back_to_their_start_and_is_off_at_zero():
+    config = make_tiny_config()
+    config.train.fixed_scans = ()
+    schedules = train.make_schedules(config)
+    xi = jnp.asarray([[0.01, -0.02, 0.0, 0.0, 0.003, -0.001], [0.0] * 6])
+    no_data = jnp.zeros_like(xi)  # the data says nothing: only the prior may move a pose
+    step = schedules.pose_start_step  # the rate is 0 before the poses start
+
+    def update(weight):
+        config.train.pose_prior_weight = weight
+        tx = train.pose_transform(config, schedules, 2)
+        state = tx.init(xi)
+        for _ in range(step + 1):
+            updates, state = tx.update(no_data, state, xi)
+        return np.asarray(updates)
+
+    pulled = update(10.0)
+    moved = xi[0] != 0
+    assert np.all(np.sign(pulled[0][moved]) == -np.sign(xi[0][moved]))  # toward zero, each component
+    assert np.all(pulled[0][~moved] == 0) and np.all(pulled[1] == 0)  # a pose at its start stays there
+    assert np.all(update(0.0) == 0)
+
+
 def test_unknown_budget_is_a_config_error():
     from neld_jax.config import apply_budget, base_config
 

@@ -231,8 +231,8 @@ def synthetic_defaults() -> ml_collections.ConfigDict:
 def refine_odometry(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     """Settings for real recordings whose initial poses are already good (LIO output such as FAST-LIO2, or the
     classical baseline's), on the cpu and gpu budgets: pose steps 200x smaller (5e-6 -> 2.5e-7 normalised units), a
-    prior holding each pose near its start (train.pose_prior_weight), points within 40 m, and training starts from the crisper of the odometry and the classical baseline
-    (train.init_poses=crisper).
+    prior holding each pose near its start (train.pose_prior_weight), points within 40 m, and training starts
+    from the crisper of the odometry and the classical baseline (train.init_poses=crisper).
 
     Measured on real sequences (benchmarks/RESULTS.md): with the cpu budget's pose learning rate (1e-3) the
     field, which resolves a few cm at this size, walked good poses away (HKU_1 mean map entropy -3.403 ->

@@ -247,22 +247,29 @@ def trajectory_departure(T_input: np.ndarray, T_other: np.ndarray) -> tuple[floa
 
 
 def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str) -> ml_collections.ConfigDict:
-    """config, or a copy with its pose learning rates capped at train.pose_lr_from_baseline = (init, final) when
-    training starts from the classical baseline's poses (chosen == "baseline"). Those poses are registered to a
-    few mm and the field only refines them: the cpu budget's pose steps (1e-3) walked the long synthetic route's
-    baseline from 0.0064 to 0.0366 m ATE (docs/method.md, "Which start")."""
-    cap = tuple(config.train.get("pose_lr_from_baseline", ()) or ())
-    if chosen != "baseline" or not cap:
+    """config, or a copy for a start from the classical baseline's poses (chosen == "baseline"): its pose learning
+    rates capped at train.pose_lr_from_baseline = (init, final), and its pose prior at least
+    train.pose_prior_from_baseline. Those poses are registered to a few mm and the field only refines them: the
+    cpu budget's pose steps (1e-3) walked the long synthetic route's baseline from 0.0064 to 0.0366 m ATE
+    (docs/method.md, "Which start"), and without the prior the first pose steps blur a real baseline's map
+    (docs/method.md, "A prior on the pose corrections"). From the odometry the prior would hold back the
+    corrections the field makes (HKU_2: -3.421 -> -3.441 with it, -3.453 without), so it is not set there."""
+    if chosen != "baseline":
         return config
-    if len(cap) != 2:
+    cap = tuple(config.train.get("pose_lr_from_baseline", ()) or ())
+    if cap and len(cap) != 2:
         raise ConfigError(f"train.pose_lr_from_baseline: expected (init, final) or (), got {cap!r}")
-    capped = with_train(config, **{f"pose_lr_{part}_{which}": min(float(config.train[f"pose_lr_{part}_{which}"]),
-                                                                     float(limit))
-                                   for part in ("rot", "trans") for which, limit in zip(("init", "final"), cap)})
-    if capped is not config:
-        logger.info("training starts from the baseline's poses: pose learning rates capped at %g -> %g "
-                    "(train.pose_lr_from_baseline)", *cap)
-    return capped
+    changed = {f"pose_lr_{part}_{which}": min(float(config.train[f"pose_lr_{part}_{which}"]), float(limit))
+               for part in ("rot", "trans") for which, limit in zip(("init", "final"), cap)}
+    prior = float(config.train.get("pose_prior_from_baseline", 0.0))
+    if prior > float(config.train.get("pose_prior_weight", 0.0)):
+        changed["pose_prior_weight"] = prior
+    adapted = with_train(config, **changed)
+    if adapted is not config:
+        logger.info("training starts from the baseline's poses: pose learning rates capped at %s, pose prior %g "
+                    "(train.pose_lr_from_baseline, train.pose_prior_from_baseline)",
+                    " -> ".join(f"{v:g}" for v in cap) or "(no cap)", adapted.train.get("pose_prior_weight", 0.0))
+    return adapted
 
 
 # Training always gets at least this share of train.max_minutes, however long the run took before it.

@@ -16,9 +16,8 @@ Per sequence (one JSON object each, also printed as a line):
   with baseline.keep_input_tilt; without it every run has the option off), the recorded odometry as pseudo
   ground truth, run with the first of --recorded_starts and no prior on the input's drift
   (train.max_baseline_departure=0): ATE of the baseline and of NeLD-BA against the odometry, the crispness of
-  each map, and how far the baseline's and
-  NeLD-BA's answers lie from the same configuration's answers from the recorded odometry (ATE between the two,
-  SE(3)-aligned).
+  each map, and how far the baseline's and NeLD-BA's answers lie from the same configuration's answers from the
+  recorded odometry (ATE between the two, SE(3)-aligned).
 A sequence that fails (for example one too large for one field) records its one-line error and the run goes on.
 """
 

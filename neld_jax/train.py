@@ -185,9 +185,12 @@ def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules,
         if not -num_scans <= int(s) < num_scans:
             raise ValueError(f"train.fixed_scans names scan {s}, but the sequence has {num_scans} scans")
         fixed[int(s)] = True
+    prior_weight = float(config.train.get("pose_prior_weight", 0.0))
+    # before Adam, so the prior's pull is normalised with the data's gradient (L2, not decoupled decay); left out
+    # at 0, so that the default's optimizer state is the one checkpoints written before the prior hold
+    prior = [optax.add_decayed_weights(prior_weight)] if prior_weight else []
     return optax.chain(
-        # before Adam, so the prior's pull is normalised with the data's gradient (L2, not decoupled decay)
-        optax.add_decayed_weights(float(config.train.get("pose_prior_weight", 0.0))),
+        *prior,
         optax.scale_by_adam(),
         scale_pose_columns(schedules.pose_lr_trans, schedules.pose_lr_rot),
         zero_rows(fixed),

@@ -203,7 +203,8 @@ def test_trajectory_departure_ignores_a_rigid_motion_and_sees_a_bend():
     # departure_check: bent beyond the share of the path allowed; max_baseline_departure=0 switches the check off
     config = make_tiny_config("unused")
     config.train.max_baseline_departure, config.train.baseline_departure_floor_m = 0.01, 0.1
-    assert run.departure_check(config, poses, bent)[0] and run.departure_check(config, poses, bent)[3] > 0.1
+    is_bent, _, _, allowed_m = run.departure_check(config, poses, bent)
+    assert is_bent and allowed_m > 0.1
     config.train.max_baseline_departure = 0.0
     is_bent, checked_m, _, allowed_m = run.departure_check(config, poses, bent)
     assert not is_bent and checked_m == pytest.approx(departure) and allowed_m == np.inf

@@ -487,15 +487,17 @@ def _world_map(clouds: list, poses: np.ndarray, scans, settings: BaselineSetting
     return cloud
 
 
-def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettings) -> tuple[np.ndarray, float]:
+def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettings,
+                       on_round: Callable[[int, np.ndarray], None] | None = None) -> tuple[np.ndarray, float]:
     """`settings.map_rounds` rounds of multi-view refinement (module docstring, step 4); scan 0 stays.
 
-    clouds: S Open3D clouds (sensor frame); poses: [S, 4, 4] sensor -> world.
+    clouds: S Open3D clouds (sensor frame); poses: [S, 4, 4] sensor -> world. on_round(r, poses [S, 4, 4]), when
+    given, sees a copy of the poses after each round r = 1 .. map_rounds (benchmarks/baseline_rounds.py).
     Returns (poses [S, 4, 4], the fraction of registrations the gates rejected)."""
     poses = np.array(poses, dtype=np.float64)
     map_icp = dataclasses.replace(settings, icp_distances_m=settings.map_icp_distances_m)
     tried = rejected = 0
-    for _ in range(settings.map_rounds):
+    for round_index in range(1, settings.map_rounds + 1):
         for half in (0, 1):
             others = [k for k in range(len(clouds)) if k % 2 != half]
             if not others:
@@ -524,12 +526,15 @@ def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettin
                     rejected += 1
                     continue
                 poses[s] = transform
+        if on_round is not None:
+            on_round(round_index, poses.copy())
     return poses, rejected / max(tried, 1)
 
 
 def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
                       settings: BaselineSettings = BaselineSettings(),
-                      refine_from: Callable[..., np.ndarray] | None = None) -> np.ndarray:
+                      refine_from: Callable[..., np.ndarray] | None = None,
+                      on_round: Callable[[int, np.ndarray], None] | None = None) -> np.ndarray:
     """The baseline: scan-to-map chain, the loop-closed pose graph, then the multi-view refinement (module
     docstring).
 
@@ -537,6 +542,8 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
     refine_from(graph_poses [S, 4, 4], chain_poses [S, 4, 4] | None) -> [S, 4, 4]: the poses the multi-view
     refinement starts from, given the graph's and, with settings.keep_input_tilt, the chain's (None: the graph's).
     neld_jax.run's `refinement_start` chooses between those and init_poses.
+    on_round(r, poses [S, 4, 4]): `refine_against_map`'s, called with r = 0 and the poses the refinement starts
+    from too; they are the poses returned up to the final re-anchoring on scan 0 (one rigid transform).
     Returns refined poses [S, 4, 4] with pose 0 equal to init_poses[0] and orthonormal rotations.
     """
     init_poses = np.asarray(init_poses, dtype=np.float64)
@@ -562,7 +569,9 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
             optimized = _orthonormal(optimized)
             if refine_from is not None:
                 optimized = _orthonormal(refine_from(optimized, chain if settings.keep_input_tilt else None))
-            optimized, rejected = refine_against_map(clouds, optimized, settings)
+            if on_round is not None:
+                on_round(0, optimized.copy())
+            optimized, rejected = refine_against_map(clouds, optimized, settings, on_round)
             logger.info("baseline: %d round(s) of multi-view refinement in %.1f s (%.0f%% of the registrations "
                         "rejected by the gates)", settings.map_rounds, time.perf_counter() - t2, 100 * rejected)
     # Re-anchor exactly on scan 0 (the gauge), whatever the optimiser did with the reference node.

@@ -51,11 +51,15 @@ def test_the_refinement_starts_from_what_refine_from_gives(drifted_sequence):
     # refine_from gets the pose graph's poses and its answer is what the multi-view rounds refine: given the drifted
     # input back, the rounds (gated at 0.2 m a scan) leave most of its drift, where the graph's start ends near 1 mm.
     seq = drifted_sequence
-    graphs = []
+    graphs, rounds = [], []
     from_input = register_sequence(seq.scans, seq.poses, SETTINGS,
-                                   lambda graph, chain: (graphs.append(graph), seq.poses)[1])
+                                   lambda graph, chain: (graphs.append(graph), seq.poses)[1],
+                                   on_round=lambda r, poses: rounds.append((r, poses)))
     before = ate(seq.poses, seq.gt_poses)["translation_rmse_m"]
     assert len(graphs) == 1 and ate(graphs[0], seq.gt_poses)["translation_rmse_m"] < 0.25 * before
+    # on_round sees the start (round 0: refine_from's answer) and every round
+    assert [r for r, _ in rounds] == list(range(SETTINGS.map_rounds + 1))
+    np.testing.assert_allclose(rounds[0][1], seq.poses, atol=1e-9)
     assert ate(from_input, seq.gt_poses)["translation_rmse_m"] > 0.5 * before
 
 
@@ -299,7 +303,12 @@ def test_multi_view_refinement_pulls_a_scan_onto_the_others_map_and_gates_a_far_
     start[3, 0, 3] += 1.0
     settings = dataclasses.replace(SETTINGS, map_rounds=2)
     clouds = [_prepare_scan(scan, settings.voxel_size_m, settings.normal_radius_m) for scan in seq.scans]
-    refined, rejected = refine_against_map(clouds, start, settings)
+    seen = []
+    refined, rejected = refine_against_map(clouds, start, settings, on_round=lambda r, poses: seen.append((r, poses)))
+    # on_round sees each round's poses (copies), the last of them the result
+    assert [r for r, _ in seen] == [1, 2]
+    np.testing.assert_array_equal(seen[-1][1], refined)
+    assert seen[0][1] is not refined and not np.allclose(seen[0][1][2], start[2])
 
     def errors(poses):
         """-> (translation errors [S] m, rotation errors [S] deg) against the truth."""

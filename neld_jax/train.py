@@ -175,11 +175,37 @@ def zero_rows(row_mask: np.ndarray) -> optax.GradientTransformation:
     return optax.stateless(lambda updates, params: jax.tree.map(lambda u: u * keep.astype(u.dtype), updates))
 
 
-def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules,
-                   num_scans: int) -> optax.GradientTransformation:
+def keep_trajectory_scale(start_positions: np.ndarray, movable: np.ndarray) -> optax.GradientTransformation:
+    """Keep the [S, 6] pose updates (left corrections exp(xi) T_init, normalised frame) off the trajectory's
+    scale mode, the one motion a rigid alignment cannot take out (docs/method.md, "Keeping the start's scale").
+
+    To first order a correction moves scan s's position p_s [S, 3] by omega_s x p_s + rho_s, and the trajectory's
+    scale about its centroid c changes by sum_s (p_s - c) . (omega_s x p_s + rho_s), which is a . xi with
+    a_s = [p_s - c, c x p_s]. Each update gets the multiple of (p_s - c) on its translations that zeroes that sum;
+    the constraint is linear and met at xi = 0, so it holds after every step; rotations and every other motion
+    stay free. movable [S] bool: the rows that may move (the fixed scans' updates are zero and stay so)."""
+    p = np.asarray(start_positions, np.float64)
+    c = p.mean(axis=0)
+    keep = np.asarray(movable, bool)[:, None]
+    a_rho = np.where(keep, p - c, 0.0)
+    a_omega = np.where(keep, np.cross(c, p), 0.0)
+    norm2 = max(float(np.sum(a_rho * a_rho)), 1e-30)
+    a_rho, a_omega = jnp.asarray(a_rho, jnp.float32), jnp.asarray(a_omega, jnp.float32)
+
+    def project(u):
+        change = jnp.sum(u[:, :3] * a_rho.astype(u.dtype)) + jnp.sum(u[:, 3:] * a_omega.astype(u.dtype))
+        return u - jnp.pad((change / norm2) * a_rho.astype(u.dtype), ((0, 0), (0, 3)))
+
+    return optax.stateless(lambda updates, params: jax.tree.map(project, updates))
+
+
+def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int,
+                   start_positions: np.ndarray | None = None) -> optax.GradientTransformation:
     """The [S, 6] poses' update: train.pose_prior_weight's pull toward the start (docs/method.md, "A prior on the
-    pose corrections"), Adam, the translation / rotation learning rate schedules, and train.fixed_scans' rows
-    zeroed. Shared by the single cube and the submaps."""
+    pose corrections"), Adam, the translation / rotation learning rate schedules, train.fixed_scans' rows zeroed,
+    and with start_positions [S, 3] (the start's positions in the frame the corrections act in; given when
+    train.keep_start_scale) the updates kept off the trajectory's scale mode (`keep_trajectory_scale`). Shared
+    by the single cube and the submaps."""
     fixed = np.zeros(num_scans, bool)
     for s in config.train.fixed_scans:
         if not -num_scans <= int(s) < num_scans:
@@ -189,16 +215,20 @@ def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules,
     # before Adam, so the prior's pull is normalised with the data's gradient (L2, not decoupled decay); left out
     # at 0, so that the default's optimizer state is the one checkpoints written before the prior hold
     prior = [optax.add_decayed_weights(prior_weight)] if prior_weight else []
+    # last, on the step itself, so the constraint (linear, met at xi = 0) holds exactly after every step
+    scale = [] if start_positions is None else [keep_trajectory_scale(start_positions, ~fixed)]
     return optax.chain(
         *prior,
         optax.scale_by_adam(),
         scale_pose_columns(schedules.pose_lr_trans, schedules.pose_lr_rot),
         zero_rows(fixed),
+        *scale,
     )
 
 
-def make_optimizer(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int):
-    pose_tx = pose_transform(config, schedules, num_scans)
+def make_optimizer(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int,
+                   start_positions: np.ndarray | None = None):
+    pose_tx = pose_transform(config, schedules, num_scans, start_positions)
     field_tx = optax.adam(schedules.field_lr)
 
     def labels(params):
@@ -359,13 +389,19 @@ class TrainSetup(NamedTuple):
     chunk_fn: Callable | None = None  # chunk_fn(state, rays, T_init, sampler, num_steps): the steps fused; donated
 
 
-def create_train_state(config: ml_collections.ConfigDict, num_scans: int, scale: float) -> TrainSetup:
+def create_train_state(config: ml_collections.ConfigDict, num_scans: int, scale: float,
+                       start_positions: np.ndarray | None = None) -> TrainSetup:
     """The one builder of the training state, optimiser, schedules, step and field of a run.
 
-    num_scans: S (the poses' rows); scale: the normalisation scale (metres -> normalised) of the sampler.
+    num_scans: S (the poses' rows); scale: the normalisation scale (metres -> normalised) of the sampler;
+    start_positions: [S, 3] the initial poses' positions (normalised frame), which train.keep_start_scale needs
+    (`pose_transform`); the state's structure does not depend on them.
     """
     schedules = make_schedules(config)
-    tx = make_optimizer(config, schedules, num_scans)
+    keep_scale = bool(config.train.get("keep_start_scale", False))
+    if keep_scale and start_positions is None:
+        raise ValueError("train.keep_start_scale needs the start's positions (create_train_state's start_positions)")
+    tx = make_optimizer(config, schedules, num_scans, start_positions if keep_scale else None)
     field = make_field(config)
     key_init, key_state = jax.random.split(jax.random.PRNGKey(int(config.seed)))
     field_params = field.init(key_init, jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]
@@ -382,7 +418,8 @@ def create_train_state(config: ml_collections.ConfigDict, num_scans: int, scale:
 
 def initial_state(config: ml_collections.ConfigDict, num_scans: int, scale: float) -> TrainState:
     """The state a run starts from (seeded by config.seed); also the template a checkpoint restores into."""
-    return create_train_state(config, num_scans, scale).state
+    # train.keep_start_scale's transform is stateless: zeros give the state's structure
+    return create_train_state(config, num_scans, scale, np.zeros((num_scans, 3))).state
 
 
 class FitResult(NamedTuple):
@@ -579,7 +616,8 @@ def fit(
     steps and at the end. A resumed run passes the restored state with the history and elapsed_s saved with it.
     max_seconds: the wall-clock guard (`run_chunks`); None: train.max_minutes.
     """
-    setup = create_train_state(config, int(T_init.shape[0]), scale)
+    start_positions = np.asarray(T_init)[:, :3, 3]
+    setup = create_train_state(config, int(T_init.shape[0]), scale, start_positions)
 
     def chunk_of(built: TrainSetup) -> Callable:  # run_chunks' chunk(state, sampler, num_steps) over this data
         return lambda s, sampler, num_steps: built.chunk_fn(s, rays, T_init, sampler, num_steps=num_steps)
@@ -589,7 +627,7 @@ def fit(
         return {**range_errors_m(m, scale), "pose_trans_mean_m": trans_m, "pose_rot_mean_deg": rot_deg}
 
     def replan(steps: int):
-        planned = create_train_state(with_steps(config, steps), int(T_init.shape[0]), scale)
+        planned = create_train_state(with_steps(config, steps), int(T_init.shape[0]), scale, start_positions)
         return planned.schedules, planned.sampler, chunk_of(planned)
 
     return run_chunks(config, setup.schedules, setup.sampler, chunk_of(setup), setup.state if state is None else state,

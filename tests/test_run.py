@@ -173,6 +173,7 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     trained = json.loads((tmp_path / "run" / "config.json").read_text())["train"]
     assert trained["pose_lr_trans_init"] == trained["pose_lr_rot_init"] == config.train.pose_lr_from_baseline[0]
     assert trained["pose_prior_weight"] == config.train.pose_prior_from_baseline > config.train.pose_prior_weight
+    assert trained["keep_start_scale"] and not config.train.keep_start_scale  # the baseline's scale kept
     assert config.train.pose_lr_trans_init > trained["pose_lr_trans_init"]  # the caller's config is not changed
 
 
@@ -216,8 +217,9 @@ def test_pose_steps_are_capped_only_from_the_baseline():
     config.train.pose_lr_rot_final = config.train.pose_lr_trans_final = 1e-5
     config.train.pose_lr_from_baseline = (5e-6, 2.5e-7)
     config.train.pose_prior_weight, config.train.pose_prior_from_baseline = 0.0, 300.0
-    assert run.pose_steps_for_start(config, "input") is config  # from the odometry: neither cap nor prior
+    assert run.pose_steps_for_start(config, "input") is config  # from the odometry: no cap, prior or scale kept
     capped = run.pose_steps_for_start(config, "baseline")
+    assert capped.train.keep_start_scale and not config.train.keep_start_scale
     assert capped.train.pose_lr_rot_init == 5e-6 and capped.train.pose_lr_trans_init == 1e-6  # min(rate, cap)
     assert capped.train.pose_lr_rot_final == capped.train.pose_lr_trans_final == 2.5e-7
     assert capped.train.pose_prior_weight == 300.0 and config.train.pose_prior_weight == 0.0
@@ -225,6 +227,7 @@ def test_pose_steps_are_capped_only_from_the_baseline():
     config.train.pose_prior_weight = 1000.0  # a stronger prior asked for is kept
     assert run.pose_steps_for_start(config, "baseline").train.pose_prior_weight == 1000.0
     config.train.pose_lr_from_baseline, config.train.pose_prior_from_baseline = (), 0.0
+    config.train.keep_scale_from_baseline = False
     assert run.pose_steps_for_start(config, "baseline") is config
     config.train.pose_lr_from_baseline = (1e-6,)
     with pytest.raises(ConfigError, match="pose_lr_from_baseline"):

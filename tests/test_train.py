@@ -160,6 +160,71 @@ def test_pose_prior_pulls_corrections_back_to_their_start_and_is_off_at_zero():
     assert np.all(update(0.0) == 0)
 
 
+def _trajectory_scale(xi, T_init):
+    """The Umeyama scale (SE(3)-free) of the positions of exp(xi) T_init against T_init's, minus 1."""
+    from neld_jax.lie import se3_exp
+    from neld_jax.metrics import ate_errors
+
+    moved = np.asarray(se3_exp(jnp.asarray(xi, jnp.float64))) @ np.asarray(T_init, np.float64)
+    return ate_errors(moved, np.asarray(T_init, np.float64), "sim3")[3] - 1.0
+
+
+def test_keeping_the_start_scale_takes_only_the_scale_mode_out_of_the_pose_steps():
+    config = make_tiny_config()
+    config.train.fixed_scans = (0,)
+    schedules = train.make_schedules(config)
+    rng = np.random.default_rng(0)
+    T_init = np.tile(np.eye(4), (5, 1, 1))
+    T_init[:, :3, 3] = rng.normal(size=(5, 3)) + [0.0, 0.0, 0.5]  # centroid away from the origin
+    grads = rng.normal(size=(5, 6)) * 1e-3
+    grads[:, :3] -= 0.5 * (T_init[:, :3, 3] - T_init[:, :3, 3].mean(0))  # the data pushes the route to grow
+    xi = jnp.zeros((5, 6))
+
+    def step(start_positions):
+        tx = train.pose_transform(config, schedules, 5, start_positions)
+        state = tx.init(xi)
+        for _ in range(schedules.pose_start_step + 1):
+            updates, state = tx.update(jnp.asarray(grads), state, xi)
+        return np.asarray(updates)
+
+    free, kept = step(None), step(T_init[:, :3, 3])
+    lr = 1e-4 / max(np.abs(free).max(), 1e-12)  # steps of 1e-4, so that second-order terms stay below 1e-7
+    assert abs(_trajectory_scale(lr * free, T_init)) > 1e-5  # the free step scales the route
+    assert abs(_trajectory_scale(lr * kept, T_init)) < 1e-3 * abs(_trajectory_scale(lr * free, T_init))  # kept: not
+    np.testing.assert_array_equal(kept[0], 0)  # the fixed scan
+    np.testing.assert_allclose(kept[:, 3:], free[:, 3:])  # rotations untouched
+    centred = T_init[1:, :3, 3] - T_init[:, :3, 3].mean(0)
+    eps = (kept[1:, :3] - free[1:, :3]) / centred  # what changed: eps * (p_s - c) on the translations alone
+    np.testing.assert_allclose(eps, eps[0, 0], rtol=1e-3)
+    # a run builds it from its initial poses, and its state keeps the default's structure
+    config.train.keep_start_scale = True
+    setup = train.create_train_state(config, 5, 1.0, T_init[:, :3, 3])
+    assert jax.tree.structure(setup.state) == jax.tree.structure(train.initial_state(config, 5, 1.0))
+    with pytest.raises(ValueError, match="keep_start_scale"):
+        train.create_train_state(config, 5, 1.0)
+
+
+def test_the_kept_scale_holds_while_training():
+    # fit builds the constraint from its initial poses: the trained corrections have no component along the scale
+    # mode (a . xi = 0, train.keep_trajectory_scale's a), which the free run's have
+    rays, T_init = _random_rays()
+    p = np.asarray(T_init, np.float64)[:, :3, 3]
+    c = p.mean(axis=0)
+
+    def scale_change(xi):
+        return np.sum((p - c) * xi[:, :3]) + np.sum(np.cross(c, p) * xi[:, 3:])
+
+    def trained(keep):
+        config = make_tiny_config(steps=20)  # the poses move from step 8
+        config.train.fixed_scans = ()
+        config.train.keep_start_scale = keep
+        return np.asarray(train.fit(config, rays, T_init, scale=1.0, progress=False).state.params["poses"])
+
+    free, kept = trained(False), trained(True)
+    assert np.abs(kept[:, :3]).max() > 1e-4
+    assert abs(scale_change(kept)) < 1e-3 * abs(scale_change(free))
+
+
 def test_unknown_budget_is_a_config_error():
     from neld_jax.config import apply_budget, base_config
 

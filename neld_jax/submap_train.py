@@ -113,6 +113,10 @@ def make_submap_optimizer(config: ml_collections.ConfigDict, schedules: Schedule
     """train.make_optimizer's transform for {"fields", "poses"}: Adam with the field decay on every stacked field
     leaf (element-wise, so each submap's field has its own moments), the pose chain (Adam, translation / rotation
     schedules, train.fixed_scans rows zeroed) on the one [S, 6] pose array."""
+    if config.train.get("keep_start_scale", False):
+        # the submaps' corrections act in each scan's own frame (T_init exp(xi)) and each submap has its own
+        # normalisation: keep_trajectory_scale's constraint is written for the single cube's left corrections
+        logger.info("train.keep_start_scale: not applied to submaps (single cube only); the trajectory's scale is free")
     pose_tx = pose_transform(config, schedules, num_scans)
 
     def labels(params):

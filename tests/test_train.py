@@ -161,7 +161,7 @@ def test_pose_prior_pulls_corrections_back_to_their_start_and_is_off_at_zero():
 
 
 def _trajectory_scale(xi, T_init):
-    """The Umeyama scale (SE(3)-free) of the positions of exp(xi) T_init against T_init's, minus 1."""
+    """The Umeyama (similarity-alignment) scale of the positions of exp(xi) T_init against T_init's, minus 1."""
     from neld_jax.lie import se3_exp
     from neld_jax.metrics import ate_errors
 
@@ -196,7 +196,8 @@ def test_keeping_the_start_scale_takes_only_the_scale_mode_out_of_the_pose_steps
     centred = T_init[1:, :3, 3] - T_init[:, :3, 3].mean(0)
     eps = (kept[1:, :3] - free[1:, :3]) / centred  # what changed: eps * (p_s - c) on the translations alone
     np.testing.assert_allclose(eps, eps[0, 0], rtol=1e-3)
-    # a run builds it from its initial poses, and its state keeps the default's structure
+    # a run builds it from its initial poses, and its state has the structure of initial_state's (the checkpoint
+    # template, built without the poses)
     config.train.keep_start_scale = True
     setup = train.create_train_state(config, 5, 1.0, T_init[:, :3, 3])
     assert jax.tree.structure(setup.state) == jax.tree.structure(train.initial_state(config, 5, 1.0))

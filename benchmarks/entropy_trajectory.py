@@ -11,8 +11,9 @@ no wall-clock guard), and every --every steps measures the mean map entropy of t
 current poses (anchored on train.anchor_scan, 0, as the run writes them; the same 10,000 query points each
 time). Writes one JSON object: the overrides and, per measurement, the step, the entropy, the last batch's range
 error (mean and median) and the mean pose correction so far. Nothing is written besides --out. A baseline's
-poses file is an input here: a run from the baseline also gets train.pose_prior_from_baseline, so pass
---set=train.pose_prior_weight=300.0 to measure what such a run does.
+poses file is an input here: a run from the baseline also gets train.pose_prior_from_baseline and
+train.keep_scale_from_baseline, so pass --set=train.pose_prior_weight=300.0 --set=train.keep_start_scale=True to
+measure what such a run does.
 """
 
 import json

@@ -248,14 +248,15 @@ def trajectory_departure(T_input: np.ndarray, T_other: np.ndarray) -> tuple[floa
 
 def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str) -> ml_collections.ConfigDict:
     """config, or a copy for a start from the classical baseline's poses (chosen == "baseline"): its pose learning
-    rates capped at train.pose_lr_from_baseline = (init, final), and its pose prior at least
-    train.pose_prior_from_baseline. Those poses are registered to a few mm and the field only refines them: the
+    rates capped at train.pose_lr_from_baseline = (init, final), its pose prior at least
+    train.pose_prior_from_baseline, and its trajectory's scale kept (train.keep_start_scale) when
+    train.keep_scale_from_baseline. Those poses are registered to a few mm and the field only refines them: the
     cpu budget's pose steps (1e-3) walked the long synthetic route's baseline from 0.0064 to 0.0366 m ATE
-    (docs/method.md, "Which start"), and without the prior the first pose steps blur a real baseline's map
-    (docs/method.md, "A prior on the pose corrections"), and train.keep_start_scale when
-    train.keep_scale_from_baseline (docs/method.md, "Keeping the start's scale"). From the odometry the prior would
-    hold back the corrections the field makes (HKU_2: -3.421 -> -3.441 with it, -3.453 without), and a drifted
-    start's scale is part of its drift, so neither is set there."""
+    (docs/method.md, "Which start"), without the prior the first pose steps blur a real baseline's map
+    (docs/method.md, "A prior on the pose corrections"), and the field's rendering shrinks the trajectory
+    (docs/method.md, "Keeping the start's scale"). From the odometry the prior would hold back the corrections
+    the field makes (HKU_2: -3.421 -> -3.441 with it, -3.453 without), and a drifted start's scale is part of its
+    drift, so neither is set there."""
     if chosen != "baseline":
         return config
     cap = tuple(config.train.get("pose_lr_from_baseline", ()) or ())
@@ -266,7 +267,7 @@ def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str) -> ml_c
     prior = float(config.train.get("pose_prior_from_baseline", 0.0))
     if prior > float(config.train.get("pose_prior_weight", 0.0)):
         changed["pose_prior_weight"] = prior
-    if config.train.get("keep_scale_from_baseline", False) and not config.train.get("keep_start_scale", False):
+    if config.train.get("keep_scale_from_baseline", False):  # with_train keeps config when it is already on
         changed["keep_start_scale"] = True
     adapted = with_train(config, **changed)
     if adapted is not config:

@@ -136,7 +136,8 @@ def base_config() -> ml_collections.ConfigDict:
     # Keep the trajectory's scale the start's: the pose steps are kept off the one mode that scales every position
     # about a point (docs/method.md, "Keeping the start's scale"). A LiDAR trajectory's scale is set by the metric
     # ranges; the field's rendering bias can shrink it (hard synthetic, from the baseline: by 2-4e-5, half of
-    # NeLD-BA's ATE). Single cube only (submaps log it as not applied). On by default from the baseline's poses
+    # NeLD-BA's ATE). The single cube and the submaps (whose shared rows are body-frame corrections: the mode is
+    # then the world positions' spread seen in each scan's frame). On by default from the baseline's poses
     # (train.keep_scale_from_baseline).
     c.train.keep_start_scale = False
     c.train.fixed_scans = (0,)  # gauge: these scans never move during the optimisation (the paper's choice)

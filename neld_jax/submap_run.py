@@ -48,8 +48,9 @@ class SubmapResult(NamedTuple):
 
 def train_submaps(config, seq, norm: Normalization, T_start: np.ndarray, plan: submaps.SubmapPlan, out_dir: str,
                   chash: str, progress: bool, max_seconds: float | None = None) -> SubmapResult:
-    """Train the plan's submaps from the keyframe poses T_start [S, 4, 4] (world); resumes from out_dir/checkpoints.
-    max_seconds: the training guard (None: train.max_minutes).
+    """Train the plan's submaps from the keyframe poses T_start [S, 4, 4] (world; also the start whose scale
+    train.keep_start_scale keeps); resumes from out_dir/checkpoints. max_seconds: the training guard (None:
+    train.max_minutes).
 
     The rays are the single cube's (same seed and subset), ranges in each submap's units (submaps.submap_arrays)."""
     rays_metres = build_rays(seq, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
@@ -59,7 +60,7 @@ def train_submaps(config, seq, norm: Normalization, T_start: np.ndarray, plan: s
     logger.info("submaps: %d submaps (%d rays each at most, %d drawn per step) on a mesh of %d %s device(s)",
                 plan.num_submaps, arrays.directions.shape[1], submap_train.submap_batch_rays(config, plan.num_submaps),
                 mesh.size, jax.devices()[0].platform)
-    setup = submap_train.create_submap_state(config, seq.num_scans, plan.num_submaps, mesh)
+    setup = submap_train.create_submap_state(config, seq.num_scans, plan.num_submaps, mesh, T_start)
     rays, frames = submap_train.from_arrays(arrays)
     rays = submap_train.place(rays, submap_train.data_sharding(rays, mesh))
     frames = submap_train.place(frames, submap_train.data_sharding(frames, mesh))

@@ -108,16 +108,27 @@ def place(tree, sharding):
 # ------------------------------------------------------------------------------------------------ optimiser
 
 
-def make_submap_optimizer(config: ml_collections.ConfigDict, schedules: Schedules,
-                          num_scans: int) -> optax.GradientTransformation:
+def make_submap_optimizer(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int,
+                          start_poses: np.ndarray | None = None) -> optax.GradientTransformation:
     """train.make_optimizer's transform for {"fields", "poses"}: Adam with the field decay on every stacked field
     leaf (element-wise, so each submap's field has its own moments), the pose chain (Adam, translation / rotation
-    schedules, train.fixed_scans rows zeroed) on the one [S, 6] pose array."""
-    if config.train.get("keep_start_scale", False):
-        # the submaps' corrections act in each scan's own frame (T_init exp(xi)) and each submap has its own
-        # normalisation: keep_trajectory_scale's constraint is written for the single cube's left corrections
-        logger.info("train.keep_start_scale: not applied to submaps (single cube only); the trajectory's scale is free")
-    pose_tx = pose_transform(config, schedules, num_scans)
+    schedules, train.fixed_scans rows zeroed) on the one [S, 6] pose array, and with train.keep_start_scale the
+    pose steps kept off the trajectory's scale mode, which needs start_poses [S, 4, 4] (the keyframes' start poses,
+    world, metres).
+
+    The shared row is a right correction in the world too: submap m's normalisation x -> s_m (x - o_m) keeps
+    rotations and scales translations by s_m, so its pose T_init_m[slot] @ Exp((s_m / s_ref rho, omega)) is, back in
+    the world, exactly T_s @ Exp((rho / s_ref, omega)) whichever submap holds the scan (neld_jax.submaps;
+    test_shared_pose_maps_exactly_into_each_submap_frame). rho has one unit over every submap, and the scan moves
+    by R_s rho_s / s_ref to first order: train.scale_direction's right-correction form, a_s = [R_s^T (p_s - c), 0]."""
+    keep_scale = bool(config.train.get("keep_start_scale", False))
+    if keep_scale and start_poses is None:
+        raise ValueError("train.keep_start_scale needs the keyframes' start poses (create_submap_state's start_poses)")
+    if keep_scale:
+        T = np.asarray(start_poses, np.float64)
+        pose_tx = pose_transform(config, schedules, num_scans, T[:, :3, 3], T[:, :3, :3])
+    else:
+        pose_tx = pose_transform(config, schedules, num_scans)
 
     def labels(params):
         return {"fields": jax.tree.map(lambda _: "fields", params["fields"]), "poses": "poses"}
@@ -226,6 +237,7 @@ class SubmapSetup(NamedTuple):
     mesh: Mesh | None
     sharding: Any  # the state's NamedSharding tree, or None
     chunk_fn: Callable | None = None  # train.jit_chunk(step_body): chunk(state, rays, frames, sampler, num_steps)
+    start_poses: np.ndarray | None = None  # [S, 4, 4] world: the start train.keep_start_scale holds the scale of
 
 
 MIN_SUBMAP_BATCH_RAYS = 8
@@ -245,12 +257,14 @@ def submap_batch_rays(config: ml_collections.ConfigDict, num_submaps: int) -> in
 
 
 def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_submaps: int,
-                        mesh: Mesh | None = None) -> SubmapSetup:
+                        mesh: Mesh | None = None, start_poses: np.ndarray | None = None) -> SubmapSetup:
     """State, optimiser, schedules and step of M submaps over S keyframes (seeded by config.seed).
 
-    Submap m's field is initialised from key m of config.seed's split. With a mesh, the state is placed on it."""
+    Submap m's field is initialised from key m of config.seed's split. With a mesh, the state is placed on it.
+    start_poses: [S, 4, 4] the keyframes' start poses (world, metres), which train.keep_start_scale needs
+    (`make_submap_optimizer`); the state's structure does not depend on them."""
     schedules = make_schedules(config)
-    tx = make_submap_optimizer(config, schedules, num_scans)
+    tx = make_submap_optimizer(config, schedules, num_scans, start_poses)
     field = make_field(config)
     key_init, key_state = jax.random.split(jax.random.PRNGKey(int(config.seed)))
     # Jitted: a vmapped init run op by op takes seconds.
@@ -270,7 +284,7 @@ def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_s
         return sampler_settings(config, 1.0, *schedules.samples(step))
 
     return SubmapSetup(state, tx, schedules, body, make_submap_train_step(body), field, sampler, mesh, sharding,
-                       jit_chunk(body))
+                       jit_chunk(body), start_poses)
 
 
 # ------------------------------------------------------------------------------------------------ the loop
@@ -300,7 +314,7 @@ def fit_submaps(config: ml_collections.ConfigDict, setup: SubmapSetup, rays: Sub
 
     def replan(steps: int):
         planned = create_submap_state(with_steps(config, steps), int(setup.state.params["poses"].shape[0]),
-                                      num_submaps, setup.mesh)
+                                      num_submaps, setup.mesh, setup.start_poses)
         return planned.schedules, planned.sampler, chunk_of(planned)
 
     return run_chunks(config, setup.schedules, setup.sampler, chunk_of(setup), setup.state if state is None else state,

@@ -175,21 +175,39 @@ def zero_rows(row_mask: np.ndarray) -> optax.GradientTransformation:
     return optax.stateless(lambda updates, params: jax.tree.map(lambda u: u * keep.astype(u.dtype), updates))
 
 
-def keep_trajectory_scale(start_positions: np.ndarray, movable: np.ndarray) -> optax.GradientTransformation:
-    """Keep the [S, 6] pose updates (left corrections exp(xi) T_init, normalised frame) off the trajectory's
-    scale mode, the one motion a rigid alignment cannot take out (docs/method.md, "Keeping the start's scale").
+def scale_direction(start_positions: np.ndarray, movable: np.ndarray,
+                    start_rotations: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The trajectory's scale mode in the [S, 6] pose corrections: a = (a_rho [S, 3], a_omega [S, 3]) float64 such
+    that, to first order, the scale of the positions about their centroid c changes by a . xi (up to a positive
+    factor). docs/method.md, "Keeping the start's scale".
 
-    To first order a correction moves scan s's position p_s [S, 3] by omega_s x p_s + rho_s, and the trajectory's
-    scale about its centroid c changes by sum_s (p_s - c) . (omega_s x p_s + rho_s), which is a . xi with
-    a_s = [p_s - c, c x p_s]. Each update gets the multiple of (p_s - c) on its translations that zeroes that sum;
-    the constraint is linear and met at xi = 0, so it holds after every step; rotations and every other motion
-    stay free. movable [S] bool: the rows that may move (the fixed scans' updates are zero and stay so)."""
+    A step moving scan s by d_s scales the trajectory (as a similarity alignment to the start measures it) by
+    1 + sum_s (p_s - c) . d_s / sum_s |p_s - c|^2 to first order: the part of d along the positions' own spread,
+    to which a translation and a rotation about c are orthogonal.
+    start_positions [S, 3]: the start's positions, in the frame that d is measured in; c is their mean over every
+    scan (a fixed one's d is 0). movable [S] bool: the rows that may move (a is 0 on the others).
+
+    - start_rotations None: LEFT corrections exp(xi_s) T_s in that frame (the single cube, normalised frame):
+      d_s = omega_s x p_s + rho_s, so a_s = [p_s - c, c x p_s].
+    - start_rotations [S, 3, 3] (the start's rotations R_s, world): RIGHT corrections T_s Exp(xi_s) in the scan's
+      body frame (the submaps' shared rows; rho / s_ref is in metres): d_s = R_s rho_s / s_ref, and omega_s does
+      not move the position to first order, so a_s = [R_s^T (p_s - c), 0] (1 / s_ref is a common factor, dropped)."""
     p = np.asarray(start_positions, np.float64)
     c = p.mean(axis=0)
     keep = np.asarray(movable, bool)[:, None]
-    a_rho = np.where(keep, p - c, 0.0)
-    a_omega = np.where(keep, np.cross(c, p), 0.0)
-    norm2 = max(float(np.sum(a_rho * a_rho)), 1e-30)
+    if start_rotations is None:
+        a_rho, a_omega = p - c, np.cross(c, p)
+    else:
+        R = np.asarray(start_rotations, np.float64)
+        a_rho, a_omega = np.einsum("sji,sj->si", R, p - c), np.zeros_like(p)
+    return np.where(keep, a_rho, 0.0), np.where(keep, a_omega, 0.0)
+
+
+def keep_off_direction(a_rho: np.ndarray, a_omega: np.ndarray) -> optax.GradientTransformation:
+    """Keep the [S, 6] pose updates u off one direction a = (a_rho, a_omega) [S, 3] each: u gets the multiple of
+    a_rho on its translation columns that makes a . u = 0 (rotations untouched). Linear, so a constraint a . xi = 0
+    met at xi = 0 holds after every step; stateless, so the optimiser state's structure does not depend on a."""
+    norm2 = max(float(np.sum(np.asarray(a_rho, np.float64) ** 2)), 1e-30)
     a_rho, a_omega = jnp.asarray(a_rho, jnp.float32), jnp.asarray(a_omega, jnp.float32)
 
     def project(u):
@@ -199,13 +217,23 @@ def keep_trajectory_scale(start_positions: np.ndarray, movable: np.ndarray) -> o
     return optax.stateless(lambda updates, params: jax.tree.map(project, updates))
 
 
+def keep_trajectory_scale(start_positions: np.ndarray, movable: np.ndarray,
+                          start_rotations: np.ndarray | None = None) -> optax.GradientTransformation:
+    """Keep the [S, 6] pose updates off the trajectory's scale mode (`scale_direction`: left corrections without
+    start_rotations, right ones with them), the one motion a rigid alignment cannot take out (docs/method.md,
+    "Keeping the start's scale"). Only that mode is removed: every other motion, rotations included, stays free."""
+    return keep_off_direction(*scale_direction(start_positions, movable, start_rotations))
+
+
 def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int,
-                   start_positions: np.ndarray | None = None) -> optax.GradientTransformation:
+                   start_positions: np.ndarray | None = None,
+                   start_rotations: np.ndarray | None = None) -> optax.GradientTransformation:
     """The [S, 6] poses' update: train.pose_prior_weight's pull toward the start (docs/method.md, "A prior on the
     pose corrections"), Adam, the translation / rotation learning rate schedules, train.fixed_scans' rows zeroed,
-    and with start_positions [S, 3] (the start's positions in the frame the corrections act in; given when
-    train.keep_start_scale) the updates kept off the trajectory's scale mode (`keep_trajectory_scale`). Shared
-    by the single cube and the submaps."""
+    and with start_positions [S, 3] (given when train.keep_start_scale) the updates kept off the trajectory's scale
+    mode (`keep_trajectory_scale`): the single cube's left corrections pass its positions in the normalised frame,
+    the submaps' right (body-frame) corrections their world positions and start_rotations [S, 3, 3]. Shared by the
+    single cube and the submaps."""
     fixed = np.zeros(num_scans, bool)
     for s in config.train.fixed_scans:
         if not -num_scans <= int(s) < num_scans:
@@ -216,7 +244,7 @@ def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules, num_
     # at 0, so that the default's optimizer state is the one checkpoints written before the prior hold
     prior = [optax.add_decayed_weights(prior_weight)] if prior_weight else []
     # last, on the step itself, so the constraint (linear, met at xi = 0) holds exactly after every step
-    scale = [] if start_positions is None else [keep_trajectory_scale(start_positions, ~fixed)]
+    scale = [] if start_positions is None else [keep_trajectory_scale(start_positions, ~fixed, start_rotations)]
     return optax.chain(
         *prior,
         optax.scale_by_adam(),

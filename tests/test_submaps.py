@@ -2,6 +2,7 @@
 submap's frame, and, on 8 simulated CPU devices in a subprocess, the sharded step, the shared scan's gradient and
 resume with sharded state (tests/submap_devices_check.py)."""
 
+import dataclasses
 import logging
 import os
 import subprocess
@@ -257,3 +258,126 @@ def test_a_revisit_gets_a_submap_holding_both_visits():
     assert plan.num_submaps == len(submaps.window_starts(40, 6, 2)) + 1
     last = plan.members[-1]
     assert list(last) == [0, 1, 2, 37, 38, 39]  # half a window around each visit
+
+
+def _similarity_scale(T_moved, T_start):
+    """The Umeyama (similarity-alignment) scale of T_moved's positions against T_start's, minus 1 (float64)."""
+    from neld_jax.metrics import ate_errors
+
+    return ate_errors(np.asarray(T_moved, np.float64), np.asarray(T_start, np.float64), "sim3")[3] - 1.0
+
+
+def test_kept_scale_for_right_corrections_removes_the_first_order_scale_change():
+    """train.keep_trajectory_scale with the start's rotations (the submaps' body-frame corrections, applied as
+    T_start @ Exp((rho / s_ref, omega)) in metres): the projected step changes the trajectory's scale only at second order,
+    the raw one at first order; a step already off the mode passes unchanged."""
+    from neld_jax import train
+
+    rng = np.random.default_rng(4)
+    S, ref_scale = 8, 0.05  # rho in units of 1 / 0.05 = 20 m: the unit does not change the constraint's direction
+    T = np.tile(np.eye(4), (S, 1, 1))
+    T[:, :3, :3] = Rotation.random(S, random_state=5).as_matrix()  # far from the identity: R_s matters
+    T[:, :3, 3] = rng.normal(0, 10, (S, 3)) + [300.0, -120.0, 15.0]  # world metres, centroid far from the origin
+    movable = np.ones(S, bool)
+    movable[0] = False  # a fixed scan: its row is zero and stays so
+    u = rng.normal(size=(S, 6)) * [1.0, 1.0, 1.0, 0.05, 0.05, 0.05]
+    u[0] = 0.0
+    u[:, :3] += 0.5 * movable[:, None] * np.einsum("sji,sj->si", T[:, :3, :3], T[:, :3, 3] - T[:, :3, 3].mean(0))
+    tx = train.keep_trajectory_scale(T[:, :3, 3], movable, T[:, :3, :3])
+
+    def project(update):
+        return np.asarray(tx.update(jnp.asarray(update, jnp.float32), tx.init(None))[0], np.float64)
+
+    kept = project(u)
+    np.testing.assert_array_equal(kept[:, 3:], np.asarray(u[:, 3:], np.float32))  # rotations untouched
+    np.testing.assert_array_equal(kept[0], 0.0)
+
+    def scale_change(xi, h):
+        return _similarity_scale(submaps.global_poses(T, h * xi, ref_scale), T)
+
+    for h in (1e-3, 1e-4):  # steps of about 15 cm and 1.5 cm, the scans 17 m from their centroid on average
+        free_h, kept_h = scale_change(u, h), scale_change(kept, h)
+        assert abs(free_h) > 1e-4 * h / 1e-3  # first order: the raw step scales the route
+        assert abs(kept_h) < 1e-2 * abs(free_h)
+    # second order: a tenth of the step, a hundredth of the (already tiny) scale change
+    assert abs(scale_change(kept, 1e-4)) < 0.02 * abs(scale_change(kept, 1e-3))
+    assert abs(scale_change(u, 1e-4)) > 0.05 * abs(scale_change(u, 1e-3))
+    # the single cube's left-correction direction does not remove it: the rotations R_s matter
+    left = train.keep_trajectory_scale(T[:, :3, 3], movable)
+    wrong = np.asarray(left.update(jnp.asarray(u, jnp.float32), left.init(None))[0], np.float64)
+    assert abs(scale_change(wrong, 1e-3)) > 0.1 * abs(scale_change(u, 1e-3))
+    # off the mode already: unchanged (rotations alone exactly, any a-orthogonal step to float32 round-off)
+    a_rho, a_omega = train.scale_direction(T[:, :3, 3], movable, T[:, :3, :3])
+    np.testing.assert_array_equal(a_omega, 0.0)
+    rotations_only = np.concatenate([np.zeros((S, 3)), u[:, 3:]], axis=1)
+    np.testing.assert_array_equal(project(rotations_only), np.asarray(rotations_only, np.float32))
+    orthogonal = u - (np.sum(a_rho * u[:, :3]) / np.sum(a_rho * a_rho)) * np.pad(a_rho, ((0, 0), (0, 3)))
+    np.testing.assert_allclose(project(orthogonal), orthogonal, rtol=0, atol=1e-6 * np.abs(orthogonal).max())
+    np.testing.assert_allclose(kept, orthogonal, rtol=0, atol=1e-6 * np.abs(orthogonal).max())
+
+
+def _small_submap_setup(keep, start_poses=True, steps=12):
+    """A tiny plan (9 keyframes in windows of 3 sharing 1, 4 submaps) of the sphere scene moved far from the
+    origin, poses moving from step 0, scan 0 fixed."""
+    from conftest import make_tiny_config
+
+    cfg = make_tiny_config("", steps=steps)
+    cfg.train.fixed_scans = (0,)
+    cfg.train.c2f_end_fraction = 0.0  # poses move from step 0
+    cfg.train.log_every, cfg.train.checkpoint_every = steps, 0
+    cfg.sampling.coarse_stages, cfg.sampling.fine_stages = (8,), (4,)
+    cfg.train.keep_start_scale = keep
+    num_scans = 9
+    rays_np, T = sphere_scene_rays(num_scans, 48, seed=0)
+    T[:, :3, 3] = 10.0 * T[:, :3, 3] + [40.0, -25.0, 3.0]  # a 6 m spread, in metres, far from the origin
+    rays_np = dataclasses.replace(rays_np, ranges=10.0 * rays_np.ranges)  # the scene scaled with the poses
+    scans = [rays_np.directions[rays_np.scan_index == s] * rays_np.ranges[rays_np.scan_index == s, None]
+             for s in range(num_scans)]
+    plan = submaps.plan_submaps(scans, T, 3, 1, 0.9)
+    rays, frames = submap_train.from_arrays(submaps.submap_arrays(plan, rays_np, T))
+    setup = submap_train.create_submap_state(cfg, num_scans, plan.num_submaps,
+                                             start_poses=T if start_poses else None)
+    return cfg, setup, rays, frames, plan, T
+
+
+def test_kept_scale_holds_while_the_submaps_train():
+    """The submaps' step with train.keep_start_scale: the learned pose rows have no component along the
+    right-correction scale mode (a . xi = 0, a_s = [R_s^T (p_s - c), 0] from the world start poses) to float32
+    round-off; the free run's have one."""
+    from neld_jax import train
+
+    def trained(keep):
+        cfg, setup, rays, frames, plan, T = _small_submap_setup(keep)
+        state, _ = setup.chunk_fn(setup.state, rays, frames, setup.sampler(0), num_steps=6)
+        return np.asarray(state.params["poses"], np.float64), T
+
+    (kept, T), (free, _) = trained(True), trained(False)
+    a_rho, _ = train.scale_direction(T[:, :3, 3], np.arange(len(T)) != 0, T[:, :3, :3])
+
+    def relative_scale_change(xi):  # the cosine between the translation rows and the mode
+        return abs(np.sum(a_rho * xi[:, :3])) / (np.linalg.norm(a_rho) * np.linalg.norm(xi[:, :3]))
+
+    assert np.abs(kept[1:, :3]).max() > 1e-4 and np.all(kept[0] == 0)  # the poses moved; the fixed scan did not
+    assert relative_scale_change(kept) < 1e-5
+    assert relative_scale_change(free) > 1e-3
+
+
+def test_kept_scale_needs_the_submaps_start_poses_and_a_new_plan_keeps_them(monkeypatch):
+    """create_submap_state refuses train.keep_start_scale without the start poses, and fit_submaps' replan (here
+    a resumed run's shorter plan) rebuilds the optimiser from the setup's start poses."""
+    with pytest.raises(ValueError, match="keep_start_scale"):
+        _small_submap_setup(True, start_poses=False)
+    cfg, setup, rays, frames, plan, T = _small_submap_setup(True)
+    assert setup.start_poses is T
+
+    class Replanned(Exception):
+        pass
+
+    def replan(config, num_scans, num_submaps, mesh=None, start_poses=None):
+        assert int(config.train.steps) == 6 and start_poses is T
+        raise Replanned  # before anything compiles
+
+    monkeypatch.setattr(submap_train, "create_submap_state", replan)
+    with pytest.raises(Replanned):  # run_chunks replans to the 6 steps the history holds, before the first step
+        submap_train.fit_submaps(cfg, setup, rays, frames, plan.ref_scale, progress=False,
+                                 history=[{"step": 0, "total_steps": 6}], max_seconds=0.0)

@@ -41,6 +41,8 @@ INIT_POSES = flags.DEFINE_enum("init_poses", "input", ["input", "baseline", "cri
                                "poses (its pose graph closes the loop that the drift hides).")
 OUTPUT_ROOT = flags.DEFINE_string("output_root", "outputs/long_route", "Run directories below this.")
 OUTPUT = flags.DEFINE_string("output", "", "Also write the JSON here.")
+OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal) for the accuracy runs, "
+                                      "e.g. train.keep_scale_from_baseline=False.")
 DEVICES = flags.DEFINE_list("devices", ["1", "2", "4", "8"], "Device counts for the throughput part.")
 TP_SUBMAPS = flags.DEFINE_integer("throughput_submaps", 8, "Submaps in the throughput part.")
 TP_STEPS = flags.DEFINE_integer("throughput_steps", 10, "Timed steps per device count (after one warm-up).")
@@ -67,7 +69,9 @@ def route_config(output_dir: str, submaps_on: bool):
         c.submaps.enabled = "off"
         c.data.max_extent_m = 0.0
     c.output_dir = output_dir
-    return c
+    from neld_jax.config import apply_overrides
+
+    return apply_overrides(c, OVERRIDES.value)
 
 
 def accuracy() -> dict:

@@ -17,7 +17,6 @@ The same code runs on 1 CPU, 1 GPU or several devices; only the mesh changes.
 from __future__ import annotations
 
 import dataclasses
-import logging
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -34,7 +33,6 @@ from neld_jax.train import (FitResult, LossSettings, RayData, Schedules, TrainSt
                             make_schedules, pose_transform, range_errors_m, ray_losses, run_chunks, sample_batch,
                             sampler_settings, with_steps)
 
-logger = logging.getLogger(__name__)
 
 AXIS = "submaps"
 
@@ -121,14 +119,11 @@ def make_submap_optimizer(config: ml_collections.ConfigDict, schedules: Schedule
     the world, exactly T_s @ Exp((rho / s_ref, omega)) whichever submap holds the scan (neld_jax.submaps;
     test_shared_pose_maps_exactly_into_each_submap_frame). rho has one unit over every submap, and the scan moves
     by R_s rho_s / s_ref to first order: train.scale_direction's right-correction form, a_s = [R_s^T (p_s - c), 0]."""
-    keep_scale = bool(config.train.get("keep_start_scale", False))
-    if keep_scale and start_poses is None:
-        raise ValueError("train.keep_start_scale needs the keyframes' start poses (create_submap_state's start_poses)")
-    if keep_scale:
+    positions = rotations = None
+    if start_poses is not None:
         T = np.asarray(start_poses, np.float64)
-        pose_tx = pose_transform(config, schedules, num_scans, T[:, :3, 3], T[:, :3, :3])
-    else:
-        pose_tx = pose_transform(config, schedules, num_scans)
+        positions, rotations = T[:, :3, 3], T[:, :3, :3]
+    pose_tx = pose_transform(config, schedules, num_scans, positions, rotations)
 
     def labels(params):
         return {"fields": jax.tree.map(lambda _: "fields", params["fields"]), "poses": "poses"}

@@ -230,10 +230,10 @@ def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules, num_
                    start_rotations: np.ndarray | None = None) -> optax.GradientTransformation:
     """The [S, 6] poses' update: train.pose_prior_weight's pull toward the start (docs/method.md, "A prior on the
     pose corrections"), Adam, the translation / rotation learning rate schedules, train.fixed_scans' rows zeroed,
-    and with start_positions [S, 3] (given when train.keep_start_scale) the updates kept off the trajectory's scale
-    mode (`keep_trajectory_scale`): the single cube's left corrections pass its positions in the normalised frame,
-    the submaps' right (body-frame) corrections their world positions and start_rotations [S, 3, 3]. Shared by the
-    single cube and the submaps."""
+    and with train.keep_start_scale the updates kept off the trajectory's scale mode (`keep_trajectory_scale`),
+    which needs start_positions [S, 3] (ignored without the option): the single cube's left corrections pass its
+    positions in the normalised frame, the submaps' right (body-frame) corrections their world positions and
+    start_rotations [S, 3, 3]. Shared by the single cube and the submaps."""
     fixed = np.zeros(num_scans, bool)
     for s in config.train.fixed_scans:
         if not -num_scans <= int(s) < num_scans:
@@ -243,8 +243,12 @@ def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules, num_
     # before Adam, so the prior's pull is normalised with the data's gradient (L2, not decoupled decay); left out
     # at 0, so that the default's optimizer state is the one checkpoints written before the prior hold
     prior = [optax.add_decayed_weights(prior_weight)] if prior_weight else []
+    keep_scale = bool(config.train.get("keep_start_scale", False))
+    if keep_scale and start_positions is None:
+        raise ValueError("train.keep_start_scale needs the start's poses (create_train_state's start_positions, "
+                         "create_submap_state's start_poses)")
     # last, on the step itself, so the constraint (linear, met at xi = 0) holds exactly after every step
-    scale = [] if start_positions is None else [keep_trajectory_scale(start_positions, ~fixed, start_rotations)]
+    scale = [keep_trajectory_scale(start_positions, ~fixed, start_rotations)] if keep_scale else []
     return optax.chain(
         *prior,
         optax.scale_by_adam(),
@@ -426,10 +430,7 @@ def create_train_state(config: ml_collections.ConfigDict, num_scans: int, scale:
     (`pose_transform`); the state's structure does not depend on them.
     """
     schedules = make_schedules(config)
-    keep_scale = bool(config.train.get("keep_start_scale", False))
-    if keep_scale and start_positions is None:
-        raise ValueError("train.keep_start_scale needs the start's positions (create_train_state's start_positions)")
-    tx = make_optimizer(config, schedules, num_scans, start_positions if keep_scale else None)
+    tx = make_optimizer(config, schedules, num_scans, start_positions)
     field = make_field(config)
     key_init, key_state = jax.random.split(jax.random.PRNGKey(int(config.seed)))
     field_params = field.init(key_init, jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]

@@ -181,6 +181,7 @@ def test_keeping_the_start_scale_takes_only_the_scale_mode_out_of_the_pose_steps
     xi = jnp.zeros((5, 6))
 
     def step(start_positions):
+        config.train.keep_start_scale = start_positions is not None
         tx = train.pose_transform(config, schedules, 5, start_positions)
         state = tx.init(xi)
         for _ in range(schedules.pose_start_step + 1):

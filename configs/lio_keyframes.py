@@ -22,6 +22,10 @@ def get_config(budget: str = ""):
     # Gravity keeps an IMU-aided odometry's roll and pitch (docs/evaluation.md, "Keeping the input's tilt"): it took
     # the main building's heading-drift answers from 6.7 to 2.7 cm apart and changed no recorded map by over 0.003.
     c.baseline.keep_input_tilt = True
+    # The refinement starts from the chain or the graph, never from the input while they are not bent: its rounds keep
+    # their start's route-long shape, and the odometry's is its drift (docs/evaluation.md, "Why the two starts'
+    # answers differ"). Main building from its recorded odometry and from heading drift: 2.79 -> 0.34 cm apart.
+    c.baseline.refine_from = "scans"
     c = apply_budget(c, budget or default_budget("paper"))
     # The odometry is already good: small pose steps (measured on the cpu budget; see refine_odometry). The gpu
     # budget has the cpu budget's pose learning rates, so it gets them too.

@@ -123,7 +123,10 @@ class BaselineSettings:
     # Where the refinement starts: "graph": the graph's poses; "crisper": the graph's or the input's, whichever gives
     # the crisper raw map, and never a graph bent away from the input (train.max_baseline_departure). FAST-LIO2's
     # inertial odometry can be locally better than the chain between sparse keyframes (docs/evaluation.md, "Where
-    # the refinement starts"). Read by neld_jax.run.refinement_start, which the run and bin/baseline.py pass.
+    # the refinement starts"). "scans": the crisper of the graph's and (keep_input_tilt) the chain's that is not
+    # bent, the input's only when both are: the rounds keep their start's route-long shape, so only a start the
+    # scans made gives an answer that does not keep the input's drift (docs/evaluation.md, "Why the two starts'
+    # answers differ"). Read by neld_jax.run.refinement_start, which the run and bin/baseline.py pass.
     refine_from: str = "crisper"
     # The input comes from an IMU-aided odometry (FAST-LIO2 and the like), whose roll and pitch gravity keeps from
     # drifting: the chain keeps each scan's up axis from the input (geometry.with_up_axis_of on its guesses and

@@ -208,7 +208,8 @@ def base_config() -> ml_collections.ConfigDict:
     c.baseline.loop_drift_fraction = 0.01
     c.baseline.map_rounds = 2  # rounds of multi-view refinement (each scan against the others' map); 0: none
     # ... started from the pose graph's poses or the input's, whichever gives the crisper raw map, never from a graph
-    # bent away from the input (train.max_baseline_departure) | graph: always the graph's (neld_jax.run)
+    # bent away from the input (train.max_baseline_departure) | scans: the crisper unbent of the graph's and the
+    # chain's, the input's only when both are bent | graph: always the graph's (neld_jax.run)
     c.baseline.refine_from = "crisper"
     # The input's roll and pitch are trusted (an IMU-aided odometry: gravity keeps them): the chain keeps each scan's
     # up axis from the input, and the refinement may start from the chain (neld_jax.baseline, keep_input_tilt).

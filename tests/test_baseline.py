@@ -213,6 +213,14 @@ def test_the_refinement_starts_from_the_crisper_of_the_graph_and_the_input_and_n
     config.train.max_baseline_departure = 1e-6
     choose = refinement_start(config, drifted_sequence, decided)
     assert choose(truth) is drifted and decided["refined_from"] == "input" and decided["graph_departure_m"] > 0.01
+    # "scans": the graph (or the chain) whenever it is not bent, however crisp the input: the answer then does not
+    # keep the input's drift; the input only when the graph is bent.
+    config.baseline.refine_from = "scans"
+    assert refinement_start(config, drifted_sequence, decided)(truth) is drifted and decided["refined_from"] == "input"
+    config.train.max_baseline_departure = 0.0  # no limit: nothing is bent
+    choose = refinement_start(config, from_truth, decided)
+    assert choose(drifted) is drifted and decided["refined_from"] == "graph"
+    assert decided["graph_entropy"] > decided["input_entropy"]
     config.baseline.refine_from = "graph"  # the graph's, always
     assert refinement_start(config, drifted_sequence) is None
     config.baseline.refine_from = "odometry"

@@ -28,8 +28,9 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
    points and one map (one KD-tree) serves half the scans. The gates of the loop closures apply. This is what makes
    the map crisp: the chain and the graph only align scans in pairs or to a few neighbours, and their errors of
    about a centimetre per link add up (measured on real keyframes: docs/evaluation.md). The rounds start from the
-   graph's poses, or from those the caller's `refine_from` picks (the run and bin/baseline.py: the graph's or the
-   input's, whichever gives the crisper raw map, never a bent graph: `neld_jax.run.refinement_start`).
+   graph's poses, or from those the caller's `refine_from` picks (the run and bin/baseline.py: by
+   `refine_from`, the crispest of the graph's, the chain's and the input's, or of the graph's and the chain's
+   with the input's only when both are bent; never a bent graph: `neld_jax.run.refinement_start`).
 
 Information matrices come from `get_information_matrix_from_point_clouds`. Open3D pose-graph convention: node s
 holds T_world_scan[s]; an edge (source i, target j) holds T_j^-1 T_i, the ICP transform that maps scan i's

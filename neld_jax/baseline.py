@@ -557,7 +557,7 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
         raise ValueError(f"{len(scans)} scans but {len(init_poses)} initial poses")
     if len(scans) < 2:
         return init_poses.copy()
-    clouds = [_prepare_scan(scan, settings.voxel_size_m, settings.normal_radius_m) for scan in scans]
+    clouds = prepare_clouds(scans, settings)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         t0 = time.perf_counter()
         chain, fitness = scan_to_map_chain(clouds, init_poses, settings)
@@ -579,8 +579,19 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
             logger.info("baseline: %d round(s) of multi-view refinement in %.1f s (%.0f%% of the registrations "
                         "rejected by the gates)", settings.map_rounds, time.perf_counter() - t2, 100 * rejected)
     # Re-anchor exactly on scan 0 (the gauge), whatever the optimiser did with the reference node.
-    optimized = init_poses[0] @ np.linalg.inv(optimized[0]) @ optimized
-    return _orthonormal(optimized)
+    return anchored(optimized, init_poses[0])
+
+
+def prepare_clouds(scans: list[np.ndarray], settings: BaselineSettings) -> list:
+    """scans: S arrays [N_i, 3] (sensor frame) -> the S Open3D clouds every step of the baseline registers
+    (settings.voxel_size_m grid, normals within settings.normal_radius_m)."""
+    return [_prepare_scan(scan, settings.voxel_size_m, settings.normal_radius_m) for scan in scans]
+
+
+def anchored(poses: np.ndarray, pose0: np.ndarray) -> np.ndarray:
+    """poses [S, 4, 4] moved rigidly so that poses[0] is pose0 [4, 4] exactly (the gauge), rotations
+    re-orthonormalised."""
+    return _orthonormal(pose0 @ np.linalg.inv(poses[0]) @ poses)
 
 
 def _orthonormal(poses: np.ndarray) -> np.ndarray:

@@ -188,7 +188,8 @@ def base_config() -> ml_collections.ConfigDict:
     c.mapping.max_rays = 0  # > 0: at most this many rays over the sequence (each scan an equal share, >= 256)
     c.mapping.voxel_size_m = 0.05  # voxel grid on the written maps (0 = none)
     c.mapping.min_opacity = 0.5  # rendered points of rays whose opacity is below this are dropped
-    # > 0: the render's time limit [s]; what it renders by then is a uniform sample of the rays (logged, metrics.json)
+    # > 0: the render's time limit [s]; what it renders by then is a uniform sample of the rays (logged, metrics.json).
+    # A run past train.max_minutes (training's floor) gives the overrun back from it (neld_jax.run.rendering_seconds)
     c.mapping.max_seconds = 0.0
 
     # The classical baseline (neld_jax.baseline.BaselineSettings: bin/baseline.py and train.init_poses=baseline).

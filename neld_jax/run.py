@@ -301,6 +301,22 @@ def training_seconds(config: ml_collections.ConfigDict, spent_s: float) -> float
     return max(limit - float(spent_s), MIN_TRAINING_SHARE * limit)
 
 
+# The rendered map always gets at least this share of mapping.max_seconds, however late the run is.
+MIN_RENDERING_SHARE = 0.25
+
+
+def rendering_seconds(config: ml_collections.ConfigDict, elapsed_s: float) -> float:
+    """The rendered map's time limit in a run `elapsed_s` seconds old: mapping.max_seconds, less the seconds the
+    run is past train.max_minutes (training's floor, MIN_TRAINING_SHARE, can carry it past: Riverside02's 400 s
+    baseline), so that the run still ends near train.max_minutes + mapping.max_seconds; at least
+    MIN_RENDERING_SHARE of mapping.max_seconds. Unchanged when either limit is 0 (none)."""
+    limit = float(config.mapping.max_seconds)
+    deadline = float(config.train.max_minutes) * 60.0
+    if limit <= 0 or deadline <= 0:
+        return limit
+    return max(limit - max(float(elapsed_s) - deadline, 0.0), MIN_RENDERING_SHARE * limit)
+
+
 def train_single_cube(config: ml_collections.ConfigDict, seq, norm, raysets, T_start: np.ndarray, out_dir: str,
                       chash: str, progress: bool, max_seconds: float | None = None):
     """Train one field over the whole sequence (resuming from out_dir's checkpoints), the paper's setting.
@@ -395,10 +411,17 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     export.write_raw_map(os.path.join(out_dir, "map_raw_initial.ply"), seq.scans, seq.poses, voxel_size=voxel)
 
     rendered = None
-    if config.mapping.enabled and plan is not None:
-        rendered = submap_run.write_rendered_map(config, trained, plan, norm, seq, out_dir, progress)
-    elif config.mapping.enabled:
-        rendered = _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress)
+    if config.mapping.enabled:
+        elapsed_s = time.perf_counter() - t_start
+        map_seconds = rendering_seconds(config, elapsed_s)
+        if map_seconds < float(config.mapping.max_seconds):
+            logger.info("the run is %.0f s past train.max_minutes=%g: the rendered map may take %.0f of its %g s "
+                        "(mapping.max_seconds)", elapsed_s - float(config.train.max_minutes) * 60.0,
+                        config.train.max_minutes, map_seconds, config.mapping.max_seconds)
+        if plan is not None:
+            rendered = submap_run.write_rendered_map(config, trained, plan, norm, seq, out_dir, progress, map_seconds)
+        else:
+            rendered = _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress, map_seconds)
 
     # Quality without ground truth: crispness of the keyframes' raw map, and the per-scan report.
     # The same query points for every method, so the starts' figures from starting_poses are reused as they are.
@@ -454,8 +477,9 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     return summary
 
 
-def _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress):
-    """Render the map with the poses in the field's frame (T_field_n), then move it by the anchor transform G_n.
+def _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress, max_seconds: float):
+    """Render the map with the poses in the field's frame (T_field_n), then move it by the anchor transform G_n,
+    in at most max_seconds (0: no limit; rendering_seconds).
 
     Returns (the mapping rays, their MapRender) for the per-scan residuals."""
     m = config.mapping
@@ -466,10 +490,10 @@ def _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progr
     alpha = float(train.make_schedules(config).alpha(int(state.step)))  # the window the field was trained with
     rendered = render_map(state.params["field"], train.make_field(config), sampler, T_field_n,
                           mapping_rays.directions, mapping_rays.scan_index, alpha, rays_per_batch=int(m.rays_per_batch),
-                          min_opacity=float(m.min_opacity), progress=progress, max_seconds=float(m.max_seconds),
+                          min_opacity=float(m.min_opacity), progress=progress, max_seconds=max_seconds,
                           seed=config.seed + 1)
     points_n = rendered.points
-    mapping.log_rendered_rays(len(points_n), rendered.num_rendered, mapping_rays.num_rays, float(m.max_seconds))
+    mapping.log_rendered_rays(len(points_n), rendered.num_rendered, mapping_rays.num_rays, max_seconds)
     if len(points_n) == 0:
         logger.warning("rendered map is empty: no ray reached opacity %.2f (train longer or lower "
                        "mapping.min_opacity); map_rendered.ply not written", m.min_opacity)

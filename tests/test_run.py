@@ -187,6 +187,18 @@ def test_training_time_counts_from_the_run_start_with_a_floor():
     assert run.training_seconds(config, 400.0) == 0.0  # no limit
 
 
+def test_rendering_time_gives_back_what_the_run_overran_with_a_floor():
+    config = make_tiny_config("unused", steps=4)
+    config.train.max_minutes, config.mapping.max_seconds = 8.0, 60.0
+    assert run.rendering_seconds(config, 470.0) == 60.0  # training ended on time: the whole limit
+    assert run.rendering_seconds(config, 500.0) == 40.0  # 20 s past the 8 minutes (training's floor)
+    assert run.rendering_seconds(config, 560.0) == 15.0  # but the map gets at least a quarter
+    config.mapping.max_seconds = 0.0
+    assert run.rendering_seconds(config, 560.0) == 0.0  # no limit stays none
+    config.train.max_minutes, config.mapping.max_seconds = 0.0, 60.0
+    assert run.rendering_seconds(config, 560.0) == 60.0  # no run clock: the map's own limit
+
+
 def test_trajectory_departure_ignores_a_rigid_motion_and_sees_a_bend():
     from scipy.spatial.transform import Rotation
 

@@ -66,6 +66,16 @@ def fake_training_clock(monkeypatch, seconds_per_step: float = 1.0, compile_s: f
     return clock
 
 
+def similarity_scale(T_moved, T_start) -> float:
+    """The Umeyama (similarity-alignment) scale of T_moved's positions [S, 4, 4] against T_start's, minus 1
+    (float64): how much a pose update scales the route."""
+    import numpy as np
+
+    from neld_jax.metrics import ate_errors
+
+    return ate_errors(np.asarray(T_moved, np.float64), np.asarray(T_start, np.float64), "sim3")[3] - 1.0
+
+
 @pytest.fixture
 def tiny_config(tmp_path):
     return make_tiny_config(str(tmp_path / "run"))

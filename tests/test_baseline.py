@@ -12,8 +12,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from neld_jax.baseline import (BaselineSettings, TargetIndex, _prepare_scan, candidate_pairs, loop_closed_graph,
-                              multiscale_icp, point_to_plane_icp, refine_against_map, register_sequence)
+from neld_jax.baseline import (BaselineSettings, TargetIndex, candidate_pairs, loop_closed_graph, multiscale_icp,
+                              point_to_plane_icp, prepare_clouds, refine_against_map, register_sequence)
 from neld_jax.data.preprocess import preprocess
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.synthetic import make_sequence
@@ -191,7 +191,7 @@ def test_crisper_start_takes_the_crisper_map(drifted_sequence, monkeypatch):
     assert start.baseline_poses is drifted_sequence.poses  # still written as poses_baseline by the run
 
 
-def test_the_refinement_starts_from_the_crisper_of_the_graph_and_the_input_and_never_from_a_bent_graph(
+def test_the_refinement_starts_from_the_crisper_start_or_the_scans_registration_and_never_from_a_bent_graph(
         drifted_sequence):
     # refinement_start (the run's and bin/baseline.py's refine_from) gets the pose graph's poses and returns what
     # the multi-view refinement starts from. Here the "graph" is the ground truth or the drifted poses.
@@ -237,8 +237,7 @@ def test_a_chain_that_keeps_the_input_tilt_gives_every_scan_the_inputs_up_axis(d
     truth = drifted_sequence.gt_poses
     kept_tilt = with_drift(dataclasses.replace(drifted_sequence, poses=truth), 0.15, 1.0, seed=3, keep_tilt=True)
     np.testing.assert_allclose(kept_tilt.poses[:, 2, :3], truth[:, 2, :3], atol=1e-12)
-    clouds = [baseline._prepare_scan(scan, SETTINGS.voxel_size_m, SETTINGS.normal_radius_m)
-              for scan in kept_tilt.scans]
+    clouds = prepare_clouds(kept_tilt.scans, SETTINGS)
     levelled = dataclasses.replace(SETTINGS, keep_input_tilt=True)
     chain, _ = baseline.scan_to_map_chain(clouds, kept_tilt.poses, levelled)
     free, _ = baseline.scan_to_map_chain(clouds, kept_tilt.poses, SETTINGS)
@@ -280,7 +279,7 @@ def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence
     import neld_jax.baseline as baseline
 
     seq = drifted_sequence
-    clouds = [baseline._prepare_scan(scan, SETTINGS.voxel_size_m, SETTINGS.normal_radius_m) for scan in seq.scans]
+    clouds = prepare_clouds(seq.scans, SETTINGS)
     slide = np.eye(4)
     slide[0, 3] = 2.0
 
@@ -310,7 +309,7 @@ def test_multi_view_refinement_pulls_a_scan_onto_the_others_map_and_gates_a_far_
     start[2] = start[2] @ nudge
     start[3, 0, 3] += 1.0
     settings = dataclasses.replace(SETTINGS, map_rounds=2)
-    clouds = [_prepare_scan(scan, settings.voxel_size_m, settings.normal_radius_m) for scan in seq.scans]
+    clouds = prepare_clouds(seq.scans, settings)
     seen = []
     refined, rejected = refine_against_map(clouds, start, settings, on_round=lambda r, poses: seen.append((r, poses)))
     # on_round sees each round's poses (copies), the last of them the result
@@ -395,7 +394,7 @@ def test_global_registration_closes_a_loop_beyond_icps_reach(short_courtyard_rou
     chain = seq.gt_poses.copy()
     chain[:, :3, 3] += np.linspace(0.0, 1.0, num_scans)[:, None] * np.array([2.0, 1.5, 0.0])
     settings = BaselineSettings(window=10, map_rounds=0, loop_drift_fraction=0.03, min_loop_fitness=0.2)
-    clouds = [_prepare_scan(scan, settings.voxel_size_m, settings.normal_radius_m) for scan in seq.scans]
+    clouds = prepare_clouds(seq.scans, settings)
 
     poses, loops = loop_closed_graph(clouds, chain, settings)
     drifted = ate(chain, seq.gt_poses)["translation_rmse_m"]

@@ -20,6 +20,8 @@ from neld_jax.data.rays import sphere_scene_rays
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import ConfigError
 
+from conftest import similarity_scale
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
@@ -260,13 +262,6 @@ def test_a_revisit_gets_a_submap_holding_both_visits():
     assert list(last) == [0, 1, 2, 37, 38, 39]  # half a window around each visit
 
 
-def _similarity_scale(T_moved, T_start):
-    """The Umeyama (similarity-alignment) scale of T_moved's positions against T_start's, minus 1 (float64)."""
-    from neld_jax.metrics import ate_errors
-
-    return ate_errors(np.asarray(T_moved, np.float64), np.asarray(T_start, np.float64), "sim3")[3] - 1.0
-
-
 def test_kept_scale_for_right_corrections_removes_the_first_order_scale_change():
     """train.keep_trajectory_scale with the start's rotations (the submaps' body-frame corrections, applied as
     T_start @ Exp((rho / s_ref, omega)) in metres): the projected step changes the trajectory's scale only at second order,
@@ -293,7 +288,7 @@ def test_kept_scale_for_right_corrections_removes_the_first_order_scale_change()
     np.testing.assert_array_equal(kept[0], 0.0)
 
     def scale_change(xi, h):
-        return _similarity_scale(submaps.global_poses(T, h * xi, ref_scale), T)
+        return similarity_scale(submaps.global_poses(T, h * xi, ref_scale), T)
 
     for h in (1e-3, 1e-4):  # steps of about 15 cm and 1.5 cm, the scans 17 m from their centroid on average
         free_h, kept_h = scale_change(u, h), scale_change(kept, h)

@@ -17,7 +17,8 @@ Per sequence (one JSON object each, also printed as a line):
   ground truth, run with the first of --recorded_starts and no prior on the input's drift
   (train.max_baseline_departure=0): ATE of the baseline and of NeLD-BA against the odometry, the crispness of
   each map, and how far the baseline's and NeLD-BA's answers lie from the same configuration's answers from the
-  recorded odometry (ATE between the two, SE(3)-aligned).
+  recorded odometry (ATE between the two, SE(3)-aligned), and the split of NeLD-BA's ATE change from the
+  baseline's (benchmarks/ate_change.py: its move off the baseline and how it correlates with the baseline's error).
 A sequence that fails (for example one too large for one field) records its one-line error and the run goes on.
 """
 
@@ -151,6 +152,13 @@ def run_sequence(name: str, root: str) -> dict:
     entry["drift"]["optimized_apart_from_recorded_m"] = apart("optimized", f"recorded_{drift_start}")
     if "input" in RECORDED_STARTS.value and drift_start != "input":  # against NeLD-BA from the recorded odometry
         entry["drift"]["optimized_apart_from_recorded_input_m"] = apart("optimized", "recorded_input")
+    if os.path.exists(os.path.join(out, "drift", "poses_baseline.txt")):
+        # Why NeLD-BA's ATE against the odometry differs from the baseline's it started from (ate_change.py)
+        from benchmarks.ate_change import ate_change_terms
+
+        T = {m: read_tum(os.path.join(out, "drift", f"poses_{m}.txt"))[1] for m in ("gt", "baseline", "optimized")}
+        terms = ate_change_terms(T["baseline"], T["optimized"], T["gt"])
+        entry["drift"]["ate_change_vs_odometry"] = {k: round(v, 6) for k, v in terms.items()}
     print(json.dumps(entry), flush=True)
     return entry
 

@@ -156,3 +156,39 @@ def test_gpu_suite_extrapolates_the_schedule_stage_by_stage():
     assert out["mean_steps_per_s"] == pytest.approx(160_000 / 900)
     with pytest.raises(FileNotFoundError, match="--prepare"):
         suite.load_demo(str(ROOT / "no_such_demo.npz"))
+
+
+def test_ate_change_terms_split_a_moves_effect_on_the_ate():
+    # benchmarks/ate_change.py: a move orthogonal to the baseline's error raises the ATE at second order only, one
+    # against it lowers the ATE, and a rigid motion of the whole trajectory is no move at all.
+    import numpy as np
+
+    spec = importlib.util.spec_from_file_location("benchmark_ate_change", ROOT / "benchmarks" / "ate_change.py")
+    ate_change = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ate_change)
+    rng = np.random.default_rng(0)
+    n = 200
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    gt[:, :3, 3] = np.cumsum(rng.normal(size=(n, 3)), axis=0)
+    error = rng.normal(scale=0.03, size=(n, 3))
+    error -= error.mean(0)  # no translation for the alignment to take out
+    baseline = gt.copy()
+    baseline[:, :3, 3] += error
+    orthogonal = np.cross(error, rng.normal(size=(n, 3)))
+    orthogonal *= 0.002 / np.sqrt(np.mean(np.sum(orthogonal**2, axis=1)))  # 2 mm rms, e_i . d_i = 0 for every pose
+    moved = baseline.copy()
+    moved[:, :3, 3] += orthogonal
+    terms = ate_change.ate_change_terms(baseline, moved, gt)
+    assert terms["change_mm"] > 0 and abs(terms["correlation"]) < 0.05
+    assert terms["move_rms_mm"] == pytest.approx(2.0, rel=0.05)
+    assert terms["change_mm"] == pytest.approx(terms["uncorrelated_change_mm"], rel=0.3)
+    assert terms["change_mm"] <= terms["bound_change_mm"] + 1e-9
+    toward = baseline.copy()
+    toward[:, :3, 3] -= 0.5 * error  # halfway back to the ground truth
+    terms = ate_change.ate_change_terms(baseline, toward, gt)
+    assert terms["correlation"] < -0.99 and terms["change_mm"] < -0.4 * terms["ate_baseline_mm"]
+    rigid = np.eye(4)
+    rigid[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    rigid[:3, 3] = [5.0, -2.0, 1.0]
+    terms = ate_change.ate_change_terms(baseline, rigid @ baseline, gt)
+    assert terms["move_rms_mm"] < 1e-6 and abs(terms["change_mm"]) < 1e-6

@@ -199,6 +199,17 @@ def test_rendering_time_gives_back_what_the_run_overran_with_a_floor():
     assert run.rendering_seconds(config, 560.0) == 60.0  # no run clock: the map's own limit
 
 
+def test_the_run_renders_its_map_within_the_time_rendering_seconds_gives(tmp_path, monkeypatch):
+    # The run asks rendering_seconds for the map's limit at the time the map starts, and the render keeps to it:
+    # a limit that has already passed renders the first piece of the rays alone (a uniform sample, metrics.json).
+    asked = []
+    monkeypatch.setattr(run, "rendering_seconds", lambda config, elapsed_s: asked.append(elapsed_s) or 1e-9)
+    config = make_tiny_config(str(tmp_path / "run"), steps=4)
+    summary = run.run(config, progress=False)
+    assert len(asked) == 1 and asked[0] > 0
+    assert 0 < summary["map_rays_rendered"] <= config.mapping.rays_per_batch < summary["map_rays"]
+
+
 def test_trajectory_departure_ignores_a_rigid_motion_and_sees_a_bend():
     from scipy.spatial.transform import Rotation
 

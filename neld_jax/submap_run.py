@@ -79,10 +79,10 @@ def train_submaps(config, seq, norm: Normalization, T_start: np.ndarray, plan: s
 
 
 def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, norm: Normalization, seq,
-                       out_dir: str, progress: bool, max_seconds: float | None = None):
+                       out_dir: str, progress: bool, max_seconds: float):
     """The rendered map stitched from the submaps: each ray rendered by every submap holding its scan, kept from
     the one whose cube holds its point most centrally; map_rendered.ply in the world (anchored). max_seconds: the
-    render's time limit (None: mapping.max_seconds; 0: none).
+    render's time limit (0: none; neld_jax.run.rendering_seconds).
 
     Returns (mapping rays, MapRender) in the whole sequence's normalisation `norm`, as the single cube's map does,
     for the per-scan residuals."""
@@ -110,7 +110,7 @@ def write_rendered_map(config, trained: SubmapResult, plan: submaps.SubmapPlan, 
     # Under a time limit the rays go in RENDER_PARTS parts of a random order, every submap rendering each part's
     # rays, so that the parts rendered before the limit are a uniform sample of the map; as for one cube, no part
     # is started that would end past the limit if it took as long as the one before.
-    max_seconds = float(m.max_seconds if max_seconds is None else max_seconds)
+    max_seconds = float(max_seconds)
     order = mapping.render_order(r, max_seconds, config.seed + 1)
     parts = np.array_split(order, RENDER_PARTS if max_seconds > 0 else 1)
     t0 = time.perf_counter()

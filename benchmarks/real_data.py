@@ -156,8 +156,9 @@ def run_sequence(name: str, root: str) -> dict:
         # Why NeLD-BA's ATE against the odometry differs from the baseline's it started from (ate_change.py)
         from benchmarks.ate_change import ate_change_terms
 
-        T = {m: read_tum(os.path.join(out, "drift", f"poses_{m}.txt"))[1] for m in ("gt", "baseline", "optimized")}
-        terms = ate_change_terms(T["baseline"], T["optimized"], T["gt"])
+        T = {m: read_tum(os.path.join(out, "drift", f"poses_{m}.txt"))[1]
+             for m in ("gt", "baseline", "optimized", "initial")}
+        terms = ate_change_terms(T["baseline"], T["optimized"], T["gt"], T["initial"])
         entry["drift"]["ate_change_vs_odometry"] = {k: round(v, 6) for k, v in terms.items()}
     print(json.dumps(entry), flush=True)
     return entry

@@ -187,8 +187,47 @@ def test_ate_change_terms_split_a_moves_effect_on_the_ate():
     toward[:, :3, 3] -= 0.5 * error  # halfway back to the ground truth
     terms = ate_change.ate_change_terms(baseline, toward, gt)
     assert terms["correlation"] < -0.99 and terms["change_mm"] < -0.4 * terms["ate_baseline_mm"]
+    assert terms["correlation_rotation_p"] < 0.01
     rigid = np.eye(4)
     rigid[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     rigid[:3, 3] = [5.0, -2.0, 1.0]
     terms = ate_change.ate_change_terms(baseline, rigid @ baseline, gt)
     assert terms["move_rms_mm"] < 1e-6 and abs(terms["change_mm"]) < 1e-6
+
+
+def test_ate_change_rotation_null_widens_the_chance_level_for_smooth_signals():
+    # Smooth (random-walk) error and move drawn independently: their correlation is chance, and the random-rotation
+    # null says so where 1 / sqrt(3 N) would not; a move back toward the input shows in toward_input_correlation.
+    import numpy as np
+
+    spec = importlib.util.spec_from_file_location("benchmark_ate_change", ROOT / "benchmarks" / "ate_change.py")
+    ate_change = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ate_change)
+    rng = np.random.default_rng(1)
+    n = 300
+
+    def walk(scale):
+        steps = np.cumsum(rng.normal(scale=scale, size=(n, 3)), axis=0)
+        return steps - steps.mean(0)
+
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    gt[:, :3, 3] = np.cumsum(rng.normal(size=(n, 3)), axis=0)
+    correlations, ps = [], []
+    for _ in range(8):
+        baseline = gt.copy()
+        baseline[:, :3, 3] += walk(0.003)
+        moved = baseline.copy()
+        moved[:, :3, 3] += walk(0.0001)
+        terms = ate_change.ate_change_terms(baseline, moved, gt)
+        correlations.append(terms["correlation"])
+        ps.append(terms["correlation_rotation_p"])
+        assert terms["correlation_rotation_sd"] > 2.0 * terms["chance_correlation"]  # fewer independent values
+    assert np.max(np.abs(correlations)) > 1.0 / np.sqrt(3 * n)  # the naive level would call some of them real
+    assert np.median(ps) > 0.1
+    initial = gt.copy()
+    initial[:, :3, 3] += walk(0.02)  # the drifted start
+    back = baseline.copy()
+    back[:, :3, 3] += 0.02 * (initial[:, :3, 3] - baseline[:, :3, 3])  # a fiftieth of the way back to it
+    terms = ate_change.ate_change_terms(baseline, back, gt, initial)
+    assert terms["toward_input_correlation"] > 0.5 and terms["toward_input_rotation_p"] < 0.05
+    assert "toward_input_correlation" not in ate_change.ate_change_terms(baseline, back, gt)

@@ -12,6 +12,7 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")  # headless: servers and CI have no display
+import matplotlib.patches  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -115,32 +116,94 @@ def plot_scan_report(path: str | os.PathLike, rows: list[dict]) -> Path:
     return _save(fig, path)
 
 
+def detail_window(maps_xy: list[np.ndarray], lo_xy: np.ndarray, hi_xy: np.ndarray,
+                  side: float) -> tuple[float, float]:
+    """Lower-left corner (x, y) of the side x side square inside [lo_xy, hi_xy] where the first and the last map
+    differ most; maps_xy: [[N_k, 2]] points seen from above.
+
+    Each map becomes a histogram of 1/64-of-the-side cells, normalised by its point count; the window maximises
+    the summed absolute difference (where the poses moved the map most, sharpened or blurred alike), found with
+    a summed-area table, and is centred on that difference within it."""
+    cell = side / 64.0
+    shape = np.maximum(np.ceil((hi_xy - lo_xy) / cell).astype(int), 64)
+    edges = [lo_xy[axis] + cell * np.arange(shape[axis] + 1) for axis in range(2)]
+    histograms = []
+    for points in (maps_xy[0], maps_xy[-1]):
+        counts = np.histogram2d(points[:, 0], points[:, 1], bins=edges)[0]
+        histograms.append(counts / max(len(points), 1))
+    difference = np.abs(histograms[0] - histograms[1])
+    table = np.zeros((shape[0] + 1, shape[1] + 1))
+    table[1:, 1:] = difference.cumsum(0).cumsum(1)
+    window = table[64:, 64:] - table[:-64, 64:] - table[64:, :-64] + table[:-64, :-64]  # [nx - 63, ny - 63]
+    i, j = np.unravel_index(np.argmax(window), window.shape)
+    # Windows that hold the same change tie; centre the first one on its difference's centroid instead of leaving
+    # the change at its edge.
+    for _ in range(4):  # a few mean-shift steps
+        block = difference[i:i + 64, j:j + 64]
+        if block.sum() <= 0:
+            break
+        ci, cj = np.array([np.arange(64) @ block.sum(1), np.arange(64) @ block.sum(0)]) / block.sum()
+        i = int(np.clip(round(i + ci - 31.5), 0, window.shape[0] - 1))
+        j = int(np.clip(round(j + cj - 31.5), 0, window.shape[1] - 1))
+    return float(edges[0][i]), float(edges[1][j])
+
+
 def plot_map_topdown(path: str | os.PathLike, maps: dict[str, np.ndarray], max_points: int = 400_000,
                      seed: int = 0) -> Path:
-    """Raw maps seen from above, side by side on the same axes; maps: {title: points [N, 3]}.
+    """Raw maps seen from above on the same axes, and below them a close-up of each where the first and the last
+    map differ most; maps: {title: points [N, 3]}.
 
     Points are drawn small and translucent, coloured by height, so a misregistered wall shows as a double or
-    blurred line. At most max_points per map (a seeded random subset)."""
+    blurred line. Maps wider than tall (a drive) are stacked, each the figure's width; others sit side by side.
+    The close-up is a square of a fifth of the map's longer side (8 m at least, the shorter side at most; its
+    outline is drawn on the maps), where a centimetre-level change is visible, which a whole route at screen
+    resolution cannot show. At most max_points per map and per close-up (a seeded random subset)."""
     rng = np.random.default_rng(seed)
     items = [(title, np.asarray(points)) for title, points in maps.items() if len(points)]
-    fig, axes = plt.subplots(1, max(len(items), 1), figsize=(6.0 * max(len(items), 1), 6.0), squeeze=False)
-    if items:
-        everything = np.concatenate([points for _, points in items])
-        low, high = np.percentile(everything[:, 2], [2, 98])
-        # The 0.5-99.5 percentiles, not min/max: a few far returns would shrink the map to a corner.
-        lo_xy, hi_xy = np.percentile(everything[:, :2], 0.5, axis=0), np.percentile(everything[:, :2], 99.5, axis=0)
-        pad = 0.03 * (hi_xy - lo_xy)
-        lo_xy, hi_xy = lo_xy - pad, hi_xy + pad
-    for ax, (title, points) in zip(axes[0], items):
+    count = max(len(items), 1)
+    if not items:
+        fig, _ = plt.subplots(figsize=(6.0, 6.0))
+        return _save(fig, path)
+    everything = np.concatenate([points for _, points in items])
+    low, high = np.percentile(everything[:, 2], [2, 98])
+    # The 0.5-99.5 percentiles, not min/max: a few far returns would shrink the map to a corner.
+    lo_xy, hi_xy = np.percentile(everything[:, :2], 0.5, axis=0), np.percentile(everything[:, :2], 99.5, axis=0)
+    pad = 0.03 * (hi_xy - lo_xy)
+    lo_xy, hi_xy = lo_xy - pad, hi_xy + pad
+    width, height = np.maximum(hi_xy - lo_xy, 1e-3)
+    side = float(min(max(0.2 * max(width, height), 8.0), min(width, height)))
+    corner = np.array(detail_window([points[:, :2] for _, points in items], lo_xy, hi_xy, side))
+
+    stacked = width > 1.3 * height
+    if stacked:  # one row per map at the figure's full width, then the close-ups side by side
+        overview_h = float(np.clip(11.0 * height / width, 0.5, 5.0)) + 0.9  # + title and x labels
+        fig = plt.figure(figsize=(12.0, count * overview_h + 12.0 / count + 0.8))
+        grid = fig.add_gridspec(count + 1, count, height_ratios=[overview_h] * count + [12.0 / count + 0.8])
+        overviews = [fig.add_subplot(grid[row, :]) for row in range(count)]
+    else:
+        overview_h = float(np.clip(5.5 * height / width, 2.5, 9.0)) + 0.8
+        fig = plt.figure(figsize=(6.0 * count, overview_h + 6.0))
+        grid = fig.add_gridspec(2, count, height_ratios=[overview_h, 6.0])
+        overviews = [fig.add_subplot(grid[0, column]) for column in range(count)]
+    details = [fig.add_subplot(grid[-1, column]) for column in range(count)]
+
+    def draw(ax, points, size, title, lo, hi):
         if len(points) > max_points:
             points = points[rng.choice(len(points), max_points, replace=False)]
-        ax.scatter(points[:, 0], points[:, 1], c=np.clip(points[:, 2], low, high), s=0.05, alpha=0.4,
+        ax.scatter(points[:, 0], points[:, 1], c=np.clip(points[:, 2], low, high), s=size, alpha=0.4,
                    cmap="viridis", linewidths=0, rasterized=True)
-        ax.set_xlim(lo_xy[0], hi_xy[0])
-        ax.set_ylim(lo_xy[1], hi_xy[1])
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
         ax.set_aspect("equal")
         ax.set_title(title)
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
+
+    for overview, detail, (title, points) in zip(overviews, details, items):
+        draw(overview, points, 0.05, title, lo_xy, hi_xy)
+        overview.add_patch(matplotlib.patches.Rectangle(corner, side, side, fill=False, edgecolor="red",
+                                                        linewidth=1.0))
+        inside = np.all((points[:, :2] >= corner) & (points[:, :2] <= corner + side), axis=1)
+        draw(detail, points[inside], 0.4, f"{title}: close-up ({side:.0f} m)", corner, corner + side)
     fig.set_dpi(150)
     return _save(fig, path)

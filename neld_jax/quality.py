@@ -73,7 +73,8 @@ def write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rend
 
 
 def write_topdown(out_dir, seq, methods: dict[str, np.ndarray]) -> None:
-    """map_topdown.png: the keyframes' raw map from above under each method's poses, side by side."""
+    """map_topdown.png: the keyframes' raw map from above under each method's poses, with close-ups where the
+    first and the last differ most (plots.plot_map_topdown)."""
     plots.plot_map_topdown(os.path.join(out_dir, "map_topdown.png"),
                            {name: register_scans(seq.scans, poses) for name, poses in methods.items()})
 

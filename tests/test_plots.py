@@ -1,4 +1,4 @@
-"""The evaluation figures are written as non-empty PNG files."""
+"""The evaluation figures are written as non-empty PNG files; the top view's close-up goes where the maps differ."""
 
 import numpy as np
 
@@ -28,3 +28,26 @@ def test_plots_write_pngs(tmp_path):
 
     distances = {"raw": np.abs(rng.normal(0, 0.3, 1000)), "empty": np.zeros(0)}
     assert _is_png(plots.plot_error_histogram(tmp_path / "error_histogram.png", distances, threshold=0.2))
+
+
+def _walls(rng, xs, length, per_wall=4000):
+    """Points [len(xs) * per_wall, 3] on vertical walls x = const, y in [0, length], z in [0, 3]."""
+    return np.concatenate([np.column_stack([np.full(per_wall, x), rng.uniform(0, length, per_wall),
+                                            rng.uniform(0, 3, per_wall)]) for x in xs])
+
+
+def test_map_topdown_close_up_goes_where_the_maps_differ(tmp_path):
+    rng = np.random.default_rng(0)
+    sharp = _walls(rng, [5.0, 15.0, 25.0, 35.0, 45.0], 20.0)
+    blurred = sharp.copy()
+    moved = (sharp[:, 0] == 25.0) & (sharp[:, 1] > 10.0)  # one stretch of one wall, as a misregistered scan
+    blurred[moved, 0] += rng.normal(0.0, 0.3, moved.sum())
+    lo, hi = np.array([0.0, 0.0]), np.array([50.0, 20.0])
+    x, y = plots.detail_window([sharp[:, :2], blurred[:, :2]], lo, hi, side=8.0)
+    assert x <= 25.0 <= x + 8.0 and y + 8.0 > 10.0  # the window holds the blurred stretch
+    assert lo[0] <= x and x + 8.0 <= hi[0] + 8.0 / 64 and lo[1] <= y and y + 8.0 <= hi[1] + 8.0 / 64
+    # Wide maps are stacked, others side by side; both write a PNG with the close-ups.
+    assert _is_png(plots.plot_map_topdown(tmp_path / "wide.png", {"before": blurred, "after": sharp}))
+    tall = sharp[:, [1, 0, 2]]
+    assert _is_png(plots.plot_map_topdown(tmp_path / "tall.png", {"before": tall, "after": tall}))
+    assert _is_png(plots.plot_map_topdown(tmp_path / "empty.png", {"before": np.zeros((0, 3))}))

@@ -160,10 +160,10 @@ def plot_map_topdown(path: str | os.PathLike, maps: dict[str, np.ndarray], max_p
     resolution cannot show. At most max_points per map and per close-up (a seeded random subset)."""
     rng = np.random.default_rng(seed)
     items = [(title, np.asarray(points)) for title, points in maps.items() if len(points)]
-    count = max(len(items), 1)
     if not items:
         fig, _ = plt.subplots(figsize=(6.0, 6.0))
         return _save(fig, path)
+    count = len(items)
     everything = np.concatenate([points for _, points in items])
     low, high = np.percentile(everything[:, 2], [2, 98])
     # The 0.5-99.5 percentiles, not min/max: a few far returns would shrink the map to a corner.

@@ -158,14 +158,19 @@ def test_gpu_suite_extrapolates_the_schedule_stage_by_stage():
         suite.load_demo(str(ROOT / "no_such_demo.npz"))
 
 
+def _ate_change_module():
+    spec = importlib.util.spec_from_file_location("benchmark_ate_change", ROOT / "benchmarks" / "ate_change.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_ate_change_terms_split_a_moves_effect_on_the_ate():
     # benchmarks/ate_change.py: a move orthogonal to the baseline's error raises the ATE at second order only, one
     # against it lowers the ATE, and a rigid motion of the whole trajectory is no move at all.
     import numpy as np
 
-    spec = importlib.util.spec_from_file_location("benchmark_ate_change", ROOT / "benchmarks" / "ate_change.py")
-    ate_change = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(ate_change)
+    ate_change = _ate_change_module()
     rng = np.random.default_rng(0)
     n = 200
     gt = np.tile(np.eye(4), (n, 1, 1))
@@ -200,9 +205,7 @@ def test_ate_change_rotation_null_widens_the_chance_level_for_smooth_signals():
     # null says so where 1 / sqrt(3 N) would not; a move back toward the input shows in toward_input_correlation.
     import numpy as np
 
-    spec = importlib.util.spec_from_file_location("benchmark_ate_change", ROOT / "benchmarks" / "ate_change.py")
-    ate_change = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(ate_change)
+    ate_change = _ate_change_module()
     rng = np.random.default_rng(1)
     n = 300
 

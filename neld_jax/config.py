@@ -41,6 +41,9 @@ def base_config() -> ml_collections.ConfigDict:
     c.data.root = ""
     c.data.pose_file = ""  # lio_keyframes: the initial trajectory under root ("" = odom_poses.txt)
     c.data.drop_unmatched_tail = False  # drop up to 5 trailing scans that have no pose/stamp instead of failing
+    # The scans are registered already (world frame, e.g. FAST-LIO2's /cloud_registered): move them into their
+    # sensors' frames with the poses. Left False, scans that look registered are refused (neld_jax.data.frames).
+    c.data.scans_in_world_frame = False
     # Keyframes: a scan is kept when ANY enabled rule says so (<= 0 turns a rule off; all off keeps every scan).
     # Every input scan still gets a refined pose: the others take their keyframes' interpolated correction.
     c.data.keyframe_interval_s = 3.0

@@ -26,7 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from neld_jax.data import ground_truth, synthetic
+from neld_jax.data import frames, ground_truth, synthetic
 from neld_jax.data.poses import read_tum
 from neld_jax.data.scans import SCAN_EXTENSIONS, read_scan, read_scan_counted
 from neld_jax.data.sequence import Sequence, check_pose_jumps, match_by_timestamp
@@ -567,6 +567,8 @@ def load_sequence(data_cfg) -> Sequence:
         else:
             seq = load_generic(root, tol=tol, drop_unmatched_tail=drop_tail)
         seq = _with_explicit_ground_truth(seq, Path(root).expanduser(), gt_poses_file, gt_map_file, offset, tol, gt_dt)
+    # Scans must be in the sensor frame; world-frame ones are moved there when the config says so, else refused.
+    seq = frames.in_sensor_frame(seq, str(root), bool(data_cfg.get("scans_in_world_frame", False)))
 
     if seq.gt_poses is None:
         looked = f"data.gt_poses_path {gt_poses_file}" if gt_poses_file else GT_SEARCHED[fmt][0]

@@ -1,0 +1,56 @@
+"""Scans already registered (world frame) are refused with a line that names the fix, or moved into the sensor
+frame when data.scans_in_world_frame says so (neld_jax/data/frames.py)."""
+
+import dataclasses
+
+import ml_collections
+import numpy as np
+import pytest
+
+from neld_jax.data import frames
+from neld_jax.data.datasets import load_sequence
+from neld_jax.data.synthetic import make_sequence, write_generic
+from neld_jax.errors import DataError
+
+
+def _sequence(num_scans=30):
+    cfg = ml_collections.ConfigDict({"num_scans": num_scans, "num_beams": 8, "num_columns": 64,
+                                     "gt_map_points": 1000, "scene_size_m": 30.0, "trajectory_radius_m": 5.0,
+                                     "max_range_m": 30.0})
+    return make_sequence(cfg)
+
+
+def _registered(seq):
+    return [scan @ pose[:3, :3].T + pose[:3, 3] for scan, pose in zip(seq.scans, seq.poses)]
+
+
+def test_votes_tell_sensor_from_world_frame_and_the_move_back_is_exact():
+    seq = _sequence()
+    voters, share = frames.world_frame_votes(seq.scans, seq.poses)
+    assert voters == 30 and share < 0.5
+    world = _registered(seq)
+    voters, share = frames.world_frame_votes(world, seq.poses)
+    assert voters == 30 and share > frames.WORLD_SHARE
+    for back, scan in zip(frames.to_sensor_frame(world, seq.poses), seq.scans):
+        np.testing.assert_allclose(back, scan, atol=1e-9)
+    # Poses all near the origin (a scan taken in place) decide nothing.
+    still = seq.poses.copy()
+    still[:, :3, 3] *= 0.1
+    assert frames.world_frame_votes(seq.scans, still)[0] == 0
+
+
+def _config(root, **extra):
+    return ml_collections.ConfigDict({"format": "generic", "root": str(root), **extra})
+
+
+def test_load_refuses_registered_scans_and_moves_them_when_told(tmp_path):
+    seq = _sequence()
+    write_generic(dataclasses.replace(seq, scans=_registered(seq)), tmp_path / "world")
+    with pytest.raises(DataError, match=r"world: the scans look registered already .*scans_in_world_frame=True"):
+        load_sequence(_config(tmp_path / "world"))
+    moved = load_sequence(_config(tmp_path / "world", scans_in_world_frame=True))
+    for back, scan in zip(moved.scans, seq.scans):  # PCD stores float32 coordinates
+        np.testing.assert_allclose(back, scan, atol=1e-4)
+    write_generic(seq, tmp_path / "sensor")
+    loaded = load_sequence(_config(tmp_path / "sensor"))
+    np.testing.assert_allclose(loaded.scans[3], seq.scans[3], atol=1e-4)

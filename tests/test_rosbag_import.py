@@ -128,6 +128,35 @@ def test_ros1_fastlio_bag_imports_into_the_generic_layout(tmp_path):
     np.testing.assert_allclose(seq.timestamps, times, atol=1e-6)
 
 
+def test_world_frame_clouds_are_named_in_the_note_and_load_with_the_option(tmp_path):
+    # FAST-LIO2's /cloud_registered shares the odometry's frame: the import says so, training's load refuses the
+    # scans as they are and takes them with data.scans_in_world_frame.
+    import ml_collections
+
+    from neld_jax.data.datasets import load_sequence
+
+    n = 24
+    rng = np.random.default_rng(3)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, 3] = np.column_stack([np.linspace(0.0, 40.0, n), rng.normal(0, 1, n), np.zeros(n)])
+    scans = [rng.normal(0, 4, (300, 3)) for _ in range(n)]
+    times = T0 + 0.1 * np.arange(n)
+    entries = []
+    for scan, pose, t in zip(scans, poses, times):
+        entries.append(("/cloud_registered", "sensor_msgs/msg/PointCloud2", t,
+                        _cloud(t, scan + pose[:3, 3], frame="camera_init")))
+        entries.append(("/Odometry", "nav_msgs/msg/Odometry", t, _odometry(t, pose)))
+    write_ros1(tmp_path / "w.bag", entries)
+    result = import_bag(tmp_path / "w.bag", tmp_path / "out", cloud_topic="/cloud_registered", progress=False)
+    assert "registered already" in result.note and "scans_in_world_frame=True" in result.note
+    config = ml_collections.ConfigDict({"format": "generic", "root": str(tmp_path / "out")})
+    with pytest.raises(DataError, match="registered already"):
+        load_sequence(config)
+    config.scans_in_world_frame = True
+    for got, want in zip(load_sequence(config).scans, scans):
+        np.testing.assert_allclose(got, want, atol=1e-4)
+
+
 def test_unmatched_cloud_is_named_never_given_a_neighbours_pose(tmp_path):
     n = 5
     scans, poses, times = _scans(n), _poses(n), T0 + 0.1 * np.arange(n)

@@ -277,6 +277,13 @@ def import_bag(
     result.note = (f"scans/ are in frame '{result.frame}' (the clouds' header.frame_id); poses.txt holds the pose of "
                    f"that frame in '{result.odometry_frame}' from {odometry_topic}, one line per scan, at the scan's "
                    f"stamp{'' if not time_offset_s else f' + {time_offset_s} s'}")
+    if result.frame and result.frame == result.odometry_frame:
+        # FAST-LIO2's /cloud_registered: the clouds are registered already, which training refuses unless told
+        result.note += (f"; the clouds' frame is the odometry's world frame, so the scans are registered already: "
+                        f"train with --config.data.scans_in_world_frame=True, or import {DEFAULT_CLOUD_TOPIC}")
+        logger.warning("%s: %s is in '%s', the odometry's world frame: the scans are registered already "
+                       "(data.scans_in_world_frame=True moves them into the sensor frame for training)",
+                       bag, cloud_topic, result.frame)
     (out / METADATA_FILE).write_text(json.dumps(asdict(result), indent=2) + "\n")
     logger.info("wrote %d scans (%d points) to %s; %s", result.scans_written, result.points_written, out, result.note)
     return result

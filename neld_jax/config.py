@@ -44,6 +44,8 @@ def base_config() -> ml_collections.ConfigDict:
     # The scans are registered already (world frame, e.g. FAST-LIO2's /cloud_registered): move them into their
     # sensors' frames with the poses. Left False, scans that look registered are refused (neld_jax.data.frames).
     c.data.scans_in_world_frame = False
+    # The poses file holds world -> sensor transforms: invert them. Left False, poses that look inverted are refused.
+    c.data.invert_poses = False
     # Keyframes: a scan is kept when ANY enabled rule says so (<= 0 turns a rule off; all off keeps every scan).
     # Every input scan still gets a refined pose: the others take their keyframes' interpolated correction.
     c.data.keyframe_interval_s = 3.0

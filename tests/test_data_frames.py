@@ -54,3 +54,19 @@ def test_load_refuses_registered_scans_and_moves_them_when_told(tmp_path):
     write_generic(seq, tmp_path / "sensor")
     loaded = load_sequence(_config(tmp_path / "sensor"))
     np.testing.assert_allclose(loaded.scans[3], seq.scans[3], atol=1e-4)
+
+
+def test_inverted_poses_are_refused_and_inverted_when_told(tmp_path):
+    seq = _sequence()
+    frames.check_pose_direction(seq, "as generated")  # sensor -> world: passes
+    inverted = dataclasses.replace(seq, poses=np.linalg.inv(seq.poses))
+    with pytest.raises(DataError, match=r"inverted: the poses look inverted \(world -> sensor\).*invert_poses=True"):
+        frames.check_pose_direction(inverted, "inverted")
+    write_generic(inverted, tmp_path / "inverted")
+    with pytest.raises(DataError, match="inverted: the poses look inverted"):
+        load_sequence(_config(tmp_path / "inverted"))
+    loaded = load_sequence(_config(tmp_path / "inverted", invert_poses=True))
+    np.testing.assert_allclose(loaded.poses, seq.poses, atol=1e-6)
+    # Too few pairs that moved to tell: nothing decided.
+    still = dataclasses.replace(inverted, poses=np.tile(np.eye(4), (seq.num_scans, 1, 1)))
+    frames.check_pose_direction(still, "still")

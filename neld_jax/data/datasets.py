@@ -567,8 +567,13 @@ def load_sequence(data_cfg) -> Sequence:
         else:
             seq = load_generic(root, tol=tol, drop_unmatched_tail=drop_tail)
         seq = _with_explicit_ground_truth(seq, Path(root).expanduser(), gt_poses_file, gt_map_file, offset, tol, gt_dt)
-    # Scans must be in the sensor frame; world-frame ones are moved there when the config says so, else refused.
+    # Poses sensor -> world and scans in the sensor frame: converted when the config says so, else checked (and
+    # refused with a line naming the option when they look the other way).
+    invert = bool(data_cfg.get("invert_poses", False))
+    seq = frames.inverted_poses(seq, str(root)) if invert else seq
     seq = frames.in_sensor_frame(seq, str(root), bool(data_cfg.get("scans_in_world_frame", False)))
+    if not invert:
+        frames.check_pose_direction(seq, str(root))
 
     if seq.gt_poses is None:
         looked = f"data.gt_poses_path {gt_poses_file}" if gt_poses_file else GT_SEARCHED[fmt][0]

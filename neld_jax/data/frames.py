@@ -1,17 +1,22 @@
-"""Which frame the scans are in: the sensor's (what every layout expects) or the world's (already registered).
+"""Frame conventions of the input, checked at load time: scans in the sensor frame, poses sensor -> world.
 
-A common slip with real recordings: FAST-LIO2 publishes each scan twice, /cloud_registered_body (sensor frame)
-and /cloud_registered (world frame), and its PCD saving writes world-frame points. World-frame scans read as
-sensor-frame ones are moved by their pose a second time: the map is garbage and nothing says why. The check
-here looks where each scan's points are: a LiDAR scan surrounds its sensor, so in the sensor frame its points lie
-nearer the frame's origin than the scan's pose position t, and in the world frame nearer t. Each scan far enough
-from the origin to tell (|t| >= 1 m and at least half the scan's typical range) votes by the 25th percentile of
-its points' distances to the origin and to t.
-
+Scans: a common slip with real recordings is FAST-LIO2's /cloud_registered (world frame) or its PCD saving (world-
+frame points) instead of /cloud_registered_body (sensor frame). World-frame scans read as sensor-frame ones are
+moved by their pose a second time: the map is garbage and nothing says why. A LiDAR scan surrounds its sensor, so
+in the sensor frame its points lie nearer the frame's origin than the scan's pose position t, and in the world
+frame nearer t. Each scan far enough from the origin to tell (|t| >= 1 m and at least half the scan's typical
+range) votes by the 25th percentile of its points' distances to the origin and to t.
 Measured on the six FAST-LIO2 sequences of daxuanzi515/Fast-LIO2_SC-SLAM (benchmarks/RESULTS.md, thirteenth
 session; 164-198 voters of up to 200 scans): sensor-frame scans vote "world" 0-35 % of the time (indoor scans whose
 pose lies inside what they see vote either way), the same scans moved into the world frame 100 %; Hilti
 quick-shack (a room, |t| < 0.5 m) has no voters, so nothing is decided there.
+
+Poses: a file of world -> sensor transforms (a tf lookup the other way round) gives the same garbage. Scans a
+little apart along the route (moved 1 m or turned 10 deg, at most 5 scans on) overlap under the right poses: the
+median distance from one's points to the other's nearest is small. Under the inverted poses it grows. The check
+compares the two over up to 20 such pairs. On the six sequences above the inverted poses' distance is 5-7 times
+the poses' own on the four handheld ones and 1.1-1.6 times on Riverside02's sparse keyframes 7 m apart, where
+scans overlap little either way; poses count as inverted only when inverting them halves the distance.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import dataclasses
 import logging
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
@@ -29,6 +35,8 @@ logger = logging.getLogger(__name__)
 MIN_VOTERS = 20  # fewer scans far enough from the origin decide nothing
 WORLD_SHARE = 0.9  # this share of world votes (or more) stops the load
 _MAX_SCANS, _MAX_POINTS = 200, 2000  # evenly spaced scans and points per scan: enough to vote, fast on any layout
+MIN_PAIRS, MAX_PAIRS = 5, 20  # pairs of scans compared for the poses' direction
+INVERTED_RATIO = 0.5  # inverting the poses must halve the pairs' distance to count as the right way round
 
 
 def world_frame_votes(scans: list[np.ndarray], poses: np.ndarray, quantile: float = 25.0,
@@ -71,3 +79,52 @@ def in_sensor_frame(seq: Sequence, where: str, scans_in_world_frame: bool = Fals
             "the sensor frame (FAST-LIO2: /cloud_registered_body, not /cloud_registered or PCD/scans_*.pcd), or "
             "set data.scans_in_world_frame=True to have them moved into it")
     return seq
+
+
+def _overlap_pairs(poses: np.ndarray, min_move_m: float = 1.0, min_turn_deg: float = 10.0,
+                   max_gap: int = 5) -> list[tuple[int, int]]:
+    """Up to MAX_PAIRS (i, j), j the first scan within max_gap after i that moved or turned that far from it."""
+    pairs = []
+    starts = np.unique(np.linspace(0, len(poses) - 2, min(len(poses) - 1, 4 * MAX_PAIRS)).round().astype(int))
+    for i in starts if len(poses) >= 2 else []:
+        for j in range(i + 1, min(i + max_gap, len(poses) - 1) + 1):
+            relative = np.linalg.inv(poses[i]) @ poses[j]
+            turn_deg = np.degrees(np.arccos(np.clip((np.trace(relative[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+            if np.linalg.norm(relative[:3, 3]) >= min_move_m or turn_deg >= min_turn_deg:
+                pairs.append((int(i), j))
+                break
+        if len(pairs) >= MAX_PAIRS:
+            break
+    return pairs
+
+
+def pair_distance(scans: list[np.ndarray], poses: np.ndarray, pairs: list[tuple[int, int]]) -> float:
+    """Median over pairs (i, j) of the median distance from scan i's points to scan j's nearest, both registered
+    with poses [S, 4, 4] (sensor -> world)."""
+    def registered(k):
+        points = np.asarray(scans[k], dtype=np.float64)
+        points = points[:: max(1, len(points) // _MAX_POINTS)]
+        return points @ poses[k, :3, :3].T + poses[k, :3, 3]
+
+    return float(np.median([np.median(cKDTree(registered(j)).query(registered(i))[0]) for i, j in pairs]))
+
+
+def inverted_poses(seq: Sequence, where: str) -> Sequence:
+    """seq with its poses inverted (data.invert_poses: the file holds world -> sensor transforms)."""
+    logger.info("%s: inverting %d poses (data.invert_poses: the file holds world -> sensor)", where, seq.num_scans)
+    return dataclasses.replace(seq, poses=np.linalg.inv(seq.poses))
+
+
+def check_pose_direction(seq: Sequence, where: str) -> None:
+    """A DataError naming `where` when inverting seq's poses makes scans a little apart overlap far better
+    (module docstring); scans in the sensor frame."""
+    pairs = _overlap_pairs(seq.poses)
+    if len(pairs) < MIN_PAIRS or any(len(seq.scans[k]) == 0 for pair in pairs for k in pair):
+        return
+    given = pair_distance(seq.scans, seq.poses, pairs)
+    inverted = pair_distance(seq.scans, np.linalg.inv(seq.poses), pairs)
+    if inverted < INVERTED_RATIO * given:
+        raise DataError(
+            f"{where}: the poses look inverted (world -> sensor): scans a little apart overlap far better under their "
+            f"inverses (median nearest-point distance {inverted:.2f} m against {given:.2f} m over {len(pairs)} pairs). "
+            "Give sensor -> world poses (TUM and KITTI files hold those), or set data.invert_poses=True")

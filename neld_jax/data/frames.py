@@ -6,6 +6,7 @@ moved by their pose a second time: the map is garbage and nothing says why. A Li
 in the sensor frame its points lie nearer the frame's origin than the scan's pose position t, and in the world
 frame nearer t. Each scan far enough from the origin to tell (|t| >= 1 m and at least half the scan's typical
 range) votes by the 25th percentile of its points' distances to the origin and to t.
+
 Measured on the six FAST-LIO2 sequences of daxuanzi515/Fast-LIO2_SC-SLAM (benchmarks/RESULTS.md, thirteenth
 session; 164-198 voters of up to 200 scans): sensor-frame scans vote "world" 0-35 % of the time (indoor scans whose
 pose lies inside what they see vote either way), the same scans moved into the world frame 100 %; Hilti
@@ -36,7 +37,7 @@ MIN_VOTERS = 20  # fewer scans far enough from the origin decide nothing
 WORLD_SHARE = 0.9  # this share of world votes (or more) stops the load
 _MAX_SCANS, _MAX_POINTS = 200, 2000  # evenly spaced scans and points per scan: enough to vote, fast on any layout
 MIN_PAIRS, MAX_PAIRS = 5, 20  # pairs of scans compared for the poses' direction
-INVERTED_RATIO = 0.5  # inverting the poses must halve the pairs' distance to count as the right way round
+INVERTED_RATIO = 0.5  # poses count as inverted when inverting them halves the pairs' distance
 
 
 def world_frame_votes(scans: list[np.ndarray], poses: np.ndarray, quantile: float = 25.0,

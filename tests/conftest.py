@@ -66,6 +66,18 @@ def fake_training_clock(monkeypatch, seconds_per_step: float = 1.0, compile_s: f
     return clock
 
 
+def tiny_synthetic_sequence(num_scans: int = 4):
+    """A synthetic Sequence of num_scans small scans (8 beams x 64 columns, 30 m scene, 5 m trajectory radius)."""
+    import ml_collections
+
+    from neld_jax.data.synthetic import make_sequence
+
+    cfg = ml_collections.ConfigDict({"num_scans": num_scans, "num_beams": 8, "num_columns": 64,
+                                     "gt_map_points": 1000, "scene_size_m": 30.0, "trajectory_radius_m": 5.0,
+                                     "max_range_m": 30.0})
+    return make_sequence(cfg)
+
+
 def similarity_scale(T_moved, T_start) -> float:
     """The Umeyama (similarity-alignment) scale of T_moved's positions [S, 4, 4] against T_start's, minus 1
     (float64): how much a pose update scales the route."""

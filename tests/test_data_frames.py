@@ -7,17 +7,15 @@ import ml_collections
 import numpy as np
 import pytest
 
+from conftest import tiny_synthetic_sequence
 from neld_jax.data import frames
 from neld_jax.data.datasets import load_sequence
-from neld_jax.data.synthetic import make_sequence, write_generic
+from neld_jax.data.synthetic import write_generic
 from neld_jax.errors import DataError
 
 
 def _sequence(num_scans=30):
-    cfg = ml_collections.ConfigDict({"num_scans": num_scans, "num_beams": 8, "num_columns": 64,
-                                     "gt_map_points": 1000, "scene_size_m": 30.0, "trajectory_radius_m": 5.0,
-                                     "max_range_m": 30.0})
-    return make_sequence(cfg)
+    return tiny_synthetic_sequence(num_scans)
 
 
 def _registered(seq):

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from conftest import tiny_synthetic_sequence
 from neld_jax import report
 from neld_jax.data.datasets import load_sequence
 from neld_jax.data.lio_keyframes import load_lio_keyframes, read_times
@@ -18,7 +19,6 @@ from neld_jax.data.poses import read_tum, write_kitti
 from neld_jax.data.preprocess import select_keyframes
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.scans import write_scan
-from neld_jax.data.synthetic import make_sequence
 from neld_jax.errors import DataError
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -33,15 +33,8 @@ def _write_layout(root, seq, times=None, num_poses=None):
     (root / "times.txt").write_text("".join(f"{t:.6f}\n" for t in times))
 
 
-def _tiny_synthetic(num_scans=4):
-    cfg = ml_collections.ConfigDict({"num_scans": num_scans, "num_beams": 8, "num_columns": 64,
-                                     "gt_map_points": 1000, "scene_size_m": 30.0, "trajectory_radius_m": 5.0,
-                                     "max_range_m": 30.0})
-    return make_sequence(cfg)
-
-
 def test_lio_keyframes_layout_reads_scans_poses_and_stamps(tmp_path):
-    seq = _tiny_synthetic()
+    seq = tiny_synthetic_sequence()
     _write_layout(tmp_path, seq, times=1.6e9 + np.array([0.1, 7.4, 7.8, 9.0]))
     loaded = load_lio_keyframes(tmp_path)
     assert loaded.num_scans == 4 and loaded.files == [f"Scans/{i:06d}.pcd" for i in range(4)]
@@ -54,7 +47,7 @@ def test_lio_keyframes_layout_reads_scans_poses_and_stamps(tmp_path):
 
 
 def test_lio_keyframes_count_mismatch_names_the_short_side(tmp_path):
-    seq = _tiny_synthetic()
+    seq = tiny_synthetic_sequence()
     _write_layout(tmp_path, seq, num_poses=3)  # as new_Riverside02_bag_331: 332 scans and stamps, 331 poses
     with pytest.raises(DataError, match=r"odom_poses.txt has 3.*odom_poses.txt is short by 1.*drop_unmatched_tail"):
         load_lio_keyframes(tmp_path)
@@ -103,7 +96,7 @@ def test_robust_outliers_and_report_rows():
 
 
 def test_pseudo_ground_truth_keeps_the_recording_as_gt():
-    seq = _tiny_synthetic(6)
+    seq = tiny_synthetic_sequence(6)
     drifted = with_drift(seq, 0.05, 0.5, seed=0)
     np.testing.assert_array_equal(drifted.gt_poses, seq.poses)
     np.testing.assert_allclose(drifted.poses[0], seq.poses[0])
@@ -119,7 +112,7 @@ def _cli(script, *args):
 def test_train_on_the_layout_writes_every_input_scan_and_quality(tmp_path):
     """End to end through the CLI: 6 scans of which 3 are keyframes (distance rule), a pseudo ground truth from
     bin/perturb.py; every input scan gets a pose, the crispness and the per-scan report are written."""
-    seq = _tiny_synthetic(6)
+    seq = tiny_synthetic_sequence(6)
     _write_layout(tmp_path / "rec", seq, times=np.arange(6) * 1.0)
     perturbed = _cli("perturb.py", "--config=configs/lio_keyframes.py", f"--config.data.root={tmp_path / 'rec'}",
                      f"--out={tmp_path / 'drift'}", "--trans_m=0.02", "--rot_deg=0.2")
@@ -153,7 +146,7 @@ def test_train_on_the_layout_writes_every_input_scan_and_quality(tmp_path):
 
 
 def test_a_scene_too_large_for_one_field_is_one_clear_line(tmp_path):
-    seq = _tiny_synthetic()
+    seq = tiny_synthetic_sequence()
     _write_layout(tmp_path, seq)
     result = _cli("train.py", "--config=configs/lio_keyframes.py:cpu", f"--config.data.root={tmp_path}",
                   f"--config.output_dir={tmp_path / 'out'}", "--config.data.max_extent_m=10")
@@ -166,7 +159,7 @@ def test_a_scene_too_large_for_one_field_is_one_clear_line(tmp_path):
 def test_entropy_trajectory_benchmark_follows_the_poses(tmp_path):
     """benchmarks/entropy_trajectory.py: the map's entropy before the poses start equals the start's, and moves
     once they do; one record per --every steps and one at the end."""
-    _write_layout(tmp_path / "seq", _tiny_synthetic(num_scans=4))
+    _write_layout(tmp_path / "seq", tiny_synthetic_sequence(num_scans=4))
     out = tmp_path / "trajectory.json"
     tiny = ["model.width=16", "model.depth=2", "model.skip_layers=(1,)", "model.pos_freqs=6", "model.dir_freqs=2",
             "sampling.coarse_stages=(8,)", "sampling.fine_stages=(4,)", "sampling.guided_samples=4", "train.steps=8",

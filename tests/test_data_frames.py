@@ -1,5 +1,5 @@
-"""Scans already registered (world frame) are refused with a line that names the fix, or moved into the sensor
-frame when data.scans_in_world_frame says so (neld_jax/data/frames.py)."""
+"""Scans already registered (world frame) and poses that look inverted are refused with a line that names the fix,
+or converted when data.scans_in_world_frame / data.invert_poses say so (neld_jax/data/frames.py)."""
 
 import dataclasses
 
@@ -12,18 +12,15 @@ from neld_jax.data import frames
 from neld_jax.data.datasets import load_sequence
 from neld_jax.data.synthetic import write_generic
 from neld_jax.errors import DataError
-
-
-def _sequence(num_scans=30):
-    return tiny_synthetic_sequence(num_scans)
+from neld_jax.geometry import transform_points
 
 
 def _registered(seq):
-    return [scan @ pose[:3, :3].T + pose[:3, 3] for scan, pose in zip(seq.scans, seq.poses)]
+    return [transform_points(scan, pose) for scan, pose in zip(seq.scans, seq.poses)]
 
 
 def test_votes_tell_sensor_from_world_frame_and_the_move_back_is_exact():
-    seq = _sequence()
+    seq = tiny_synthetic_sequence(30)
     voters, share = frames.world_frame_votes(seq.scans, seq.poses)
     assert voters == 30 and share < 0.5
     world = _registered(seq)
@@ -42,7 +39,7 @@ def _config(root, **extra):
 
 
 def test_load_refuses_registered_scans_and_moves_them_when_told(tmp_path):
-    seq = _sequence()
+    seq = tiny_synthetic_sequence(30)
     write_generic(dataclasses.replace(seq, scans=_registered(seq)), tmp_path / "world")
     with pytest.raises(DataError, match=r"world: the scans look registered already .*scans_in_world_frame=True"):
         load_sequence(_config(tmp_path / "world"))
@@ -55,7 +52,7 @@ def test_load_refuses_registered_scans_and_moves_them_when_told(tmp_path):
 
 
 def test_inverted_poses_are_refused_and_inverted_when_told(tmp_path):
-    seq = _sequence()
+    seq = tiny_synthetic_sequence(30)
     frames.check_pose_direction(seq, "as generated")  # sensor -> world: passes
     inverted = dataclasses.replace(seq, poses=np.linalg.inv(seq.poses))
     with pytest.raises(DataError, match=r"inverted: the poses look inverted \(world -> sensor\).*invert_poses=True"):

@@ -30,6 +30,7 @@ from scipy.spatial import cKDTree
 
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
+from neld_jax.geometry import transform_points
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +41,12 @@ MIN_PAIRS, MAX_PAIRS = 5, 20  # pairs of scans compared for the poses' direction
 INVERTED_RATIO = 0.5  # poses count as inverted when inverting them halves the pairs' distance
 
 
+def _thinned(scan: np.ndarray) -> np.ndarray:
+    """Every k-th point of a scan [N, 3] (float64), about _MAX_POINTS of them: enough to vote or compare."""
+    points = np.asarray(scan, dtype=np.float64)
+    return points[:: max(1, len(points) // _MAX_POINTS)]
+
+
 def world_frame_votes(scans: list[np.ndarray], poses: np.ndarray, quantile: float = 25.0,
                       min_offset_m: float = 1.0) -> tuple[int, float]:
     """(voters, share of them whose points lie nearer their pose position than the origin); scans: [[N_i, 3]],
@@ -47,10 +54,9 @@ def world_frame_votes(scans: list[np.ndarray], poses: np.ndarray, quantile: floa
     picked = np.unique(np.linspace(0, len(scans) - 1, min(len(scans), _MAX_SCANS)).round().astype(int))
     votes = []
     for i in picked:
-        points = np.asarray(scans[i], dtype=np.float64)
-        if len(points) == 0:
+        if len(scans[i]) == 0:
             continue
-        points = points[:: max(1, len(points) // _MAX_POINTS)]
+        points = _thinned(scans[i])
         position = poses[i, :3, 3]
         to_origin = np.percentile(np.linalg.norm(points, axis=1), quantile)
         to_position = np.percentile(np.linalg.norm(points - position, axis=1), quantile)
@@ -62,7 +68,7 @@ def world_frame_votes(scans: list[np.ndarray], poses: np.ndarray, quantile: floa
 
 def to_sensor_frame(scans: list[np.ndarray], poses: np.ndarray) -> list[np.ndarray]:
     """World-frame scans [[N_i, 3]] moved into their sensors' frames: R_i^T (p - t_i)."""
-    return [(np.asarray(scan) - pose[:3, 3]) @ pose[:3, :3] for scan, pose in zip(scans, poses)]
+    return [transform_points(scan, np.linalg.inv(pose)) for scan, pose in zip(scans, poses)]
 
 
 def in_sensor_frame(seq: Sequence, where: str, scans_in_world_frame: bool = False) -> Sequence:
@@ -103,9 +109,7 @@ def pair_distance(scans: list[np.ndarray], poses: np.ndarray, pairs: list[tuple[
     """Median over pairs (i, j) of the median distance from scan i's points to scan j's nearest, both registered
     with poses [S, 4, 4] (sensor -> world)."""
     def registered(k):
-        points = np.asarray(scans[k], dtype=np.float64)
-        points = points[:: max(1, len(points) // _MAX_POINTS)]
-        return points @ poses[k, :3, :3].T + poses[k, :3, 3]
+        return transform_points(_thinned(scans[k]), poses[k])
 
     return float(np.median([np.median(cKDTree(registered(j)).query(registered(i))[0]) for i, j in pairs]))
 

@@ -491,25 +491,49 @@ def _world_map(clouds: list, poses: np.ndarray, scans, settings: BaselineSetting
     return cloud
 
 
+@dataclasses.dataclass(frozen=True)
+class Refinement:
+    """What `refine_against_map` did: rounds_done, the rounds completed, with the fraction of the last one when a
+    deadline stopped it (1.4: one round and 40 % of the scans of the second); rejected, the fraction of its
+    registrations the gates rejected; stopped, whether the deadline stopped it before settings.map_rounds."""
+
+    rounds_done: float
+    rejected: float
+    stopped: bool
+
+
 def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettings,
-                       on_round: Callable[[int, np.ndarray], None] | None = None) -> tuple[np.ndarray, float]:
+                       on_round: Callable[[int, np.ndarray], None] | None = None,
+                       deadline: float | None = None) -> tuple[np.ndarray, Refinement]:
     """`settings.map_rounds` rounds of multi-view refinement (module docstring, step 4); scan 0 stays.
 
     clouds: S Open3D clouds (sensor frame); poses: [S, 4, 4] sensor -> world. on_round(r, poses [S, 4, 4]), when
     given, sees a copy of the poses after each round r = 1 .. map_rounds (benchmarks/baseline_rounds.py).
-    Returns (poses [S, 4, 4], the fraction of registrations the gates rejected)."""
+    deadline: a time.perf_counter() value; no scan is registered after it (each registration moves one scan against
+    the others' map, so the poses between two registrations are an answer too; neld_jax.run's `baseline_deadline`).
+    Returns (poses [S, 4, 4], Refinement)."""
     poses = np.array(poses, dtype=np.float64)
     map_icp = dataclasses.replace(settings, icp_distances_m=settings.map_icp_distances_m)
-    tried = rejected = 0
+    tried = rejected = visited = 0  # visited: scans of the current round registered (or skipped as the gauge)
+
+    def report(rounds_done: float, stopped: bool) -> tuple[np.ndarray, Refinement]:
+        return poses, Refinement(round(rounds_done, 3), rejected / max(tried, 1), stopped)
+
     for round_index in range(1, settings.map_rounds + 1):
+        visited = 0
         for half in (0, 1):
             others = [k for k in range(len(clouds)) if k % 2 != half]
             if not others:
                 continue
+            if deadline is not None and time.perf_counter() > deadline:
+                return report(round_index - 1 + visited / len(clouds), True)
             world = _world_map(clouds, poses, others, settings)
             world_points, world_normals = np.asarray(world.points), np.asarray(world.normals)
             tree = cKDTree(world_points)
             for s in range(half, len(clouds), 2):
+                if deadline is not None and time.perf_counter() > deadline:
+                    return report(round_index - 1 + visited / len(clouds), True)
+                visited += 1
                 if s == 0:  # the gauge
                     continue
                 scan_in_world = transform_points(np.asarray(clouds[s].points), poses[s])
@@ -532,13 +556,14 @@ def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettin
                 poses[s] = transform
         if on_round is not None:
             on_round(round_index, poses.copy())
-    return poses, rejected / max(tried, 1)
+    return report(settings.map_rounds, False)
 
 
 def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
                       settings: BaselineSettings = BaselineSettings(),
                       refine_from: Callable[..., np.ndarray] | None = None,
-                      on_round: Callable[[int, np.ndarray], None] | None = None) -> np.ndarray:
+                      on_round: Callable[[int, np.ndarray], None] | None = None,
+                      deadline: float | None = None, report: dict | None = None) -> np.ndarray:
     """The baseline: scan-to-map chain, the loop-closed pose graph, then the multi-view refinement (module
     docstring).
 
@@ -548,6 +573,9 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
     neld_jax.run's `refinement_start` chooses between those and init_poses.
     on_round(r, poses [S, 4, 4]): `refine_against_map`'s, called with r = 0 and the poses the refinement starts
     from too; they are the poses returned up to the final re-anchoring on scan 0 (one rigid transform).
+    deadline: a time.perf_counter() value after which the multi-view refinement registers no more scans
+    (`refine_against_map`; the chain and the graph always run to the end). report, when given, receives
+    {"map_rounds_done": rounds completed (a fraction when the deadline stopped them), "stopped_at_deadline"}.
     Returns refined poses [S, 4, 4] with pose 0 equal to init_poses[0] and orthonormal rotations.
     """
     init_poses = np.asarray(init_poses, dtype=np.float64)
@@ -575,9 +603,12 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
                 optimized = _orthonormal(refine_from(optimized, chain if settings.keep_input_tilt else None))
             if on_round is not None:
                 on_round(0, optimized.copy())
-            optimized, rejected = refine_against_map(clouds, optimized, settings, on_round)
-            logger.info("baseline: %d round(s) of multi-view refinement in %.1f s (%.0f%% of the registrations "
-                        "rejected by the gates)", settings.map_rounds, time.perf_counter() - t2, 100 * rejected)
+            optimized, refinement = refine_against_map(clouds, optimized, settings, on_round, deadline)
+            logger.info("baseline: %g round(s) of multi-view refinement in %.1f s (%.0f%% of the registrations "
+                        "rejected by the gates)", refinement.rounds_done, time.perf_counter() - t2,
+                        100 * refinement.rejected)
+            if report is not None:
+                report.update(map_rounds_done=refinement.rounds_done, stopped_at_deadline=refinement.stopped)
     # Re-anchor exactly on scan 0 (the gauge), whatever the optimiser did with the reference node.
     return anchored(optimized, init_poses[0])
 

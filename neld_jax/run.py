@@ -103,12 +103,14 @@ class Start:
     departure_m: float | None = None  # trajectory_departure of the baseline from the input (when it ran)
     bent: bool = False  # the departure exceeds what train.max_baseline_departure allows
     refined_from: str | None = None  # where the baseline's multi-view refinement started ("graph" | "chain" | "input")
+    # The rounds of that refinement completed: baseline.map_rounds, or a fraction when the run's deadline stopped them
+    rounds_done: float | None = None
 
 
 START_CHOICES = ("input", "baseline", "crisper")
 
 
-def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
+def starting_poses(config: ml_collections.ConfigDict, seq, deadline: float | None = None) -> Start:
     """The keyframe poses training starts from (train.init_poses).
 
     "input": the loaded poses (odometry). "baseline": the classical baseline's (Open3D scan-to-map ICP +
@@ -117,7 +119,8 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
     field's basin of convergence. "crisper": the baseline runs, and training starts from whichever of the two
     gives the crisper raw map (lower mean map entropy, config.eval's crispness settings). The field refines
     within a few cm and cannot undo a blurrier start (docs/method.md, "Which start"); without ground truth the
-    map's crispness is the judge that is at hand."""
+    map's crispness is the judge that is at hand. deadline: a time.perf_counter() value after which the baseline's
+    multi-view refinement registers no more scans (`baseline_deadline`; None: it runs all its rounds)."""
     how = str(config.train.init_poses).lower()
     if how not in START_CHOICES:
         raise ConfigError(f"train.init_poses: unknown value {config.train.init_poses!r} ({' | '.join(START_CHOICES)})")
@@ -126,11 +129,18 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
     from neld_jax.baseline import BaselineSettings, register_sequence
 
     t0 = time.perf_counter()
-    decided = {}
-    poses = register_sequence(seq.scans, seq.poses, BaselineSettings.from_config(config.get("baseline")),
-                              refinement_start(config, seq, decided))
+    decided, refined = {}, {}
+    settings = BaselineSettings.from_config(config.get("baseline"))
+    poses = register_sequence(seq.scans, seq.poses, settings, refinement_start(config, seq, decided),
+                              deadline=deadline, report=refined)
     seconds = time.perf_counter() - t0
     logger.info("train.init_poses=%s: the classical baseline took %.1f s", how, seconds)
+    if refined.get("stopped_at_deadline"):
+        logger.warning("the classical baseline's multi-view refinement stopped after %.2f of its %d rounds, so that "
+                       "training keeps %.0f%% of train.max_minutes=%g (its poses are taken as they are; "
+                       "train.max_minutes=0 lifts the limit)", refined["map_rounds_done"], settings.map_rounds,
+                       100 * MIN_TRAINING_SHARE, config.train.max_minutes)
+    rounds_done = refined.get("map_rounds_done")
     bent, departure_m, path_m, allowed_m = departure_check(config, seq.poses, poses)
     limit = float(config.train.get("max_baseline_departure", 0.0))
     if bent:
@@ -141,7 +151,7 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
                        departure_m, 100 * departure_m / max(path_m, 1e-9), path_m, allowed_m, limit)
     if how == "baseline":
         return Start(poses, "baseline", poses, seconds, departure_m=departure_m, bent=bent,
-                     refined_from=decided.get("refined_from"))
+                     refined_from=decided.get("refined_from"), rounds_done=rounds_done)
     # The input's crispness, measured when the refinement's start was chosen, is not measured again.
     measured = decided.get("input_judged")
     if measured is None:
@@ -157,7 +167,7 @@ def starting_poses(config: ml_collections.ConfigDict, seq) -> Start:
                 "baseline %s%s)", chosen, _entropy_text(entropy["initial"]), _entropy_text(entropy["baseline"]),
                 "; the baseline departs too far from the input" if bent else "")
     return Start(poses if chosen == "baseline" else seq.poses, chosen, poses, seconds, judged, departure_m, bent,
-                 decided.get("refined_from"))
+                 decided.get("refined_from"), rounds_done)
 
 
 def _entropy_text(value: float | None) -> str:
@@ -301,6 +311,18 @@ def training_seconds(config: ml_collections.ConfigDict, spent_s: float) -> float
     return max(limit - float(spent_s), MIN_TRAINING_SHARE * limit)
 
 
+def baseline_deadline(config: ml_collections.ConfigDict, t_start: float) -> float | None:
+    """The time.perf_counter() value after which the classical baseline's multi-view refinement registers no more
+    scans in a run started at t_start: when the run has used all of train.max_minutes but training's floor
+    (MIN_TRAINING_SHARE), so that the whole run keeps its time however slow the registration is (MulRan Riverside02:
+    a 451 s baseline on a slow spell took the run to 10.6 minutes; docs/design.md, "The loop"). The chain and the
+    pose graph are not anytime and always finish. None when train.max_minutes is 0 (no limit)."""
+    limit = float(config.train.max_minutes) * 60.0
+    if limit <= 0:
+        return None
+    return t_start + (1.0 - MIN_TRAINING_SHARE) * limit
+
+
 # The rendered map always gets at least this share of mapping.max_seconds, however late the run is.
 MIN_RENDERING_SHARE = 0.25
 
@@ -359,7 +381,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     logger.info("budget %s (jax's default backend: %s)", config.get("budget", "?"), jax.default_backend())
 
     loaded, seq, norm = load_and_prepare(config)
-    start = starting_poses(config, seq)
+    start = starting_poses(config, seq, deadline=baseline_deadline(config, t_start))
     config = pose_steps_for_start(config, start.chosen)
     # The config as trained (the start can cap the pose steps); the hash above stays the user's, for resuming.
     export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
@@ -462,6 +484,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         summary["baseline_seconds"] = round(start.baseline_seconds, 2)
         summary["baseline_departure_m"] = round(start.departure_m, 3)
         summary["baseline_refined_from"] = start.refined_from  # "graph" | "chain" | "input" (refinement_start), or None
+        summary["baseline_rounds_done"] = start.rounds_done  # fewer than baseline.map_rounds: baseline_deadline
     scans_summary = report.summarize(rows)
     export.write_json(os.path.join(out_dir, "metrics.json"), {"run": summary, "scans_report": scans_summary})
     summary["scans_report"] = scans_summary

@@ -6,7 +6,9 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import open3d as o3d
@@ -185,7 +187,7 @@ def test_crisper_start_takes_the_crisper_map(drifted_sequence, monkeypatch):
 
     from_truth = dataclasses.replace(drifted_sequence, poses=drifted_sequence.gt_poses)
     monkeypatch.setattr(neld_jax.baseline, "register_sequence",
-                        lambda scans, poses, settings, refine_from=None: drifted_sequence.poses)
+                        lambda scans, poses, settings, refine_from=None, **_: drifted_sequence.poses)
     start = starting_poses(config, from_truth)
     assert start.chosen == "input" and start.poses is from_truth.poses
     assert start.baseline_poses is drifted_sequence.poses  # still written as poses_baseline by the run
@@ -311,7 +313,8 @@ def test_multi_view_refinement_pulls_a_scan_onto_the_others_map_and_gates_a_far_
     settings = dataclasses.replace(SETTINGS, map_rounds=2)
     clouds = prepare_clouds(seq.scans, settings)
     seen = []
-    refined, rejected = refine_against_map(clouds, start, settings, on_round=lambda r, poses: seen.append((r, poses)))
+    refined, refinement = refine_against_map(clouds, start, settings,
+                                             on_round=lambda r, poses: seen.append((r, poses)))
     # on_round sees each round's poses (copies), the last of them the result
     assert [r for r, _ in seen] == [1, 2]
     np.testing.assert_array_equal(seen[-1][1], refined)
@@ -328,7 +331,29 @@ def test_multi_view_refinement_pulls_a_scan_onto_the_others_map_and_gates_a_far_
     assert np.all(t_after[[1, 4, 5]] < 0.02) and np.all(r_after[[1, 4, 5]] < 0.1)
     np.testing.assert_array_equal(refined[0], start[0])  # the gauge scan
     np.testing.assert_array_equal(refined[3], start[3])  # gated: ICP would move it by about 1 m
-    assert rejected >= 2 / 10  # scan 3 in both rounds, of 5 registrations a round
+    assert refinement.rejected >= 2 / 10  # scan 3 in both rounds, of 5 registrations a round
+    assert refinement.rounds_done == 2 and not refinement.stopped
+
+
+def test_a_deadline_stops_the_refinement_between_two_registrations(drifted_sequence):
+    # neld_jax.run keeps a run's time by the baseline's deadline: the poses when it passes are the answer. One
+    # already past registers nothing; one that passes during the rounds leaves the scans registered so far moved.
+    seq = drifted_sequence
+    start = seq.gt_poses.copy()
+    start[2, :3, 3] += [0.06, -0.06, 0.05]
+    settings = dataclasses.replace(SETTINGS, map_rounds=2)
+    clouds = prepare_clouds(seq.scans, settings)
+    untouched, stopped = refine_against_map(clouds, start, settings, deadline=time.perf_counter() - 1.0)
+    np.testing.assert_array_equal(untouched, start)
+    assert stopped.stopped and stopped.rounds_done == 0
+    clock = iter(range(1000))
+    with mock.patch.object(time, "perf_counter", lambda: float(next(clock))):
+        part_way, stopped = refine_against_map(clouds, start, settings, deadline=2.5)
+    # The clock ticks before the even half (0) and before each of its scans (1, 2, 3: scans 0, 2, 4): the gauge and
+    # scan 2 were visited when the deadline passed, 2 of the 6 scans of round 1; only scan 2 moved.
+    assert stopped.stopped and stopped.rounds_done == pytest.approx(2 / 6, abs=1e-3)
+    assert not np.allclose(part_way[2], start[2])
+    np.testing.assert_array_equal(np.delete(part_way, 2, axis=0), np.delete(start, 2, axis=0))
 
 
 def _plane_points(origin, u, v, size_u, size_v, spacing=0.1):

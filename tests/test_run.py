@@ -153,6 +153,9 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     spent = []  # what the run passes to the training guard: the baseline's seconds count
     real_training_seconds = run.training_seconds
     monkeypatch.setattr(run, "training_seconds", lambda c, s: spent.append(s) or real_training_seconds(c, s))
+    # The run hands the baseline its deadline: one already past when the run starts stops the refinement rounds
+    # before their first registration (the chain and the pose graph still run).
+    monkeypatch.setattr(run, "baseline_deadline", lambda c, t_start: t_start - 1.0)
     config = make_tiny_config(str(tmp_path / "run"), steps=4)
     config.train.init_poses = "baseline"
     config.baseline.window, config.baseline.voxel_size_m = 2, 0.2
@@ -161,6 +164,7 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     config.mapping.enabled = False  # not what this test is about
     summary = run.run(config, progress=False)
     assert summary["started_from"] == "baseline" and summary["baseline_seconds"] > 0
+    assert config.baseline.map_rounds > 0 and summary["baseline_rounds_done"] == 0
     assert spent[0] >= summary["baseline_seconds"]
     assert {"initial", "baseline", "optimized"} <= set(summary["crispness"])
     _, T_baseline = read_tum(tmp_path / "run" / "poses_baseline.txt")
@@ -185,6 +189,15 @@ def test_training_time_counts_from_the_run_start_with_a_floor():
     assert run.training_seconds(config, 400.0) == 120.0  # but training gets at least a quarter
     config.train.max_minutes = 0.0
     assert run.training_seconds(config, 400.0) == 0.0  # no limit
+
+
+def test_the_baseline_refines_until_only_trainings_floor_is_left():
+    config = make_tiny_config("unused", steps=4)
+    config.train.max_minutes = 8.0
+    assert run.baseline_deadline(config, 100.0) == 100.0 + 360.0  # 8 minutes less training's quarter
+    assert run.training_seconds(config, 360.0) == 120.0  # a baseline stopped there leaves training its floor
+    config.train.max_minutes = 0.0
+    assert run.baseline_deadline(config, 100.0) is None  # no limit
 
 
 def test_rendering_time_gives_back_what_the_run_overran_with_a_floor():

@@ -7,7 +7,9 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
    map is far more accurate than scan to scan on sparse keyframes (a few thousand points each), and every
    registration starts from the odometry's relative motion only, so the chain does not depend on how far the
    odometry drifted overall (measured on real keyframes: two starts 1.5 m apart give chains 1 cm apart); a link
-   that moves the scan more than `max_link_correction_m` from that increment keeps the increment. At their coarse
+   that moves the scan more than `max_link_correction_m` from that increment keeps the increment, and a chain
+   most of whose links kept it is given up (`chain_max_kept_fraction`: keyframes too far apart for ICP; steps 2
+   and 3 are skipped and step 4 starts from the input). At their coarse
    scales the ICPs here pair points only where their normals agree (`point_to_plane_icp`: thin walls). With
    `keep_input_tilt` (an IMU-aided odometry's input) every link keeps the input's up axis, so that the links' pitch
    errors do not bow the route (docs/evaluation.md, "Keeping the input's tilt");
@@ -80,6 +82,14 @@ class BaselineSettings:
     min_normal_cos: float = 0.5
     normal_check_above_m: float = 0.25
     min_chain_fitness: float = 0.1  # below this overlap a chain link keeps the odometry's increment (and warns)
+    # A chain most of whose links keep the odometry's increment (too little overlap, or a slide) is the odometry with
+    # some ICP links in it: it cannot beat the odometry over the route, and its slid links bend it (MulRan
+    # Riverside02, keyframes 7 m apart: median overlap 19 %, 200 of 330 links kept, the chain 27 m off the odometry
+    # and refused after 167-210 s of ICP). From chain_check_links links on, once more than chain_max_kept_fraction of
+    # them kept the increment, the chain is given up, the pose graph skipped, and the refinement starts from the
+    # input (what the run's refinement_start chose there anyway). 0 switches it off.
+    chain_max_kept_fraction: float = 0.5
+    chain_check_links: int = 30
     # A chain link whose ICP result moves the scan more than this from the odometry's increment keeps the increment
     # (and warns): in corridors and stairwells ICP slides along the free axis with a good overlap (measured on
     # HKU_2: two links jumped 0.84 and 1.9 m between keyframes 0.2 m apart; docs/evaluation.md).
@@ -287,7 +297,7 @@ def correction_m(guess: np.ndarray, transform: np.ndarray) -> float:
 
 
 def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSettings
-                      ) -> tuple[np.ndarray, np.ndarray]:
+                      ) -> tuple[np.ndarray | None, np.ndarray]:
     """Register each scan to the local map of the `settings.window` scans before it.
 
     clouds: S Open3D clouds (sensor frame, with normals); init_poses: [S, 4, 4] sensor -> world.
@@ -295,11 +305,24 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
     settings.keep_input_tilt every pose has its init_poses' up axis (geometry.with_up_axis_of). A link
     whose fitness is below settings.min_chain_fitness, or whose ICP moved the scan further than
     settings.max_link_correction_m, keeps the odometry's increment; one warning per reason lists those scans.
+    poses is None when the chain was given up (settings.chain_max_kept_fraction; one warning says so); fitness then
+    holds the links registered before, NaN after.
     """
     poses = [np.asarray(init_poses[0], np.float64)]
     fitness = np.ones(len(clouds))
     kept = {"overlap": [], "slide": []}  # links that kept the odometry's increment, by reason: one warning each
+    given_up = False
     for s in range(1, len(clouds)):
+        kept_links = len(kept["overlap"]) + len(kept["slide"])
+        if (settings.chain_max_kept_fraction > 0 and s - 1 >= settings.chain_check_links
+                and kept_links > settings.chain_max_kept_fraction * (s - 1)):
+            fitness[s:] = np.nan
+            given_up = True
+            logger.warning("baseline: %d of the first %d chain links kept the odometry's increment (more than "
+                           "chain_max_kept_fraction=%.0f%%: the keyframes overlap too little for scan-to-map ICP): the "
+                           "chain is given up, the pose graph skipped, and the multi-view refinement starts from the "
+                           "input poses", kept_links, s - 1, 100 * settings.chain_max_kept_fraction)
+            break
         guess = poses[s - 1] @ np.linalg.inv(init_poses[s - 1]) @ init_poses[s]  # the odometry's increment
         if settings.keep_input_tilt:
             guess = with_up_axis_of(guess, init_poses[s])
@@ -324,7 +347,7 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
         logger.warning("baseline: ICP moved %d scan(s) further than max_link_correction_m=%.2g m from the odometry's "
                        "increment (a slide along a featureless direction?); they keep the increment: %s",
                        len(kept["slide"]), settings.max_link_correction_m, _first(kept["slide"]))
-    return np.stack(poses), fitness
+    return (None if given_up else np.stack(poses)), fitness
 
 
 def _first(items: list[str], count: int = 12) -> str:
@@ -575,7 +598,8 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
     from too; they are the poses returned up to the final re-anchoring on scan 0 (one rigid transform).
     deadline: a time.perf_counter() value after which the multi-view refinement registers no more scans
     (`refine_against_map`; the chain and the graph always run to the end). report, when given, receives
-    {"map_rounds_done": rounds completed (a fraction when the deadline stopped them), "stopped_at_deadline"}.
+    {"chain_given_up" (scan_to_map_chain's rule; then also "refined_from": "input", and refine_from is not called),
+    "map_rounds_done": rounds completed (a fraction when the deadline stopped them), "stopped_at_deadline"}.
     Returns refined poses [S, 4, 4] with pose 0 equal to init_poses[0] and orthonormal rotations.
     """
     init_poses = np.asarray(init_poses, dtype=np.float64)
@@ -590,16 +614,26 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
         t0 = time.perf_counter()
         chain, fitness = scan_to_map_chain(clouds, init_poses, settings)
         t1 = time.perf_counter()
-        optimized, loops = loop_closed_graph(clouds, chain, settings)
+        if chain is None:  # given up (scan_to_map_chain warned): no graph, the refinement starts from the input
+            optimized = init_poses
+            logger.info("baseline: scan-to-map chain given up after %.1f s (median overlap %.0f%%)", t1 - t0,
+                        100 * np.nanmedian(fitness[1:]))
+        else:
+            optimized, loops = loop_closed_graph(clouds, chain, settings)
+            logger.info("baseline: scan-to-map chain of %d scans in %.1f s (median overlap %.0f%%); pose graph with %d "
+                        "of %d loop-closure candidates (overlap >= %.0f%%), %d of them from %d global registrations, "
+                        "in %.1f s", len(scans), t1 - t0, 100 * np.median(fitness[1:]), loops.kept, loops.tried,
+                        100 * settings.min_loop_fitness, loops.global_kept, loops.global_tried,
+                        time.perf_counter() - t1)
+        if report is not None:
+            report.update(chain_given_up=chain is None)
+            if chain is None:
+                report.update(refined_from="input")
         t2 = time.perf_counter()
-        logger.info("baseline: scan-to-map chain of %d scans in %.1f s (median overlap %.0f%%); pose graph with %d of "
-                    "%d loop-closure candidates (overlap >= %.0f%%), %d of them from %d global registrations, in "
-                    "%.1f s", len(scans), t1 - t0, 100 * np.median(fitness[1:]), loops.kept, loops.tried,
-                    100 * settings.min_loop_fitness, loops.global_kept, loops.global_tried, t2 - t1)
         if settings.map_rounds > 0:
             # The graph's poses carry round-off in the rotations; re-orthonormalise before moving clouds with them.
             optimized = _orthonormal(optimized)
-            if refine_from is not None:
+            if refine_from is not None and chain is not None:
                 optimized = _orthonormal(refine_from(optimized, chain if settings.keep_input_tilt else None))
             if on_round is not None:
                 on_round(0, optimized.copy())
@@ -653,9 +687,9 @@ def run_baseline(config: ml_collections.ConfigDict) -> dict:
     loaded, sequence = load_preprocessed(config.data)
     t0 = time.perf_counter()
     settings = BaselineSettings.from_config(config.get("baseline"))
-    decided = {}
+    decided, refined = {}, {}
     poses = register_sequence(sequence.scans, sequence.poses, settings,
-                              refine_from=refinement_start(config, sequence, decided))
+                              refine_from=refinement_start(config, sequence, decided), report=refined)
     seconds = time.perf_counter() - t0
     poses_all = propagate_corrections(loaded.poses, sequence.loaded_index, poses, loaded.timestamps)
 
@@ -675,7 +709,8 @@ def run_baseline(config: ml_collections.ConfigDict) -> dict:
     crisp, _ = quality.map_crispness(sequence, {"initial": sequence.poses, "baseline": poses}, evaluation)
     crisp = quality.record_crispness(output_dir, crisp)
     write_json(output_dir / "metrics.json", {"baseline": {"seconds": round(seconds, 2),
-                                                          "refined_from": decided.get("refined_from"),
+                                                          "refined_from": (decided.get("refined_from")
+                                                                           or refined.get("refined_from")),
                                                           **dataclasses.asdict(settings)}})
     logger.info("baseline outputs written to %s (registration took %.1f s)", output_dir, seconds)
 

@@ -141,6 +141,7 @@ def starting_poses(config: ml_collections.ConfigDict, seq, deadline: float | Non
                        "train.max_minutes=0 lifts the limit)", refined["map_rounds_done"], settings.map_rounds,
                        100 * MIN_TRAINING_SHARE, config.train.max_minutes)
     rounds_done = refined.get("map_rounds_done")
+    refined_from = decided.get("refined_from") or refined.get("refined_from")  # the latter: the chain was given up
     bent, departure_m, path_m, allowed_m = departure_check(config, seq.poses, poses)
     limit = float(config.train.get("max_baseline_departure", 0.0))
     if bent:
@@ -151,7 +152,7 @@ def starting_poses(config: ml_collections.ConfigDict, seq, deadline: float | Non
                        departure_m, 100 * departure_m / max(path_m, 1e-9), path_m, allowed_m, limit)
     if how == "baseline":
         return Start(poses, "baseline", poses, seconds, departure_m=departure_m, bent=bent,
-                     refined_from=decided.get("refined_from"), rounds_done=rounds_done)
+                     refined_from=refined_from, rounds_done=rounds_done)
     # The input's crispness, measured when the refinement's start was chosen, is not measured again.
     measured = decided.get("input_judged")
     if measured is None:
@@ -167,7 +168,7 @@ def starting_poses(config: ml_collections.ConfigDict, seq, deadline: float | Non
                 "baseline %s%s)", chosen, _entropy_text(entropy["initial"]), _entropy_text(entropy["baseline"]),
                 "; the baseline departs too far from the input" if bent else "")
     return Start(poses if chosen == "baseline" else seq.poses, chosen, poses, seconds, judged, departure_m, bent,
-                 decided.get("refined_from"), rounds_done)
+                 refined_from, rounds_done)
 
 
 def _entropy_text(value: float | None) -> str:

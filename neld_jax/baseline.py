@@ -8,8 +8,8 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
    registration starts from the odometry's relative motion only, so the chain does not depend on how far the
    odometry drifted overall (measured on real keyframes: two starts 1.5 m apart give chains 1 cm apart); a link
    that moves the scan more than `max_link_correction_m` from that increment keeps the increment, and a chain
-   most of whose links kept it is given up (`chain_max_kept_fraction`: keyframes too far apart for ICP; steps 2
-   and 3 are skipped and step 4 starts from the input). At their coarse
+   whose links overlap their local maps too little is given up (`chain_min_median_overlap`: keyframes too far
+   apart for ICP; steps 2 and 3 are skipped and step 4 starts from the input). At their coarse
    scales the ICPs here pair points only where their normals agree (`point_to_plane_icp`: thin walls). With
    `keep_input_tilt` (an IMU-aided odometry's input) every link keeps the input's up axis, so that the links' pitch
    errors do not bow the route (docs/evaluation.md, "Keeping the input's tilt");
@@ -82,13 +82,14 @@ class BaselineSettings:
     min_normal_cos: float = 0.5
     normal_check_above_m: float = 0.25
     min_chain_fitness: float = 0.1  # below this overlap a chain link keeps the odometry's increment (and warns)
-    # A chain most of whose links keep the odometry's increment (too little overlap, or a slide) is the odometry with
-    # some ICP links in it: it cannot beat the odometry over the route, and its slid links bend it (MulRan
-    # Riverside02, keyframes 7 m apart: median overlap 19 %, 200 of 330 links kept, the chain 27 m off the odometry
-    # and refused after 167-210 s of ICP). From chain_check_links links on, once more than chain_max_kept_fraction of
-    # them kept the increment, the chain is given up, the pose graph skipped, and the refinement starts from the
-    # input (what the run's refinement_start chose there anyway). 0 switches it off.
-    chain_max_kept_fraction: float = 0.5
+    # Scan-to-map ICP between keyframes that overlap their local map this little neither holds nor can be checked: on
+    # MulRan Riverside02 (keyframes 7-8 m apart on roads, median overlap 19-20 %) the links slid by up to 8.6 m or
+    # kept the odometry's increment (87-200 of the links), the chains bent 27 and 61 m and the run refused them after
+    # 158-273 s of ICP; the handheld sequences' chains overlap 74-79 % (median) and keep no link. From
+    # chain_check_links links on, once the links' median overlap falls below chain_min_median_overlap, the chain is
+    # given up, the pose graph skipped, and the refinement starts from the input (what the run's refinement_start
+    # chose there anyway). 0 switches it off.
+    chain_min_median_overlap: float = 0.3
     chain_check_links: int = 30
     # A chain link whose ICP result moves the scan more than this from the odometry's increment keeps the increment
     # (and warns): in corridors and stairwells ICP slides along the free axis with a good overlap (measured on
@@ -305,7 +306,7 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
     settings.keep_input_tilt every pose has its init_poses' up axis (geometry.with_up_axis_of). A link
     whose fitness is below settings.min_chain_fitness, or whose ICP moved the scan further than
     settings.max_link_correction_m, keeps the odometry's increment; one warning per reason lists those scans.
-    poses is None when the chain was given up (settings.chain_max_kept_fraction; one warning says so); fitness then
+    poses is None when the chain was given up (settings.chain_min_median_overlap; one warning says so); fitness then
     holds the links registered before, NaN after.
     """
     poses = [np.asarray(init_poses[0], np.float64)]
@@ -313,15 +314,13 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
     kept = {"overlap": [], "slide": []}  # links that kept the odometry's increment, by reason: one warning each
     given_up = False
     for s in range(1, len(clouds)):
-        kept_links = len(kept["overlap"]) + len(kept["slide"])
-        if (settings.chain_max_kept_fraction > 0 and s - 1 >= settings.chain_check_links
-                and kept_links > settings.chain_max_kept_fraction * (s - 1)):
+        if s - 1 >= max(settings.chain_check_links, 1) and np.median(fitness[1:s]) < settings.chain_min_median_overlap:
+            logger.warning("baseline: the first %d chain links overlap their local maps by %.1f%% (median; less than "
+                           "chain_min_median_overlap=%.0f%%: keyframes too far apart for scan-to-map ICP): the chain is "
+                           "given up, the pose graph skipped, and the multi-view refinement starts from the input poses",
+                           s - 1, 100 * np.median(fitness[1:s]), 100 * settings.chain_min_median_overlap)
             fitness[s:] = np.nan
             given_up = True
-            logger.warning("baseline: %d of the first %d chain links kept the odometry's increment (more than "
-                           "chain_max_kept_fraction=%.0f%%: the keyframes overlap too little for scan-to-map ICP): the "
-                           "chain is given up, the pose graph skipped, and the multi-view refinement starts from the "
-                           "input poses", kept_links, s - 1, 100 * settings.chain_max_kept_fraction)
             break
         guess = poses[s - 1] @ np.linalg.inv(init_poses[s - 1]) @ init_poses[s]  # the odometry's increment
         if settings.keep_input_tilt:
@@ -537,13 +536,13 @@ def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettin
     Returns (poses [S, 4, 4], Refinement)."""
     poses = np.array(poses, dtype=np.float64)
     map_icp = dataclasses.replace(settings, icp_distances_m=settings.map_icp_distances_m)
-    tried = rejected = visited = 0  # visited: scans of the current round registered (or skipped as the gauge)
+    tried = rejected = 0
 
     def report(rounds_done: float, stopped: bool) -> tuple[np.ndarray, Refinement]:
         return poses, Refinement(round(rounds_done, 3), rejected / max(tried, 1), stopped)
 
     for round_index in range(1, settings.map_rounds + 1):
-        visited = 0
+        visited = 0  # scans of this round registered, or skipped as the gauge, before a deadline
         for half in (0, 1):
             others = [k for k in range(len(clouds)) if k % 2 != half]
             if not others:

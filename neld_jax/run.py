@@ -171,6 +171,45 @@ def starting_poses(config: ml_collections.ConfigDict, seq, deadline: float | Non
                  refined_from, rounds_done)
 
 
+# The poses a run's training started from when the classical baseline ran, kept in its output_dir for a resume: the
+# baseline's refinement stops at a wall-clock deadline (`baseline_deadline`), so running it again could give other
+# poses, and the checkpoint's pose corrections are relative to the first run's.
+START_FILE = "start_poses.npz"
+
+
+def save_start(out_dir: str, start: Start, config_hash_: str, input_poses: np.ndarray) -> None:
+    """Write `start` (when the baseline ran) to out_dir/START_FILE with the config hash and the input poses [K, 4, 4]
+    it came from (`resumed_start` checks both)."""
+    if start.baseline_poses is None:
+        return
+    meta = {"config_hash": config_hash_, "chosen": start.chosen, "baseline_seconds": start.baseline_seconds,
+            "departure_m": start.departure_m, "bent": start.bent, "refined_from": start.refined_from,
+            "rounds_done": start.rounds_done}
+    path = os.path.join(out_dir, START_FILE)
+    temporary = path + ".tmp.npz"
+    np.savez(temporary, poses=start.poses, baseline_poses=start.baseline_poses, input_poses=input_poses,
+             meta=np.array(json.dumps(meta)))
+    os.replace(temporary, path)
+
+
+def resumed_start(out_dir: str, config_hash_: str, input_poses: np.ndarray) -> Start | None:
+    """The Start a run in out_dir saved (`save_start`), when that run left a checkpoint to resume, had the same
+    config hash and started from the same input poses [K, 4, 4]; None otherwise (the start is chosen again)."""
+    path, checkpoints = os.path.join(out_dir, START_FILE), os.path.join(out_dir, "checkpoints")
+    if not (os.path.isfile(path) and os.path.isdir(checkpoints)
+            and any(name.isdigit() for name in os.listdir(checkpoints))):
+        return None
+    with np.load(path) as saved:
+        meta = json.loads(str(saved["meta"]))
+        same_input = (saved["input_poses"].shape == np.shape(input_poses)
+                      and np.allclose(saved["input_poses"], input_poses, rtol=0.0, atol=1e-9))
+        if meta.get("config_hash") != config_hash_ or not same_input:
+            return None
+        return Start(saved["poses"], meta["chosen"], saved["baseline_poses"], meta["baseline_seconds"],
+                     departure_m=meta["departure_m"], bent=meta["bent"], refined_from=meta["refined_from"],
+                     rounds_done=meta["rounds_done"])
+
+
 def _entropy_text(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f}"
 
@@ -382,7 +421,13 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     logger.info("budget %s (jax's default backend: %s)", config.get("budget", "?"), jax.default_backend())
 
     loaded, seq, norm = load_and_prepare(config)
-    start = starting_poses(config, seq, deadline=baseline_deadline(config, t_start))
+    start = resumed_start(out_dir, chash, seq.poses)
+    if start is None:
+        start = starting_poses(config, seq, deadline=baseline_deadline(config, t_start))
+        save_start(out_dir, start, chash, seq.poses)
+    else:
+        logger.info("resuming: training starts from the %s poses the first run chose (%s; the classical baseline is "
+                    "not run again)", start.chosen, START_FILE)
     config = pose_steps_for_start(config, start.chosen)
     # The config as trained (the start can cap the pose steps); the hash above stays the user's, for resuming.
     export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))

@@ -298,30 +298,31 @@ def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence
                                atol=1e-9)  # under a looser bound the slide is taken
 
 
-def test_a_chain_whose_links_mostly_keep_the_increment_is_given_up(drifted_sequence, monkeypatch, caplog):
-    # Keyframes too far apart for ICP (MulRan Riverside02): once more than chain_max_kept_fraction of the links kept
-    # the odometry's increment, the chain stops, the pose graph is skipped and the refinement starts from the input.
+def test_a_chain_whose_links_overlap_too_little_is_given_up(drifted_sequence, monkeypatch, caplog):
+    # Keyframes too far apart for ICP (MulRan Riverside02): once the links' median overlap falls below
+    # chain_min_median_overlap, the chain stops, the pose graph is skipped and the refinement starts from the input.
     import neld_jax.baseline as baseline
 
     seq = drifted_sequence
     clouds = prepare_clouds(seq.scans, SETTINGS)
-    slide = np.eye(4)
-    slide[0, 3] = 2.0
 
     class Result:
-        fitness = 0.9
+        fitness = 0.2  # enough for a link (min_chain_fitness), too little for a chain
 
-    monkeypatch.setattr(baseline, "multiscale_icp", lambda source, target, guess, settings: (guess @ slide, Result()))
+    monkeypatch.setattr(baseline, "multiscale_icp", lambda source, target, guess, settings: (guess, Result()))
     settings = dataclasses.replace(SETTINGS, chain_check_links=2, map_rounds=0)
     chain, fitness = baseline.scan_to_map_chain(clouds, seq.poses, settings)
-    assert chain is None and np.all(fitness[1:3] == 0.9) and np.all(np.isnan(fitness[3:]))  # 2 of 2 links kept
-    assert any("2 of the first 2 chain links" in r.getMessage() for r in caplog.records)
-    kept_on, _ = baseline.scan_to_map_chain(clouds, seq.poses, dataclasses.replace(settings, chain_max_kept_fraction=0))
+    assert chain is None and np.all(fitness[1:3] == 0.2) and np.all(np.isnan(fitness[3:]))  # checked at link 2
+    assert any("the first 2 chain links overlap their local maps by 20.0%" in r.getMessage() for r in caplog.records)
+    kept_on, _ = baseline.scan_to_map_chain(clouds, seq.poses, dataclasses.replace(settings, chain_min_median_overlap=0))
     np.testing.assert_allclose(kept_on, seq.poses, atol=1e-9)  # 0 switches the rule off
+    Result.fitness = 0.3
+    assert baseline.scan_to_map_chain(clouds, seq.poses, settings)[0] is not None  # at the threshold: kept
 
     def not_called(*args):
         raise AssertionError("refine_from is not asked without a chain")
 
+    Result.fitness = 0.2
     monkeypatch.setattr(baseline, "loop_closed_graph", not_called)
     report = {}
     poses = register_sequence(seq.scans, seq.poses, settings, refine_from=not_called, report=report)

@@ -181,6 +181,50 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     assert config.train.pose_lr_trans_init > trained["pose_lr_trans_init"]  # the caller's config is not changed
 
 
+def test_a_resumed_run_starts_from_the_baseline_poses_its_first_run_chose(tmp_path, monkeypatch):
+    # The baseline's rounds stop at a wall-clock deadline, so a resume must not run it again: the checkpoint's pose
+    # corrections are relative to the first run's start (start_poses.npz).
+    import neld_jax.baseline
+
+    def tiny(steps):
+        config = make_tiny_config(str(tmp_path / "run"), steps=steps)
+        config.train.init_poses = "baseline"
+        config.baseline.window, config.baseline.voxel_size_m = 2, 0.2
+        synthetic = config.data.synthetic
+        synthetic.num_beams, synthetic.num_columns, synthetic.drift_trans_m = 32, 512, 0.15
+        config.mapping.enabled = False
+        return config
+
+    real_save = checkpoint.Checkpointer.save
+
+    def save_then_die(self, state, metadata):
+        real_save(self, state, metadata)
+        raise _Killed()
+
+    monkeypatch.setattr(checkpoint.Checkpointer, "save", save_then_die)
+    with pytest.raises(_Killed):
+        run.run(tiny(12), progress=False)
+    monkeypatch.setattr(checkpoint.Checkpointer, "save", real_save)
+    with np.load(tmp_path / "run" / run.START_FILE) as start_file:
+        saved = dict(start_file)
+    first_start = saved["poses"]
+
+    def no_second_baseline(*args, **kwargs):
+        raise AssertionError("the baseline ran again on resume")
+
+    monkeypatch.setattr(neld_jax.baseline, "register_sequence", no_second_baseline)
+    resumed = run.run(tiny(12), progress=False)
+    assert resumed["steps"] == 12 and resumed["started_from"] == "baseline"
+    _, T_baseline = read_tum(tmp_path / "run" / "poses_baseline.txt")
+    np.testing.assert_allclose(T_baseline, first_start, atol=1e-6)
+    # Another input (or another configuration) is not that run's: its start is chosen again.
+    moved = np.array(saved["input_poses"])
+    moved[:, 0, 3] += 0.01
+    assert run.resumed_start(str(tmp_path / "run"), resumed["config_hash"], moved) is None
+    assert run.resumed_start(str(tmp_path / "run"), "another hash", saved["input_poses"]) is None
+    assert run.resumed_start(str(tmp_path / "run"), resumed["config_hash"], saved["input_poses"]) is not None
+
+
 def test_training_time_counts_from_the_run_start_with_a_floor():
     config = make_tiny_config("unused", steps=4)
     config.train.max_minutes = 8.0

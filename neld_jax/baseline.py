@@ -315,7 +315,7 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
     given_up = False
     for s in range(1, len(clouds)):
         if s - 1 >= max(settings.chain_check_links, 1) and np.median(fitness[1:s]) < settings.chain_min_median_overlap:
-            logger.warning("baseline: the first %d chain links overlap their local maps by %.1f%% (median; less than "
+            logger.warning("baseline: the first %d chain links overlap their local maps by %.2f%% (median; less than "
                            "chain_min_median_overlap=%.0f%%: keyframes too far apart for scan-to-map ICP): the chain is "
                            "given up, the pose graph skipped, and the multi-view refinement starts from the input poses",
                            s - 1, 100 * np.median(fitness[1:s]), 100 * settings.chain_min_median_overlap)
@@ -615,8 +615,7 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
         t1 = time.perf_counter()
         if chain is None:  # given up (scan_to_map_chain warned): no graph, the refinement starts from the input
             optimized = init_poses
-            logger.info("baseline: scan-to-map chain given up after %.1f s (median overlap %.0f%%)", t1 - t0,
-                        100 * np.nanmedian(fitness[1:]))
+            logger.info("baseline: scan-to-map chain given up after %.1f s", t1 - t0)
         else:
             optimized, loops = loop_closed_graph(clouds, chain, settings)
             logger.info("baseline: scan-to-map chain of %d scans in %.1f s (median overlap %.0f%%); pose graph with %d "

@@ -23,6 +23,20 @@ class _Killed(Exception):
     pass
 
 
+def _run_killed_after_its_first_checkpoint(config, monkeypatch) -> None:
+    """run.run(config), killed (an exception) right after it wrote its first checkpoint."""
+    real_save = checkpoint.Checkpointer.save
+
+    def save_then_die(self, state, metadata):
+        real_save(self, state, metadata)
+        raise _Killed()
+
+    monkeypatch.setattr(checkpoint.Checkpointer, "save", save_then_die)
+    with pytest.raises(_Killed):
+        run.run(config, progress=False)
+    monkeypatch.setattr(checkpoint.Checkpointer, "save", real_save)
+
+
 def _free_gauge(config):
     config.train.fixed_scans = ()
     config.train.anchor_scan = 0
@@ -50,17 +64,7 @@ def test_run_writes_outputs_and_resumes_after_a_kill(tmp_path, monkeypatch):
     assert metrics["run"]["map_rays_rendered"] == metrics["run"]["map_rays"] > 0  # no time limit: every ray
 
     # A run killed right after its first checkpoint (step 5) ...
-    cfg = _free_gauge(make_tiny_config(str(out), steps=12))
-    real_save = checkpoint.Checkpointer.save
-
-    def save_then_die(self, state, metadata):
-        real_save(self, state, metadata)
-        raise _Killed()
-
-    monkeypatch.setattr(checkpoint.Checkpointer, "save", save_then_die)
-    with pytest.raises(_Killed):
-        run.run(cfg, progress=False)
-    monkeypatch.setattr(checkpoint.Checkpointer, "save", real_save)
+    _run_killed_after_its_first_checkpoint(_free_gauge(make_tiny_config(str(out), steps=12)), monkeypatch)
     assert checkpoint.Checkpointer(str(out / "checkpoints")).latest_step() == 5
 
     # ... and rerun with the same output_dir resumes there and ends at the same final step and poses.
@@ -195,16 +199,7 @@ def test_a_resumed_run_starts_from_the_baseline_poses_its_first_run_chose(tmp_pa
         config.mapping.enabled = False
         return config
 
-    real_save = checkpoint.Checkpointer.save
-
-    def save_then_die(self, state, metadata):
-        real_save(self, state, metadata)
-        raise _Killed()
-
-    monkeypatch.setattr(checkpoint.Checkpointer, "save", save_then_die)
-    with pytest.raises(_Killed):
-        run.run(tiny(12), progress=False)
-    monkeypatch.setattr(checkpoint.Checkpointer, "save", real_save)
+    _run_killed_after_its_first_checkpoint(tiny(12), monkeypatch)
     with np.load(tmp_path / "run" / run.START_FILE) as start_file:
         saved = dict(start_file)
     first_start = saved["poses"]

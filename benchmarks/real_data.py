@@ -105,6 +105,7 @@ def run_sequence(name: str, root: str) -> dict:
             "map_rays": summary.get("map_rays"), "map_rays_rendered": summary.get("map_rays_rendered"),
             "baseline_wall_s": summary.get("baseline_seconds"),
             "started_from": summary.get("started_from"), "baseline_refined_from": summary.get("baseline_refined_from"),
+            "baseline_rounds_done": summary.get("baseline_rounds_done"),
             "crispness": _crisp(summary["crispness"]),
             "final_range_err_m": round(summary["final"].get("range_err_m", float("nan")), 4),
             "final_range_residual_median_m": round(summary["final"].get("range_residual_median_m", float("nan")),
@@ -140,6 +141,7 @@ def run_sequence(name: str, root: str) -> dict:
         "map_rays": summary.get("map_rays"), "map_rays_rendered": summary.get("map_rays_rendered"),
         "steps": summary["steps"], "schedule_steps": summary.get("schedule_steps"), "init_poses": drift_start,
         "started_from": summary.get("started_from"), "baseline_refined_from": summary.get("baseline_refined_from"),
+        "baseline_rounds_done": summary.get("baseline_rounds_done"),
     }
     def apart(method: str, recorded_run: str) -> float:
         _, T_rec = read_tum(os.path.join(out, recorded_run, f"poses_{method}.txt"))

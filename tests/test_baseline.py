@@ -316,7 +316,7 @@ def test_a_chain_whose_links_overlap_too_little_is_given_up(drifted_sequence, mo
     assert any("the first 2 chain links overlap their local maps by 20.00%" in r.getMessage() for r in caplog.records)
     kept_on, _ = baseline.scan_to_map_chain(clouds, seq.poses, dataclasses.replace(settings, chain_min_median_overlap=0))
     np.testing.assert_allclose(kept_on, seq.poses, atol=1e-9)  # 0 switches the rule off
-    Result.fitness = 0.3
+    Result.fitness = settings.chain_min_median_overlap
     assert baseline.scan_to_map_chain(clouds, seq.poses, settings)[0] is not None  # at the threshold: kept
 
     def not_called(*args):

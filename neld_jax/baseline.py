@@ -313,7 +313,6 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
     poses = [np.asarray(init_poses[0], np.float64)]
     fitness = np.ones(len(clouds))
     kept = {"overlap": [], "slide": []}  # links that kept the odometry's increment, by reason: one warning each
-    given_up = False
     for s in range(1, len(clouds)):
         if s - 1 >= max(settings.chain_check_links, 1) and np.median(fitness[1:s]) < settings.chain_min_median_overlap:
             logger.warning("baseline: the first %d chain links overlap their local maps by %.2f%% (median; less than "
@@ -321,7 +320,6 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
                            "given up, the pose graph skipped, and the multi-view refinement starts from the input poses",
                            s - 1, 100 * np.median(fitness[1:s]), 100 * settings.chain_min_median_overlap)
             fitness[s:] = np.nan
-            given_up = True
             break
         guess = poses[s - 1] @ np.linalg.inv(init_poses[s - 1]) @ init_poses[s]  # the odometry's increment
         if settings.keep_input_tilt:
@@ -347,7 +345,7 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
         logger.warning("baseline: ICP moved %d scan(s) further than max_link_correction_m=%.2g m from the odometry's "
                        "increment (a slide along a featureless direction?); they keep the increment: %s",
                        len(kept["slide"]), settings.max_link_correction_m, _first(kept["slide"]))
-    return (None if given_up else np.stack(poses)), fitness
+    return (np.stack(poses) if len(poses) == len(clouds) else None), fitness
 
 
 def _first(items: list[str], count: int = 12) -> str:

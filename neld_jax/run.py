@@ -26,7 +26,7 @@ import ml_collections
 import numpy as np
 
 from neld_jax import export, mapping, metrics, quality, report, submap_run, submaps, train
-from neld_jax.checkpoint import fit_resuming
+from neld_jax.checkpoint import Checkpointer, fit_resuming
 from neld_jax.config import with_train
 from neld_jax.errors import ConfigError
 from neld_jax.data.normalize import fit_normalization
@@ -195,9 +195,13 @@ def save_start(out_dir: str, start: Start, config_hash_: str, input_poses: np.nd
 def resumed_start(out_dir: str, config_hash_: str, input_poses: np.ndarray) -> Start | None:
     """The Start a run in out_dir saved (`save_start`), when that run left a checkpoint to resume, had the same
     config hash and started from the same input poses [K, 4, 4]; None otherwise (the start is chosen again)."""
-    path, checkpoints = os.path.join(out_dir, START_FILE), os.path.join(out_dir, "checkpoints")
-    if not (os.path.isfile(path) and os.path.isdir(checkpoints)
-            and any(name.isdigit() for name in os.listdir(checkpoints))):
+    path = os.path.join(out_dir, START_FILE)
+    if not os.path.isfile(path):
+        return None
+    checkpoints = Checkpointer(os.path.join(out_dir, "checkpoints"))  # what fit_resuming would resume from
+    resumable = checkpoints.latest_step() is not None
+    checkpoints.close()
+    if not resumable:
         return None
     with np.load(path) as saved:
         meta = json.loads(str(saved["meta"]))

@@ -142,6 +142,17 @@ def test_cli_data_with_errors_is_one_clear_line(tmp_path):
     assert last.startswith("error:") and "2" in last and "3" in last, proc.stderr
 
 
+def _tiny_config_from_the_baseline(output_dir: str, steps: int):
+    """A tiny run that starts from the classical baseline's poses (train.init_poses=baseline), no rendered map."""
+    config = make_tiny_config(output_dir, steps=steps)
+    config.train.init_poses = "baseline"
+    config.baseline.window, config.baseline.voxel_size_m = 2, 0.2
+    synthetic = config.data.synthetic  # dense enough scans for ICP, and a drift for it to undo
+    synthetic.num_beams, synthetic.num_columns, synthetic.drift_trans_m, synthetic.drift_rot_deg = 32, 512, 0.15, 1.0
+    config.mapping.enabled = False
+    return config
+
+
 def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch):
     # train.init_poses=baseline: the baseline's poses are written for every input scan, its map's crispness is
     # reported, and the normalisation cube is fitted to the poses training starts from (from a drifted start the
@@ -160,12 +171,7 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     # The run hands the baseline its deadline: one already past when the run starts stops the refinement rounds
     # before their first registration (the chain and the pose graph still run).
     monkeypatch.setattr(run, "baseline_deadline", lambda c, t_start: t_start - 1.0)
-    config = make_tiny_config(str(tmp_path / "run"), steps=4)
-    config.train.init_poses = "baseline"
-    config.baseline.window, config.baseline.voxel_size_m = 2, 0.2
-    synthetic = config.data.synthetic  # dense enough scans for ICP, and a drift for it to undo
-    synthetic.num_beams, synthetic.num_columns, synthetic.drift_trans_m, synthetic.drift_rot_deg = 32, 512, 0.15, 1.0
-    config.mapping.enabled = False  # not what this test is about
+    config = _tiny_config_from_the_baseline(str(tmp_path / "run"), steps=4)
     summary = run.run(config, progress=False)
     assert summary["started_from"] == "baseline" and summary["baseline_seconds"] > 0
     assert config.baseline.map_rounds > 0 and summary["baseline_rounds_done"] == 0
@@ -190,16 +196,7 @@ def test_a_resumed_run_starts_from_the_baseline_poses_its_first_run_chose(tmp_pa
     # corrections are relative to the first run's start (start_poses.npz).
     import neld_jax.baseline
 
-    def tiny(steps):
-        config = make_tiny_config(str(tmp_path / "run"), steps=steps)
-        config.train.init_poses = "baseline"
-        config.baseline.window, config.baseline.voxel_size_m = 2, 0.2
-        synthetic = config.data.synthetic
-        synthetic.num_beams, synthetic.num_columns, synthetic.drift_trans_m = 32, 512, 0.15
-        config.mapping.enabled = False
-        return config
-
-    _run_killed_after_its_first_checkpoint(tiny(12), monkeypatch)
+    _run_killed_after_its_first_checkpoint(_tiny_config_from_the_baseline(str(tmp_path / "run"), 12), monkeypatch)
     with np.load(tmp_path / "run" / run.START_FILE) as start_file:
         saved = dict(start_file)
     first_start = saved["poses"]
@@ -208,7 +205,7 @@ def test_a_resumed_run_starts_from_the_baseline_poses_its_first_run_chose(tmp_pa
         raise AssertionError("the baseline ran again on resume")
 
     monkeypatch.setattr(neld_jax.baseline, "register_sequence", no_second_baseline)
-    resumed = run.run(tiny(12), progress=False)
+    resumed = run.run(_tiny_config_from_the_baseline(str(tmp_path / "run"), 12), progress=False)
     assert resumed["steps"] == 12 and resumed["started_from"] == "baseline"
     _, T_baseline = read_tum(tmp_path / "run" / "poses_baseline.txt")
     np.testing.assert_allclose(T_baseline, first_start, atol=1e-6)

@@ -298,8 +298,8 @@ def correction_m(guess: np.ndarray, transform: np.ndarray) -> float:
     return float(np.linalg.norm((np.linalg.inv(guess) @ transform)[:3, 3]))
 
 
-def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSettings
-                      ) -> tuple[np.ndarray | None, np.ndarray]:
+def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSettings,
+                      deadline: float | None = None) -> tuple[np.ndarray | None, np.ndarray]:
     """Register each scan to the local map of the `settings.window` scans before it.
 
     clouds: S Open3D clouds (sensor frame, with normals); init_poses: [S, 4, 4] sensor -> world.
@@ -307,8 +307,9 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
     settings.keep_input_tilt every pose has its init_poses' up axis (geometry.with_up_axis_of). A link
     whose fitness is below settings.min_chain_fitness, or whose ICP moved the scan further than
     settings.max_link_correction_m, keeps the odometry's increment; one warning per reason lists those scans.
-    poses is None when the chain was given up (settings.chain_min_median_overlap; one warning says so); fitness then
-    holds the links registered before, NaN after.
+    poses is None when the chain was given up (settings.chain_min_median_overlap, or the time.perf_counter() value
+    `deadline` passed before its last link; one warning says which); fitness then holds the links registered
+    before, NaN after.
     """
     poses = [np.asarray(init_poses[0], np.float64)]
     fitness = np.ones(len(clouds))
@@ -319,6 +320,13 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
                            "chain_min_median_overlap=%.0f%%: keyframes too far apart for scan-to-map ICP): the chain is "
                            "given up, the pose graph skipped, and the multi-view refinement starts from the input poses",
                            s - 1, 100 * np.median(fitness[1:s]), 100 * settings.chain_min_median_overlap)
+            fitness[s:] = np.nan
+            break
+        if deadline is not None and time.perf_counter() > deadline:
+            # A half-registered chain cannot feed the pose graph, and the rounds would stop at once anyway.
+            logger.warning("baseline: the run's deadline passed after %d of the %d chain links: the chain is given up, "
+                           "the pose graph skipped, and the input poses are the baseline's start", s - 1,
+                           len(clouds) - 1)
             fitness[s:] = np.nan
             break
         guess = poses[s - 1] @ np.linalg.inv(init_poses[s - 1]) @ init_poses[s]  # the odometry's increment
@@ -595,8 +603,9 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
     on_round(r, poses [S, 4, 4]): `refine_against_map`'s, called with r = 0 and the poses the refinement starts
     from too; they are the poses returned up to the final re-anchoring on scan 0 (one rigid transform).
     deadline: a time.perf_counter() value after which the multi-view refinement registers no more scans
-    (`refine_against_map`; the chain and the graph always run to the end). report, when given, receives
-    {"chain_given_up" (scan_to_map_chain's rule; then also "refined_from": "input", and refine_from is not called),
+    (`refine_against_map`) and a chain not yet finished is given up (`scan_to_map_chain`); the pose graph always
+    runs to the end (2-31 s after Riverside02's 158-321 s chains). report, when given, receives
+    {"chain_given_up" (scan_to_map_chain's rule or the deadline; then also "refined_from": "input", and refine_from is not called),
     "map_rounds_done": rounds completed (a fraction when the deadline stopped them), "stopped_at_deadline"}.
     Returns refined poses [S, 4, 4] with pose 0 equal to init_poses[0] and orthonormal rotations.
     """
@@ -610,7 +619,7 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
     clouds = prepare_clouds(scans, settings)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         t0 = time.perf_counter()
-        chain, fitness = scan_to_map_chain(clouds, init_poses, settings)
+        chain, fitness = scan_to_map_chain(clouds, init_poses, settings, deadline)
         t1 = time.perf_counter()
         if chain is None:  # given up (scan_to_map_chain warned): no graph, the refinement starts from the input
             optimized = init_poses

@@ -359,8 +359,9 @@ def baseline_deadline(config: ml_collections.ConfigDict, t_start: float) -> floa
     """The time.perf_counter() value after which the classical baseline's multi-view refinement registers no more
     scans in a run started at t_start: when the run has used all of train.max_minutes but training's floor
     (MIN_TRAINING_SHARE), so that the whole run keeps its time however slow the registration is (MulRan Riverside02:
-    a 451 s baseline on a slow spell took the run to 10.6 minutes; docs/design.md, "The loop"). The chain and the
-    pose graph are not anytime and always finish. None when train.max_minutes is 0 (no limit)."""
+    a 451 s baseline on a slow spell took the run to 10.6 minutes; docs/design.md, "The loop"); a scan-to-map chain
+    still running then is given up (half a chain cannot feed the pose graph), and the pose graph always
+    finishes. None when train.max_minutes is 0 (no limit)."""
     limit = float(config.train.max_minutes) * 60.0
     if limit <= 0:
         return None

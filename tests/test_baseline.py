@@ -330,6 +330,33 @@ def test_a_chain_whose_links_overlap_too_little_is_given_up(drifted_sequence, mo
     assert report == {"chain_given_up": True, "refined_from": "input"}
 
 
+def test_a_chain_still_running_at_the_deadline_is_given_up(drifted_sequence, monkeypatch, caplog):
+    # A sequence too long for the run's clock: the chain stops between two links once the deadline has passed,
+    # the pose graph is skipped and (no time left for the rounds) the input is the baseline's answer.
+    import neld_jax.baseline as baseline
+
+    seq = drifted_sequence
+    clouds = prepare_clouds(seq.scans, SETTINGS)
+    clock = iter(range(1000))
+    with mock.patch.object(time, "perf_counter", lambda: float(next(clock))):
+        chain, fitness = baseline.scan_to_map_chain(clouds, seq.poses, SETTINGS, deadline=1.5)
+    # The clock ticks before each link (0, 1, 2): links 1 and 2 were registered when it passed.
+    assert chain is None and np.all(np.isfinite(fitness[:3])) and np.all(np.isnan(fitness[3:]))
+    assert any("deadline passed after 2 of the 5 chain links" in r.getMessage() for r in caplog.records)
+    assert baseline.scan_to_map_chain(clouds, seq.poses, SETTINGS, deadline=time.perf_counter() + 600)[0] is not None
+
+    def not_called(*args):
+        raise AssertionError("no pose graph without a chain")
+
+    monkeypatch.setattr(baseline, "loop_closed_graph", not_called)
+    report = {}
+    poses = register_sequence(seq.scans, seq.poses, dataclasses.replace(SETTINGS, map_rounds=2),
+                              refine_from=not_called, deadline=time.perf_counter() - 1.0, report=report)
+    np.testing.assert_allclose(poses, seq.poses, atol=1e-9)
+    assert report == {"chain_given_up": True, "refined_from": "input", "map_rounds_done": 0,
+                      "stopped_at_deadline": True}
+
+
 def test_multi_view_refinement_pulls_a_scan_onto_the_others_map_and_gates_a_far_one(drifted_sequence):
     # The scans lie where they were taken, but scan 2 is pushed off by 10 cm and 0.6 degrees and scan 3 by 1 m
     # (beyond max_loop_correction_m): the rounds bring scan 2 back onto the others' map, leave scan 3 where it

@@ -80,7 +80,10 @@ def base_config() -> ml_collections.ConfigDict:
     # A revisit (keyframes 2+ windows apart, initial positions within this many metres) gets a submap holding
     # both visits, which ties the two ends of a loop together; 0: off.
     c.submaps.closure_radius_m = 10.0
-    c.submaps.batch_rays = 0  # rays per submap per step; 0: train.batch_rays shared among the submaps (>= 8 each)
+    # rays per submap per step; 0: train.batch_rays x submaps.step_rays_factor shared among the submaps (>= 8 each)
+    c.submaps.batch_rays = 0
+    c.submaps.step_rays_factor = 1.0  # the rays of one step over all submaps, in units of train.batch_rays
+    c.submaps.width = 0  # the MLP width of each submap's field; 0: model.width
     c.submaps.devices = 0  # devices the submaps are sharded over; 0: every visible device
     # At most this many submaps (0: no limit): a longer sequence gets longer windows, in larger cubes (coarser than
     # max_detail_m; the log says so). Unless submaps.keyframes is set.
@@ -353,15 +356,23 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
     # of the same VM (HKU_1, 2026-12-02), which took that run to 11.2 minutes. A limit keeps the run's 10.
     c.mapping.max_seconds = 60.0
     c.mapping.voxel_size_m = 0.1
-    # A step's rays are shared among the submaps; beyond 32 each field sees too few (16 a step) and a step costs
-    # more than the single cube's (Riverside02's 0.25 m rule: 340 submaps, 2.4 s a step on 2 cores).
+    # A step's rays are shared among the submaps; beyond 32 each field sees too few and a step costs more than the
+    # single cube's (Riverside02's 0.25 m rule: 340 submaps, 2.4 s a step on 2 cores).
     c.submaps.max_submaps = 32
+    # Narrower submap fields, each drawing three times the rays (1536 a step over the submaps: Riverside02's 31
+    # submaps 49 each instead of 16) for 1.3-1.4x the step: the fields fit better (median range residual 1.03 ->
+    # 0.78-0.90 m), both Riverside02 copies' maps came out crisper end to end (by 0.0010 / 0.0025) and the shortened
+    # synthetic long route's ATE fell from 0.324 to 0.223 m (benchmarks/RESULTS.md, fifteenth session). The single
+    # cube keeps model.width.
+    c.submaps.width = 64
+    c.submaps.step_rays_factor = 3.0
     c.data.synthetic.gt_map_points = 100_000
     if budget == "gpu":
         c.train.steps = 30_000
         c.train.log_every = 500  # K: steps per device call of the fused loop
         c.train.checkpoint_every = 5000
         c.submaps.max_submaps = 0  # a GPU runs hundreds of submaps' rays a step (not measured there yet)
+        c.submaps.width, c.submaps.step_rays_factor = 0, 1.0  # the cpu budget's width-for-rays trade: not measured there
         paper = base_config().mapping  # the paper's map: 128 + 128 samples per ray, every ray, 5 cm voxels
         for field in ("num_coarse", "num_fine", "max_rays_per_scan", "max_rays", "voxel_size_m", "max_seconds"):
             c.mapping[field] = paper[field]

@@ -27,7 +27,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from neld_jax import lie, rendering
-from neld_jax.field import DensityField
+from neld_jax.field import DensityField, field_from_config
 from neld_jax.model import SamplerSettings, render_rays, world_rays
 from neld_jax.train import (FitResult, LossSettings, RayData, Schedules, TrainState, jit_chunk, make_field,
                             make_schedules, pose_transform, range_errors_m, ray_losses, run_chunks, sample_batch,
@@ -240,15 +240,27 @@ MIN_SUBMAP_BATCH_RAYS = 8
 
 def submap_batch_rays(config: ml_collections.ConfigDict, num_submaps: int) -> int:
     """Rays each of the M submaps (padding ones included: they cost as much) draws per step: submaps.batch_rays,
-    or when that is 0 train.batch_rays shared among them, at least MIN_SUBMAP_BATCH_RAYS each. A step then costs
-    about what the single cube's does however the sequence is split, so a budget's steps take about the time they
-    take on one cube (a 600 m route's 13 submaps at the cpu budget's 512 rays each were 13x the single cube's
-    rays). The floor matters only for hundreds of small submaps, which the cpu budget avoids (submaps.max_submaps:
-    Riverside02's 0.25 m rule alone made 340, 8 rays each)."""
+    or when that is 0 the step's rays (train.batch_rays x submaps.step_rays_factor) shared among them, at least
+    MIN_SUBMAP_BATCH_RAYS each. A step then costs about the same however the sequence is split, so a budget's
+    steps take about the time they take on one cube (a 600 m route's 13 submaps at the cpu budget's 512 rays each
+    were 13x the single cube's rays); the cpu budget's narrower submap fields (submaps.width) draw three times the
+    single cube's rays for 1.3-1.4x its step. The floor matters only for hundreds of small submaps, which the cpu
+    budget avoids (submaps.max_submaps: Riverside02's 0.25 m rule alone made 340, 8 rays each)."""
     explicit = int(config.submaps.get("batch_rays", 0))
     if explicit > 0:
         return explicit
-    return max(int(config.train.batch_rays) // max(int(num_submaps), 1), MIN_SUBMAP_BATCH_RAYS)
+    step_rays = int(round(int(config.train.batch_rays) * float(config.submaps.get("step_rays_factor", 1.0))))
+    return max(step_rays // max(int(num_submaps), 1), MIN_SUBMAP_BATCH_RAYS)
+
+
+def make_submap_field(config: ml_collections.ConfigDict) -> DensityField:
+    """Each submap's field: config.model's, with submaps.width as its width when that is set (0: model.width)."""
+    width = int(config.submaps.get("width", 0))
+    if width <= 0:
+        return make_field(config)
+    model = ml_collections.ConfigDict(config.model.to_dict())
+    model.width = width
+    return field_from_config(model)
 
 
 def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_submaps: int,
@@ -260,7 +272,7 @@ def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_s
     (`make_submap_optimizer`); the state's structure does not depend on them."""
     schedules = make_schedules(config)
     tx = make_submap_optimizer(config, schedules, num_scans, start_poses)
-    field = make_field(config)
+    field = make_submap_field(config)
     key_init, key_state = jax.random.split(jax.random.PRNGKey(int(config.seed)))
     # Jitted: a vmapped init run op by op takes seconds.
     fields = jax.jit(jax.vmap(lambda k: field.init(k, jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]))(

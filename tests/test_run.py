@@ -5,11 +5,12 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 
-from neld_jax import checkpoint, run
+from neld_jax import baseline, checkpoint, run
 from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.poses import read_kitti, read_tum
 from neld_jax.errors import ConfigError, DataError
@@ -169,11 +170,21 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     real_training_seconds = run.training_seconds
     monkeypatch.setattr(run, "training_seconds", lambda c, s: spent.append(s) or real_training_seconds(c, s))
     # The run hands the baseline its deadline: one already past when the run starts stops the refinement rounds
-    # before their first registration (the chain and the pose graph still run).
+    # before their first registration. It would give the chain up too (test_baseline); the chain here is let run,
+    # so that the baseline moves the scans.
     monkeypatch.setattr(run, "baseline_deadline", lambda c, t_start: t_start - 1.0)
+    chain_deadlines = []
+    real_chain = baseline.scan_to_map_chain
+
+    def chain_without_deadline(clouds, init_poses, settings, deadline=None):
+        chain_deadlines.append(deadline)
+        return real_chain(clouds, init_poses, settings)
+
+    monkeypatch.setattr(baseline, "scan_to_map_chain", chain_without_deadline)
     config = _tiny_config_from_the_baseline(str(tmp_path / "run"), steps=4)
     summary = run.run(config, progress=False)
     assert summary["started_from"] == "baseline" and summary["baseline_seconds"] > 0
+    assert len(chain_deadlines) == 1 and chain_deadlines[0] < time.perf_counter()
     assert config.baseline.map_rounds > 0 and summary["baseline_rounds_done"] == 0
     assert spent[0] >= summary["baseline_seconds"]
     assert {"initial", "baseline", "optimized"} <= set(summary["crispness"])

@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -188,6 +189,21 @@ def test_submaps_share_the_step_s_rays():
     assert submap_train.submap_batch_rays(c, 172) == submap_train.MIN_SUBMAP_BATCH_RAYS == 8
     c.submaps.batch_rays = 128  # set explicitly: each submap draws that many
     assert submap_train.submap_batch_rays(c, 13) == 128
+    c.submaps.batch_rays, c.submaps.step_rays_factor = 0, 3.0  # the cpu budget's: 1536 rays a step
+    assert submap_train.submap_batch_rays(c, 31) == 49
+
+
+def test_submap_fields_take_their_own_width():
+    # The cpu budget trades the submap fields' width for rays (submaps.width); the single cube keeps model.width.
+    from configs import lio_keyframes
+
+    cpu, gpu = lio_keyframes.get_config("cpu"), lio_keyframes.get_config("gpu")
+    assert (cpu.submaps.width, cpu.model.width, gpu.submaps.width) == (64, 128, 0)
+    assert submap_train.make_submap_field(cpu).width == 64 and submap_train.make_field(cpu).width == 128
+    assert submap_train.make_submap_field(gpu).width == gpu.model.width
+    setup = submap_train.create_submap_state(cpu, num_scans=4, num_submaps=2)
+    widths = {leaf.shape[-1] for leaf in jax.tree.leaves(setup.state.params["fields"]) if leaf.ndim == 3}
+    assert 64 in widths and 128 not in widths  # [M, fan_in, 64] kernels (the heads' outputs are narrower)
 
 
 def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_path, monkeypatch):

@@ -27,7 +27,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from neld_jax import lie, rendering
-from neld_jax.field import DensityField, field_from_config
+from neld_jax.field import DensityField
 from neld_jax.model import SamplerSettings, render_rays, world_rays
 from neld_jax.train import (FitResult, LossSettings, RayData, Schedules, TrainState, jit_chunk, make_field,
                             make_schedules, pose_transform, range_errors_m, ray_losses, run_chunks, sample_batch,
@@ -256,11 +256,8 @@ def submap_batch_rays(config: ml_collections.ConfigDict, num_submaps: int) -> in
 def make_submap_field(config: ml_collections.ConfigDict) -> DensityField:
     """Each submap's field: config.model's, with submaps.width as its width when that is set (0: model.width)."""
     width = int(config.submaps.get("width", 0))
-    if width <= 0:
-        return make_field(config)
-    model = ml_collections.ConfigDict(config.model.to_dict())
-    model.width = width
-    return field_from_config(model)
+    field = make_field(config)
+    return field.clone(width=width) if width > 0 else field
 
 
 def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_submaps: int,

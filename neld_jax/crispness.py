@@ -100,6 +100,28 @@ def crispness(points: np.ndarray, radius: float = DEFAULT_RADIUS_M, min_neighbor
     return Crispness(entropy, thickness, query_index)
 
 
+def entropy_over_query_draws(maps: dict[str, np.ndarray], seeds, max_queries: int = DEFAULT_MAX_QUERIES,
+                             radius: float = DEFAULT_RADIUS_M) -> dict[str, np.ndarray]:
+    """Mean map entropy of each map over several draws of the query points: {name: [len(seeds)] nats}.
+
+    maps: {name: [N, 3]} registrations of the same scans (the same points in the same order), so each draw
+    queries the same points of every map and the differences between maps are paired. One draw of 10,000
+    queries moves a sequence's entropy by about 0.01 nats, more than some differences between methods, and its
+    pairing does not remove all of that: the spread of the paired difference over draws says whether a
+    difference is resolved (docs/evaluation.md, "How sure a difference is")."""
+    sizes = {len(points) for points in maps.values()}
+    if len(sizes) > 1:
+        raise ValueError(f"the maps must register the same points; their sizes differ: {sorted(sizes)}")
+    num_points = sizes.pop() if sizes else 0
+    out = {name: np.zeros(len(seeds)) for name in maps}
+    for i, seed in enumerate(seeds):
+        queries = sample_queries(num_points, max_queries, int(seed))
+        for name, points in maps.items():
+            entropy = crispness(points, radius=radius, query_index=queries).summary()["mean_map_entropy"]
+            out[name][i] = np.nan if entropy is None else entropy
+    return out
+
+
 def sample_queries(num_points: int, max_queries: int, seed: int = 0) -> np.ndarray:
     """Sorted indices [min(num_points, max_queries)] int64, a seeded random subset of range(num_points)."""
     if max_queries <= 0 or num_points <= max_queries:

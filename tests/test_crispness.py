@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from neld_jax.crispness import crispness, per_scan_means, sample_queries
+from neld_jax.crispness import crispness, entropy_over_query_draws, per_scan_means, sample_queries
 from neld_jax.quality import crispest, warn_if_not_crispest
 
 
@@ -51,6 +51,25 @@ def test_misregistration_makes_the_map_less_crisp():
     smeared = crispness(np.concatenate([wall, shifted]), seed=3)
     assert smeared.summary()["mean_map_entropy"] > aligned.summary()["mean_map_entropy"] + 0.5
     assert smeared.summary()["mean_plane_thickness_m"] == pytest.approx(0.025, abs=0.004)
+
+
+def test_entropy_over_query_draws_pairs_the_maps_on_each_draw():
+    rng = np.random.default_rng(4)
+    wall = np.c_[rng.uniform(0, 4, (3000, 2)), rng.normal(0, 0.005, 3000)]
+    maps = {"aligned": np.concatenate([wall, wall + rng.normal(0, 0.005, wall.shape)]),
+            "smeared": np.concatenate([wall, wall + [0.0, 0.0, 0.03]])}
+    entropy = entropy_over_query_draws(maps, seeds=[0, 5, 9], max_queries=400, radius=0.3)
+    assert set(entropy) == {"aligned", "smeared"} and entropy["aligned"].shape == (3,)
+    # each draw is crispness() on that seed's queries, the same points for both maps
+    for i, seed in enumerate([0, 5, 9]):
+        queries = sample_queries(6000, 400, seed)
+        for name, points in maps.items():
+            expected = crispness(points, radius=0.3, query_index=queries).summary()["mean_map_entropy"]
+            assert entropy[name][i] == pytest.approx(expected)
+    assert len(set(entropy["aligned"].round(9))) == 3  # the draws differ
+    assert (entropy["smeared"] > entropy["aligned"]).all()
+    with pytest.raises(ValueError, match="sizes differ"):
+        entropy_over_query_draws({"a": wall, "b": wall[:-1]}, seeds=[0])
 
 
 def test_query_sampling_and_per_scan_means():

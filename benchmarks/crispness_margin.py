@@ -1,0 +1,81 @@
+#!/usr/bin/env python
+"""How sure is a run's crispness verdict? The raw map's mean map entropy under a run's poses, over several draws
+of the query points, and the paired differences between the run's methods.
+
+    python benchmarks/crispness_margin.py --run_dir=runs/hku1 --out=benchmarks/results/hku1_margin.json
+    python benchmarks/crispness_margin.py --run_dir=runs/hku1 --root=/data/HKU_1_bag --draws=10
+
+A run judges itself on one draw of 10,000 query points (eval.crispness_queries, seed 0). The draw alone moves a
+sequence's entropy by about 0.01 nats; the methods are measured on the same points, so most of that cancels in
+their difference, but not all. This script reads the run's config.json (the sequence, its preprocessing and
+eval.crispness_radius_m) and its poses_<method>.kitti (initial, baseline when present, optimized), measures the
+entropy of the keyframes' raw map under each on --draws draws (seeds 0, 1, ...; draw 0 is the run's own) and
+prints, for optimized against each other method, the paired difference (optimized minus other; negative:
+NeLD-BA's map is crisper) on every draw, its mean and standard deviation, and whether every draw agrees in sign.
+--root replaces the run's data.root (a sequence moved since the run). Writes one JSON object to --out.
+"""
+
+import json
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from absl import app, flags  # noqa: E402
+
+RUN_DIR = flags.DEFINE_string("run_dir", None, "Output folder of a bin/train.py run (config.json, poses_*.kitti).")
+ROOT = flags.DEFINE_string("root", "", "The sequence's folder, if it is not the run's data.root any more.")
+DRAWS = flags.DEFINE_integer("draws", 5, "Draws of the query points (seeds 0 .. draws-1).")
+QUERIES = flags.DEFINE_integer("queries", 0, "Query points a draw (0: the run's eval.crispness_queries).")
+OUT = flags.DEFINE_string("out", "", "JSON file written (none if empty).")
+flags.mark_flag_as_required("run_dir")
+
+METHODS = ("initial", "baseline", "optimized")
+
+
+def main(argv):
+    del argv
+    import ml_collections
+    import numpy as np
+
+    from neld_jax import crispness, run
+    from neld_jax.data.poses import read_kitti
+    from neld_jax.geometry import register_scans
+
+    with open(os.path.join(RUN_DIR.value, "config.json")) as f:
+        config = ml_collections.ConfigDict(json.load(f))
+    if ROOT.value:
+        config.data.root = ROOT.value
+    _, seq, _ = run.load_and_prepare(config)
+    keyframes = np.arange(seq.num_scans) if seq.source_index is None else seq.source_index
+    maps = {}
+    for method in METHODS:
+        path = os.path.join(RUN_DIR.value, f"poses_{method}.kitti")
+        if os.path.exists(path):
+            maps[method] = register_scans(seq.scans, read_kitti(path)[keyframes])
+    if "optimized" not in maps:
+        raise SystemExit(f"{RUN_DIR.value}: no poses_optimized.kitti (is it a bin/train.py run's folder?)")
+    queries = QUERIES.value or int(config.eval.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES))
+    radius = float(config.eval.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M))
+    seeds = list(range(DRAWS.value))
+    entropy = crispness.entropy_over_query_draws(maps, seeds, max_queries=queries, radius=radius)
+    result = {"run_dir": RUN_DIR.value, "sequence": config.data.root, "draws": len(seeds), "queries": queries,
+              "radius_m": radius, "entropy": {m: [round(float(e), 6) for e in v] for m, v in entropy.items()},
+              "optimized_minus": {}}
+    for other in (m for m in maps if m != "optimized"):
+        diff = entropy["optimized"] - entropy[other]
+        result["optimized_minus"][other] = {
+            "per_draw": [round(float(d), 6) for d in diff], "mean": round(float(diff.mean()), 6),
+            "std": round(float(diff.std(ddof=1)), 6) if len(diff) > 1 else None,
+            "all_draws_agree": bool((diff < 0).all() or (diff > 0).all())}
+        r = result["optimized_minus"][other]
+        print(f"optimized - {other}: mean {r['mean']:+.5f} nats (std {r['std']}), "
+              f"{'every draw agrees' if r['all_draws_agree'] else 'the draws disagree in sign'}: "
+              + " ".join(f"{d:+.5f}" for d in r["per_draw"]))
+    if OUT.value:
+        with open(OUT.value, "w") as f:
+            json.dump(result, f, indent=1)
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -7,11 +7,13 @@ of the query points, and the paired differences between the run's methods.
 
 A run judges itself on one draw of 10,000 query points (eval.crispness_queries, seed 0). The draw alone moves a
 sequence's entropy by about 0.01 nats; the methods are measured on the same points, so most of that cancels in
-their difference, but not all. This script reads the run's config.json (the sequence, its preprocessing and
-eval.crispness_radius_m) and its poses_<method>.kitti (initial, baseline when present, optimized), measures the
-entropy of the keyframes' raw map under each on --draws draws (seeds 0, 1, ...; draw 0 is the run's own) and
-prints, for optimized against each other method, the paired difference (optimized minus other; negative:
-NeLD-BA's map is crisper) on every draw, its mean and standard deviation, and whether every draw agrees in sign.
+their difference, but not all. Runs since the sixteenth session also write the margin over eval.crispness_draws
+(5) draws to metrics.json (run.crispness_margin, neld_jax.quality.crispness_margins); this script measures it
+for a finished run, written before or with other draws. It reads the run's config.json (the sequence, its
+preprocessing, eval.crispness_radius_m) and its poses_<method>.kitti (initial, baseline when present, optimized),
+measures the entropy of the keyframes' raw map under each on --draws draws (seeds 0, 1, ...; draw 0 is the run's
+own) and prints, for optimized against each other method, the paired difference (optimized minus other;
+negative: NeLD-BA's map is crisper) on every draw, its mean and spread, and whether every draw agrees in sign.
 --root replaces the run's data.root (a sequence moved since the run). Writes one JSON object to --out.
 """
 
@@ -38,40 +40,29 @@ def main(argv):
     import ml_collections
     import numpy as np
 
-    from neld_jax import crispness, run
+    from neld_jax import crispness, quality, run
     from neld_jax.data.poses import read_kitti
-    from neld_jax.geometry import register_scans
 
     with open(os.path.join(RUN_DIR.value, "config.json")) as f:
         config = ml_collections.ConfigDict(json.load(f))
     if ROOT.value:
         config.data.root = ROOT.value
+    config.eval.crispness_draws = DRAWS.value
+    if QUERIES.value:
+        config.eval.crispness_queries = QUERIES.value
     _, seq, _ = run.load_and_prepare(config)
     keyframes = np.arange(seq.num_scans) if seq.source_index is None else seq.source_index
-    maps = {}
-    for method in METHODS:
-        path = os.path.join(RUN_DIR.value, f"poses_{method}.kitti")
-        if os.path.exists(path):
-            maps[method] = register_scans(seq.scans, read_kitti(path)[keyframes])
-    if "optimized" not in maps:
+    methods = {method: read_kitti(path)[keyframes] for method in METHODS
+               if os.path.exists(path := os.path.join(RUN_DIR.value, f"poses_{method}.kitti"))}
+    if "optimized" not in methods:
         raise SystemExit(f"{RUN_DIR.value}: no poses_optimized.kitti (is it a bin/train.py run's folder?)")
-    queries = QUERIES.value or int(config.eval.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES))
-    radius = float(config.eval.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M))
-    seeds = list(range(DRAWS.value))
-    entropy = crispness.entropy_over_query_draws(maps, seeds, max_queries=queries, radius=radius)
-    result = {"run_dir": RUN_DIR.value, "sequence": config.data.root, "draws": len(seeds), "queries": queries,
-              "radius_m": radius, "entropy": {m: [round(float(e), 6) for e in v] for m, v in entropy.items()},
-              "optimized_minus": {}}
-    for other in (m for m in maps if m != "optimized"):
-        diff = entropy["optimized"] - entropy[other]
-        result["optimized_minus"][other] = {
-            "per_draw": [round(float(d), 6) for d in diff], "mean": round(float(diff.mean()), 6),
-            "std": round(float(diff.std(ddof=1)), 6) if len(diff) > 1 else None,
-            "all_draws_agree": bool((diff < 0).all() or (diff > 0).all())}
-        r = result["optimized_minus"][other]
-        print(f"optimized - {other}: mean {r['mean']:+.5f} nats (std {r['std']}), "
-              f"{'every draw agrees' if r['all_draws_agree'] else 'the draws disagree in sign'}: "
-              + " ".join(f"{d:+.5f}" for d in r["per_draw"]))
+    margins = quality.crispness_margins(seq, methods, config.eval)
+    result = {"run_dir": RUN_DIR.value, "sequence": config.data.root, "draws": DRAWS.value,
+              "queries": int(config.eval.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES)),
+              "radius_m": float(config.eval.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)),
+              "optimized_minus": margins}
+    for other, margin in margins.items():
+        print(quality.describe_margin(other, margin) + ": " + " ".join(f"{d:+.5f}" for d in margin["per_draw"]))
     if OUT.value:
         with open(OUT.value, "w") as f:
             json.dump(result, f, indent=1)

@@ -231,6 +231,9 @@ def base_config() -> ml_collections.ConfigDict:
     # Map crispness without ground truth (neld_jax.crispness): neighbourhood radius and number of query points.
     c.eval.crispness_radius_m = 0.3
     c.eval.crispness_queries = 10_000
+    # Draws of those query points over which NeLD-BA's map is compared with each other method's (the margin in
+    # metrics.json run.crispness_margin; docs/evaluation.md, "How sure a difference is"); 0 or 1: no margin.
+    c.eval.crispness_draws = 5
     return c
 
 

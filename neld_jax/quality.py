@@ -39,6 +39,40 @@ def map_crispness(seq, methods: dict[str, np.ndarray], eval_cfg) -> tuple[dict, 
     return summaries, per_scan
 
 
+def crispness_margins(seq, methods: dict[str, np.ndarray], eval_cfg, against: str = "optimized") -> dict:
+    """How sure the crispness verdict is: the paired difference of the `against` method's mean map entropy from
+    each other method's, on eval.crispness_draws draws of the query points (seeds 0, 1, ...; draw 0 is the one
+    map_crispness uses). methods: {name: poses [K, 4, 4]} of the keyframes seq.scans.
+
+    Returns {other: {"per_draw": [D], "mean", "std", "all_draws_agree"}} (negative: `against` is crisper), or {}
+    with fewer than 2 draws or without the `against` method."""
+    draws = int(eval_cfg.get("crispness_draws", 0))
+    if draws < 2 or against not in methods:
+        return {}
+    maps = {name: register_scans(seq.scans, poses) for name, poses in methods.items()}
+    entropy = crispness.entropy_over_query_draws(
+        maps, list(range(draws)), max_queries=int(eval_cfg.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES)),
+        radius=float(eval_cfg.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)))
+    margins = {}
+    for other in (name for name in methods if name != against):
+        diff = entropy[against] - entropy[other]
+        margins[other] = {"per_draw": [round(float(d), 6) for d in diff], "mean": round(float(diff.mean()), 6),
+                          "std": round(float(diff.std(ddof=1)), 6),
+                          "all_draws_agree": bool((diff < 0).all() or (diff > 0).all())}
+    return margins
+
+
+def describe_margin(other: str, margin: dict, against: str = "NeLD-BA") -> str:
+    """One line for a crispness_margins entry: the mean difference, its spread, and the verdict."""
+    draws = len(margin["per_draw"])
+    if not margin["all_draws_agree"]:
+        verdict = f"a tie: the {draws} draws disagree in sign"
+    else:
+        verdict = f"{'crisper' if margin['mean'] < 0 else 'blurrier'} on every one of {draws} draws"
+    return (f"{against}'s raw map against the {other} poses' map: {margin['mean']:+.5f} nats of mean map entropy "
+            f"(std {margin['std']:.5f} over query draws), {verdict}")
+
+
 def write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rendered, norm, per_scan_entropy,
                       min_opacity: float) -> list[dict]:
     """scans_report.csv and scans_report.png: one row per input scan (neld_jax.report).

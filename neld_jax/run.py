@@ -508,6 +508,10 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     rows = quality.write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rendered, norm,
                                      per_scan_entropy, min_opacity=float(config.mapping.min_opacity))
     quality.write_topdown(out_dir, seq, {"input poses": seq.poses, "after NeLD-BA": T_opt})
+    # How sure that verdict is: the same comparison over eval.crispness_draws draws of the query points
+    margins = quality.crispness_margins(seq, methods, config.eval)
+    for other, margin in margins.items():
+        logger.info("%s", quality.describe_margin(other, margin))
 
     summary = {
         "config_hash": chash,
@@ -531,6 +535,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     refused = {} if not start.bent else {"baseline": f"its trajectory departs {start.departure_m:.2f} m from the "
                                                      "input's (train.max_baseline_departure)"}
     summary["crispest"] = quality.warn_if_not_crispest(crisp, refused)
+    summary["crispness_margin"] = margins  # {other method: NeLD-BA's entropy minus its, per draw and mean}
     if start.baseline_seconds is not None:
         summary["baseline_seconds"] = round(start.baseline_seconds, 2)
         summary["baseline_departure_m"] = round(start.departure_m, 3)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from neld_jax.crispness import crispness, entropy_over_query_draws, per_scan_means, sample_queries
-from neld_jax.quality import crispest, warn_if_not_crispest
+from neld_jax.quality import crispest, crispness_margins, describe_margin, warn_if_not_crispest
 
 
 def _brute_force(points, radius, min_neighbors):
@@ -70,6 +70,27 @@ def test_entropy_over_query_draws_pairs_the_maps_on_each_draw():
     assert (entropy["smeared"] > entropy["aligned"]).all()
     with pytest.raises(ValueError, match="sizes differ"):
         entropy_over_query_draws({"a": wall, "b": wall[:-1]}, seeds=[0])
+
+
+def test_crispness_margins_compare_the_answer_with_each_method_on_every_draw():
+    import ml_collections
+
+    rng = np.random.default_rng(5)
+    wall = np.c_[rng.uniform(0, 4, (1500, 2)), rng.normal(0, 0.005, 1500)]
+    seq = ml_collections.ConfigDict({"scans": [wall, wall + rng.normal(0, 0.005, wall.shape)]})
+    shifted = np.tile(np.eye(4), (2, 1, 1))
+    shifted[1, 2, 3] = 0.03  # the second scan 3 cm off the wall
+    methods = {"initial": shifted, "optimized": np.tile(np.eye(4), (2, 1, 1))}
+    eval_cfg = {"crispness_draws": 4, "crispness_queries": 300, "crispness_radius_m": 0.3}
+    margins = crispness_margins(seq, methods, eval_cfg)
+    assert set(margins) == {"initial"}
+    margin = margins["initial"]
+    assert len(margin["per_draw"]) == 4 and all(d < -0.5 for d in margin["per_draw"])
+    assert margin["all_draws_agree"] and margin["mean"] == pytest.approx(np.mean(margin["per_draw"]), abs=1e-6)
+    assert "crisper on every one of 4 draws" in describe_margin("initial", margin)
+    assert crispness_margins(seq, methods, {**eval_cfg, "crispness_draws": 1}) == {}
+    tie = {"per_draw": [0.001, -0.002], "mean": -0.0005, "std": 0.002, "all_draws_agree": False}
+    assert "a tie: the 2 draws disagree in sign" in describe_margin("baseline", tie)
 
 
 def test_query_sampling_and_per_scan_means():

@@ -188,6 +188,7 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     assert config.baseline.map_rounds > 0 and summary["baseline_rounds_done"] == 0
     assert spent[0] >= summary["baseline_seconds"]
     assert {"initial", "baseline", "optimized"} <= set(summary["crispness"])
+    assert set(summary["crispness_margin"]) == {"initial", "baseline"}
     _, T_baseline = read_tum(tmp_path / "run" / "poses_baseline.txt")
     _, T_initial = read_tum(tmp_path / "run" / "poses_initial.txt")
     assert len(T_baseline) == len(T_initial) == 4

@@ -606,7 +606,8 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
     (`refine_against_map`) and a chain not yet finished is given up (`scan_to_map_chain`); the pose graph always
     runs to the end (2-31 s after Riverside02's 158-321 s chains). report, when given, receives
     {"chain_given_up" (scan_to_map_chain's rule or the deadline; then also "refined_from": "input", and refine_from
-    is not called), "map_rounds_done": rounds completed (a fraction when the deadline stopped them), "stopped_at_deadline"}.
+    is not called), "map_rounds_done": rounds completed (a fraction when the deadline stopped them),
+    "stopped_at_deadline"}.
     Returns refined poses [S, 4, 4] with pose 0 equal to init_poses[0] and orthonormal rotations.
     """
     init_poses = np.asarray(init_poses, dtype=np.float64)

@@ -375,11 +375,12 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
         c.train.log_every = 500  # K: steps per device call of the fused loop
         c.train.checkpoint_every = 5000
         c.submaps.max_submaps = 0  # a GPU runs hundreds of submaps' rays a step (not measured there yet)
+        paper = base_config()
         # the cpu budget's trade of the submap fields' width for rays: not measured on a GPU
-        c.submaps.width, c.submaps.step_rays_factor = 0, 1.0
-        paper = base_config().mapping  # the paper's map: 128 + 128 samples per ray, every ray, 5 cm voxels
+        c.submaps.width, c.submaps.step_rays_factor = paper.submaps.width, paper.submaps.step_rays_factor
+        # the paper's map: 128 + 128 samples per ray, every ray, 5 cm voxels
         for field in ("num_coarse", "num_fine", "max_rays_per_scan", "max_rays", "voxel_size_m", "max_seconds"):
-            c.mapping[field] = paper[field]
+            c.mapping[field] = paper.mapping[field]
     return c
 
 

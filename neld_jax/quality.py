@@ -39,10 +39,12 @@ def map_crispness(seq, methods: dict[str, np.ndarray], eval_cfg) -> tuple[dict, 
     return summaries, per_scan
 
 
-def crispness_margins(seq, methods: dict[str, np.ndarray], eval_cfg, against: str = "optimized") -> dict:
+def crispness_margins(seq, methods: dict[str, np.ndarray], eval_cfg, against: str = "optimized",
+                      first_draw: dict | None = None) -> dict:
     """How sure the crispness verdict is: the paired difference of the `against` method's mean map entropy from
     each other method's, on eval.crispness_draws draws of the query points (seeds 0, 1, ...; draw 0 is the one
-    map_crispness uses). methods: {name: poses [K, 4, 4]} of the keyframes seq.scans.
+    map_crispness uses). methods: {name: poses [K, 4, 4]} of the keyframes seq.scans. first_draw: map_crispness's
+    summaries of these methods ({name: summary}), whose entropy is draw 0's, so only the later draws are measured.
 
     Returns {other: {"per_draw": [D], "mean", "std", "all_draws_agree"}} (negative: `against` is crisper), or {}
     with fewer than 2 draws or without the `against` method."""
@@ -51,8 +53,13 @@ def crispness_margins(seq, methods: dict[str, np.ndarray], eval_cfg, against: st
         return {}
     maps = {name: register_scans(seq.scans, poses) for name, poses in methods.items()}
     entropy = crispness.entropy_over_query_draws(
-        maps, list(range(draws)), max_queries=int(eval_cfg.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES)),
+        maps, list(range(1 if first_draw else 0, draws)),
+        max_queries=int(eval_cfg.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES)),
         radius=float(eval_cfg.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)))
+    if first_draw:
+        entropy = {name: np.concatenate([[np.nan if first_draw[name]["mean_map_entropy"] is None
+                                          else first_draw[name]["mean_map_entropy"]], values])
+                   for name, values in entropy.items()}
     margins = {}
     for other in (name for name in methods if name != against):
         diff = entropy[against] - entropy[other]

@@ -508,8 +508,9 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     rows = quality.write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rendered, norm,
                                      per_scan_entropy, min_opacity=float(config.mapping.min_opacity))
     quality.write_topdown(out_dir, seq, {"input poses": seq.poses, "after NeLD-BA": T_opt})
-    # How sure that verdict is: the same comparison over eval.crispness_draws draws of the query points
-    margins = quality.crispness_margins(seq, methods, config.eval)
+    # How sure that verdict is: the same comparison over eval.crispness_draws draws of the query points (the
+    # figures above are draw 0's)
+    margins = quality.crispness_margins(seq, methods, config.eval, first_draw=crisp)
     for other, margin in margins.items():
         logger.info("%s", quality.describe_margin(other, margin))
 

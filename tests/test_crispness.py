@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from neld_jax.crispness import crispness, entropy_over_query_draws, per_scan_means, sample_queries
-from neld_jax.quality import crispest, crispness_margins, describe_margin, warn_if_not_crispest
+from neld_jax.quality import crispest, crispness_margins, describe_margin, map_crispness, warn_if_not_crispest
 
 
 def _brute_force(points, radius, min_neighbors):
@@ -77,7 +77,7 @@ def test_crispness_margins_compare_the_answer_with_each_method_on_every_draw():
 
     rng = np.random.default_rng(5)
     wall = np.c_[rng.uniform(0, 4, (1500, 2)), rng.normal(0, 0.005, 1500)]
-    seq = ml_collections.ConfigDict({"scans": [wall, wall + rng.normal(0, 0.005, wall.shape)]})
+    seq = ml_collections.ConfigDict({"scans": [wall, wall + rng.normal(0, 0.005, wall.shape)], "num_scans": 2})
     shifted = np.tile(np.eye(4), (2, 1, 1))
     shifted[1, 2, 3] = 0.03  # the second scan 3 cm off the wall
     methods = {"initial": shifted, "optimized": np.tile(np.eye(4), (2, 1, 1))}
@@ -89,6 +89,10 @@ def test_crispness_margins_compare_the_answer_with_each_method_on_every_draw():
     assert margin["all_draws_agree"] and margin["mean"] == pytest.approx(np.mean(margin["per_draw"]), abs=1e-6)
     assert "crisper on every one of 4 draws" in describe_margin("initial", margin)
     assert crispness_margins(seq, methods, {**eval_cfg, "crispness_draws": 1}) == {}
+    # draw 0 taken from map_crispness's summaries (as the run does) instead of measured again: the same margins
+    summaries, _ = map_crispness(seq, methods, eval_cfg)
+    reused = crispness_margins(seq, methods, eval_cfg, first_draw=summaries)["initial"]
+    assert reused["per_draw"] == pytest.approx(margin["per_draw"], abs=1e-6)
     tie = {"per_draw": [0.001, -0.002], "mean": -0.0005, "std": 0.002, "all_draws_agree": False}
     assert "a tie: the 2 draws disagree in sign" in describe_margin("baseline", tie)
 

@@ -532,10 +532,11 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         "final": result.history[-1] if result.history else {},
     }
     summary["started_from"] = start.chosen
-    # The method whose poses give the crispest raw map, of those the run trusts (not a bent baseline)
+    # The method whose poses give the crispest raw map over the query draws, of those the run trusts (not a bent
+    # baseline)
     refused = {} if not start.bent else {"baseline": f"its trajectory departs {start.departure_m:.2f} m from the "
                                                      "input's (train.max_baseline_departure)"}
-    summary["crispest"] = quality.warn_if_not_crispest(crisp, refused)
+    summary["crispest"] = quality.warn_if_not_crispest(crisp, refused, margins)
     summary["crispness_margin"] = margins  # {other method: NeLD-BA's entropy minus its, per draw and mean}
     if start.baseline_seconds is not None:
         summary["baseline_seconds"] = round(start.baseline_seconds, 2)

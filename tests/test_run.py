@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from neld_jax import baseline, checkpoint, run
+from neld_jax import baseline, checkpoint, quality, run
 from neld_jax.data.normalize import fit_normalization
 from neld_jax.data.poses import read_kitti, read_tum
 from neld_jax.errors import ConfigError, DataError
@@ -181,6 +181,14 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
         return real_chain(clouds, init_poses, settings)
 
     monkeypatch.setattr(baseline, "scan_to_map_chain", chain_without_deadline)
+    verdicts = []  # the margins the run's crispest verdict is given, and the verdict
+    real_verdict = quality.warn_if_not_crispest
+
+    def verdict_spy(summaries, refused=None, margins=None):
+        verdicts.append((margins, real_verdict(summaries, refused, margins)))
+        return verdicts[-1][1]
+
+    monkeypatch.setattr(quality, "warn_if_not_crispest", verdict_spy)
     config = _tiny_config_from_the_baseline(str(tmp_path / "run"), steps=4)
     summary = run.run(config, progress=False)
     assert summary["started_from"] == "baseline" and summary["baseline_seconds"] > 0
@@ -189,6 +197,7 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     assert spent[0] >= summary["baseline_seconds"]
     assert {"initial", "baseline", "optimized"} <= set(summary["crispness"])
     assert set(summary["crispness_margin"]) == {"initial", "baseline"}
+    assert verdicts == [(summary["crispness_margin"], summary["crispest"])]  # judged over the query draws
     _, T_baseline = read_tum(tmp_path / "run" / "poses_baseline.txt")
     _, T_initial = read_tum(tmp_path / "run" / "poses_initial.txt")
     assert len(T_baseline) == len(T_initial) == 4

@@ -97,19 +97,25 @@ def plot_error_histogram(path: str | os.PathLike, distances: dict[str, np.ndarra
 
 
 def plot_scan_report(path: str | os.PathLike, rows: list[dict]) -> Path:
-    """Per keyframe: median range residual and pose correction, flagged scans in red (see neld_jax.report)."""
+    """Per keyframe: median range residual, the bundle adjustment's refinement and the correction from the input,
+    flagged scans in red (see neld_jax.report)."""
     keyframes = [row for row in rows if row["keyframe"]]
     index = np.array([row["scan"] for row in keyframes])
     flagged = np.array([bool(row["flag"]) for row in keyframes], bool)
-    residual = np.array([np.nan if row["median_residual_m"] is None else row["median_residual_m"] for row in keyframes])
-    correction = np.array([row["correction_cm"] for row in keyframes])
-    fig, axes = plt.subplots(2, 1, figsize=(8.0, 5.0), sharex=True)
-    for ax, values, label in ((axes[0], residual, "median range residual [m]"), (axes[1], correction, "pose correction [cm]")):
+
+    def column(name):
+        return np.array([np.nan if row.get(name) is None else row[name] for row in keyframes], np.float64)
+
+    panels = ((column("median_residual_m"), "median range residual [m]"),
+              (column("refinement_cm"), "NeLD-BA refinement [cm]"),
+              (column("correction_cm"), "correction from input [cm]"))
+    fig, axes = plt.subplots(3, 1, figsize=(8.0, 7.0), sharex=True)
+    for ax, (values, label) in zip(axes, panels):
         ax.plot(index, values, ".", color="tab:blue", markersize=4)
         ax.plot(index[flagged], values[flagged], "o", color="tab:red", markersize=6, label="flagged")
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
-    axes[1].set_xlabel("scan (input index)")
+    axes[-1].set_xlabel("scan (input index)")
     if flagged.any():
         axes[0].legend(loc="best", fontsize=8)
     axes[0].set_title(f"Per-scan report: {int(flagged.sum())} of {len(keyframes)} keyframes flagged")

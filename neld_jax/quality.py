@@ -80,11 +80,25 @@ def describe_margin(other: str, margin: dict, against: str = "NeLD-BA") -> str:
             f"(std {margin['std']:.5f} over query draws), {verdict}")
 
 
+def aligned_corrections(T_before: np.ndarray, T_after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How each scan moved against the others from T_before to T_after ([S, 4, 4] each): the rigid motion of the
+    whole trajectory (the gauge, e.g. the anchor scan's own correction) is removed first by aligning T_after to
+    T_before (SE(3), with 3 scans or more). Returns (translation [S] metres, rotation [S] degrees)."""
+    alignment = np.eye(4)
+    if len(T_before) >= 3:
+        rotation, translation, _ = metrics.umeyama_alignment(T_after[:, :3, 3], T_before[:, :3, 3])
+        alignment = metrics.similarity_matrix(rotation, translation)
+    return report.pose_corrections(T_before, alignment @ T_after)
+
+
 def write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rendered, norm, per_scan_entropy,
-                      min_opacity: float) -> list[dict]:
+                      min_opacity: float, start_poses: np.ndarray | None = None,
+                      refined_poses: np.ndarray | None = None) -> list[dict]:
     """scans_report.csv and scans_report.png: one row per input scan (neld_jax.report).
 
-    rendered: (mapping rays, MapRender) from the rendered map, or None (then no residuals)."""
+    rendered: (mapping rays, MapRender) from the rendered map, or None (then no residuals). start_poses,
+    refined_poses: [K, 4, 4] the keyframes' poses training started from and its answer, for the refinement columns
+    (None: the correction from the input stands for it)."""
     num_keyframes = seq.num_scans
     rays_per_keyframe = np.bincount(raysets.scan_index, minlength=num_keyframes)
     residual = np.full(num_keyframes, np.nan)
@@ -97,16 +111,13 @@ def write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rend
         for k, (errors, hits) in enumerate(zip(np.split(error_m, bounds), np.split(hit, bounds))):
             if hits.any():
                 residual[k] = float(np.median(errors[hits]))
-    # The correction each scan got relative to the others: the rigid motion of the whole trajectory (the gauge,
-    # e.g. the anchor scan's own correction) is removed first by aligning the result to the input (SE(3)).
-    alignment = np.eye(4)
-    if loaded.num_scans >= 3:
-        rotation, translation, _ = metrics.umeyama_alignment(T_all[:, :3, 3], loaded.poses[:, :3, 3])
-        alignment = metrics.similarity_matrix(rotation, translation)
-    correction_m, correction_deg = report.pose_corrections(loaded.poses, alignment @ T_all)
+    correction_m, correction_deg = aligned_corrections(loaded.poses, T_all)
+    refinement_m = refinement_deg = None
+    if start_poses is not None and refined_poses is not None:
+        refinement_m, refinement_deg = aligned_corrections(start_poses, refined_poses)
     rows = report.scan_report(loaded.num_scans, keyframe_index, loaded.files, loaded.timestamps, rays_per_keyframe,
                               residual, correction_m, correction_deg, per_scan_entropy.get("initial"),
-                              per_scan_entropy.get("optimized"))
+                              per_scan_entropy.get("optimized"), refinement_m, refinement_deg)
     report.write_csv(os.path.join(out_dir, "scans_report.csv"), rows)
     plots.plot_scan_report(os.path.join(out_dir, "scans_report.png"), rows)
     logger.info("scans_report.csv: %d input scans, %d keyframes trained on", loaded.num_scans, num_keyframes)

@@ -506,7 +506,8 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         seq, {name: poses for name, poses in methods.items() if name not in judged}, config.eval)
     crisp, per_scan_entropy = {**judged, **crisp}, {**judged_per_scan, **per_scan_entropy}
     rows = quality.write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rendered, norm,
-                                     per_scan_entropy, min_opacity=float(config.mapping.min_opacity))
+                                     per_scan_entropy, min_opacity=float(config.mapping.min_opacity),
+                                     start_poses=start.poses, refined_poses=T_opt)
     quality.write_topdown(out_dir, seq, {"input poses": seq.poses, "after NeLD-BA": T_opt})
     # How sure that verdict is: the same comparison over eval.crispness_draws draws of the query points (the
     # figures above are draw 0's)

@@ -93,6 +93,40 @@ def test_robust_outliers_and_report_rows():
                               np.array([0.1, 0.2]), metres, degrees, np.array([-3.0, -3.1]), np.array([-3.2, -3.3]))
     assert [r["keyframe"] for r in rows] == [1, 0, 1] and rows[1]["rays"] == 0 and rows[1]["entropy_after"] is None
     assert rows[2]["median_residual_m"] == pytest.approx(0.2) and rows[1]["correction_cm"] == pytest.approx(5.0)
+    # Without a start of its own the refinement is the correction from the input (keyframes only)
+    assert rows[0]["refinement_cm"] == 0.0 and rows[1]["refinement_cm"] is None
+
+
+def test_the_report_flags_the_bundle_adjustments_own_moves_not_its_starts():
+    # From the baseline's poses: the baseline moved 5 of 12 keyframes by cm (two groups; median + 3 MADs flags all
+    # of the upper one), NeLD-BA moved every keyframe by 1-2 mm and keyframe 7 by 2 cm.
+    keyframes = 12
+    correction_m = np.where(np.arange(keyframes) < 7, 0.002, 0.04) + 0.001 * np.arange(keyframes) / keyframes
+    refinement_m = 0.001 + 0.001 * np.arange(keyframes) / keyframes
+    refinement_m[7] = 0.02
+    flat, zeros = np.full(keyframes, 0.1), np.zeros(keyframes)
+    by_correction = report.scan_report(keyframes, np.arange(keyframes), None, None, flat, flat, correction_m, zeros,
+                                       flat, flat)
+    assert [r["scan"] for r in by_correction if r["flag"]] == [7, 8, 9, 10, 11]  # the start's upper group
+    rows = report.scan_report(keyframes, np.arange(keyframes), None, None, flat, flat, correction_m, zeros, flat,
+                              flat, refinement_m, zeros)
+    assert [r["scan"] for r in rows if r["flag"]] == [7] and rows[7]["flag"] == "refinement"
+    assert rows[7]["refinement_cm"] == pytest.approx(2.0) and rows[7]["correction_cm"] == pytest.approx(4.0 + 0.0583,
+                                                                                                        abs=1e-3)
+    summary = report.summarize(rows)
+    assert [f["scan"] for f in summary["flagged"]] == [7] and summary["flagged"][0]["refinement_cm"] == 2.0
+
+
+def test_aligned_corrections_remove_the_trajectorys_rigid_motion():
+    from neld_jax.quality import aligned_corrections
+    T = np.tile(np.eye(4), (4, 1, 1))
+    T[:, 0, 3] = np.arange(4.0)
+    moved = T.copy()
+    moved[:, :3, 3] += [0.5, -0.2, 0.1]  # the whole trajectory shifted: no scan moved against the others
+    moved[2, 1, 3] += 0.03
+    metres, degrees = aligned_corrections(T, moved)
+    assert metres[2] == pytest.approx(0.03 * 3 / 4, abs=2e-3) and metres.max() == metres[2]
+    np.testing.assert_allclose(degrees, 0.0, atol=1e-6)
 
 
 def test_pseudo_ground_truth_keeps_the_recording_as_gt():

@@ -29,7 +29,7 @@ def job(config):
     flagged = summary["scans_report"]["flagged"]
     if flagged:
         names = ", ".join(row["file"] or f"scan {row['scan']}" for row in flagged[:5])
-        print(f"{len(flagged)} keyframes flagged as outliers (residual or correction; see scans_report.csv): {names}"
+        print(f"{len(flagged)} keyframes flagged as outliers (residual or refinement; see scans_report.csv): {names}"
               + (" ..." if len(flagged) > 5 else ""))
     if "evaluation" in summary:
         print(format_table(summary["evaluation"]))

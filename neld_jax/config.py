@@ -234,6 +234,9 @@ def base_config() -> ml_collections.ConfigDict:
     # Draws of those query points over which NeLD-BA's map is compared with each other method's (the margin in
     # metrics.json run.crispness_margin; docs/evaluation.md, "How sure a difference is"); 0 or 1: no margin.
     c.eval.crispness_draws = 5
+    # ... and no draw after draw 0 starts once the run is this long past train.max_minutes + mapping.max_seconds
+    # (neld_jax.run.margins_deadline); 0: no limit.
+    c.eval.crispness_draws_max_seconds = 30.0
     return c
 
 

@@ -40,11 +40,13 @@ def map_crispness(seq, methods: dict[str, np.ndarray], eval_cfg) -> tuple[dict, 
 
 
 def crispness_margins(seq, methods: dict[str, np.ndarray], eval_cfg, against: str = "optimized",
-                      first_draw: dict | None = None) -> dict:
+                      first_draw: dict | None = None, deadline: float | None = None) -> dict:
     """How sure the crispness verdict is: the paired difference of the `against` method's mean map entropy from
     each other method's, on eval.crispness_draws draws of the query points (seeds 0, 1, ...; draw 0 is the one
     map_crispness uses). methods: {name: poses [K, 4, 4]} of the keyframes seq.scans. first_draw: map_crispness's
     summaries of these methods ({name: summary}), whose entropy is draw 0's, so only the later draws are measured.
+    deadline: a time.perf_counter() value after which no draw starts (the run's clock); the margins then hold the
+    draws made, and the log says so.
 
     Returns {other: {"per_draw": [D], "mean", "std", "all_draws_agree"}} (negative: `against` is crisper), or {}
     with fewer than 2 draws or without the `against` method."""
@@ -55,7 +57,14 @@ def crispness_margins(seq, methods: dict[str, np.ndarray], eval_cfg, against: st
     entropy = crispness.entropy_over_query_draws(
         maps, list(range(1 if first_draw else 0, draws)),
         max_queries=int(eval_cfg.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES)),
-        radius=float(eval_cfg.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)))
+        radius=float(eval_cfg.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)), deadline=deadline)
+    made = len(next(iter(entropy.values()), [])) + (1 if first_draw else 0)
+    if made < draws:
+        logger.warning("crispness margins: %d of %d query draws fit the run's clock (train.max_minutes + "
+                       "mapping.max_seconds + eval.crispness_draws_max_seconds)%s", made, draws,
+                       "" if made >= 2 else "; no margin without two")
+    if made < 2:
+        return {}
     if first_draw:
         entropy = {name: np.concatenate([[np.nan if first_draw[name]["mean_map_entropy"] is None
                                           else first_draw[name]["mean_map_entropy"]], values])

@@ -384,6 +384,18 @@ def rendering_seconds(config: ml_collections.ConfigDict, elapsed_s: float) -> fl
     return max(limit - max(float(elapsed_s) - deadline, 0.0), MIN_RENDERING_SHARE * limit)
 
 
+def margins_deadline(config: ml_collections.ConfigDict, t_start: float) -> float | None:
+    """The time.perf_counter() value after which the crispness margins start no more query draws in a run started
+    at t_start: train.max_minutes + mapping.max_seconds + eval.crispness_draws_max_seconds, so that the run stays
+    near its 10 minutes on the largest maps (HKU_1's 1.5 M points: 15 s a draw of three maps, and a run of 10 min
+    22 s with every draw). None when train.max_minutes or eval.crispness_draws_max_seconds is 0 (no limit)."""
+    limit = float(config.train.max_minutes) * 60.0
+    extra = float(config.eval.get("crispness_draws_max_seconds", 0.0))
+    if limit <= 0 or extra <= 0:
+        return None
+    return t_start + limit + max(float(config.mapping.max_seconds), 0.0) + extra
+
+
 def train_single_cube(config: ml_collections.ConfigDict, seq, norm, raysets, T_start: np.ndarray, out_dir: str,
                       chash: str, progress: bool, max_seconds: float | None = None):
     """Train one field over the whole sequence (resuming from out_dir's checkpoints), the paper's setting.
@@ -511,7 +523,8 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     quality.write_topdown(out_dir, seq, {"input poses": seq.poses, "after NeLD-BA": T_opt})
     # How sure that verdict is: the same comparison over eval.crispness_draws draws of the query points (the
     # figures above are draw 0's)
-    margins = quality.crispness_margins(seq, methods, config.eval, first_draw=crisp)
+    margins = quality.crispness_margins(seq, methods, config.eval, first_draw=crisp,
+                                        deadline=margins_deadline(config, t_start))
     for other, margin in margins.items():
         logger.info("%s", quality.describe_margin(other, margin))
 

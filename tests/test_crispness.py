@@ -1,6 +1,7 @@
 """Map crispness (mean map entropy, plane thickness) against a brute-force numpy version on small maps."""
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -96,6 +97,25 @@ def test_crispness_margins_compare_the_answer_with_each_method_on_every_draw():
     assert reused["per_draw"] == pytest.approx(margin["per_draw"], abs=1e-6)
     tie = {"per_draw": [0.001, -0.002], "mean": -0.0005, "std": 0.002, "all_draws_agree": False}
     assert "a tie: the 2 draws disagree in sign" in describe_margin("baseline", tie)
+
+
+def test_the_margins_stop_drawing_at_the_runs_deadline(caplog):
+    import ml_collections
+
+    rng = np.random.default_rng(6)
+    wall = np.c_[rng.uniform(0, 4, (1500, 2)), rng.normal(0, 0.005, 1500)]
+    seq = ml_collections.ConfigDict({"scans": [wall, wall.copy()], "num_scans": 2})
+    methods = {"initial": np.tile(np.eye(4), (2, 1, 1)), "optimized": np.tile(np.eye(4), (2, 1, 1))}
+    eval_cfg = {"crispness_draws": 4, "crispness_queries": 300, "crispness_radius_m": 0.3}
+    past = time.perf_counter() - 1.0
+    assert {name: len(v) for name, v in entropy_over_query_draws(
+        {"a": wall, "b": wall}, [0, 1], 300, deadline=past).items()} == {"a": 0, "b": 0}
+    summaries, _ = map_crispness(seq, methods, eval_cfg)
+    with caplog.at_level("WARNING", logger="neld_jax.quality"):
+        assert crispness_margins(seq, methods, eval_cfg, first_draw=summaries, deadline=past) == {}
+    assert "1 of 4 query draws fit the run's clock" in caplog.text and "no margin without two" in caplog.text
+    far = time.perf_counter() + 3600.0
+    assert len(crispness_margins(seq, methods, eval_cfg, first_draw=summaries, deadline=far)["initial"]["per_draw"]) == 4
 
 
 def test_query_sampling_and_per_scan_means():

@@ -325,3 +325,16 @@ def test_pose_steps_are_capped_only_from_the_baseline():
     config.train.pose_lr_from_baseline = (1e-6,)
     with pytest.raises(ConfigError, match="pose_lr_from_baseline"):
         run.pose_steps_for_start(config, "baseline")
+
+
+def test_the_margins_deadline_follows_the_runs_clock():
+    from neld_jax.config import apply_budget, base_config
+
+    config = apply_budget(base_config(), "cpu")
+    limit = 60.0 * config.train.max_minutes + config.mapping.max_seconds + config.eval.crispness_draws_max_seconds
+    assert run.margins_deadline(config, 100.0) == pytest.approx(100.0 + limit)
+    config.eval.crispness_draws_max_seconds = 0.0
+    assert run.margins_deadline(config, 100.0) is None
+    config.eval.crispness_draws_max_seconds, config.train.max_minutes = 30.0, 0.0
+    assert run.margins_deadline(config, 100.0) is None
+

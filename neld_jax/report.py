@@ -7,7 +7,9 @@ part of it the bundle adjustment made (the refinement: from the poses training s
 started from the input, only its own moves when it started from the classical baseline's), and the local
 crispness of the map around its points before and after. A keyframe is flagged when its residual or its
 refinement is an outlier among the keyframes: above median + 3 scaled MADs (1.4826 MAD, the robust standard
-deviation). Flagged scans are the ones the bundle adjustment did not trust or moved most: look at them first.
+deviation), and for the refinement also at least 1 cm or 0.1 deg (REFINEMENT_FLOOR_*): NeLD-BA's moves off the
+classical baseline are a fraction of a millimetre on the handheld sequences, and the outliers of those are not
+moves to distrust (the raw map's planes are 3-4 cm thick). Flagged scans are the ones the bundle adjustment did not trust or moved most: look at them first.
 The baseline's own corrections are not flagged: on Riverside02 its gates keep 42 % of its registrations, so its
 corrections fall in two groups (a few mm and a few cm) and half the scans would lie above median + 3 MADs.
 """
@@ -26,6 +28,8 @@ from neld_jax.geometry import invert_poses, rotation_angles_deg
 logger = logging.getLogger(__name__)
 
 MAD_THRESHOLD = 3.0
+REFINEMENT_FLOOR_M = 0.01  # a refinement is flagged only from this size on (translation) ...
+REFINEMENT_FLOOR_DEG = 0.1  # ... or this (rotation)
 COLUMNS = ("scan", "file", "timestamp", "keyframe", "rays", "median_residual_m", "correction_cm",
            "correction_deg", "refinement_cm", "refinement_deg", "entropy_before", "entropy_after", "flag")
 
@@ -63,12 +67,14 @@ def scan_report(num_scans: int, keyframe_index: np.ndarray, files: list[str] | N
 
     refinement_m / refinement_deg [K]: the bundle adjustment's own move of each keyframe from its start (None: the
     correction's, as when training started from the input). The flag names why a keyframe is an outlier
-    ("residual", "refinement" or both, joined by '+')."""
+    ("residual", "refinement" or both, joined by '+'); a refinement under REFINEMENT_FLOOR_M and
+    REFINEMENT_FLOOR_DEG is never flagged."""
     keyframe_index = np.asarray(keyframe_index, np.int64)
     if refinement_m is None or refinement_deg is None:
         refinement_m, refinement_deg = correction_m[keyframe_index], correction_deg[keyframe_index]
     residual_flags = robust_outliers(residual_per_keyframe)
-    refinement_flags = robust_outliers(refinement_m) | robust_outliers(refinement_deg)
+    refinement_flags = ((robust_outliers(refinement_m) & (np.asarray(refinement_m) >= REFINEMENT_FLOOR_M))
+                        | (robust_outliers(refinement_deg) & (np.asarray(refinement_deg) >= REFINEMENT_FLOOR_DEG)))
     kf_row = {int(s): k for k, s in enumerate(keyframe_index)}
     rows = []
     for s in range(num_scans):

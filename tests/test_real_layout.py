@@ -115,6 +115,10 @@ def test_the_report_flags_the_bundle_adjustments_own_moves_not_its_starts():
                                                                                                         abs=1e-3)
     summary = report.summarize(rows)
     assert [f["scan"] for f in summary["flagged"]] == [7] and summary["flagged"][0]["refinement_cm"] == 2.0
+    # An outlier among sub-millimetre moves is below the floor (REFINEMENT_FLOOR_M): not flagged
+    tiny = report.scan_report(keyframes, np.arange(keyframes), None, None, flat, flat, correction_m, zeros, flat,
+                              flat, refinement_m / 10, zeros)
+    assert not any(r["flag"] for r in tiny)
 
 
 def test_aligned_corrections_remove_the_trajectorys_rigid_motion():

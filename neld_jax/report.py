@@ -9,10 +9,10 @@ crispness of the map around its points before and after. A keyframe is flagged w
 refinement is an outlier among the keyframes: above median + 3 scaled MADs (1.4826 MAD, the robust standard
 deviation), and for the refinement also at least 1 cm or 0.1 deg (REFINEMENT_FLOOR_*): NeLD-BA's moves off the
 classical baseline are a fraction of a millimetre on the handheld sequences, and the outliers of those are not
-moves to distrust (the raw map's planes are 3-4 cm thick). Flagged scans are the ones the bundle adjustment did not trust or moved most: look at them first.
-The baseline's own corrections are not flagged: on Riverside02 its gates keep 42 % of its registrations, so its
-corrections fall in two groups (a few mm and a few cm) and half the scans would lie above median + 3 MADs.
-"""
+moves to distrust (the raw map's planes are 3-4 cm thick). Flagged scans are the ones the bundle adjustment did
+not trust or moved most: look at them first. The baseline's own corrections are not flagged: on Riverside02 its
+gates kept 42 % of its registrations, so its corrections fell in two groups (a few mm and a few cm) and half the
+scans lay above median + 3 MADs (docs/evaluation.md, "Per-scan report")."""
 
 from __future__ import annotations
 

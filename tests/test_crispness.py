@@ -115,7 +115,8 @@ def test_the_margins_stop_drawing_at_the_runs_deadline(caplog):
         assert crispness_margins(seq, methods, eval_cfg, first_draw=summaries, deadline=past) == {}
     assert "1 of 4 query draws fit the run's clock" in caplog.text and "no margin without two" in caplog.text
     far = time.perf_counter() + 3600.0
-    assert len(crispness_margins(seq, methods, eval_cfg, first_draw=summaries, deadline=far)["initial"]["per_draw"]) == 4
+    margins = crispness_margins(seq, methods, eval_cfg, first_draw=summaries, deadline=far)
+    assert len(margins["initial"]["per_draw"]) == 4
 
 
 def test_query_sampling_and_per_scan_means():

@@ -38,7 +38,6 @@ METHODS = ("initial", "baseline", "optimized")
 def main(argv):
     del argv
     import ml_collections
-    import numpy as np
 
     from neld_jax import crispness, quality, run
     from neld_jax.data.poses import read_kitti
@@ -51,8 +50,7 @@ def main(argv):
     if QUERIES.value:
         config.eval.crispness_queries = QUERIES.value
     _, seq, _ = run.load_and_prepare(config)
-    keyframes = np.arange(seq.num_scans) if seq.source_index is None else seq.source_index
-    methods = {method: read_kitti(path)[keyframes] for method in METHODS
+    methods = {method: read_kitti(path)[seq.loaded_index] for method in METHODS
                if os.path.exists(path := os.path.join(RUN_DIR.value, f"poses_{method}.kitti"))}
     if "optimized" not in methods:
         raise SystemExit(f"{RUN_DIR.value}: no poses_optimized.kitti (is it a bin/train.py run's folder?)")

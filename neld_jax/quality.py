@@ -69,13 +69,15 @@ def crispness_margins(seq, methods: dict[str, np.ndarray], eval_cfg, against: st
         entropy = {name: np.concatenate([[np.nan if first_draw[name]["mean_map_entropy"] is None
                                           else first_draw[name]["mean_map_entropy"]], values])
                    for name, values in entropy.items()}
-    margins = {}
-    for other in (name for name in methods if name != against):
-        diff = entropy[against] - entropy[other]
-        margins[other] = {"per_draw": [round(float(d), 6) for d in diff], "mean": round(float(diff.mean()), 6),
-                          "std": round(float(diff.std(ddof=1)), 6),
-                          "all_draws_agree": bool((diff < 0).all() or (diff > 0).all())}
-    return margins
+    return {other: margin_over_draws(entropy[against] - entropy[other]) for other in methods if other != against}
+
+
+def margin_over_draws(differences) -> dict:
+    """One crispness_margins entry from the paired differences [D] (D >= 2) of the draws: {"per_draw", "mean",
+    "std", "all_draws_agree"} (rounded to 1e-6 nats)."""
+    diff = np.asarray(differences, dtype=np.float64)
+    return {"per_draw": [round(float(d), 6) for d in diff], "mean": round(float(diff.mean()), 6),
+            "std": round(float(diff.std(ddof=1)), 6), "all_draws_agree": bool((diff < 0).all() or (diff > 0).all())}
 
 
 def describe_margin(other: str, margin: dict, against: str = "NeLD-BA") -> str:

@@ -8,7 +8,7 @@ import pytest
 
 from neld_jax.crispness import crispness, entropy_over_query_draws, per_scan_means, sample_queries
 from neld_jax.quality import (crispest, crispest_over_draws, crispness_margins, describe_margin, map_crispness,
-                               warn_if_not_crispest)
+                               margin_over_draws, warn_if_not_crispest)
 
 
 def _brute_force(points, radius, min_neighbors):
@@ -150,30 +150,24 @@ def test_a_run_names_the_crispest_poses_and_warns_when_they_are_not_its_own(capl
     assert crispest({"initial": {"mean_map_entropy": None}}) is None
 
 
-def _margin(per_draw):
-    per_draw = np.asarray(per_draw)
-    return {"per_draw": list(per_draw), "mean": float(per_draw.mean()), "std": float(per_draw.std(ddof=1)),
-            "all_draws_agree": bool((per_draw < 0).all() or (per_draw > 0).all())}
-
-
 def test_the_crispest_poses_are_judged_over_the_query_draws_and_a_tie_is_not_warned_about(caplog):
     # Draw 0 alone puts the baseline ahead (-3.49 against -3.475); over five draws the difference changes sign.
     summaries = {"initial": {"mean_map_entropy": -3.42}, "baseline": {"mean_map_entropy": -3.49},
                  "optimized": {"mean_map_entropy": -3.475}}
-    tie = {"initial": _margin([-0.05, -0.04, -0.06, -0.05, -0.05]),
-           "baseline": _margin([0.015, -0.002, -0.001, 0.001, -0.003])}
+    tie = {"initial": margin_over_draws([-0.05, -0.04, -0.06, -0.05, -0.05]),
+           "baseline": margin_over_draws([0.015, -0.002, -0.001, 0.001, -0.003])}
     with caplog.at_level("INFO", logger="neld_jax.quality"):
         assert warn_if_not_crispest(summaries, margins=tie) == "baseline"  # the lower mean, but a tie
     assert "WARNING" not in caplog.text and "a tie" in caplog.text and "poses_baseline.txt" in caplog.text
     caplog.clear()
     # Every draw puts the baseline ahead: a warning, with the mean over the draws.
-    ahead = dict(tie, baseline=_margin([0.015, 0.002, 0.001, 0.004, 0.003]))
+    ahead = dict(tie, baseline=margin_over_draws([0.015, 0.002, 0.001, 0.004, 0.003]))
     with caplog.at_level("WARNING", logger="neld_jax.quality"):
         assert warn_if_not_crispest(summaries, margins=ahead) == "baseline"
     assert "poses_baseline.txt" in caplog.text and "0.00500 on average over 5 query draws" in caplog.text
     caplog.clear()
     # The mean over the draws below every other method's: NeLD-BA's own poses, though draw 0 says otherwise.
-    behind = dict(tie, baseline=_margin([0.001, -0.004, -0.003, -0.002, -0.004]))
+    behind = dict(tie, baseline=margin_over_draws([0.001, -0.004, -0.003, -0.002, -0.004]))
     with caplog.at_level("INFO", logger="neld_jax.quality"):
         assert warn_if_not_crispest(summaries, margins=behind) == "optimized"
     assert caplog.text == ""

@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import open3d as o3d
 
 from neld_jax.data.poses import write_kitti, write_tum
 from neld_jax.data.preprocess import voxel_downsample
@@ -55,6 +54,8 @@ def write_point_cloud(path: str | os.PathLike, points: np.ndarray) -> Path:
         raise DataError(f"{path}: refusing to write {int(np.sum(~np.isfinite(points).all(axis=1)))} "
                         "NaN or infinite points")
     path.parent.mkdir(parents=True, exist_ok=True)
+    import open3d as o3d  # here: training imports this module on GPU images without open3d (docs/design.md)
+
     cloud = o3d.t.geometry.PointCloud()
     # float64: float32 spacing is 0.25 m at UTM-sized coordinates (4e6 m), and the map metrics read these files.
     cloud.point.positions = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float64))

@@ -417,6 +417,31 @@ def train_single_cube(config: ml_collections.ConfigDict, seq, norm, raysets, T_s
     return result, T_field_n, G_n
 
 
+@dataclasses.dataclass(frozen=True)
+class Trained:
+    """What training gave (train_keyframes): the FitResult, the keyframes' world poses T_opt [K, 4, 4], and what the
+    rendered map needs: the submaps' SubmapResult, or the single cube's T_field_n [K, 4, 4] and G_n [4, 4]."""
+
+    result: train.FitResult
+    T_opt: np.ndarray
+    submaps: submap_run.SubmapResult | None = None
+    T_field_n: np.ndarray | None = None
+    G_n: np.ndarray | None = None
+
+
+def train_keyframes(config: ml_collections.ConfigDict, seq, norm, raysets, T_start: np.ndarray, plan, out_dir: str,
+                    chash: str, progress: bool, max_seconds: float | None = None) -> Trained:
+    """Train the field(s) over the keyframes from T_start [K, 4, 4] (world): one cube, or the submaps of `plan`
+    (not None: the sequence outgrows one cube). Resumes from out_dir's checkpoints. The one step of a run that
+    needs no open3d: benchmarks/real_gpu.py runs it alone on a GPU image without it."""
+    if plan is not None:  # the sequence outgrows one cube: submaps (neld_jax.submap_run), same outputs
+        trained = submap_run.train_submaps(config, seq, norm, T_start, plan, out_dir, chash, progress, max_seconds)
+        return Trained(trained.result, trained.G @ trained.T_field, submaps=trained)
+    result, T_field_n, G_n = train_single_cube(config, seq, norm, raysets, T_start, out_dir, chash, progress,
+                                               max_seconds)
+    return Trained(result, norm.poses_to_world(G_n @ T_field_n), T_field_n=T_field_n, G_n=G_n)
+
+
 def field_poses(pose_params, T_init, anchor_scan: int) -> tuple[np.ndarray, np.ndarray]:
     """The scans' poses in the field's normalised frame (what the field renders with) and the anchoring transform
     that keeps scan `anchor_scan` at its initial pose (identity when anchor_scan < 0); the world poses are
@@ -464,16 +489,9 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     if max_seconds > 0 and max_seconds < float(config.train.max_minutes) * 60.0:
         logger.info("the run spent %.0f s before training: training may take %.1f of the run's %g minutes "
                     "(train.max_minutes)", spent_s, max_seconds / 60.0, config.train.max_minutes)
-    if plan is not None:  # the sequence outgrows one cube: submaps (neld_jax.submap_run), same outputs
-        trained = submap_run.train_submaps(config, seq, norm, T_start, plan, out_dir, chash, progress, max_seconds)
-        result, state = trained.result, trained.result.state
-        train_seconds = result.train_seconds
-        T_opt = trained.G @ trained.T_field
-    else:
-        result, T_field_n, G_n = train_single_cube(config, seq, norm, raysets, T_start, out_dir, chash, progress,
-                                                   max_seconds)
-        state, train_seconds = result.state, result.train_seconds
-        T_opt = norm.poses_to_world(G_n @ T_field_n)  # keyframes
+    trained = train_keyframes(config, seq, norm, raysets, T_start, plan, out_dir, chash, progress, max_seconds)
+    result, T_opt = trained.result, trained.T_opt
+    state, train_seconds = result.state, result.train_seconds
     if result.total_steps and result.total_steps != int(config.train.steps):
         # The guard compressed the schedule: the rendered map's window and config.json follow the plan that ran.
         config = train.with_steps(config, result.total_steps)
@@ -504,9 +522,11 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
                         "(mapping.max_seconds)", elapsed_s - float(config.train.max_minutes) * 60.0,
                         config.train.max_minutes, map_seconds, config.mapping.max_seconds)
         if plan is not None:
-            rendered = submap_run.write_rendered_map(config, trained, plan, norm, seq, out_dir, progress, map_seconds)
+            rendered = submap_run.write_rendered_map(config, trained.submaps, plan, norm, seq, out_dir, progress,
+                                                     map_seconds)
         else:
-            rendered = _write_rendered_map(config, state, norm, seq, T_field_n, G_n, out_dir, progress, map_seconds)
+            rendered = _write_rendered_map(config, state, norm, seq, trained.T_field_n, trained.G_n, out_dir,
+                                           progress, map_seconds)
 
     # Quality without ground truth: crispness of the keyframes' raw map, and the per-scan report.
     # The same query points for every method, so the starts' figures from starting_poses are reused as they are.

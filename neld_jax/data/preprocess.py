@@ -9,7 +9,6 @@ import dataclasses
 import logging
 
 import numpy as np
-import open3d as o3d
 
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
@@ -62,6 +61,8 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """points: [N, 3] -> one point (the centroid) per occupied voxel: [N', 3]. voxel_size <= 0: unchanged."""
     if voxel_size <= 0 or points.shape[0] == 0:
         return points
+    import open3d as o3d  # here: the training path imports this module on machines without open3d
+
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
     return np.asarray(cloud.voxel_down_sample(voxel_size).points, dtype=np.float64)
 

@@ -316,7 +316,10 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
     initial 0.137 m) on the demo in 36,446 steps and 33 s, while the paper-size model with the same recipe
     needed 106 s for 0.0022 m (7,147 steps) and the paper's own recipe had not converged at that step count.
     The small model is launch-bound on a GPU (0.66 ms a step), so the fused loop runs it at about the step's
-    rate and 30k steps take about 20 s; its accuracy at exactly this schedule is still to be measured.
+    rate: on one H200 (eighteenth session) 30k steps took 27-34 s on the real handheld sequences and 57-101 s with
+    Riverside02's 172-279 submaps, and from the classical baseline's poses every real map but one came out crisper
+    than the baseline's on every query draw (quick-shack: a tie); on the hard synthetic sequence the ATE ended above
+    the baseline's (0.60 against 0.54 mm; benchmarks/RESULTS.md).
     """
     budget = (budget or default_budget()).strip().lower()
     if budget not in BUDGETS:
@@ -377,9 +380,11 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
         c.train.steps = 30_000
         c.train.log_every = 500  # K: steps per device call of the fused loop
         c.train.checkpoint_every = 5000
-        c.submaps.max_submaps = 0  # a GPU runs hundreds of submaps' rays a step (not measured there yet)
+        # A GPU runs hundreds of submaps' rays a step: Riverside02's 279 submaps at 286 steps/s on one H200
+        c.submaps.max_submaps = 0
         paper = base_config()
-        # the cpu budget's trade of the submap fields' width for rays: not measured on a GPU
+        # The cpu budget's trade of the submap fields' width for rays (31 submaps 64 wide, 3x the rays) lost to this
+        # rule on Riverside02's 281 copy at 30k steps: -0.0020 against -0.0035 to the baseline's entropy (H200)
         c.submaps.width, c.submaps.step_rays_factor = paper.submaps.width, paper.submaps.step_rays_factor
         # the paper's map: 128 + 128 samples per ray, every ray, 5 cm voxels
         for field in ("num_coarse", "num_fine", "max_rays_per_scan", "max_rays", "voxel_size_m", "max_seconds"):

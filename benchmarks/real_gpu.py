@@ -243,6 +243,8 @@ def main(argv):
     if PREPARE.value or EVALUATE.value:
         if not RUN_DIR.value:
             raise SystemExit("--prepare and --evaluate need --run_dir")
+        if EVALUATE.value and not os.path.isfile(TRAINED.value):
+            raise SystemExit(f"--evaluate needs --trained, a <name>_trained.npz the training wrote (got {TRAINED.value!r})")
         name = NAME.value or os.path.basename(os.path.normpath(RUN_DIR.value))
         if PREPARE.value:
             print(json.dumps(prepare(RUN_DIR.value, name)))

@@ -97,17 +97,18 @@ def run_config(run_dir: str, config_file: str, budget: str, overrides: list):
 
 
 def read_start(run_dir: str, input_poses: np.ndarray) -> tuple[np.ndarray, str, np.ndarray | None]:
-    """(start poses [K, 4, 4], "baseline" | "input", the baseline's poses or None) of a run; a run that started from
-    its input wrote no start_poses.npz."""
-    from neld_jax.run import START_FILE
+    """(start poses [K, 4, 4], "baseline" | "input", the baseline's poses or None) of a run; a run whose baseline
+    did not run saved no start (run.load_start) and started from its input."""
+    from neld_jax.run import START_FILE, load_start
 
-    path = os.path.join(run_dir, START_FILE)
-    if not os.path.exists(path):
+    saved = load_start(run_dir)
+    if saved is None:
         return input_poses, "input", None
-    saved = np.load(path)
-    if saved["input_poses"].shape != input_poses.shape or not np.allclose(saved["input_poses"], input_poses):
-        raise SystemExit(f"{path}: its input poses are not this sequence's keyframes (another sequence's run?)")
-    return saved["poses"], json.loads(str(saved["meta"]))["chosen"], saved["baseline_poses"]
+    start, _, saved_input = saved
+    if saved_input.shape != input_poses.shape or not np.allclose(saved_input, input_poses):
+        raise SystemExit(f"{os.path.join(run_dir, START_FILE)}: its input poses are not this sequence's keyframes "
+                         "(another sequence's run?)")
+    return start.poses, start.chosen, start.baseline_poses
 
 
 def prepare(run_dir: str, name: str) -> dict:
@@ -126,6 +127,7 @@ def prepare(run_dir: str, name: str) -> dict:
         norm = fit_normalization(seq.scans, T_start, margin=config.data.normalization_margin)
     rays = build_rays(seq, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
                       seed=config.seed)
+    # One device: the plan pads the submaps to a multiple of the devices it will run on (a GPU machine lent here has one)
     plan = submaps.plan_from_config(dataclasses.replace(seq, poses=T_start), norm, config, num_devices=1)
     prepared = {"name": name, "config": config.to_dict(), "chosen": chosen, "T_start": T_start, "poses": seq.poses,
                 "timestamps": seq.timestamps, "norm": norm, "plan": plan, "source": seq.source,

@@ -192,26 +192,33 @@ def save_start(out_dir: str, start: Start, config_hash_: str, input_poses: np.nd
     os.replace(temporary, path)
 
 
+def load_start(out_dir: str) -> tuple[Start, str | None, np.ndarray] | None:
+    """(the Start, the config hash, the input poses [K, 4, 4] it came from) that a run in out_dir saved
+    (`save_start`), or None when it saved none (its training started from the input)."""
+    path = os.path.join(out_dir, START_FILE)
+    if not os.path.isfile(path):
+        return None
+    with np.load(path) as saved:
+        meta = json.loads(str(saved["meta"]))
+        start = Start(saved["poses"], meta["chosen"], saved["baseline_poses"], meta["baseline_seconds"],
+                      departure_m=meta["departure_m"], bent=meta["bent"], refined_from=meta["refined_from"],
+                      rounds_done=meta["rounds_done"])
+        return start, meta.get("config_hash"), saved["input_poses"]
+
+
 def resumed_start(out_dir: str, config_hash_: str, input_poses: np.ndarray) -> Start | None:
     """The Start a run in out_dir saved (`save_start`), when that run left a checkpoint to resume, had the same
     config hash and started from the same input poses [K, 4, 4]; None otherwise (the start is chosen again)."""
-    path = os.path.join(out_dir, START_FILE)
-    if not os.path.isfile(path):
+    saved = load_start(out_dir)
+    if saved is None:
         return None
     checkpoints = Checkpointer(os.path.join(out_dir, "checkpoints"))  # what fit_resuming would resume from
     resumable = checkpoints.latest_step() is not None
     checkpoints.close()
-    if not resumable:
-        return None
-    with np.load(path) as saved:
-        meta = json.loads(str(saved["meta"]))
-        same_input = (saved["input_poses"].shape == np.shape(input_poses)
-                      and np.allclose(saved["input_poses"], input_poses, rtol=0.0, atol=1e-9))
-        if meta.get("config_hash") != config_hash_ or not same_input:
-            return None
-        return Start(saved["poses"], meta["chosen"], saved["baseline_poses"], meta["baseline_seconds"],
-                     departure_m=meta["departure_m"], bent=meta["bent"], refined_from=meta["refined_from"],
-                     rounds_done=meta["rounds_done"])
+    start, saved_hash, saved_input = saved
+    same_input = saved_input.shape == np.shape(input_poses) and np.allclose(saved_input, input_poses, rtol=0.0,
+                                                                             atol=1e-9)
+    return start if resumable and saved_hash == config_hash_ and same_input else None
 
 
 def _entropy_text(value: float | None) -> str:

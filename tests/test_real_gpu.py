@@ -127,8 +127,8 @@ def test_prepare_names_a_run_of_another_sequence(finished_run, tmp_path):
     other = tmp_path / "other_run"
     other.mkdir()
     (other / "config.json").write_text((run_dir / "config.json").read_text())
-    poses = seq.poses.copy()
-    np.savez(other / "start_poses.npz", poses=poses, baseline_poses=poses, input_poses=poses[:3],
-             meta=np.array(json.dumps({"chosen": "baseline"})))
+    from neld_jax.run import Start, save_start
+
+    save_start(str(other), Start(seq.poses[:3], "baseline", baseline_poses=seq.poses[:3]), "0" * 12, seq.poses[:3])
     result = _real_gpu("--prepare", f"--run_dir={other}", f"--data={tmp_path}", *SIZES)
     assert result.returncode != 0 and "not this sequence's keyframes" in result.stderr

@@ -125,7 +125,9 @@ def entropy_over_query_draws(maps: dict[str, np.ndarray], seeds, max_queries: in
             break
         queries = sample_queries(num_points, max_queries, int(seed))
         for name, points in maps.items():
-            tree = trees.setdefault(name, cKDTree(np.asarray(points, dtype=np.float64)))
+            if name not in trees:  # not setdefault: its default would build a tree every draw
+                trees[name] = cKDTree(np.asarray(points, dtype=np.float64))
+            tree = trees[name]
             entropy = crispness(points, radius=radius, query_index=queries, tree=tree).summary()["mean_map_entropy"]
             out[name].append(np.nan if entropy is None else entropy)
     return {name: np.asarray(values, dtype=np.float64) for name, values in out.items()}

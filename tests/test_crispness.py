@@ -119,6 +119,21 @@ def test_the_margins_stop_drawing_at_the_runs_deadline(caplog):
     assert len(margins["initial"]["per_draw"]) == 4
 
 
+def test_each_maps_tree_is_built_once_for_all_draws(monkeypatch):
+    from neld_jax import crispness as crispness_module
+
+    built, original = [], crispness_module.cKDTree
+
+    def counting_tree(points):
+        built.append(len(points))
+        return original(points)
+
+    monkeypatch.setattr(crispness_module, "cKDTree", counting_tree)
+    wall = np.c_[np.random.default_rng(7).uniform(0, 4, (800, 2)), np.zeros(800)]
+    entropy = entropy_over_query_draws({"a": wall, "b": wall + 0.001}, [0, 1, 2], 200)
+    assert {name: len(v) for name, v in entropy.items()} == {"a": 3, "b": 3} and built == [800, 800]
+
+
 def test_query_sampling_and_per_scan_means():
     np.testing.assert_array_equal(sample_queries(5, 10), np.arange(5))
     picked = sample_queries(1000, 50, seed=2)

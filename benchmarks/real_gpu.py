@@ -96,39 +96,36 @@ def run_config(run_dir: str, config_file: str, budget: str, overrides: list):
     return apply_overrides(config, overrides)
 
 
-def read_start(run_dir: str, input_poses: np.ndarray) -> tuple[np.ndarray, str, np.ndarray | None]:
-    """(start poses [K, 4, 4], "baseline" | "input", the baseline's poses or None) of a run; a run whose baseline
-    did not run saved no start (run.load_start) and started from its input."""
-    from neld_jax.run import START_FILE, load_start
+def read_start(run_dir: str, input_poses: np.ndarray):
+    """The run.Start a run trained from (its poses [K, 4, 4], chosen "baseline" | "input", baseline_poses or None);
+    a run whose baseline did not run saved none (run.load_start) and started from its input."""
+    from neld_jax.run import START_FILE, Start, load_start
 
     saved = load_start(run_dir)
     if saved is None:
-        return input_poses, "input", None
+        return Start(input_poses, "input")
     start, _, saved_input = saved
     if saved_input.shape != input_poses.shape or not np.allclose(saved_input, input_poses):
         raise SystemExit(f"{os.path.join(run_dir, START_FILE)}: its input poses are not this sequence's keyframes "
                          "(another sequence's run?)")
-    return start.poses, start.chosen, start.baseline_poses
+    return start
 
 
 def prepare(run_dir: str, name: str) -> dict:
     """Write DATA/<name>.pkl: what train_keyframes needs, the keyframes' training rays as sensor-frame points."""
-    import dataclasses
-
-    from neld_jax import run, submaps
-    from neld_jax.data.normalize import Normalization, fit_normalization
+    from neld_jax import run
+    from neld_jax.data.normalize import Normalization
     from neld_jax.data.rays import build_rays
 
     config = run_config(run_dir, CONFIG.value, BUDGET.value, SET.value)
     _, seq, norm = run.load_and_prepare(config)
-    T_start, chosen, _ = read_start(run_dir, seq.poses)
-    config = run.pose_steps_for_start(config, chosen)
-    if chosen != "input":  # as run.run: the cube is fitted to the poses training starts from
-        norm = fit_normalization(seq.scans, T_start, margin=config.data.normalization_margin)
+    start = read_start(run_dir, seq.poses)
+    config = run.pose_steps_for_start(config, start.chosen)
+    # One device: the plan pads the submaps to a multiple of the devices it will run on (a GPU machine lent here has one)
+    norm, plan = run.training_frame(config, seq, norm, start, num_devices=1)
     rays = build_rays(seq, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
                       seed=config.seed)
-    # One device: the plan pads the submaps to a multiple of the devices it will run on (a GPU machine lent here has one)
-    plan = submaps.plan_from_config(dataclasses.replace(seq, poses=T_start), norm, config, num_devices=1)
+    chosen, T_start = start.chosen, start.poses
     prepared = {"name": name, "config": config.to_dict(), "chosen": chosen, "T_start": T_start, "poses": seq.poses,
                 "timestamps": seq.timestamps, "norm": norm, "plan": plan, "source": seq.source,
                 "points": pack_points(rays.directions * rays.ranges[:, None]),
@@ -202,7 +199,8 @@ def evaluate(run_dir: str, trained_path: str, out_dir: str) -> dict:
 
     config = run_config(run_dir, CONFIG.value, BUDGET.value, SET.value)
     loaded, seq, _ = run.load_and_prepare(config)
-    _, chosen, baseline = read_start(run_dir, seq.poses)
+    start = read_start(run_dir, seq.poses)
+    chosen, baseline = start.chosen, start.baseline_poses
     saved = np.load(trained_path)
     figures = json.loads(str(saved["figures"]))
     if saved["T_opt"].shape != seq.poses.shape:

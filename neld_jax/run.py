@@ -424,6 +424,19 @@ def train_single_cube(config: ml_collections.ConfigDict, seq, norm, raysets, T_s
     return result, T_field_n, G_n
 
 
+def training_frame(config: ml_collections.ConfigDict, seq, norm, start: Start, num_devices: int):
+    """(the normalisation, the submap plan or None) that training uses from `start`: norm, the one fitted to the
+    input poses, when training starts from them; else refitted to start.poses. The plan splits the keyframes at
+    start.poses over num_devices devices (submaps.plan_from_config)."""
+    if start.chosen != "input":
+        # The cube and the submaps are fitted to the poses training starts from: from a drifted start the
+        # baseline moves scans by metres, and a loop that the drift hid is closed in its poses.
+        norm = fit_normalization(seq.scans, start.poses, margin=config.data.normalization_margin)
+    plan = submaps.plan_from_config(dataclasses.replace(seq, poses=start.poses), norm, config,
+                                    num_devices=num_devices)
+    return norm, plan
+
+
 @dataclasses.dataclass(frozen=True)
 class Trained:
     """What training gave (train_keyframes): the FitResult, the keyframes' world poses T_opt [K, 4, 4], and what the
@@ -481,16 +494,11 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     # The config as trained (the start can cap the pose steps); the hash above stays the user's, for resuming.
     export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
     T_start = start.poses
-    if start.chosen != "input":
-        # The cube and the submaps are fitted to the poses training starts from: from a drifted start the
-        # baseline moves scans by metres, and a loop that the drift hid is closed in its poses.
-        norm = fit_normalization(seq.scans, T_start, margin=config.data.normalization_margin)
+    norm, plan = training_frame(config, seq, norm, start, num_devices=submap_run.num_devices(config))
     raysets = build_rays(seq, norm, max_rays_per_scan=(config.data.max_rays_per_scan or None), seed=config.seed)
     logger.info("%d keyframes of %d input scans, %d training rays, normalisation scale %.5f "
                 "(1 normalised unit = %.2f m)", seq.num_scans, loaded.num_scans, raysets.num_rays, norm.scale,
                 1.0 / norm.scale)
-    plan = submaps.plan_from_config(dataclasses.replace(seq, poses=T_start), norm, config,
-                                    num_devices=submap_run.num_devices(config))
     spent_s = time.perf_counter() - t_start
     max_seconds = training_seconds(config, spent_s)
     if max_seconds > 0 and max_seconds < float(config.train.max_minutes) * 60.0:

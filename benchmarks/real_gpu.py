@@ -31,9 +31,12 @@ import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
 
 from absl import app, flags  # noqa: E402
 import numpy as np  # noqa: E402
+
+from packed_points import pack_points, unpack_points  # noqa: E402
 
 logger = logging.getLogger("real_gpu")
 PREPARE = flags.DEFINE_bool("prepare", False, "Write --run_dir's sequence, start and plan to --data (needs open3d).")
@@ -50,26 +53,6 @@ OUT_DIR = flags.DEFINE_string("out_dir", "", "--evaluate: folder for the poses f
 NAMES = flags.DEFINE_list("names", [], "Training: the prepared sequences to train, in this order (default: all).")
 MAX_TRAIN_S = flags.DEFINE_float("max_train_s", 150.0, "Training: each sequence's training guard, seconds.")
 BUDGET_S = flags.DEFINE_float("budget_s", 480.0, "Training: start no sequence after this many seconds.")
-
-
-# The prepared points travel in 0.1 mm integers, compressed: a third smaller than float32, so that three sequences
-# fit the 64 MiB a device call carries; the rounding (at most 0.05 mm) is far below the field's detail and the sensor's
-# noise.
-POINT_UNIT_M = 1e-4
-
-
-def pack_points(points: np.ndarray) -> bytes:
-    """points [N, 3] metres -> zlib-compressed int32 in POINT_UNIT_M, column by column."""
-    import zlib
-
-    return zlib.compress(np.round(np.asarray(points, np.float64).T / POINT_UNIT_M).astype(np.int32).tobytes(), 6)
-
-
-def unpack_points(packed: bytes) -> np.ndarray:
-    """pack_points' inverse: [N, 3] float64 metres."""
-    import zlib
-
-    return np.frombuffer(zlib.decompress(packed), np.int32).reshape(3, -1).T * POINT_UNIT_M
 
 
 # What names the run's sequence in its config.json's data section; the budget sets the rest of the section.

@@ -64,12 +64,12 @@ def finished_run(tmp_path_factory):
 
 def test_points_travel_within_a_twentieth_of_a_millimetre():
     sys.path.insert(0, os.path.join(REPO, "benchmarks"))
-    import real_gpu
+    import packed_points
 
     points = np.random.default_rng(0).uniform(-40.0, 40.0, (500, 3))
-    packed = real_gpu.pack_points(points)
+    packed = packed_points.pack_points(points)
     assert len(packed) < points.astype(np.float32).nbytes  # smaller than float32 even on random points
-    assert np.abs(real_gpu.unpack_points(packed) - points).max() <= 0.5 * real_gpu.POINT_UNIT_M + 1e-12
+    assert np.abs(packed_points.unpack_points(packed) - points).max() <= 0.5 * packed_points.POINT_UNIT_M + 1e-12
 
 
 def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
@@ -94,10 +94,10 @@ def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
     with open(data / "tiny.pkl", "rb") as f:
         d = pickle.load(f)
     sys.path.insert(0, os.path.join(REPO, "benchmarks"))
-    import real_gpu
+    import packed_points
 
     expected = build_rays(keyframes, norm, max_rays_per_scan=64, seed=config.seed)
-    points = real_gpu.unpack_points(d["points"])
+    points = packed_points.unpack_points(d["points"])
     np.testing.assert_allclose(points, expected.directions * (expected.ranges / norm.scale)[:, None],
                                atol=1e-4)
     assert d["counts"].tolist() == [64] * 5 and d["plan"] is None

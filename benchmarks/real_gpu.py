@@ -3,6 +3,7 @@
 
     python benchmarks/real_gpu.py --prepare --run_dir=runs/hku1              # here: .gpu_data/hku1.pkl
     bash benchmarks/real_gpu.sh [--max_train_s=150] [--budget_s=480]          # there: $OUT/<name>_trained.npz
+    bash benchmarks/real_gpu.sh --set=sampling.range_at_midpoint=True --out_dir=$OUT/mid   # a variant of the same
     python benchmarks/real_gpu.py --evaluate --run_dir=runs/hku1 --trained=DIR/hku1_trained.npz \
         --out_dir=runs/hku1_gpu                                               # here: poses files, margins JSON
 
@@ -46,7 +47,8 @@ NAME = flags.DEFINE_string("name", "", "The prepared sequence's name (default: -
 DATA = flags.DEFINE_string("data", os.path.join(ROOT, ".gpu_data"), "Folder of the prepared sequences.")
 CONFIG = flags.DEFINE_string("config", "configs/lio_keyframes.py", "The config file the run used (its get_config).")
 BUDGET = flags.DEFINE_string("budget", "gpu", "The budget of --config to train with.")
-SET = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (neld_jax.config.apply_overrides).")
+SET = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (neld_jax.config.apply_overrides): with "
+                                "--prepare on the run's config, in training on the prepared one (a variant).")
 TRAINED = flags.DEFINE_string("trained", "", "--evaluate: a <name>_trained.npz the GPU wrote.")
 OUT_DIR = flags.DEFINE_string("out_dir", "", "--evaluate: folder for the poses files and evaluation.json; "
                               "training: folder for <name>_trained.npz and real_gpu.json (default $OUT).")
@@ -127,12 +129,14 @@ def train_prepared(path: str, out_dir: str, max_seconds: float) -> dict:
     import ml_collections
 
     from neld_jax import run
+    from neld_jax.config import apply_overrides
     from neld_jax.data.rays import build_rays
     from neld_jax.data.sequence import Sequence
 
     with open(path, "rb") as f:
         d = pickle.load(f)
-    config = ml_collections.ConfigDict(d["config"])
+    # --set here makes a variant of the prepared config (one prepared file, several trainings: --out_dir each)
+    config = apply_overrides(ml_collections.ConfigDict(d["config"]), SET.value)
     scans = np.split(unpack_points(d["points"]), np.cumsum(d["counts"])[:-1])
     seq = Sequence(scans=scans, poses=d["poses"], timestamps=d["timestamps"], name=d["name"], source=d["source"])
     raysets = build_rays(seq, d["norm"], max_rays_per_scan=None, seed=config.seed)  # already the run's subset
@@ -146,7 +150,7 @@ def train_prepared(path: str, out_dir: str, max_seconds: float) -> dict:
                "keyframes": seq.num_scans, "rays": int(raysets.num_rays), "start": d["chosen"],
                "submaps": None if d["plan"] is None else int((d["plan"].weight > 0).sum()),
                "steps": int(result.state.step), "schedule_steps": int(result.total_steps or config.train.steps),
-               "stopped_early": bool(result.stopped_early), "train_seconds": round(result.train_seconds, 2),
+               "overrides": list(SET.value), "stopped_early": bool(result.stopped_early), "train_seconds": round(result.train_seconds, 2),
                "wall_seconds_with_compile": round(wall_s, 2), "final": result.history[-1] if result.history else {}}
     np.savez(os.path.join(out_dir, f"{d['name']}_trained.npz"), T_opt=trained.T_opt,
              figures=np.array(json.dumps(figures)))

@@ -116,6 +116,9 @@ def base_config() -> ml_collections.ConfigDict:
     # placed uniformly within +-guided_width_m of the measured range, so the field sees the surface early.
     c.sampling.guided_samples = 0
     c.sampling.guided_width_m = 1.0
+    # The expected range D_hat = sum h_i z_i reads each sample's own range (the paper). True: the middle of the
+    # interval before each sample, unbiased for a sharp surface (rendering.composite; docs/method.md).
+    c.sampling.range_at_midpoint = False
 
     c.loss = ml_collections.ConfigDict()
     c.loss.lambda_coarse = 0.1

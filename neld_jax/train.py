@@ -282,6 +282,7 @@ def sampler_settings(config: ml_collections.ConfigDict, scale: float, num_coarse
         hierarchical=str(s.hierarchical),
         guided_samples=int(s.guided_samples),
         guided_width=float(s.guided_width_m * scale),
+        range_at_midpoint=bool(s.get("range_at_midpoint", False)),
     )
 
 

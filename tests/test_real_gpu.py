@@ -107,6 +107,12 @@ def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
     figures = json.loads((out / "real_gpu.json").read_text())
     assert [f["name"] for f in figures] == ["tiny"] and "error" not in figures[0], figures
     assert figures[0]["steps"] == figures[0]["schedule_steps"] == 4
+    # --set in training makes a variant of the prepared config
+    variant = _real_gpu(f"--data={data}", f"--out_dir={tmp_path / 'variant'}", "--max_train_s=300",
+                        "--set=train.steps=2", without_open3d=True)
+    assert variant.returncode == 0, variant.stderr[-3000:]
+    varied = json.loads((tmp_path / "variant" / "real_gpu.json").read_text())[0]
+    assert varied["steps"] == varied["schedule_steps"] == 2 and varied["overrides"] == ["train.steps=2"]
 
     judged_run = _real_gpu("--evaluate", f"--run_dir={run_dir}", f"--trained={out / 'tiny_trained.npz'}",
                            f"--out_dir={judged}", *SIZES)

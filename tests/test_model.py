@@ -54,3 +54,26 @@ def test_view_input_is_the_world_direction():
     np.testing.assert_allclose(np.linalg.norm(world, axis=1), 1.0, atol=1e-6)
     np.testing.assert_allclose(world, directions @ np.asarray(T[:3, :3]).T, atol=1e-6)
     assert encoding.encoded_dim(3, FIELD.dir_freqs) == 3 * (1 + 2 * FIELD.dir_freqs)
+
+
+def test_range_at_midpoint_changes_only_the_reading_of_the_ranges():
+    # sampler.range_at_midpoint reads D_hat at the middle of the interval before each sample, in both passes; the
+    # weights (and so the termination loss) are the same.
+    import dataclasses
+
+    from neld_jax import rendering
+
+    params = FIELD.init(jax.random.PRNGKey(0), jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]
+    origins = jnp.zeros((3, 3))
+    directions = jnp.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8], [0.0, 0.0, -1.0]])
+    key = jax.random.PRNGKey(1)
+    at_sample = render_rays(params, FIELD, SAMPLER, origins, directions, jnp.asarray(4.0), key)
+    midpoint = dataclasses.replace(SAMPLER, range_at_midpoint=True)
+    at_midpoint = render_rays(params, FIELD, midpoint, origins, directions, jnp.asarray(4.0), key)
+    np.testing.assert_allclose(at_midpoint.fine.weights, at_sample.fine.weights, rtol=1e-6)
+    z_near = at_midpoint.z_coarse[:, 0] * 0.0 + SAMPLER.z_low  # the rays start inside the cube: z_near = z_low
+    for got, z, weights in ((at_midpoint.coarse, at_midpoint.z_coarse, at_sample.coarse.weights),
+                            (at_midpoint.fine, at_midpoint.z_fine, at_sample.fine.weights)):
+        expected = jnp.sum(weights * rendering.midpoints_before(z, z_near), axis=-1)
+        np.testing.assert_allclose(got.depth, expected, rtol=1e-5)
+    assert np.all(np.asarray(at_midpoint.fine.depth) < np.asarray(at_sample.fine.depth))  # read earlier

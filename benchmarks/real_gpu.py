@@ -150,7 +150,8 @@ def train_prepared(path: str, out_dir: str, max_seconds: float) -> dict:
                "keyframes": seq.num_scans, "rays": int(raysets.num_rays), "start": d["chosen"],
                "submaps": None if d["plan"] is None else int((d["plan"].weight > 0).sum()),
                "steps": int(result.state.step), "schedule_steps": int(result.total_steps or config.train.steps),
-               "overrides": list(SET.value), "stopped_early": bool(result.stopped_early), "train_seconds": round(result.train_seconds, 2),
+               "overrides": list(SET.value), "stopped_early": bool(result.stopped_early),
+               "train_seconds": round(result.train_seconds, 2),
                "wall_seconds_with_compile": round(wall_s, 2), "final": result.history[-1] if result.history else {}}
     np.savez(os.path.join(out_dir, f"{d['name']}_trained.npz"), T_opt=trained.T_opt,
              figures=np.array(json.dumps(figures)))

@@ -58,7 +58,7 @@ def composite(sigma: jax.Array, z: jax.Array, z_far: jax.Array | None = None,
     z_near: [R] start of the interval, or None. None: the expected range reads each sample's own range z_i (the
     paper's eq.). Given: it reads the middle of the interval before each sample, (z_{i-1} + z_i) / 2 with z_{-1} =
     z_near, which removes the expected range's bias of half a spacing behind a sharp surface (docs/method.md,
-    "Where the expected range reads a sample").
+    "Rendering and losses").
     """
     deltas = deltas_from_samples(z, z_far)
     optical = sigma * deltas  # [R, N], sigma_i delta_i

@@ -117,8 +117,8 @@ def base_config() -> ml_collections.ConfigDict:
     c.sampling.guided_samples = 0
     c.sampling.guided_width_m = 1.0
     # The expected range D_hat = sum h_i z_i reads each sample's own range (the paper). True: the middle of the
-    # interval before each sample, unbiased for a sharp surface (rendering.composite; docs/method.md); measured a
-    # little worse on the hard synthetic sequence (1500 and 6000 steps) and on two real ones, so off.
+    # interval before each sample, unbiased for a sharp surface (rendering.composite; docs/method.md); measured no
+    # better on the hard synthetic sequence (1500 and 6000 steps) nor on HKU_2 and Riverside02, so off.
     c.sampling.range_at_midpoint = False
 
     c.loss = ml_collections.ConfigDict()

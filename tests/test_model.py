@@ -71,7 +71,7 @@ def test_range_at_midpoint_changes_only_the_reading_of_the_ranges():
     midpoint = dataclasses.replace(SAMPLER, range_at_midpoint=True)
     at_midpoint = render_rays(params, FIELD, midpoint, origins, directions, jnp.asarray(4.0), key)
     np.testing.assert_allclose(at_midpoint.fine.weights, at_sample.fine.weights, rtol=1e-6)
-    z_near = at_midpoint.z_coarse[:, 0] * 0.0 + SAMPLER.z_low  # the rays start inside the cube: z_near = z_low
+    z_near = jnp.full((3,), SAMPLER.z_low)  # the rays start inside the cube, so their interval starts at z_low
     for got, z, weights in ((at_midpoint.coarse, at_midpoint.z_coarse, at_sample.coarse.weights),
                             (at_midpoint.fine, at_midpoint.z_fine, at_sample.fine.weights)):
         expected = jnp.sum(weights * rendering.midpoints_before(z, z_near), axis=-1)

@@ -122,8 +122,8 @@ def render_rays(
 
     pos_window = encoding.barf_window(alpha, field.pos_freqs)
     sigma_coarse = _densities(params_field, field, origins, directions, z_coarse, pos_window)
-    z_read_from = z_near if sampler.range_at_midpoint else None
-    coarse = rendering.composite(sigma_coarse, z_coarse, z_far, z_read_from)
+    midpoints_from = z_near if sampler.range_at_midpoint else None
+    coarse = rendering.composite(sigma_coarse, z_coarse, z_far, midpoints_from)
     if sampler.hierarchical == "none" or sampler.num_fine == 0:
         return RayOutputs(coarse, None, z_coarse, None, z_far)
 
@@ -137,5 +137,5 @@ def render_rays(
     sigma_new = _densities(params_field, field, origins, directions, z_new, pos_window)
     z_fine, order = sampling.merge_samples(z_coarse, z_new)
     sigma_fine = jnp.take_along_axis(jnp.concatenate([sigma_coarse, sigma_new], axis=-1), order, axis=-1)
-    fine = rendering.composite(sigma_fine, z_fine, z_far, z_read_from)
+    fine = rendering.composite(sigma_fine, z_fine, z_far, midpoints_from)
     return RayOutputs(coarse, fine, z_coarse, z_fine, z_far)

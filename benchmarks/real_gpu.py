@@ -84,13 +84,13 @@ def run_config(run_dir: str, config_file: str, budget: str, overrides: list):
 def read_start(run_dir: str, input_poses: np.ndarray):
     """The run.Start a run trained from (its poses [K, 4, 4], chosen "baseline" | "input", baseline_poses or None);
     a run whose baseline did not run saved none (run.load_start) and started from its input."""
-    from neld_jax.run import START_FILE, Start, load_start
+    from neld_jax.run import START_FILE, Start, load_start, same_input_poses
 
     saved = load_start(run_dir)
     if saved is None:
         return Start(input_poses, "input")
     start, _, saved_input = saved
-    if saved_input.shape != input_poses.shape or not np.allclose(saved_input, input_poses):
+    if not same_input_poses(saved_input, input_poses):
         raise SystemExit(f"{os.path.join(run_dir, START_FILE)}: its input poses are not this sequence's keyframes "
                          "(another sequence's run?)")
     return start

@@ -206,6 +206,12 @@ def load_start(out_dir: str) -> tuple[Start, str | None, np.ndarray] | None:
         return start, meta.get("config_hash"), saved["input_poses"]
 
 
+def same_input_poses(saved_input: np.ndarray, input_poses: np.ndarray) -> bool:
+    """Whether a saved start (load_start) came from these input poses [K, 4, 4]: the same keyframes, read from the
+    same files (to 1e-9)."""
+    return saved_input.shape == np.shape(input_poses) and np.allclose(saved_input, input_poses, rtol=0.0, atol=1e-9)
+
+
 def resumed_start(out_dir: str, config_hash_: str, input_poses: np.ndarray) -> Start | None:
     """The Start a run in out_dir saved (`save_start`), when that run left a checkpoint to resume, had the same
     config hash and started from the same input poses [K, 4, 4]; None otherwise (the start is chosen again)."""
@@ -216,9 +222,7 @@ def resumed_start(out_dir: str, config_hash_: str, input_poses: np.ndarray) -> S
     resumable = checkpoints.latest_step() is not None
     checkpoints.close()
     start, saved_hash, saved_input = saved
-    same_input = saved_input.shape == np.shape(input_poses) and np.allclose(saved_input, input_poses, rtol=0.0,
-                                                                             atol=1e-9)
-    return start if resumable and saved_hash == config_hash_ and same_input else None
+    return start if resumable and saved_hash == config_hash_ and same_input_poses(saved_input, input_poses) else None
 
 
 def _entropy_text(value: float | None) -> str:

@@ -123,20 +123,39 @@ def prepare(run_dir: str, name: str) -> dict:
             "submaps": None if plan is None else plan.num_submaps, "megabytes": round(os.path.getsize(path) / 1e6, 1)}
 
 
+def add_missing_fields(config, defaults, prefix: str = "") -> list:
+    """Give `config` (in place) every field of `defaults` it lacks, with the default's value: a file prepared
+    before a field existed then trains as the code does now and takes --set on the new field. Returns their keys."""
+    import copy
+
+    import ml_collections
+
+    added = []
+    for key, value in defaults.items():
+        if key not in config:
+            config[key] = copy.deepcopy(value)
+            added.append(prefix + key)
+        elif isinstance(value, ml_collections.ConfigDict) and isinstance(config[key], ml_collections.ConfigDict):
+            added += add_missing_fields(config[key], value, f"{prefix}{key}.")
+    return added
+
+
 def train_prepared(path: str, out_dir: str, max_seconds: float) -> dict:
     """Train one prepared sequence as a run would (run.train_keyframes); writes OUT/<name>_trained.npz."""
     import jax
     import ml_collections
 
     from neld_jax import run
-    from neld_jax.config import apply_overrides
+    from neld_jax.config import apply_overrides, base_config
     from neld_jax.data.rays import build_rays
     from neld_jax.data.sequence import Sequence
 
     with open(path, "rb") as f:
         d = pickle.load(f)
     # --set here makes a variant of the prepared config (one prepared file, several trainings: --out_dir each)
-    config = apply_overrides(ml_collections.ConfigDict(d["config"]), SET.value)
+    config = ml_collections.ConfigDict(d["config"])
+    added = add_missing_fields(config, base_config())
+    config = apply_overrides(config, SET.value)
     scans = np.split(unpack_points(d["points"]), np.cumsum(d["counts"])[:-1])
     seq = Sequence(scans=scans, poses=d["poses"], timestamps=d["timestamps"], name=d["name"], source=d["source"])
     raysets = build_rays(seq, d["norm"], max_rays_per_scan=None, seed=config.seed)  # already the run's subset
@@ -150,7 +169,7 @@ def train_prepared(path: str, out_dir: str, max_seconds: float) -> dict:
                "keyframes": seq.num_scans, "rays": int(raysets.num_rays), "start": d["chosen"],
                "submaps": None if d["plan"] is None else int((d["plan"].weight > 0).sum()),
                "steps": int(result.state.step), "schedule_steps": int(result.total_steps or config.train.steps),
-               "overrides": list(SET.value), "stopped_early": bool(result.stopped_early),
+               "overrides": list(SET.value), "defaults_added": added, "stopped_early": bool(result.stopped_early),
                "train_seconds": round(result.train_seconds, 2),
                "wall_seconds_with_compile": round(wall_s, 2), "final": result.history[-1] if result.history else {}}
     np.savez(os.path.join(out_dir, f"{d['name']}_trained.npz"), T_opt=trained.T_opt,

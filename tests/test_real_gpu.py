@@ -107,12 +107,22 @@ def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
     figures = json.loads((out / "real_gpu.json").read_text())
     assert [f["name"] for f in figures] == ["tiny"] and "error" not in figures[0], figures
     assert figures[0]["steps"] == figures[0]["schedule_steps"] == 4
-    # --set in training makes a variant of the prepared config
-    variant = _real_gpu(f"--data={data}", f"--out_dir={tmp_path / 'variant'}", "--max_train_s=300",
-                        "--set=train.steps=2", without_open3d=True)
+    assert figures[0]["defaults_added"] == []
+    # --set in training makes a variant of the prepared config, also of a field the code gained after the file
+    # was prepared (the field gets its default first)
+    older = tmp_path / "older"
+    older.mkdir()
+    del d["config"]["sampling"]["range_at_midpoint"]
+    with open(older / "tiny.pkl", "wb") as f:
+        pickle.dump(d, f)
+    overrides = ["train.steps=2", "sampling.range_at_midpoint=True"]
+    variant = _real_gpu(f"--data={older}", f"--out_dir={tmp_path / 'variant'}", "--max_train_s=300",
+                        *[f"--set={o}" for o in overrides], without_open3d=True)
     assert variant.returncode == 0, variant.stderr[-3000:]
     varied = json.loads((tmp_path / "variant" / "real_gpu.json").read_text())[0]
-    assert varied["steps"] == varied["schedule_steps"] == 2 and varied["overrides"] == ["train.steps=2"]
+    assert "error" not in varied, varied
+    assert varied["steps"] == varied["schedule_steps"] == 2 and varied["overrides"] == overrides
+    assert varied["defaults_added"] == ["sampling.range_at_midpoint"]
 
     judged_run = _real_gpu("--evaluate", f"--run_dir={run_dir}", f"--trained={out / 'tiny_trained.npz'}",
                            f"--out_dir={judged}", *SIZES)

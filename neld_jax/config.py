@@ -145,6 +145,8 @@ def base_config() -> ml_collections.ConfigDict:
     # Pull each pose's correction xi back toward its start: weight * xi is added to the pose gradient before Adam (a
     # Gaussian prior, (weight / 2) |xi|^2 in normalised units and radians, beside the batch's mean loss). 0 = off.
     c.train.pose_prior_weight = 0.0
+    # The rotation columns' (omega's) prior weight is pose_prior_weight times this; 1 = one weight for all six.
+    c.train.pose_prior_rot_factor = 1.0
     # Keep the trajectory's scale the start's: the pose steps are kept off the one mode that scales every position
     # about a point (docs/method.md, "Keeping the start's scale"). A LiDAR trajectory's scale is set by the metric
     # ranges; the field's rendering bias can shrink it (hard synthetic, from the baseline: by 2-4e-5, half of
@@ -322,8 +324,8 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
     The small model is launch-bound on a GPU (0.66 ms a step), so the fused loop runs it at about the step's
     rate: on one H200 (eighteenth session) 30k steps took 27-34 s on the real handheld sequences and 57-101 s with
     Riverside02's 172-279 submaps, and from the classical baseline's poses every real map but one came out crisper
-    than the baseline's on every query draw (quick-shack: a tie); on the hard synthetic sequence the ATE ended above
-    the baseline's (0.60 against 0.54 mm; benchmarks/RESULTS.md).
+    than the baseline's on every query draw (quick-shack: a tie); on the hard synthetic sequence the ATE ended about at
+    the baseline's (0.53-0.60 mm over three training seeds against 0.54; benchmarks/RESULTS.md).
     """
     budget = (budget or default_budget()).strip().lower()
     if budget not in BUDGETS:

@@ -169,6 +169,20 @@ def scale_pose_columns(trans_lr: Callable, rot_lr: Callable) -> optax.GradientTr
     return optax.GradientTransformation(init_fn, update_fn)
 
 
+def pose_prior(trans_weight: float, rot_weight: float) -> optax.GradientTransformation:
+    """Add the gradient of a Gaussian prior at the start to [S, 6] pose gradients: w * xi, w = trans_weight on
+    columns 0:3 (rho), rot_weight on 3:6 (omega). Stateless (optax.EmptyState, as add_decayed_weights, which it
+    equals when the two weights are equal)."""
+    w = jnp.asarray([trans_weight] * 3 + [rot_weight] * 3, jnp.float32)
+
+    def update_fn(updates, state, params=None):
+        if params is None:
+            raise ValueError("pose_prior needs the poses (params) in update")
+        return jax.tree.map(lambda u, p: u + w.astype(u.dtype) * p, updates, params), state
+
+    return optax.GradientTransformation(lambda params: optax.EmptyState(), update_fn)
+
+
 def zero_rows(row_mask: np.ndarray) -> optax.GradientTransformation:
     """Zero the updates of the rows where row_mask [S] is True (gauge-fixed scans never move)."""
     keep = jnp.asarray(~np.asarray(row_mask, bool), jnp.float32)[:, None]
@@ -240,9 +254,10 @@ def pose_transform(config: ml_collections.ConfigDict, schedules: Schedules, num_
             raise ValueError(f"train.fixed_scans names scan {s}, but the sequence has {num_scans} scans")
         fixed[int(s)] = True
     prior_weight = float(config.train.get("pose_prior_weight", 0.0))
+    rot_factor = float(config.train.get("pose_prior_rot_factor", 1.0))
     # before Adam, so the prior's pull is normalised with the data's gradient (L2, not decoupled decay); left out
     # at 0, so that the default's optimizer state is the one checkpoints written before the prior hold
-    prior = [optax.add_decayed_weights(prior_weight)] if prior_weight else []
+    prior = [pose_prior(prior_weight, prior_weight * rot_factor)] if prior_weight else []
     keep_scale = bool(config.train.get("keep_start_scale", False))
     if keep_scale and start_positions is None:
         raise ValueError("train.keep_start_scale needs the start's poses (create_train_state's start_positions, "

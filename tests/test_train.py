@@ -6,6 +6,7 @@ import os
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from neld_jax import train
@@ -146,8 +147,9 @@ def test_pose_prior_pulls_corrections_back_to_their_start_and_is_off_at_zero():
     no_data = jnp.zeros_like(xi)  # the data says nothing: only the prior may move a pose
     step = schedules.pose_start_step  # the rate is 0 before the poses start
 
-    def update(weight):
+    def update(weight, rot_factor=1.0):
         config.train.pose_prior_weight = weight
+        config.train.pose_prior_rot_factor = rot_factor
         tx = train.pose_transform(config, schedules, 2)
         state = tx.init(xi)
         for _ in range(step + 1):
@@ -159,6 +161,24 @@ def test_pose_prior_pulls_corrections_back_to_their_start_and_is_off_at_zero():
     assert np.all(np.sign(pulled[0][moved]) == -np.sign(xi[0][moved]))  # toward zero, each component
     assert np.all(pulled[0][~moved] == 0) and np.all(pulled[1] == 0)  # a pose at its start stays there
     assert np.all(update(0.0) == 0)
+    # pose_prior_rot_factor weighs the rotation columns' pull alone: at 0 only the translations are pulled
+    translations_only = update(10.0, rot_factor=0.0)
+    np.testing.assert_array_equal(translations_only[:, :3], pulled[:, :3])
+    assert np.all(translations_only[:, 3:] == 0)
+
+
+def test_pose_prior_weighs_translation_and_rotation_columns_and_equals_decayed_weights_at_one_weight():
+    xi = jnp.asarray([[0.01, -0.02, 0.004, 0.003, -0.001, 0.002], [0.0, 0.5, 0.0, -0.2, 0.0, 0.1]])
+    grads = jnp.full_like(xi, 0.25)
+    prior = train.pose_prior(10.0, 2.5)
+    updates, _ = prior.update(grads, prior.init(xi), xi)
+    np.testing.assert_allclose(updates[:, :3], 0.25 + 10.0 * xi[:, :3], rtol=1e-6)
+    np.testing.assert_allclose(updates[:, 3:], 0.25 + 2.5 * xi[:, 3:], rtol=1e-6)
+    # one weight: optax.add_decayed_weights's update and state (what checkpoints written before this hold)
+    same, decayed = train.pose_prior(10.0, 10.0), optax.add_decayed_weights(10.0)
+    np.testing.assert_array_equal(same.update(grads, same.init(xi), xi)[0],
+                                  decayed.update(grads, decayed.init(xi), xi)[0])
+    assert jax.tree.structure(same.init(xi)) == jax.tree.structure(decayed.init(xi))
 
 
 def test_keeping_the_start_scale_takes_only_the_scale_mode_out_of_the_pose_steps():

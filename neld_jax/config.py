@@ -178,9 +178,9 @@ def base_config() -> ml_collections.ConfigDict:
     # 0.51 mm (the baseline 0.54), HKU_2 -3.4928 / -3.4921 / -3.4910 (start -3.4901), main building -3.3947 / - /
     # -3.3954 (start -3.3945): 3000 is the weight at which NeLD-BA ties the baseline on ground truth (0.51-0.55 mm
     # over three training seeds) and stays crisper than it on the real sequences; 10000 is below the baseline on
-    # every seed (0.50-0.52 mm) but keeps a third of the real maps' gain and leaves quick-shack's a tie (twentieth
-    # session). Not from the odometry: there it held back the field's corrections (HKU_2, weight 300: -3.441
-    # against -3.453 without). 0 = none.
+    # every seed (0.50-0.52 mm) but keeps a third to two thirds of the real maps' gain and leaves quick-shack's a tie
+    # (twentieth session). Not from the odometry: there it held back the field's corrections (HKU_2, weight 300:
+    # -3.441 against -3.453 without). 0 = none.
     c.train.pose_prior_from_baseline = 3000.0
     # ... and train.keep_start_scale on: the baseline's scale is ICP's, metric to about 2e-5 (hard synthetic), while
     # the field shrank it by 2-4e-5 (hard synthetic from the baseline, weight 300: ATE 1.48 -> 0.83 mm with it, the

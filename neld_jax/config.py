@@ -279,7 +279,7 @@ def refine_odometry(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     classical baseline's), on the cpu and gpu budgets: pose steps 200x smaller (5e-6 -> 2.5e-7 normalised units),
     points within 40 m, and training starts from the crisper of the odometry and the classical baseline
     (train.init_poses=crisper; from the baseline with a prior holding each pose near it,
-    train.pose_prior_from_baseline).
+    train.pose_prior_from_baseline); on the cpu budget, a termination loss three times the paper's weight.
 
     Measured on real sequences (benchmarks/RESULTS.md): with the cpu budget's pose learning rate (1e-3) the
     field, which resolves a few cm at this size, walked good poses away (HKU_1 mean map entropy -3.403 ->

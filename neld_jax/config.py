@@ -84,6 +84,7 @@ def base_config() -> ml_collections.ConfigDict:
     c.submaps.batch_rays = 0
     c.submaps.step_rays_factor = 1.0  # the rays of one step over all submaps, in units of train.batch_rays
     c.submaps.width = 0  # the MLP width of each submap's field; 0: model.width
+    c.submaps.lambda_termination = 0.0  # the termination loss's weight in a submap run; 0: loss.lambda_termination
     c.submaps.devices = 0  # devices the submaps are sharded over; 0: every visible device
     # At most this many submaps (0: no limit): a longer sequence gets longer windows, in larger cubes (coarser than
     # max_detail_m; the log says so). Unless submaps.keyframes is set.
@@ -279,7 +280,8 @@ def refine_odometry(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     classical baseline's), on the cpu and gpu budgets: pose steps 200x smaller (5e-6 -> 2.5e-7 normalised units),
     points within 40 m, and training starts from the crisper of the odometry and the classical baseline
     (train.init_poses=crisper; from the baseline with a prior holding each pose near it,
-    train.pose_prior_from_baseline); on the cpu budget, a termination loss three times the paper's weight.
+    train.pose_prior_from_baseline); on the cpu budget, a termination loss three times the paper's weight in one
+    cube (submap runs keep the paper's).
 
     Measured on real sequences (benchmarks/RESULTS.md): with the cpu budget's pose learning rate (1e-3) the
     field, which resolves a few cm at this size, walked good poses away (HKU_1 mean map entropy -3.403 ->
@@ -315,9 +317,13 @@ def refine_odometry(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
         # The cpu budget's 1500 steps leave a fog in front of real surfaces, which the termination loss (-ln h of the
         # first sample beyond the range) clears; three times the paper's weight moves the poses about twice as far and
         # made the map crisper against the baseline than at 1 on five of six sequences, each of two seeds (1.1-2.3x the
-        # margin; HKU_1 and HKU_2 about 2x), and the 281 copy, already blurrier, 3x blurrier (docs/method.md, "The
+        # margin; HKU_1 and HKU_2 about 2x), and the 281 part, already blurrier, 3x blurrier (docs/method.md, "The
         # termination loss's weight on the cpu budget"). The gpu budget's 30k steps clear the fog anyway: it keeps 1.
         c.loss.lambda_termination = 3.0
+        # ... in one cube. The submap fields of a drive keep the paper's weight: over Riverside02's two parts the
+        # heavier one lost more on the first (+0.0014 -> +0.0040 / +0.0055) than it gained on the second (-0.0043 ->
+        # -0.0052 / -0.0047); its harm there is the scans' vertical scan-to-scan moves (docs/method.md, same item).
+        c.submaps.lambda_termination = 1.0
     return c
 
 
@@ -388,7 +394,7 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
     c.submaps.max_submaps = 32
     # Narrower submap fields, each drawing three times the rays (1536 a step over the submaps: Riverside02's 31
     # submaps 49 each instead of 16) for 1.3-1.4x the step: the fields fit better (median range residual 1.03 ->
-    # 0.78-0.90 m), both Riverside02 copies' maps came out crisper end to end (by 0.0010 / 0.0025) and the shortened
+    # 0.78-0.90 m), both Riverside02 parts' maps came out crisper end to end (by 0.0010 / 0.0025) and the shortened
     # synthetic long route's ATE fell from 0.324 to 0.223 m (benchmarks/RESULTS.md, fifteenth session). The single
     # cube keeps model.width.
     c.submaps.width = 64
@@ -402,7 +408,7 @@ def apply_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Co
         c.submaps.max_submaps = 0
         paper = base_config()
         # The cpu budget's trade of the submap fields' width for rays (31 submaps 64 wide, 3x the rays) lost to this
-        # rule on Riverside02's 281 copy at 30k steps: -0.0020 against -0.0035 to the baseline's entropy (H200)
+        # rule on Riverside02's 281 part at 30k steps: -0.0020 against -0.0035 to the baseline's entropy (H200)
         c.submaps.width, c.submaps.step_rays_factor = paper.submaps.width, paper.submaps.step_rays_factor
         # the paper's map: 128 + 128 samples per ray, every ray, 5 cm voxels
         for field in ("num_coarse", "num_fine", "max_rays_per_scan", "max_rays", "voxel_size_m", "max_seconds"):

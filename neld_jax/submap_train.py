@@ -253,6 +253,14 @@ def submap_batch_rays(config: ml_collections.ConfigDict, num_submaps: int) -> in
     return max(step_rays // max(int(num_submaps), 1), MIN_SUBMAP_BATCH_RAYS)
 
 
+def submap_loss_settings(config: ml_collections.ConfigDict) -> LossSettings:
+    """config.loss's weights, with submaps.lambda_termination as the termination loss's weight when that is set
+    (0: loss.lambda_termination)."""
+    loss = LossSettings.from_config(config.loss)
+    weight = float(config.submaps.get("lambda_termination", 0.0))
+    return dataclasses.replace(loss, lambda_termination=weight) if weight > 0 else loss
+
+
 def make_submap_field(config: ml_collections.ConfigDict) -> DensityField:
     """Each submap's field: config.model's, with submaps.width as its width when that is set (0: model.width)."""
     width = int(config.submaps.get("width", 0))
@@ -281,7 +289,7 @@ def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_s
         sharding = state_sharding(state, mesh)
         state = place(state, sharding)
     batch = submap_batch_rays(config, num_submaps)
-    body = make_submap_step_body(tx, schedules, field, LossSettings.from_config(config.loss), batch,
+    body = make_submap_step_body(tx, schedules, field, submap_loss_settings(config), batch,
                                  int(config.train.get("scans_per_step", 0)), sharding)
 
     def sampler(step: int) -> SamplerSettings:

@@ -56,8 +56,11 @@ def test_gpu_budget_is_the_cpu_recipe_run_longer():
     assert lio_cpu.train.pose_prior_weight == cpu.train.pose_prior_weight == 0
     assert lio_cpu.train.pose_prior_from_baseline == cpu.train.pose_prior_from_baseline > 0
     assert lio_cpu.baseline.keep_input_tilt and not cpu.baseline.keep_input_tilt
-    # ... the termination loss 3x the paper's on the cpu budget only (the fog its 1500 steps leave); gpu and paper keep 1.
+    # ... the termination loss 3x the paper's on the cpu budget only (the fog its 1500 steps leave), in one cube: the
+    # submap fields of a drive keep the paper's weight; gpu and paper keep 1 everywhere.
     assert lio_cpu.loss.lambda_termination == 3 * cpu.loss.lambda_termination
+    assert lio_cpu.submaps.lambda_termination == cpu.loss.lambda_termination == 1.0
+    assert cpu.submaps.lambda_termination == 0  # elsewhere a submap run takes loss.lambda_termination
     assert _parse("lio_keyframes.py:gpu").loss.lambda_termination == gpu.loss.lambda_termination == 1.0
     assert _parse("lio_keyframes.py:paper").loss.lambda_termination == 1.0
 

@@ -206,6 +206,17 @@ def test_submap_fields_take_their_own_width():
     assert 64 in widths and 128 not in widths  # [M, fan_in, 64] kernels (the heads' outputs are narrower)
 
 
+def test_submap_runs_take_their_own_termination_weight():
+    # lio_keyframes' cpu budget weighs the termination loss 3x in one cube and keeps the paper's 1 in submap runs.
+    from configs import lio_keyframes
+
+    cpu = lio_keyframes.get_config("cpu")
+    assert submap_train.submap_loss_settings(cpu).lambda_termination == 1.0
+    assert submap_train.LossSettings.from_config(cpu.loss).lambda_termination == 3.0
+    cpu.submaps.lambda_termination = 0.0  # unset: the single cube's weight
+    assert submap_train.submap_loss_settings(cpu) == submap_train.LossSettings.from_config(cpu.loss)
+
+
 def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_path, monkeypatch):
     """A run whose submaps are switched on: one pose per input scan, one raw and one rendered map (resume with
     sharded state is checked in test_sharded_step_shared_scan_and_resume_on_8_devices). On a fake training clock (1 s

@@ -316,9 +316,9 @@ def refine_odometry(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
     if c.budget == "cpu":
         # The cpu budget's 1500 steps leave a fog in front of real surfaces, which the termination loss (-ln h of the
         # first sample beyond the range) clears; three times the paper's weight moves the poses about twice as far and
-        # made the map crisper against the baseline than at 1 on five of six sequences, each of two seeds (1.1-2.3x the
-        # margin; HKU_1 and HKU_2 about 2x), and the 281 part, already blurrier, 3x blurrier (docs/method.md, "The
-        # termination loss's weight on the cpu budget"). The gpu budget's 30k steps clear the fog anyway: it keeps 1.
+        # made the map crisper against the baseline than at 1 on the four handheld sequences, each of two seeds (1.1-2.3x
+        # the margin; HKU_1 and HKU_2 about 2x; docs/method.md, "The termination loss's weight on the cpu budget").
+        # The gpu budget's 30k steps clear the fog anyway: it keeps 1.
         c.loss.lambda_termination = 3.0
         # ... in one cube. The submap fields of a drive keep the paper's weight: over Riverside02's two parts the
         # heavier one lost more on the first (+0.0014 -> +0.0040 / +0.0055) than it gained on the second (-0.0043 ->

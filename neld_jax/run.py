@@ -318,7 +318,21 @@ def trajectory_departure(T_input: np.ndarray, T_other: np.ndarray) -> tuple[floa
     return float(errors.max()), path_m
 
 
-def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str) -> ml_collections.ConfigDict:
+def start_thickness(config: ml_collections.ConfigDict, seq, start: Start) -> float | None:
+    """The mean plane thickness [m] of the keyframes' raw map under the poses training starts from, when it starts
+    from the baseline's and train.pose_prior_thin_map_m asks for it (`pose_steps_for_start`); None otherwise. The
+    crisper start's judge measured it already; a start from the baseline alone or a resumed start is measured here
+    (the same query points, so the same figure)."""
+    if start.chosen != "baseline" or float(config.train.get("pose_prior_thin_map_m", 0.0)) <= 0:
+        return None
+    summary = start.judged[0].get("baseline") if start.judged else None
+    if summary is None:
+        summary = quality.map_crispness(seq, {"baseline": start.poses}, config.get("eval", {}))[0]["baseline"]
+    return summary.get("mean_plane_thickness_m")
+
+
+def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str,
+                         start_thickness_m: float | None = None) -> ml_collections.ConfigDict:
     """config, or a copy for a start from the classical baseline's poses (chosen == "baseline"): its pose learning
     rates capped at train.pose_lr_from_baseline = (init, final), its pose prior at least
     train.pose_prior_from_baseline, and its trajectory's scale kept (train.keep_start_scale) when
@@ -328,7 +342,12 @@ def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str) -> ml_c
     (docs/method.md, "A prior on the pose corrections"), and the field's rendering shrinks the trajectory
     (docs/method.md, "Keeping the start's scale"). From the odometry the prior would hold back the corrections
     the field makes (HKU_2: -3.421 -> -3.441 with it, -3.453 without), and a drifted start's scale is part of its
-    drift, so neither is set there."""
+    drift, so neither is set there.
+
+    start_thickness_m: the mean plane thickness [m] of the raw map under the start's poses (`start_thickness`).
+    Below train.pose_prior_thin_map_m the prior on the translation columns is (thin_map_m / thickness)^2 times
+    heavier, the rotation columns' weight unchanged: a thin map means scans precise enough for ICP's translations
+    to be better than the field resolves (docs/method.md, "A prior on the pose corrections")."""
     if chosen != "baseline":
         return config
     cap = tuple(config.train.get("pose_lr_from_baseline", ()) or ())
@@ -336,17 +355,28 @@ def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str) -> ml_c
         raise ConfigError(f"train.pose_lr_from_baseline: expected (init, final) or (), got {cap!r}")
     changed = {f"pose_lr_{part}_{which}": min(float(config.train[f"pose_lr_{part}_{which}"]), float(limit))
                for part in ("rot", "trans") for which, limit in zip(("init", "final"), cap)}
-    prior = float(config.train.get("pose_prior_from_baseline", 0.0))
+    prior = max(float(config.train.get("pose_prior_from_baseline", 0.0)),
+                float(config.train.get("pose_prior_weight", 0.0)))
     if prior > float(config.train.get("pose_prior_weight", 0.0)):
         changed["pose_prior_weight"] = prior
+    thin_map_m = float(config.train.get("pose_prior_thin_map_m", 0.0))
+    heavier = 1.0
+    if prior > 0 and thin_map_m > 0 and start_thickness_m is not None and 0 < start_thickness_m < thin_map_m:
+        heavier = (thin_map_m / start_thickness_m) ** 2
+        changed["pose_prior_weight"] = prior * heavier
+        changed["pose_prior_rot_factor"] = float(config.train.get("pose_prior_rot_factor", 1.0)) / heavier
     if config.train.get("keep_scale_from_baseline", False):  # with_train keeps config when it is already on
         changed["keep_start_scale"] = True
     adapted = with_train(config, **changed)
     if adapted is not config:
-        logger.info("training starts from the baseline's poses: pose learning rates capped at %s, pose prior %g, "
+        thin_text = "" if heavier == 1.0 else (
+            f" on the translations ({heavier:.2f}x: the start's map is {100 * start_thickness_m:.2f} cm thin, "
+            f"train.pose_prior_thin_map_m={100 * thin_map_m:g} cm), "
+            f"{adapted.train.pose_prior_weight * adapted.train.pose_prior_rot_factor:g} on the rotations")
+        logger.info("training starts from the baseline's poses: pose learning rates capped at %s, pose prior %g%s, "
                     "the start's scale %s (train.pose_lr_from_baseline, train.pose_prior_from_baseline, "
                     "train.keep_scale_from_baseline)", " -> ".join(f"{v:g}" for v in cap) or "(no cap)",
-                    adapted.train.get("pose_prior_weight", 0.0),
+                    adapted.train.get("pose_prior_weight", 0.0), thin_text,
                     "kept" if adapted.train.get("keep_start_scale", False) else "free")
     return adapted
 
@@ -494,7 +524,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     else:
         logger.info("resuming: training starts from the %s poses the first run chose (%s; the classical baseline is "
                     "not run again)", start.chosen, START_FILE)
-    config = pose_steps_for_start(config, start.chosen)
+    config = pose_steps_for_start(config, start.chosen, start_thickness(config, seq, start))
     # The config as trained (the start can cap the pose steps); the hash above stays the user's, for resuming.
     export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
     T_start = start.poses

@@ -207,7 +207,11 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     # config as trained.
     trained = json.loads((tmp_path / "run" / "config.json").read_text())["train"]
     assert trained["pose_lr_trans_init"] == trained["pose_lr_rot_init"] == config.train.pose_lr_from_baseline[0]
-    assert trained["pose_prior_weight"] == config.train.pose_prior_from_baseline > config.train.pose_prior_weight
+    # The tiny synthetic map is thinner than train.pose_prior_thin_map_m: the translations' prior is heavier, the
+    # rotations' stays pose_prior_from_baseline.
+    assert trained["pose_prior_weight"] > config.train.pose_prior_from_baseline > config.train.pose_prior_weight
+    assert trained["pose_prior_weight"] * trained["pose_prior_rot_factor"] == pytest.approx(
+        config.train.pose_prior_from_baseline)
     assert trained["keep_start_scale"] and not config.train.keep_start_scale  # the baseline's scale kept
     assert config.train.pose_lr_trans_init > trained["pose_lr_trans_init"]  # the caller's config is not changed
 
@@ -325,6 +329,23 @@ def test_pose_steps_are_capped_only_from_the_baseline():
     config.train.pose_lr_from_baseline = (1e-6,)
     with pytest.raises(ConfigError, match="pose_lr_from_baseline"):
         run.pose_steps_for_start(config, "baseline")
+
+
+def test_the_translations_prior_is_heavier_from_a_thin_map():
+    config = make_tiny_config("unused", steps=4)
+    config.train.pose_prior_weight, config.train.pose_prior_from_baseline = 0.0, 3000.0
+    config.train.pose_prior_thin_map_m, config.train.pose_prior_rot_factor = 0.02, 0.5
+    thin = run.pose_steps_for_start(config, "baseline", start_thickness_m=0.01)
+    assert thin.train.pose_prior_weight == pytest.approx(4 * 3000.0)  # (2 cm / 1 cm)^2
+    assert thin.train.pose_prior_weight * thin.train.pose_prior_rot_factor == pytest.approx(1500.0)  # rotations kept
+    for thickness in (0.03, None):  # a real keyframe map, or none measured: the weight as set
+        kept = run.pose_steps_for_start(config, "baseline", start_thickness_m=thickness)
+        assert kept.train.pose_prior_weight == 3000.0 and kept.train.pose_prior_rot_factor == 0.5
+    assert run.pose_steps_for_start(config, "input", start_thickness_m=0.01) is config  # from the odometry: no prior
+    config.train.pose_prior_thin_map_m = 0.0  # off
+    assert run.pose_steps_for_start(config, "baseline", start_thickness_m=0.01).train.pose_prior_weight == 3000.0
+    config.train.pose_prior_thin_map_m, config.train.pose_prior_from_baseline = 0.02, 0.0  # no prior to scale
+    assert run.pose_steps_for_start(config, "baseline", start_thickness_m=0.01).train.pose_prior_weight == 0.0
 
 
 def test_the_margins_deadline_follows_the_runs_clock():

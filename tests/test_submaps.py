@@ -217,6 +217,24 @@ def test_submap_runs_take_their_own_termination_weight():
     assert submap_train.submap_loss_settings(cpu) == submap_train.LossSettings.from_config(cpu.loss)
 
 
+def test_submap_fields_take_their_own_learning_rate():
+    from neld_jax.config import apply_budget, base_config
+    from neld_jax.train import make_schedules
+
+    config = apply_budget(base_config(), "cpu")
+    schedules = make_schedules(config)
+    assert submap_train.submap_field_lr(config, schedules) is schedules.field_lr  # unset: train's schedule
+    config.submaps.field_lr_factor = 2.0
+    scaled = submap_train.submap_field_lr(config, schedules)
+    for step in (0, config.train.steps // 2, config.train.steps):
+        assert float(scaled(step)) == pytest.approx(2.0 * float(schedules.field_lr(step)))
+    # lio_keyframes' cpu budget: a drive's submap fields at four times the field's rate; the gpu budget: train's.
+    from configs import lio_keyframes
+
+    assert lio_keyframes.get_config("cpu").submaps.field_lr_factor == 4.0
+    assert lio_keyframes.get_config("gpu").submaps.field_lr_factor in (0.0, 1.0)
+
+
 def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_path, monkeypatch):
     """A run whose submaps are switched on: one pose per input scan, one raw and one rendered map (resume with
     sharded state is checked in test_sharded_step_shared_scan_and_resume_on_8_devices). On a fake training clock (1 s

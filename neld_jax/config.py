@@ -189,8 +189,8 @@ def base_config() -> ml_collections.ConfigDict:
     # (neld_jax.run.pose_steps_for_start). A thin map comes from scans precise enough for ICP's translations to beat
     # what the field resolves: the synthetic sequences' baseline maps are 0.86-0.98 cm thin, and with 3000 from them
     # NeLD-BA's translations tied the baseline's (hard: 0.51-0.55 mm over three seeds against 0.54; with this rule
-    # 0.50-0.53 over five), while FAST-LIO2 keyframe maps (3.2-4.4 cm on six real sequences) keep 3000, the weight at which
-    # their maps gain most (twenty-third session; benchmarks/RESULTS.md). 0 = off.
+    # 0.50-0.53 over five), while FAST-LIO2 keyframe maps (3.2-4.4 cm on six real sequences) keep 3000, the weight
+    # at which their maps gain most (twenty-third session; benchmarks/RESULTS.md). 0 = off.
     c.train.pose_prior_thin_map_m = 0.02
     # ... and train.keep_start_scale on: the baseline's scale is ICP's, metric to about 2e-5 (hard synthetic), while
     # the field shrank it by 2-4e-5 (hard synthetic from the baseline, weight 300: ATE 1.48 -> 0.83 mm with it, the

@@ -104,8 +104,8 @@ def prepare(run_dir: str, name: str) -> dict:
 
     config = run_config(run_dir, CONFIG.value, BUDGET.value, SET.value)
     _, seq, norm = run.load_and_prepare(config)
-    start = read_start(run_dir, seq.poses)
-    config = run.pose_steps_for_start(config, start.chosen, run.start_thickness(config, seq, start))
+    start = run.judge_start(config, seq, read_start(run_dir, seq.poses))
+    config = run.pose_steps_for_start(config, start.chosen, run.start_thickness(start))
     # One device: the plan pads the submaps to a multiple of the devices it will run on (a GPU machine lent here has one)
     norm, plan = run.training_frame(config, seq, norm, start, num_devices=1)
     rays = build_rays(seq, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),

@@ -318,17 +318,24 @@ def trajectory_departure(T_input: np.ndarray, T_other: np.ndarray) -> tuple[floa
     return float(errors.max()), path_m
 
 
-def start_thickness(config: ml_collections.ConfigDict, seq, start: Start) -> float | None:
-    """The mean plane thickness [m] of the keyframes' raw map under the poses training starts from, when it starts
-    from the baseline's and train.pose_prior_thin_map_m asks for it (`pose_steps_for_start`); None otherwise. The
-    crisper start's judge measured it already; a start from the baseline alone or a resumed start is measured here
-    (the same query points, so the same figure)."""
-    if start.chosen != "baseline" or float(config.train.get("pose_prior_thin_map_m", 0.0)) <= 0:
+def judge_start(config: ml_collections.ConfigDict, seq, start: Start) -> Start:
+    """start, with the crispness of its map measured (judged["baseline"]) when training starts from the baseline's
+    poses, train.pose_prior_thin_map_m needs that map's thickness (`start_thickness`) and the crisper start's
+    judge did not measure it (a start from the baseline alone, a resumed start). The run's crispness table reuses
+    it, as it does the judge's (the same query points, so the same figures)."""
+    if (start.chosen != "baseline" or float(config.train.get("pose_prior_thin_map_m", 0.0)) <= 0
+            or "baseline" in start.judged[0]):
+        return start
+    summaries, per_scan = quality.map_crispness(seq, {"baseline": start.poses}, config.get("eval", {}))
+    return dataclasses.replace(start, judged=({**start.judged[0], **summaries}, {**start.judged[1], **per_scan}))
+
+
+def start_thickness(start: Start) -> float | None:
+    """The mean plane thickness [m] of the keyframes' raw map under the baseline's poses when training starts from
+    them and it was measured (`judge_start`); None otherwise (`pose_steps_for_start`)."""
+    if start.chosen != "baseline":
         return None
-    summary = start.judged[0].get("baseline") if start.judged else None
-    if summary is None:
-        summary = quality.map_crispness(seq, {"baseline": start.poses}, config.get("eval", {}))[0]["baseline"]
-    return summary.get("mean_plane_thickness_m")
+    return start.judged[0].get("baseline", {}).get("mean_plane_thickness_m")
 
 
 def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str,
@@ -355,9 +362,9 @@ def pose_steps_for_start(config: ml_collections.ConfigDict, chosen: str,
         raise ConfigError(f"train.pose_lr_from_baseline: expected (init, final) or (), got {cap!r}")
     changed = {f"pose_lr_{part}_{which}": min(float(config.train[f"pose_lr_{part}_{which}"]), float(limit))
                for part in ("rot", "trans") for which, limit in zip(("init", "final"), cap)}
-    prior = max(float(config.train.get("pose_prior_from_baseline", 0.0)),
-                float(config.train.get("pose_prior_weight", 0.0)))
-    if prior > float(config.train.get("pose_prior_weight", 0.0)):
+    weight = float(config.train.get("pose_prior_weight", 0.0))
+    prior = max(float(config.train.get("pose_prior_from_baseline", 0.0)), weight)
+    if prior > weight:
         changed["pose_prior_weight"] = prior
     thin_map_m = float(config.train.get("pose_prior_thin_map_m", 0.0))
     heavier = 1.0
@@ -524,7 +531,8 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     else:
         logger.info("resuming: training starts from the %s poses the first run chose (%s; the classical baseline is "
                     "not run again)", start.chosen, START_FILE)
-    config = pose_steps_for_start(config, start.chosen, start_thickness(config, seq, start))
+    start = judge_start(config, seq, start)
+    config = pose_steps_for_start(config, start.chosen, start_thickness(start))
     # The config as trained (the start can cap the pose steps); the hash above stays the user's, for resuming.
     export.write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()))
     T_start = start.poses

@@ -6,7 +6,8 @@ ROOT/Scans/NNNNNN.pcd (sensor frame), ROOT/odom_poses.txt (KITTI), ROOT/times.tx
 
 The scans are already keyframes (the front-end chose them), so every one is trained on. On the cpu and gpu
 budgets the pose steps are small and points are kept within 40 m, and the cpu budget weighs the termination loss
-three times the paper's in one cube, the paper's in submaps (neld_jax.config.refine_odometry). The odometry is
+three times the paper's in one cube, the paper's in submaps, and trains the fields at four times its learning rate
+(neld_jax.config.refine_odometry). The odometry is
 inertial, so its roll and pitch are trusted: the baseline's chain keeps the input's tilt (baseline.keep_input_tilt;
 set it False for a LiDAR-only input, whose tilt drifts). Quality is judged without ground truth: the crispness of
 the raw map (mean map entropy, plane thickness) before and after.

@@ -228,11 +228,18 @@ def test_submap_fields_take_their_own_learning_rate():
     scaled = submap_train.submap_field_lr(config, schedules)
     for step in (0, config.train.steps // 2, config.train.steps):
         assert float(scaled(step)) == pytest.approx(2.0 * float(schedules.field_lr(step)))
-    # lio_keyframes' cpu budget: a drive's submap fields at four times the field's rate; the gpu budget: train's.
+    # lio_keyframes' cpu budget: every field, one cube or submaps, at four times the cpu budget's rate (set on train,
+    # so the submaps' factor stays 1); the gpu budget: its own rate.
     from configs import lio_keyframes
 
-    assert lio_keyframes.get_config("cpu").submaps.field_lr_factor == 4.0
-    assert lio_keyframes.get_config("gpu").submaps.field_lr_factor in (0.0, 1.0)
+    lio_cpu, lio_gpu = lio_keyframes.get_config("cpu"), lio_keyframes.get_config("gpu")
+    assert (lio_cpu.train.field_lr_init, lio_cpu.train.field_lr_final) == pytest.approx(
+        (4 * config.train.field_lr_init, 4 * config.train.field_lr_final))
+    for lio in (lio_cpu, lio_gpu):
+        assert lio.submaps.field_lr_factor in (0.0, 1.0)
+    gpu = apply_budget(base_config(), "gpu")
+    assert (lio_gpu.train.field_lr_init, lio_gpu.train.field_lr_final) == (gpu.train.field_lr_init,
+                                                                            gpu.train.field_lr_final)
 
 
 def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_path, monkeypatch):

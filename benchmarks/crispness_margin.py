@@ -14,7 +14,12 @@ preprocessing, eval.crispness_radius_m) and its poses_<method>.kitti (initial, b
 measures the entropy of the keyframes' raw map under each on --draws draws (seeds 0, 1, ...; draw 0 is the run's
 own) and prints, for optimized against each other method, the paired difference (optimized minus other;
 negative: NeLD-BA's map is crisper) on every draw, its mean and spread, and whether every draw agrees in sign.
---root replaces the run's data.root (a sequence moved since the run). Writes one JSON object to --out.
+--root replaces the run's data.root (a sequence moved since the run). --mean_of=<run>,<run>... judges, as the
+optimized poses, the mean on se(3) of this run's and those runs' corrections from this run's initial poses (other
+training seeds from the same start: what the seeds agree on, each seed's own part shrunk). Writes one JSON object
+to --out.
+
+    python benchmarks/crispness_margin.py --run_dir=runs/seed0 --mean_of=runs/seed1,runs/seed2
 """
 
 import json
@@ -29,6 +34,9 @@ RUN_DIR = flags.DEFINE_string("run_dir", None, "Output folder of a bin/train.py 
 ROOT = flags.DEFINE_string("root", "", "The sequence's folder, if it is not the run's data.root any more.")
 DRAWS = flags.DEFINE_integer("draws", 5, "Draws of the query points (seeds 0 .. draws-1).")
 QUERIES = flags.DEFINE_integer("queries", 0, "Query points a draw (0: the run's eval.crispness_queries).")
+MEAN_OF = flags.DEFINE_list("mean_of", [], "Other run folders from the same start (other training seeds): the answer "
+                       "judged is the mean, on se(3), of this run's and their corrections from this run's initial "
+                       "poses (neld_jax.trajectory.mean_of_corrections).")
 OUT = flags.DEFINE_string("out", "", "JSON file written (none if empty).")
 flags.mark_flag_as_required("run_dir")
 
@@ -38,6 +46,7 @@ METHODS = ("initial", "baseline", "optimized")
 def main(argv):
     del argv
     import ml_collections
+    import numpy as np
 
     from neld_jax import crispness, quality, run
     from neld_jax.data.poses import read_kitti
@@ -54,11 +63,23 @@ def main(argv):
                if os.path.exists(path := os.path.join(RUN_DIR.value, f"poses_{method}.kitti"))}
     if "optimized" not in methods:
         raise SystemExit(f"{RUN_DIR.value}: no poses_optimized.kitti (is it a bin/train.py run's folder?)")
+    if MEAN_OF.value:
+        if "initial" not in methods:
+            raise SystemExit(f"{RUN_DIR.value}: no poses_initial.kitti, the start --mean_of averages from")
+        from neld_jax.trajectory import mean_of_corrections
+
+        answers = [methods["optimized"]]
+        for other in MEAN_OF.value:
+            path = os.path.join(other, "poses_optimized.kitti")
+            if not os.path.exists(path):
+                raise SystemExit(f"{other}: no poses_optimized.kitti (is it a bin/train.py run's folder?)")
+            answers.append(read_kitti(path)[seq.loaded_index])
+        methods["optimized"] = mean_of_corrections(methods["initial"], np.stack(answers))
     margins = quality.crispness_margins(seq, methods, config.eval)
     result = {"run_dir": RUN_DIR.value, "sequence": config.data.root, "draws": DRAWS.value,
               "queries": int(config.eval.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES)),
               "radius_m": float(config.eval.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)),
-              "optimized_minus": margins}
+              "mean_of": MEAN_OF.value, "optimized_minus": margins}
     for other, margin in margins.items():
         print(quality.describe_margin(other, margin) + ": " + " ".join(f"{d:+.5f}" for d in margin["per_draw"]))
     if OUT.value:

@@ -6,10 +6,13 @@ import os
 import subprocess
 import sys
 
+import numpy as np
+
 from conftest import tiny_synthetic_sequence
 from neld_jax.data.poses import write_kitti
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.scans import write_scan
+from neld_jax.trajectory import _se3_exp, _se3_log
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -57,3 +60,33 @@ def test_margin_names_a_folder_without_an_answer(tmp_path):
     _, run_dir = _write_run(tmp_path, num_scans=3)
     result = _margin(f"--run_dir={run_dir}")
     assert result.returncode != 0 and "no poses_optimized.kitti" in result.stderr
+
+
+def test_mean_of_seeds_judges_the_mean_correction(tmp_path):
+    """Two "seeds" that land on either side of the truth (the truth's correction from the drifted start, plus and
+    minus 2 cm / 0.3 deg of noise) are judged, with --mean_of, as the truth itself: the same margin on every draw
+    as a run whose answer is the truth."""
+    seq, run_dir = _write_run(tmp_path)
+    start = with_drift(seq, 0.05, 0.5, seed=0).poses
+    truth_xi = _se3_log(np.linalg.inv(start) @ seq.poses)
+    noise = np.random.default_rng(0).normal(0, 1, truth_xi.shape) * np.r_[0.02, 0.02, 0.02, 0.005, 0.005, 0.005]
+    other = tmp_path / "other_seed"
+    other.mkdir()
+    for folder, answer in ((run_dir, truth_xi + noise), (other, truth_xi - noise)):
+        write_kitti(folder / "poses_initial.kitti", start)
+        write_kitti(folder / "poses_optimized.kitti", start @ _se3_exp(answer))
+    truth_dir = tmp_path / "truth"
+    truth_dir.mkdir()
+    (truth_dir / "config.json").write_text((run_dir / "config.json").read_text())
+    write_kitti(truth_dir / "poses_initial.kitti", start)
+    write_kitti(truth_dir / "poses_optimized.kitti", seq.poses)
+    margins = []
+    for args in ([f"--run_dir={run_dir}", f"--mean_of={other}"], [f"--run_dir={truth_dir}"]):
+        out = tmp_path / f"margin{len(margins)}.json"
+        result = _margin(*args, "--draws=2", "--queries=300", f"--out={out}")
+        assert result.returncode == 0, result.stderr[-2000:]
+        margins.append(json.loads(out.read_text()))
+    assert margins[0]["mean_of"] == [str(other)]
+    np.testing.assert_allclose(margins[0]["optimized_minus"]["initial"]["per_draw"],
+                               margins[1]["optimized_minus"]["initial"]["per_draw"], atol=1e-6)
+    assert all(d < 0 for d in margins[0]["optimized_minus"]["initial"]["per_draw"])

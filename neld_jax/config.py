@@ -85,7 +85,6 @@ def base_config() -> ml_collections.ConfigDict:
     c.submaps.step_rays_factor = 1.0  # the rays of one step over all submaps, in units of train.batch_rays
     c.submaps.width = 0  # the MLP width of each submap's field; 0: model.width
     c.submaps.lambda_termination = 0.0  # the termination loss's weight in a submap run; 0: loss.lambda_termination
-    c.submaps.field_lr_factor = 0.0  # the submap fields' learning rates are train.field_lr_* times this; 0: 1
     c.submaps.devices = 0  # devices the submaps are sharded over; 0: every visible device
     # At most this many submaps (0: no limit): a longer sequence gets longer windows, in larger cubes (coarser than
     # max_detail_m; the log says so). Unless submaps.keyframes is set.

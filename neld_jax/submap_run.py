@@ -58,7 +58,7 @@ def train_submaps(config, seq, norm: Normalization, T_start: np.ndarray, plan: s
     arrays = submaps.submap_arrays(plan, rays_metres, T_start)
     mesh = submap_train.make_mesh(submaps.mesh_size(plan, num_devices(config)))
     setup = submap_train.create_submap_state(config, seq.num_scans, plan.num_submaps, mesh, T_start)
-    field_lr = submap_train.submap_field_lr(config, setup.schedules)
+    field_lr = setup.schedules.field_lr
     logger.info("submaps: %d submaps (%d rays each at most, %d drawn per step, fields %d wide, learning rate %g -> "
                 "%g, termination loss weight %g) on a mesh of %d %s device(s)", plan.num_submaps,
                 arrays.directions.shape[1], submap_train.submap_batch_rays(config, plan.num_submaps), setup.field.width,

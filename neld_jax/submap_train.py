@@ -128,17 +128,8 @@ def make_submap_optimizer(config: ml_collections.ConfigDict, schedules: Schedule
     def labels(params):
         return {"fields": jax.tree.map(lambda _: "fields", params["fields"]), "poses": "poses"}
 
-    return optax.multi_transform({"fields": optax.adam(submap_field_lr(config, schedules)), "poses": pose_tx},
+    return optax.multi_transform({"fields": optax.adam(schedules.field_lr), "poses": pose_tx},
                                  labels)
-
-
-def submap_field_lr(config: ml_collections.ConfigDict, schedules: Schedules):
-    """The submap fields' learning-rate schedule: train's field schedule times submaps.field_lr_factor (0 or 1:
-    train's)."""
-    factor = float(config.submaps.get("field_lr_factor", 0.0))
-    if factor <= 0 or factor == 1.0:
-        return schedules.field_lr
-    return lambda count: factor * schedules.field_lr(count)
 
 
 # ------------------------------------------------------------------------------------------------ the step

@@ -217,26 +217,17 @@ def test_submap_runs_take_their_own_termination_weight():
     assert submap_train.submap_loss_settings(cpu) == submap_train.LossSettings.from_config(cpu.loss)
 
 
-def test_submap_fields_take_their_own_learning_rate():
+def test_real_recordings_fields_learn_at_four_times_the_cpu_budgets_rate():
+    """lio_keyframes' cpu budget: every field, one cube or submaps (both take train.field_lr_*), at four times the
+    cpu budget's rate; the gpu budget: its own rate."""
     from neld_jax.config import apply_budget, base_config
-    from neld_jax.train import make_schedules
+    from configs import lio_keyframes
 
     config = apply_budget(base_config(), "cpu")
-    schedules = make_schedules(config)
-    assert submap_train.submap_field_lr(config, schedules) is schedules.field_lr  # unset: train's schedule
-    config.submaps.field_lr_factor = 2.0
-    scaled = submap_train.submap_field_lr(config, schedules)
-    for step in (0, config.train.steps // 2, config.train.steps):
-        assert float(scaled(step)) == pytest.approx(2.0 * float(schedules.field_lr(step)))
-    # lio_keyframes' cpu budget: every field, one cube or submaps, at four times the cpu budget's rate (set on train,
-    # so the submaps' factor stays 1); the gpu budget: its own rate.
-    from configs import lio_keyframes
 
     lio_cpu, lio_gpu = lio_keyframes.get_config("cpu"), lio_keyframes.get_config("gpu")
     assert (lio_cpu.train.field_lr_init, lio_cpu.train.field_lr_final) == pytest.approx(
         (4 * config.train.field_lr_init, 4 * config.train.field_lr_final))
-    for lio in (lio_cpu, lio_gpu):
-        assert lio.submaps.field_lr_factor in (0.0, 1.0)
     gpu = apply_budget(base_config(), "gpu")
     assert (lio_gpu.train.field_lr_init, lio_gpu.train.field_lr_final) == (gpu.train.field_lr_init,
                                                                             gpu.train.field_lr_final)

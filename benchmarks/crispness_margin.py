@@ -43,13 +43,24 @@ flags.mark_flag_as_required("run_dir")
 METHODS = ("initial", "baseline", "optimized")
 
 
+def _run_poses(folder: str, loaded_index) -> dict:
+    """{method: [S, 4, 4]} of the poses_<method>.kitti a run folder holds (the keyframes the sequence loads);
+    one line naming the folder when it holds no answer."""
+    from neld_jax.data.poses import read_kitti
+
+    poses = {method: read_kitti(path)[loaded_index] for method in METHODS
+             if os.path.exists(path := os.path.join(folder, f"poses_{method}.kitti"))}
+    if "optimized" not in poses:
+        raise SystemExit(f"{folder}: no poses_optimized.kitti (is it a bin/train.py run's folder?)")
+    return poses
+
+
 def main(argv):
     del argv
     import ml_collections
     import numpy as np
 
     from neld_jax import crispness, quality, run
-    from neld_jax.data.poses import read_kitti
 
     with open(os.path.join(RUN_DIR.value, "config.json")) as f:
         config = ml_collections.ConfigDict(json.load(f))
@@ -59,21 +70,13 @@ def main(argv):
     if QUERIES.value:
         config.eval.crispness_queries = QUERIES.value
     _, seq, _ = run.load_and_prepare(config)
-    methods = {method: read_kitti(path)[seq.loaded_index] for method in METHODS
-               if os.path.exists(path := os.path.join(RUN_DIR.value, f"poses_{method}.kitti"))}
-    if "optimized" not in methods:
-        raise SystemExit(f"{RUN_DIR.value}: no poses_optimized.kitti (is it a bin/train.py run's folder?)")
+    methods = _run_poses(RUN_DIR.value, seq.loaded_index)
     if MEAN_OF.value:
         if "initial" not in methods:
             raise SystemExit(f"{RUN_DIR.value}: no poses_initial.kitti, the start --mean_of averages from")
         from neld_jax.trajectory import mean_of_corrections
 
-        answers = [methods["optimized"]]
-        for other in MEAN_OF.value:
-            path = os.path.join(other, "poses_optimized.kitti")
-            if not os.path.exists(path):
-                raise SystemExit(f"{other}: no poses_optimized.kitti (is it a bin/train.py run's folder?)")
-            answers.append(read_kitti(path)[seq.loaded_index])
+        answers = [methods["optimized"]] + [_run_poses(other, seq.loaded_index)["optimized"] for other in MEAN_OF.value]
         methods["optimized"] = mean_of_corrections(methods["initial"], np.stack(answers))
     margins = quality.crispness_margins(seq, methods, config.eval)
     result = {"run_dir": RUN_DIR.value, "sequence": config.data.root, "draws": DRAWS.value,

@@ -16,8 +16,8 @@ own) and prints, for optimized against each other method, the paired difference 
 negative: NeLD-BA's map is crisper) on every draw, its mean and spread, and whether every draw agrees in sign.
 --root replaces the run's data.root (a sequence moved since the run). --mean_of=<run>,<run>... judges, as the
 optimized poses, the mean on se(3) of this run's and those runs' corrections from this run's initial poses (other
-training seeds from the same start: what the seeds agree on, each seed's own part shrunk). Writes one JSON object
-to --out.
+training seeds from the same start: what the seeds agree on, each seed's own part shrunk; a run that started
+elsewhere is refused with one line). Writes one JSON object to --out.
 
     python benchmarks/crispness_margin.py --run_dir=runs/seed0 --mean_of=runs/seed1,runs/seed2
 """
@@ -55,6 +55,20 @@ def _run_poses(folder: str, loaded_index) -> dict:
     return poses
 
 
+def _check_same_start(folder: str, initial, own_initial, tol: float = 1e-6) -> None:
+    """One line naming the folder when a --mean_of run did not start from this run's initial poses ([S, 4, 4]
+    each, or None when it wrote none): corrections from different starts have no common origin to average."""
+    import numpy as np
+
+    if initial is None:
+        raise SystemExit(f"{folder}: no poses_initial.kitti, so --mean_of cannot check it started where "
+                         f"{RUN_DIR.value} did")
+    gap = float(np.abs(initial - own_initial).max())
+    if gap > tol:
+        raise SystemExit(f"{folder}: its poses_initial.kitti differ from {RUN_DIR.value}'s by up to {gap:.3g} "
+                         "(matrix elements; metres in the translations): --mean_of averages runs from one start")
+
+
 def main(argv):
     del argv
     import ml_collections
@@ -76,7 +90,11 @@ def main(argv):
             raise SystemExit(f"{RUN_DIR.value}: no poses_initial.kitti, the start --mean_of averages from")
         from neld_jax.trajectory import mean_of_corrections
 
-        answers = [methods["optimized"]] + [_run_poses(other, seq.loaded_index)["optimized"] for other in MEAN_OF.value]
+        answers = [methods["optimized"]]
+        for other in MEAN_OF.value:
+            poses = _run_poses(other, seq.loaded_index)
+            _check_same_start(other, poses.get("initial"), methods["initial"])
+            answers.append(poses["optimized"])
         methods["optimized"] = mean_of_corrections(methods["initial"], np.stack(answers))
     margins = quality.crispness_margins(seq, methods, config.eval)
     result = {"run_dir": RUN_DIR.value, "sequence": config.data.root, "draws": DRAWS.value,

@@ -90,3 +90,21 @@ def test_mean_of_seeds_judges_the_mean_correction(tmp_path):
     np.testing.assert_allclose(margins[0]["optimized_minus"]["initial"]["per_draw"],
                                margins[1]["optimized_minus"]["initial"]["per_draw"], atol=1e-6)
     assert all(d < 0 for d in margins[0]["optimized_minus"]["initial"]["per_draw"])
+
+
+def test_mean_of_refuses_a_run_from_another_start(tmp_path):
+    """Corrections from two different starts have no common origin: a --mean_of run whose poses_initial.kitti
+    differ from this run's is refused with one line naming it, as is one that wrote none."""
+    seq, run_dir = _write_run(tmp_path, num_scans=3)
+    write_kitti(run_dir / "poses_initial.kitti", with_drift(seq, 0.05, 0.5, seed=0).poses)
+    write_kitti(run_dir / "poses_optimized.kitti", seq.poses)
+    elsewhere, no_start = tmp_path / "elsewhere", tmp_path / "no_start"
+    for folder in (elsewhere, no_start):
+        folder.mkdir()
+        write_kitti(folder / "poses_optimized.kitti", seq.poses)
+    write_kitti(elsewhere / "poses_initial.kitti", with_drift(seq, 0.05, 0.5, seed=1).poses)
+    for other, message in ((elsewhere, "differ from"), (no_start, "no poses_initial.kitti")):
+        result = _margin(f"--run_dir={run_dir}", f"--mean_of={other}", "--draws=1", "--queries=100")
+        assert result.returncode != 0
+        last_line = result.stderr.strip().splitlines()[-1]
+        assert last_line.startswith(str(other)) and message in last_line, result.stderr[-1000:]

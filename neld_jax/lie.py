@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 # theta^2 below which the Taylor branches are used. The series below are kept to enough terms that their
 # truncation error at this threshold is far below float64 resolution, while the closed forms above it
@@ -218,3 +219,16 @@ def apply_correction(xi: jax.Array, T_init: jax.Array) -> jax.Array:
     xi: [..., 6] twists [rho, omega], T_init: [..., 4, 4] -> corrected poses [..., 4, 4].
     """
     return compose(se3_exp(xi), T_init)
+
+
+def se3_exp_float64(xi) -> np.ndarray:
+    """`se3_exp` in float64 whatever jax_enable_x64 says, on host arrays: for poses written to files and judged
+    (centimetre corrections on kilometre routes need more than float32's 7 digits). xi: [..., 6] -> [..., 4, 4]."""
+    with jax.enable_x64(True):
+        return np.asarray(se3_exp(jnp.asarray(xi, jnp.float64)))
+
+
+def se3_log_float64(transform) -> np.ndarray:
+    """`se3_log` in float64 on host arrays (as `se3_exp_float64`). transform: [..., 4, 4] -> [..., 6]."""
+    with jax.enable_x64(True):
+        return np.asarray(se3_log(jnp.asarray(transform, jnp.float64)))

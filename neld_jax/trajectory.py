@@ -13,22 +13,10 @@ varies smoothly along the trajectory. Scans before the first / after the last ke
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from neld_jax import lie
 from neld_jax.geometry import invert_poses
-
-
-def _se3_exp(xi: np.ndarray) -> np.ndarray:
-    with jax.enable_x64(True):
-        return np.asarray(lie.se3_exp(jnp.asarray(xi, jnp.float64)))
-
-
-def _se3_log(T: np.ndarray) -> np.ndarray:
-    with jax.enable_x64(True):
-        return np.asarray(lie.se3_log(jnp.asarray(T, jnp.float64)))
 
 
 def propagate_corrections(T_input: np.ndarray, keyframe_index: np.ndarray, T_keyframes: np.ndarray,
@@ -56,8 +44,8 @@ def propagate_corrections(T_input: np.ndarray, keyframe_index: np.ndarray, T_key
     with np.errstate(invalid="ignore", divide="ignore"):
         u = np.where(span > 0, (position - position[keyframe_index[a]]) / span, 0.0)
     u = np.clip(u, 0.0, 1.0)  # before the first keyframe: its correction (u = 0 at a = 0 below it)
-    delta = _se3_log(invert_poses(corrections[a]) @ corrections[b])  # [S, 6]
-    C = corrections[a] @ _se3_exp(u[:, None] * delta)
+    delta = lie.se3_log_float64(invert_poses(corrections[a]) @ corrections[b])  # [S, 6]
+    C = corrections[a] @ lie.se3_exp_float64(u[:, None] * delta)
     refined = C @ T_input
     refined[keyframe_index] = T_keyframes  # exact, without the round trip through exp/log
     return refined
@@ -73,5 +61,5 @@ def mean_of_corrections(T_start: np.ndarray, answers: np.ndarray) -> np.ndarray:
     answers = np.asarray(answers, np.float64)
     if answers.ndim != 4 or answers.shape[1:] != T_start.shape or len(answers) == 0:
         raise ValueError(f"answers of shape {answers.shape} for start poses of shape {T_start.shape}")
-    xi = _se3_log(invert_poses(T_start)[None] @ answers)  # [N, S, 6]
-    return T_start @ _se3_exp(xi.mean(axis=0))
+    xi = lie.se3_log_float64(invert_poses(T_start)[None] @ answers)  # [N, S, 6]
+    return T_start @ lie.se3_exp_float64(xi.mean(axis=0))

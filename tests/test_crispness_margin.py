@@ -12,7 +12,7 @@ from conftest import tiny_synthetic_sequence
 from neld_jax.data.poses import write_kitti
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.scans import write_scan
-from neld_jax.trajectory import _se3_exp, _se3_log
+from neld_jax.lie import se3_exp_float64, se3_log_float64
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -68,13 +68,13 @@ def test_mean_of_seeds_judges_the_mean_correction(tmp_path):
     as a run whose answer is the truth."""
     seq, run_dir = _write_run(tmp_path)
     start = with_drift(seq, 0.05, 0.5, seed=0).poses
-    truth_xi = _se3_log(np.linalg.inv(start) @ seq.poses)
+    truth_xi = se3_log_float64(np.linalg.inv(start) @ seq.poses)
     noise = np.random.default_rng(0).normal(0, 1, truth_xi.shape) * np.r_[0.02, 0.02, 0.02, 0.005, 0.005, 0.005]
     other = tmp_path / "other_seed"
     other.mkdir()
     for folder, answer in ((run_dir, truth_xi + noise), (other, truth_xi - noise)):
         write_kitti(folder / "poses_initial.kitti", start)
-        write_kitti(folder / "poses_optimized.kitti", start @ _se3_exp(answer))
+        write_kitti(folder / "poses_optimized.kitti", start @ se3_exp_float64(answer))
     truth_dir = tmp_path / "truth"
     truth_dir.mkdir()
     (truth_dir / "config.json").write_text((run_dir / "config.json").read_text())

@@ -13,7 +13,7 @@ from neld_jax import train
 from neld_jax.data.rays import sphere_scene_rays
 from neld_jax.errors import ConfigError
 from neld_jax.field import DensityField
-from neld_jax.lie import se3_exp
+from neld_jax.lie import se3_exp_float64
 
 from conftest import fake_training_clock, make_tiny_config, similarity_scale
 
@@ -201,7 +201,7 @@ def test_keeping_the_start_scale_takes_only_the_scale_mode_out_of_the_pose_steps
         return np.asarray(updates)
 
     def route_scale(xi):  # of the positions of exp(xi) T_init against T_init's, minus 1
-        return similarity_scale(np.asarray(se3_exp(jnp.asarray(xi, jnp.float64))) @ T_init, T_init)
+        return similarity_scale(se3_exp_float64(xi) @ T_init, T_init)
 
     free, kept = step(None), step(T_init[:, :3, 3])
     lr = 1e-4 / max(np.abs(free).max(), 1e-12)  # steps of 1e-4, so that second-order terms stay below 1e-7

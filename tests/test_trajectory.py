@@ -3,7 +3,8 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from neld_jax.trajectory import _se3_exp, mean_of_corrections, propagate_corrections
+from neld_jax.lie import se3_exp_float64
+from neld_jax.trajectory import mean_of_corrections, propagate_corrections
 
 
 def _poses(n, seed=0):
@@ -50,8 +51,8 @@ def test_mean_of_corrections_cancels_opposite_moves_and_keeps_a_shared_one():
     rng = np.random.default_rng(1)
     T0 = _poses(6)
     xi = np.concatenate([rng.normal(0, 0.01, (6, 3)), rng.normal(0, 0.005, (6, 3))], axis=1)
-    plus, minus = T0 @ _se3_exp(xi), T0 @ _se3_exp(-xi)
+    plus, minus = T0 @ se3_exp_float64(xi), T0 @ se3_exp_float64(-xi)
     np.testing.assert_allclose(mean_of_corrections(T0, np.stack([plus, minus])), T0, atol=1e-12)
-    shared = T0 @ _se3_exp(2 * xi)
+    shared = T0 @ se3_exp_float64(2 * xi)
     np.testing.assert_allclose(mean_of_corrections(T0, np.stack([shared, shared])), shared, atol=1e-12)
     np.testing.assert_allclose(mean_of_corrections(T0, plus[None]), plus, atol=1e-12)

@@ -1,6 +1,7 @@
 """SE(3) and so(3) maths: exponential and logarithm maps, composition, inversion, point transforms.
 
-Everything is pure `jax.numpy`, batched over any leading axes and jit-able. Homogeneous 4x4 matrices are
+Everything is pure `jax.numpy`, batched over any leading axes and jit-able (except `se3_exp_float64` /
+`se3_log_float64`, host wrappers in float64 for poses written to files). Homogeneous 4x4 matrices are
 the pose representation; tangent vectors are 6-vectors in the same order as jaxlie's `SE3`:
 
     xi = [rho (translation part, 3), omega (rotation part, 3)]

@@ -331,25 +331,10 @@ def body_correction_matrices(xi: np.ndarray, rho_unit: float) -> np.ndarray:
     """Exp of the shared corrections in metres: xi [S, 6] (rho in units of rho_unit per metre) -> [S, 4, 4].
 
     T_world = T_init_world @ body_correction_matrices(xi, s_ref)."""
-    from scipy.spatial.transform import Rotation
+    from neld_jax.lie import se3_exp_float64
 
     xi = np.asarray(xi, np.float64)
-    rho, omega = xi[:, :3] / rho_unit, xi[:, 3:]
-    theta = np.linalg.norm(omega, axis=1)
-    out = np.tile(np.eye(4), (len(xi), 1, 1))
-    out[:, :3, :3] = Rotation.from_rotvec(omega).as_matrix()
-    # V = I + (1 - cos t)/t^2 K + (t - sin t)/t^3 K^2 (the SE(3) left Jacobian), series below a small angle.
-    t2 = theta**2
-    small = t2 < 1e-8
-    ts = np.where(small, 1.0, theta)
-    b = np.where(small, 0.5 - t2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
-    c = np.where(small, 1.0 / 6.0 - t2 / 120.0, (ts - np.sin(ts)) / ts**3)
-    k = np.zeros((len(xi), 3, 3))
-    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -omega[:, 2], omega[:, 1], -omega[:, 0]
-    k -= np.swapaxes(k, 1, 2)
-    v = np.eye(3) + b[:, None, None] * k + c[:, None, None] * (k @ k)
-    out[:, :3, 3] = np.einsum("sij,sj->si", v, rho)
-    return out
+    return se3_exp_float64(np.concatenate([xi[:, :3] / rho_unit, xi[:, 3:]], axis=1))
 
 
 def global_poses(T_init_world: np.ndarray, xi: np.ndarray, ref_scale: float) -> np.ndarray:

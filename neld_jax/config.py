@@ -85,6 +85,8 @@ def base_config() -> ml_collections.ConfigDict:
     c.submaps.step_rays_factor = 1.0  # the rays of one step over all submaps, in units of train.batch_rays
     c.submaps.width = 0  # the MLP width of each submap's field; 0: model.width
     c.submaps.lambda_termination = 0.0  # the termination loss's weight in a submap run; 0: loss.lambda_termination
+    # (N, f): a plan of N steps or more trains the submap fields at f x train.field_lr_*; (): at train.field_lr_*
+    c.submaps.field_lr_from_steps = ()
     c.submaps.devices = 0  # devices the submaps are sharded over; 0: every visible device
     # At most this many submaps (0: no limit): a longer sequence gets longer windows, in larger cubes (coarser than
     # max_detail_m; the log says so). Unless submaps.keyframes is set.
@@ -340,6 +342,12 @@ def refine_odometry(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
         # either way); twenty-third and twenty-fourth sessions, docs/method.md "The field's learning rate on real
         # recordings". The gpu budget keeps its 5e-3.
         c.train.field_lr_init, c.train.field_lr_final = 2e-2, 2e-3
+        # ... but a drive's submap fields trained four times longer want the budget's own rate again: at 6000 steps
+        # 1x beat 4x on both Riverside02 parts (281: -0.0012 against -0.0003; 331: -0.0126 against -0.0113, NeLD-BA's
+        # map minus the baseline's over five draws), while one cube kept 4x ahead (HKU_2, HKU_1, the main building);
+        # at 3000 steps 4x still led 2x on the 281 part (-0.0001 against +0.0005; twenty-sixth and twenty-seventh
+        # sessions, docs/method.md "The field's learning rate on real recordings").
+        c.submaps.field_lr_from_steps = (6000, 0.25)
     return c
 
 

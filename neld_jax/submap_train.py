@@ -17,6 +17,7 @@ The same code runs on 1 CPU, 1 GPU or several devices; only the mesh changes.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -27,11 +28,14 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from neld_jax import lie, rendering
+from neld_jax.errors import ConfigError
 from neld_jax.field import DensityField
 from neld_jax.model import SamplerSettings, render_rays, world_rays
 from neld_jax.train import (FitResult, LossSettings, RayData, Schedules, TrainState, jit_chunk, make_field,
                             make_schedules, pose_transform, range_errors_m, ray_losses, run_chunks, sample_batch,
                             sampler_settings, with_steps)
+
+logger = logging.getLogger(__name__)
 
 
 AXIS = "submaps"
@@ -269,6 +273,30 @@ def make_submap_field(config: ml_collections.ConfigDict) -> DensityField:
     return field.clone(width=width) if width > 0 else field
 
 
+def submap_field_lr_factor(config: ml_collections.ConfigDict) -> float:
+    """The factor on train.field_lr_* for the submap fields of a plan of train.steps steps: f from N steps on under
+    submaps.field_lr_from_steps = (N, f), else 1 (also when it is ())."""
+    rule = tuple(config.submaps.get("field_lr_from_steps", ()))
+    if not rule:
+        return 1.0
+    if len(rule) != 2 or not (rule[0] > 0 and rule[1] > 0):
+        raise ConfigError(f"submaps.field_lr_from_steps={rule}: expected () or (N, f), a step count N > 0 and a "
+                          "factor f > 0")
+    steps, factor = rule
+    return float(factor) if int(config.train.steps) >= steps else 1.0
+
+
+def submap_schedules(config: ml_collections.ConfigDict) -> Schedules:
+    """train.make_schedules with the submap fields' learning rate (`submap_field_lr_factor` of the planned steps:
+    a schedule compressed to fewer steps takes the rate of those)."""
+    schedules = make_schedules(config)
+    factor = submap_field_lr_factor(config)
+    if factor == 1.0:
+        return schedules
+    base = schedules.field_lr
+    return dataclasses.replace(schedules, field_lr=lambda step: factor * base(step))
+
+
 def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_submaps: int,
                         mesh: Mesh | None = None, start_poses: np.ndarray | None = None) -> SubmapSetup:
     """State, optimiser, schedules and step of M submaps over S keyframes (seeded by config.seed).
@@ -276,7 +304,7 @@ def create_submap_state(config: ml_collections.ConfigDict, num_scans: int, num_s
     Submap m's field is initialised from key m of config.seed's split. With a mesh, the state is placed on it.
     start_poses: [S, 4, 4] the keyframes' start poses (world, metres), which train.keep_start_scale needs
     (`make_submap_optimizer`); the state's structure does not depend on them."""
-    schedules = make_schedules(config)
+    schedules = submap_schedules(config)
     tx = make_submap_optimizer(config, schedules, num_scans, start_poses)
     field = make_submap_field(config)
     key_init, key_state = jax.random.split(jax.random.PRNGKey(int(config.seed)))
@@ -328,6 +356,9 @@ def fit_submaps(config: ml_collections.ConfigDict, setup: SubmapSetup, rays: Sub
     def replan(steps: int):
         planned = create_submap_state(with_steps(config, steps), int(setup.state.params["poses"].shape[0]),
                                       num_submaps, setup.mesh, setup.start_poses)
+        if planned.schedules.field_lr(0) != setup.schedules.field_lr(0):  # submaps.field_lr_from_steps
+            logger.info("the submap fields' learning rate follows the plan of %d steps: %g -> %g", steps,
+                        float(planned.schedules.field_lr(0)), float(planned.schedules.field_lr(steps)))
         return planned.schedules, planned.sampler, chunk_of(planned)
 
     return run_chunks(config, setup.schedules, setup.sampler, chunk_of(setup), setup.state if state is None else state,

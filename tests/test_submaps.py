@@ -219,7 +219,7 @@ def test_submap_runs_take_their_own_termination_weight():
 
 def test_real_recordings_fields_learn_at_four_times_the_cpu_budgets_rate():
     """lio_keyframes' cpu budget: every field, one cube or submaps (both take train.field_lr_*), at four times the
-    cpu budget's rate; the gpu budget: its own rate."""
+    cpu budget's rate at its 1500 steps; the gpu budget: its own rate."""
     from neld_jax.config import apply_budget, base_config
     from configs import lio_keyframes
 
@@ -231,6 +231,32 @@ def test_real_recordings_fields_learn_at_four_times_the_cpu_budgets_rate():
     gpu = apply_budget(base_config(), "gpu")
     assert (lio_gpu.train.field_lr_init, lio_gpu.train.field_lr_final) == (gpu.train.field_lr_init,
                                                                             gpu.train.field_lr_final)
+
+
+def test_submap_fields_of_a_long_plan_learn_at_the_cpu_budgets_own_rate():
+    """submaps.field_lr_from_steps = (6000, 0.25) on lio_keyframes' cpu budget: the submap fields learn at 4x the
+    cpu budget's rate below 6000 planned steps and at the budget's own from 6000 on, whether the steps are asked for
+    or a compressed plan's; one cube keeps 4x at any steps."""
+    from neld_jax.config import apply_budget, base_config
+    from neld_jax.train import make_schedules, with_steps
+    from configs import lio_keyframes
+
+    own = apply_budget(base_config(), "cpu").train.field_lr_init
+    lio = lio_keyframes.get_config("cpu")
+    assert tuple(lio.submaps.field_lr_from_steps) == (6000, 0.25)
+    for steps, times in ((1500, 4.0), (5999, 4.0), (6000, 1.0), (30_000, 1.0)):
+        planned = with_steps(lio, steps)
+        schedules = submap_train.submap_schedules(planned)
+        assert float(schedules.field_lr(0)) == pytest.approx(times * own, rel=1e-6)
+        # the decay keeps its shape (final / init = train.field_lr_final / _init) over the planned steps
+        assert float(schedules.field_lr(steps) / schedules.field_lr(0)) == pytest.approx(
+            lio.train.field_lr_final / lio.train.field_lr_init, rel=1e-4)
+        assert float(make_schedules(planned).field_lr(0)) == pytest.approx(4.0 * own, rel=1e-6)  # one cube
+    assert submap_train.submap_field_lr_factor(base_config()) == 1.0  # (): train.field_lr_* as they are
+    for bad in ((6000,), (0, 0.25), (6000, 0.0)):
+        lio.submaps.field_lr_from_steps = bad
+        with pytest.raises(ConfigError, match="submaps.field_lr_from_steps"):
+            submap_train.submap_field_lr_factor(lio)
 
 
 def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_path, monkeypatch):

@@ -345,8 +345,9 @@ def refine_odometry(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
         # ... but a drive's submap fields trained four times longer want the budget's own rate again: at 6000 steps
         # 1x beat 4x on both Riverside02 parts (281: -0.0012 against -0.0003; 331: -0.0126 against -0.0113, NeLD-BA's
         # map minus the baseline's over five draws), while one cube kept 4x ahead (HKU_2, HKU_1, the main building);
-        # at 3000 steps 4x still led 2x on the 281 part (-0.0001 against +0.0005; twenty-sixth and twenty-seventh
-        # sessions, docs/method.md "The field's learning rate on real recordings").
+        # at 3000 steps 4x still led 2x on the 281 part (-0.0001 against +0.0005), and 1x at 4500 on both parts (281:
+        # -0.0002 against +0.0002; 331: -0.0109 against -0.0099; twenty-sixth to twenty-eighth sessions,
+        # docs/method.md "The field's learning rate on real recordings").
         c.submaps.field_lr_from_steps = (6000, 0.25)
     return c
 

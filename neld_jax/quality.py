@@ -12,8 +12,11 @@ import os
 import numpy as np
 
 from neld_jax import crispness, metrics, plots, report
+from neld_jax.data.sequence import match_by_timestamp
+from neld_jax.errors import DataError
+from neld_jax.evaluate import read_trajectory
 from neld_jax.export import read_json, write_json
-from neld_jax.geometry import register_scans
+from neld_jax.geometry import invert_poses, register_scans
 
 logger = logging.getLogger(__name__)
 
@@ -89,6 +92,52 @@ def describe_margin(other: str, margin: dict, against: str = "NeLD-BA") -> str:
         verdict = f"{'crisper' if margin['mean'] < 0 else 'blurrier'} on every one of {draws} draws"
     return (f"{against}'s raw map against the {other} poses' map: {margin['mean']:+.5f} nats of mean map entropy "
             f"(std {margin['std']:.5f} over query draws), {verdict}")
+
+
+def trajectory_at_keyframes(path, loaded, keyframes, tol: float = 0.05, invert: bool = False) -> np.ndarray:
+    """The poses [K, 4, 4] that a trajectory file (TUM, KITTI or Newer College CSV, in the convention of the
+    sequence's own pose file; invert: world -> sensor, as data.invert_poses) gives the keyframes `keyframes` of the
+    input scans `loaded`: by time when the file and the scans have timestamps (every keyframe needs a pose within
+    `tol` s), else by order, one pose per input scan or one per keyframe. Another back-end's answer for the same
+    scans is judged this way (bin/crispness.py); a file that fits neither is one DataError naming it."""
+    stamps, poses = read_trajectory(path)
+    poses = invert_poses(poses) if invert else poses
+    index = keyframes.loaded_index
+    if stamps is not None and loaded.timestamps is not None:
+        labels = None if loaded.files is None else [loaded.files[i] for i in index]
+        return poses[match_by_timestamp(loaded.timestamps[index], stamps, tol=tol, what=str(path), scan_labels=labels)]
+    if len(poses) == loaded.num_scans:
+        return poses[index]
+    if len(poses) == keyframes.num_scans:
+        return poses
+    why = "has no timestamps" if stamps is None else "has timestamps but the scans have none"
+    raise DataError(f"{path}: {len(poses)} poses for {loaded.num_scans} input scans ({keyframes.num_scans} "
+                    f"keyframes); the file {why}, so it must hold one pose per input scan or per keyframe, in order")
+
+
+def judge_trajectories(seq, methods: dict[str, np.ndarray], eval_cfg) -> dict:
+    """Which trajectory gives the crispest raw map of the keyframes seq.scans, and how sure that is.
+
+    methods: {name: poses [K, 4, 4]} (two or more). The crispest is the lowest mean map entropy over
+    eval.crispness_draws draws of the query points (draw 0's alone with fewer than 2 draws). Returns
+    {"crispness": {name: summary on draw 0}, "crispest": name, "margins": {other: the crispest's entropy minus
+    other's per draw, mean, std, all_draws_agree}} (margins empty without draws)."""
+    crisp, _ = map_crispness(seq, methods, eval_cfg)
+    best = crispest(crisp)
+    margins = crispness_margins(seq, methods, eval_cfg, against=best, first_draw=crisp) if best else {}
+    over_draws = crispest_over_draws(margins, against=best)
+    if over_draws not in (None, best):  # draw 0 alone picked another
+        margins, best = margins_against(margins, best, over_draws), over_draws
+    return {"crispness": crisp, "crispest": best, "margins": margins}
+
+
+def margins_against(margins: dict, reference: str, new: str) -> dict:
+    """crispness_margins' answer for `reference` ({other: reference's entropy minus other's, per draw}) turned
+    into the same for `new`, one of the others: new minus other = (reference - other) - (reference - new)."""
+    to_new = np.asarray(margins[new]["per_draw"])
+    moved = {other: margin_over_draws(np.asarray(m["per_draw"]) - to_new)
+             for other, m in margins.items() if other != new}
+    return {**moved, reference: margin_over_draws(-to_new)}
 
 
 def aligned_corrections(T_before: np.ndarray, T_after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -201,15 +250,17 @@ def warn_if_not_crispest(summaries: dict, refused: dict | None = None, margins: 
     return best
 
 
-def format_crispness_table(summaries: dict) -> str:
-    """Plain-text table of {method: crispness summary}: entropy and plane thickness of the raw map."""
-    order = [m for m in ("initial", "baseline", "optimized") if m in summaries] + sorted(
-        set(summaries) - {"initial", "baseline", "optimized"})
+def format_crispness_table(summaries: dict, ordered: bool = False) -> str:
+    """Plain-text table of {method: crispness summary}: entropy and plane thickness of the raw map. Rows: initial,
+    baseline, optimized, then the rest by name; ordered=True keeps the dict's order and prints one more digit."""
+    usual = ("initial", "baseline", "optimized")
+    order = list(summaries) if ordered else [m for m in usual if m in summaries] + sorted(set(summaries) - set(usual))
+    width, digits = max([12, *(len(name) + 1 for name in order)]), 4 if ordered else 3
     lines = ["raw-map crispness (no ground truth needed; lower is crisper)",
-             f"{'method':<12} {'mean map entropy':>17} {'plane thickness [cm]':>21}"]
+             f"{'method':<{width}} {'mean map entropy':>17} {'plane thickness [cm]':>21}"]
     for name in order:
         s = summaries[name]
         entropy, thickness = s.get("mean_map_entropy"), s.get("mean_plane_thickness_m")
-        lines.append(f"{name:<12} {'-' if entropy is None else f'{entropy:.3f}':>17} "
-                     f"{'-' if thickness is None else f'{100 * thickness:.2f}':>21}")
+        lines.append(f"{name:<{width}} {'-' if entropy is None else f'{entropy:.{digits}f}':>17} "
+                     f"{'-' if thickness is None else f'{100 * thickness:.{digits - 1}f}':>21}")
     return "\n".join(lines)

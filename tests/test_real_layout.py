@@ -216,3 +216,80 @@ def test_entropy_trajectory_benchmark_follows_the_poses(tmp_path):
     assert records[1]["mean_map_entropy"] == records[0]["mean_map_entropy"]
     assert records[1]["pose_trans_mean_m"] == 0.0 < records[2]["pose_trans_mean_m"]
     assert records[2]["mean_map_entropy"] != records[0]["mean_map_entropy"]
+
+
+def _loaded_and_keyframes(root, keyframe_interval_s=0.0):
+    from configs.lio_keyframes import get_config
+    from neld_jax.data.preprocess import load_preprocessed
+
+    data = get_config("cpu").data
+    data.root, data.keyframe_interval_s = str(root), keyframe_interval_s
+    return load_preprocessed(data)
+
+
+def test_another_trajectory_is_matched_to_the_keyframes_by_time_or_by_order(tmp_path):
+    from neld_jax.data.poses import write_tum
+    from neld_jax.quality import trajectory_at_keyframes
+
+    seq = tiny_synthetic_sequence(6)
+    _write_layout(tmp_path / "rec", seq, times=np.arange(6) * 1.0)
+    loaded, keyframes = _loaded_and_keyframes(tmp_path / "rec", keyframe_interval_s=2.0)
+    np.testing.assert_array_equal(keyframes.loaded_index, [0, 2, 4])
+    other = seq.gt_poses
+    order = np.array([3, 0, 5, 1, 4, 2])  # by time, the file's order does not matter
+    write_tum(tmp_path / "other.txt", np.arange(6)[order] + 0.01, other[order])
+    np.testing.assert_allclose(trajectory_at_keyframes(tmp_path / "other.txt", loaded, keyframes), other[[0, 2, 4]])
+    write_kitti(tmp_path / "all.kitti", other)  # by order: one pose per input scan ...
+    np.testing.assert_allclose(trajectory_at_keyframes(tmp_path / "all.kitti", loaded, keyframes), other[[0, 2, 4]],
+                               atol=1e-6)
+    write_kitti(tmp_path / "keyframes.kitti", other[[0, 2, 4]])  # ... or one per keyframe
+    np.testing.assert_allclose(trajectory_at_keyframes(tmp_path / "keyframes.kitti", loaded, keyframes),
+                               other[[0, 2, 4]], atol=1e-6)
+    np.testing.assert_allclose(trajectory_at_keyframes(tmp_path / "all.kitti", loaded, keyframes, invert=True),
+                               np.linalg.inv(other[[0, 2, 4]]), atol=1e-6)
+    write_kitti(tmp_path / "short.kitti", other[:5])
+    with pytest.raises(DataError, match=r"short.kitti: 5 poses for 6 input scans \(3 keyframes\); the file has no "
+                                        r"timestamps, so it must hold one pose per input scan or per keyframe"):
+        trajectory_at_keyframes(tmp_path / "short.kitti", loaded, keyframes)
+    write_tum(tmp_path / "late.txt", np.arange(6) + 0.5, other)
+    with pytest.raises(DataError, match=r"late.txt: 3 of 3 scans have no pose within 0.05 s \(first: Scans/0+.pcd"):
+        trajectory_at_keyframes(tmp_path / "late.txt", loaded, keyframes)
+
+
+def test_judging_trajectories_finds_the_true_poses_crisper_on_every_draw():
+    from neld_jax.quality import judge_trajectories, margins_against
+
+    seq = tiny_synthetic_sequence(6)
+    eval_cfg = ml_collections.ConfigDict({"crispness_radius_m": 3.0, "crispness_queries": 800, "crispness_draws": 3})
+    verdict = judge_trajectories(seq, {"drifted": seq.poses, "true": seq.gt_poses}, eval_cfg)
+    assert verdict["crispest"] == "true"
+    margin = verdict["margins"]["drifted"]
+    assert len(margin["per_draw"]) == 3 and margin["all_draws_agree"] and margin["mean"] < 0
+    crisp = verdict["crispness"]
+    assert crisp["true"]["mean_map_entropy"] < crisp["drifted"]["mean_map_entropy"]
+    # re-referenced to another method: new minus other, per draw
+    margins = {"b": {"per_draw": [-0.1, -0.3]}, "c": {"per_draw": [0.2, 0.1]}}
+    moved = margins_against(margins, "a", "c")
+    np.testing.assert_allclose(moved["a"]["per_draw"], [-0.2, -0.1])  # c - a
+    np.testing.assert_allclose(moved["b"]["per_draw"], [-0.3, -0.4])  # c - b = (a - b) - (a - c)
+    assert moved["b"]["all_draws_agree"] and set(moved) == {"a", "b"}
+
+
+def test_crispness_cli_judges_files_against_the_input_and_refuses_a_bad_one(tmp_path):
+    seq = tiny_synthetic_sequence(4)
+    _write_layout(tmp_path / "rec", seq)
+    write_kitti(tmp_path / "true.kitti", seq.gt_poses)
+    common = ["--config=configs/lio_keyframes.py:cpu", f"--config.data.root={tmp_path / 'rec'}",
+              "--config.eval.crispness_radius_m=3.0", "--config.eval.crispness_queries=800"]
+    result = _cli("crispness.py", *common, f"--poses={tmp_path / 'true.kitti'}", f"--out={tmp_path / 'j.json'}")
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "crispest: true" in result.stdout and "against the input poses' map" in result.stdout
+    judged = json.loads((tmp_path / "j.json").read_text())
+    assert judged["crispest"] == "true" and judged["keyframes"] == 4 and set(judged["crispness"]) == {"input", "true"}
+    assert len(judged["margins"]["input"]["per_draw"]) == 5
+    write_kitti(tmp_path / "short.kitti", seq.gt_poses[:3])
+    bad = _cli("crispness.py", *common, f"--poses=other={tmp_path / 'short.kitti'}")
+    assert bad.returncode == 1
+    assert bad.stderr.strip().splitlines()[-1].startswith(f"error: {tmp_path / 'short.kitti'}: 3 poses for 4 input")
+    named_twice = _cli("crispness.py", *common, f"--poses=input={tmp_path / 'true.kitti'}")
+    assert named_twice.returncode == 1 and "the name 'input' is the sequence's own poses" in named_twice.stderr

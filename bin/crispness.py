@@ -1,0 +1,76 @@
+#!/usr/bin/env python
+"""Which trajectory gives the crispest map? Judge any poses of a sequence's scans without ground truth.
+
+    python bin/crispness.py --config=configs/lio_keyframes.py --config.data.root=/data/HKU_1_bag \\
+        --poses=sc_pgo=/data/HKU_1_bag/optimized_poses.txt,neld_ba=runs/hku1/poses_optimized.txt --out=judged.json
+
+Loads and preprocesses the sequence exactly like bin/train.py (the same keyframes, range crop and voxel grid, so
+the figures equal a run's), reads each --poses file (TUM, KITTI or Newer College CSV, sensor -> world like the
+sequence's own pose file: matched to the scans by time when both have timestamps, else by order, one pose per input
+scan or per keyframe) and measures the raw map of the keyframes under each, and under the sequence's own poses
+("input"): mean map entropy and plane thickness (docs/evaluation.md), then the crispest one's margin to each other
+over eval.crispness_draws draws of the query points, "crisper on every draw" or "a tie". Another back-end's answer
+(a loop-closing pose graph, HBA, a NeLD-BA run on another machine) is compared with the run's own this way.
+"""
+
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from absl import flags  # noqa: E402
+
+from neld_jax.cli import main_with_config  # noqa: E402
+
+POSES = flags.DEFINE_list("poses", [], "Trajectories to judge, NAME=PATH or PATH (named by its file name), "
+                          "comma-separated; the sequence's own poses are always judged too, as 'input'.")
+OUT = flags.DEFINE_string("out", "", "JSON file with every figure (none if empty).")
+
+
+def named_paths(items: list[str]) -> dict[str, str]:
+    """{name: path} of --poses items NAME=PATH or PATH; a repeated name or the reserved 'input' is an error."""
+    from neld_jax.errors import ConfigError
+
+    named = {}
+    for item in items:
+        stem = os.path.splitext(os.path.basename(item))[0]
+        name, _, path = item.partition("=") if "=" in item else (stem, "", item)
+        if not name or not path:
+            raise ConfigError(f"--poses item {item!r}: expected NAME=PATH or PATH")
+        if name in named or name == "input":
+            taken = "given twice" if name in named else "the sequence's own poses"
+            raise ConfigError(f"--poses: the name {name!r} is {taken}; name each file with NAME=PATH")
+        named[name] = path
+    return named
+
+
+def job(config):
+    from neld_jax import quality
+    from neld_jax.data.preprocess import load_preprocessed
+    from neld_jax.errors import ConfigError
+    from neld_jax.export import write_json
+
+    paths = named_paths(POSES.value)
+    if not paths:
+        raise ConfigError("--poses: give at least one trajectory to judge against the sequence's own poses")
+    loaded, keyframes = load_preprocessed(config.data)
+    methods = {"input": keyframes.poses}
+    for name, path in paths.items():
+        methods[name] = quality.trajectory_at_keyframes(path, loaded, keyframes,
+                                                        tol=float(config.data.timestamp_tol_s),
+                                                        invert=bool(config.data.get("invert_poses", False)))
+    verdict = quality.judge_trajectories(keyframes, methods, config.eval)
+    print(f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans ({config.data.root})")
+    print(quality.format_crispness_table(verdict["crispness"], ordered=True))
+    print(f"crispest: {verdict['crispest']}")
+    for other, margin in verdict["margins"].items():
+        print(quality.describe_margin(other, margin, against=verdict["crispest"]))
+    if OUT.value:
+        write_json(OUT.value, {"root": str(config.data.root), "input_scans": loaded.num_scans,
+                               "keyframes": keyframes.num_scans,
+                               "trajectories": {"input": "the sequence's own poses", **paths}, **verdict}, merge=False)
+        print(f"written to {OUT.value}")
+
+
+if __name__ == "__main__":
+    main_with_config(job)

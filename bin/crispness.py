@@ -28,8 +28,9 @@ OUT = flags.DEFINE_string("out", "", "JSON file with every figure (none if empty
 
 
 def named_paths(items: list[str]) -> dict[str, str]:
-    """{name: path} of --poses items NAME=PATH or PATH; a repeated name or the reserved 'input' is an error."""
-    from neld_jax.errors import ConfigError
+    """{name: path} of --poses items NAME=PATH or PATH; a repeated name, the reserved 'input' or a missing file
+    is an error (before the scans are read)."""
+    from neld_jax.errors import ConfigError, DataError
 
     named = {}
     for item in items:
@@ -40,6 +41,8 @@ def named_paths(items: list[str]) -> dict[str, str]:
         if name in named or name == "input":
             taken = "given twice" if name in named else "the sequence's own poses"
             raise ConfigError(f"--poses: the name {name!r} is {taken}; name each file with NAME=PATH")
+        if not os.path.isfile(path):
+            raise DataError(f"{path}: trajectory file does not exist (--poses {name})")
         named[name] = path
     return named
 
@@ -60,7 +63,7 @@ def job(config):
                                                         tol=float(config.data.timestamp_tol_s),
                                                         invert=bool(config.data.get("invert_poses", False)))
     verdict = quality.judge_trajectories(keyframes, methods, config.eval)
-    print(f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans ({config.data.root})")
+    print(f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans ({config.data.root or config.data.format})")
     print(quality.format_crispness_table(verdict["crispness"], ordered=True))
     print(f"crispest: {verdict['crispest']}")
     for other, margin in verdict["margins"].items():

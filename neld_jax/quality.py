@@ -14,7 +14,6 @@ import numpy as np
 from neld_jax import crispness, metrics, plots, report
 from neld_jax.data.sequence import match_by_timestamp
 from neld_jax.errors import DataError
-from neld_jax.evaluate import read_trajectory
 from neld_jax.export import read_json, write_json
 from neld_jax.geometry import invert_poses, register_scans
 
@@ -100,6 +99,8 @@ def trajectory_at_keyframes(path, loaded, keyframes, tol: float = 0.05, invert: 
     input scans `loaded`: by time when the file and the scans have timestamps (every keyframe needs a pose within
     `tol` s), else by order, one pose per input scan or one per keyframe. Another back-end's answer for the same
     scans is judged this way (bin/crispness.py); a file that fits neither is one DataError naming it."""
+    from neld_jax.evaluate import read_trajectory  # it imports open3d; run.train_keyframes' imports must not
+
     stamps, poses = read_trajectory(path)
     poses = invert_poses(poses) if invert else poses
     index = keyframes.loaded_index

@@ -293,3 +293,5 @@ def test_crispness_cli_judges_files_against_the_input_and_refuses_a_bad_one(tmp_
     assert bad.stderr.strip().splitlines()[-1].startswith(f"error: {tmp_path / 'short.kitti'}: 3 poses for 4 input")
     named_twice = _cli("crispness.py", *common, f"--poses=input={tmp_path / 'true.kitti'}")
     assert named_twice.returncode == 1 and "the name 'input' is the sequence's own poses" in named_twice.stderr
+    missing = _cli("crispness.py", *common, f"--poses=other={tmp_path / 'none.txt'}")
+    assert missing.returncode == 1 and "none.txt: trajectory file does not exist (--poses other)" in missing.stderr

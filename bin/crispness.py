@@ -1,16 +1,17 @@
 #!/usr/bin/env python
 """Which trajectory gives the crispest map? Judge any poses of a sequence's scans without ground truth.
 
-    python bin/crispness.py --config=configs/lio_keyframes.py --config.data.root=/data/HKU_1_bag \\
-        --poses=sc_pgo=/data/HKU_1_bag/optimized_poses.txt,neld_ba=runs/hku1/poses_optimized.txt --out=judged.json
+    python bin/crispness.py --config=configs/lio_keyframes.py:cpu --config.data.root=/data/HKU_1_bag \\
+        --poses=sc_pgo=/data/HKU_1_bag/optimized_poses.txt,neld_ba=runs/hku1 --out=judged.json
 
-Loads and preprocesses the sequence exactly like bin/train.py (the same keyframes, range crop and voxel grid, so
-the figures equal a run's), reads each --poses file (TUM, KITTI or Newer College CSV, sensor -> world like the
-sequence's own pose file: matched to the scans by time when both have timestamps, else by order, one pose per input
-scan or per keyframe) and measures the raw map of the keyframes under each, and under the sequence's own poses
-("input"): mean map entropy and plane thickness (docs/evaluation.md), then the crispest one's margin to each other
-over eval.crispness_draws draws of the query points, "crisper on every draw" or "a tie". Another back-end's answer
-(a loop-closing pose graph, HBA, a NeLD-BA run on another machine) is compared with the run's own this way.
+Loads and preprocesses the sequence exactly like bin/train.py with the same config string (the same keyframes,
+range crop and voxel grid, so the figures equal the run's), reads each --poses file (TUM, KITTI or Newer College
+CSV, sensor -> world like the sequence's own pose file; a run's output folder stands for its poses_optimized.txt),
+matches it to the keyframes (by time when the file and the scans have timestamps, else by order: one pose per
+input scan or per keyframe) and measures the raw map of the keyframes under each and under the sequence's own
+poses ("input"): mean map entropy and plane thickness (docs/evaluation.md), then the crispest one's margin to each
+other over eval.crispness_draws draws of the query points, "crisper on every draw" or "a tie". Another back-end's
+answer (a loop-closing pose graph, HBA, a NeLD-BA run made elsewhere) is compared with a run's this way.
 """
 
 import os
@@ -22,8 +23,9 @@ from absl import flags  # noqa: E402
 
 from neld_jax.cli import main_with_config  # noqa: E402
 
-POSES = flags.DEFINE_list("poses", [], "Trajectories to judge, NAME=PATH or PATH (named by its file name), "
-                          "comma-separated; the sequence's own poses are always judged too, as 'input'.")
+POSES = flags.DEFINE_list("poses", [], "Trajectories to judge, NAME=PATH or PATH (named by its file name; a run's "
+                          "output folder stands for its poses_optimized.txt), comma-separated; the sequence's own "
+                          "poses are always judged too, as 'input'.")
 OUT = flags.DEFINE_string("out", "", "JSON file with every figure (none if empty).")
 
 
@@ -41,6 +43,8 @@ def named_paths(items: list[str]) -> dict[str, str]:
         if name in named or name == "input":
             taken = "given twice" if name in named else "the sequence's own poses"
             raise ConfigError(f"--poses: the name {name!r} is {taken}; name each file with NAME=PATH")
+        if os.path.isdir(path):  # a run's output folder: its answer
+            path = os.path.join(path, "poses_optimized.txt")
         if not os.path.isfile(path):
             raise DataError(f"{path}: trajectory file does not exist (--poses {name})")
         named[name] = path
@@ -63,7 +67,8 @@ def job(config):
                                                         tol=float(config.data.timestamp_tol_s),
                                                         invert=bool(config.data.get("invert_poses", False)))
     verdict = quality.judge_trajectories(keyframes, methods, config.eval)
-    print(f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans ({config.data.root or config.data.format})")
+    source = config.data.root or config.data.format
+    print(f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans ({source})")
     print(quality.format_crispness_table(verdict["crispness"], ordered=True))
     print(f"crispest: {verdict['crispest']}")
     for other, margin in verdict["margins"].items():

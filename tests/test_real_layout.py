@@ -276,16 +276,25 @@ def test_judging_trajectories_finds_the_true_poses_crisper_on_every_draw():
 
 
 def test_crispness_cli_judges_files_against_the_input_and_refuses_a_bad_one(tmp_path):
+    from neld_jax.data.poses import write_tum
+
     seq = tiny_synthetic_sequence(4)
     _write_layout(tmp_path / "rec", seq)
     write_kitti(tmp_path / "true.kitti", seq.gt_poses)
     common = ["--config=configs/lio_keyframes.py:cpu", f"--config.data.root={tmp_path / 'rec'}",
               "--config.eval.crispness_radius_m=3.0", "--config.eval.crispness_queries=800"]
-    result = _cli("crispness.py", *common, f"--poses={tmp_path / 'true.kitti'}", f"--out={tmp_path / 'j.json'}")
+    run = tmp_path / "run"  # a run's output folder stands for its answer, poses_optimized.txt
+    run.mkdir()
+    write_tum(run / "poses_optimized.txt", seq.timestamps, seq.poses)
+    result = _cli("crispness.py", *common, f"--poses={tmp_path / 'true.kitti'},run={run}",
+                  f"--out={tmp_path / 'j.json'}")
     assert result.returncode == 0, result.stderr[-2000:]
     assert "crispest: true" in result.stdout and "against the input poses' map" in result.stdout
     judged = json.loads((tmp_path / "j.json").read_text())
-    assert judged["crispest"] == "true" and judged["keyframes"] == 4 and set(judged["crispness"]) == {"input", "true"}
+    assert judged["crispest"] == "true" and judged["keyframes"] == 4
+    assert set(judged["crispness"]) == {"input", "true", "run"}  # the run's answer here: the input's own poses
+    assert judged["crispness"]["run"]["mean_map_entropy"] == pytest.approx(
+        judged["crispness"]["input"]["mean_map_entropy"], abs=1e-6)
     assert len(judged["margins"]["input"]["per_draw"]) == 5
     write_kitti(tmp_path / "short.kitti", seq.gt_poses[:3])
     bad = _cli("crispness.py", *common, f"--poses=other={tmp_path / 'short.kitti'}")

@@ -69,7 +69,7 @@ def job(config):
     verdict = quality.judge_trajectories(keyframes, methods, config.eval)
     source = config.data.root or config.data.format
     print(f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans ({source})")
-    print(quality.format_crispness_table(verdict["crispness"], ordered=True))
+    print(quality.format_crispness_table(verdict["crispness"], ordered=True, digits=4))
     print(f"crispest: {verdict['crispest']}")
     for other, margin in verdict["margins"].items():
         print(quality.describe_margin(other, margin, against=verdict["crispest"]))

@@ -251,12 +251,12 @@ def warn_if_not_crispest(summaries: dict, refused: dict | None = None, margins: 
     return best
 
 
-def format_crispness_table(summaries: dict, ordered: bool = False) -> str:
-    """Plain-text table of {method: crispness summary}: entropy and plane thickness of the raw map. Rows: initial,
-    baseline, optimized, then the rest by name; ordered=True keeps the dict's order and prints one more digit."""
+def format_crispness_table(summaries: dict, ordered: bool = False, digits: int = 3) -> str:
+    """Plain-text table of {method: crispness summary}: entropy (`digits` decimals) and plane thickness in cm (one
+    fewer) of the raw map. Rows: initial, baseline, optimized, then the rest by name; ordered=True: the dict's order."""
     usual = ("initial", "baseline", "optimized")
     order = list(summaries) if ordered else [m for m in usual if m in summaries] + sorted(set(summaries) - set(usual))
-    width, digits = max([12, *(len(name) + 1 for name in order)]), 4 if ordered else 3
+    width = max([12, *(len(name) + 1 for name in order)])
     lines = ["raw-map crispness (no ground truth needed; lower is crisper)",
              f"{'method':<{width}} {'mean map entropy':>17} {'plane thickness [cm]':>21}"]
     for name in order:

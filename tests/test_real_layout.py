@@ -290,6 +290,9 @@ def test_crispness_cli_judges_files_against_the_input_and_refuses_a_bad_one(tmp_
                   f"--out={tmp_path / 'j.json'}")
     assert result.returncode == 0, result.stderr[-2000:]
     assert "crispest: true" in result.stdout and "against the input poses' map" in result.stdout
+    rows = [line.split() for line in result.stdout.splitlines() if line.split()[:1] in (["input"], ["true"], ["run"])]
+    assert [row[0] for row in rows] == ["input", "true", "run"]  # in the order given, four decimals of entropy
+    assert all(len(row[1].split(".")[1]) == 4 and len(row[2].split(".")[1]) == 3 for row in rows)
     judged = json.loads((tmp_path / "j.json").read_text())
     assert judged["crispest"] == "true" and judged["keyframes"] == 4
     assert set(judged["crispness"]) == {"input", "true", "run"}  # the run's answer here: the input's own poses

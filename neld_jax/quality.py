@@ -1,5 +1,6 @@
 """Quality of a run without ground truth (effects: files in output_dir): map crispness per method, the per-scan
-report (scans_report.csv / .png) and the top view of the raw map before and after (map_topdown.png).
+report (scans_report.csv / .png) and the top view of the raw map before and after (map_topdown.png); and the same
+crispness verdict for any trajectory files of a sequence's scans (bin/crispness.py).
 
 The maths lives in neld_jax.crispness and neld_jax.report; this module feeds them a run's arrays.
 """

@@ -234,3 +234,57 @@ def test_ate_change_rotation_null_widens_the_chance_level_for_smooth_signals():
     terms = ate_change.ate_change_terms(baseline, back, gt, initial)
     assert terms["toward_input_correlation"] > 0.5 and terms["toward_input_rotation_p"] < 0.05
     assert "toward_input_correlation" not in ate_change.ate_change_terms(baseline, back, gt)
+
+
+def _real_targets_module():
+    spec = importlib.util.spec_from_file_location("benchmark_real_targets", ROOT / "benchmarks" / "real_targets.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _margin(*per_draw):
+    return {"per_draw": list(per_draw), "mean": sum(per_draw) / len(per_draw),
+            "all_draws_agree": all(d < 0 for d in per_draw) or all(d > 0 for d in per_draw)}
+
+
+def test_real_targets_read_issue_11s_targets_off_an_entry(tmp_path):
+    # benchmarks/real_targets.py: each target of a real_data.py entry passes on good figures and fails when one
+    # figure crosses its line; missing figures give None, not a verdict.
+    targets = _real_targets_module()
+    poses = tmp_path / "poses_optimized.txt"
+    poses.write_text("# timestamp tx ty tz qx qy qz qw\n" + "1.0 0 0 0 0 0 0 1\n" * 3 + "\n")
+    assert targets.pose_lines(str(poses)) == 3
+    entry = {"sequence": "seq", "recorded": {"crisper": {
+        "scans": 3, "pose_lines": 3, "wall_s": 550.0,
+        "crispness": {"initial": {"entropy": -3.40}, "baseline": {"entropy": -3.50}, "optimized": {"entropy": -3.51}},
+        "crispness_margin": {"baseline": _margin(-0.002, -0.001, -0.003)}}},
+        "drift": {"ate_vs_odometry_m": {"initial": 1.0, "baseline": 0.0365, "optimized": 0.0364},
+                  "optimized_apart_from_recorded_m": 0.0022,
+                  "crispness": {"initial": {"entropy": -2.2}, "optimized": {"entropy": -3.51}},
+                  "crispness_margin": {"baseline": _margin(-0.002, 0.001, -0.003)}}}
+    got = targets.target_verdicts(entry, "crisper", minutes_limit=10)
+    assert got == {"recorded": {"within_minutes": True, "every_scan_a_pose": True, "crisper_than_odometry": True,
+                                "crisper_than_baseline": "every draw"},
+                   "drift": {"within_2cm_of_recorded_answer": True, "as_crisp_as_odometry": True,
+                             "ate_at_or_below_baseline": True, "crisper_than_baseline": "a tie"}}
+    entry["recorded"]["crisper"].update(wall_s=601.0, pose_lines=2,
+                                        crispness_margin={"baseline": _margin(0.001, 0.002, 0.001)})
+    entry["recorded"]["crisper"]["crispness"]["optimized"]["entropy"] = -3.40  # equal is not crisper
+    entry["drift"].update(optimized_apart_from_recorded_m=0.021,
+                          ate_vs_odometry_m={"initial": 1.0, "baseline": 0.0365, "optimized": 0.0366})
+    entry["drift"]["crispness"]["optimized"]["entropy"] = -3.39  # blurrier than the recorded odometry's -3.40
+    got = targets.target_verdicts(entry, "crisper", minutes_limit=10)
+    assert got["recorded"] == {"within_minutes": False, "every_scan_a_pose": False, "crisper_than_odometry": False,
+                               "crisper_than_baseline": "blurrier"}
+    assert got["drift"]["within_2cm_of_recorded_answer"] is False
+    assert got["drift"]["as_crisp_as_odometry"] is False
+    assert got["drift"]["ate_at_or_below_baseline"] is False
+    del entry["drift"]["optimized_apart_from_recorded_m"], entry["drift"]["crispness_margin"]
+    got = targets.target_verdicts(entry, "crisper")
+    assert got["drift"]["within_2cm_of_recorded_answer"] is None and got["drift"]["crisper_than_baseline"] is None
+    assert targets.target_verdicts(entry, "input").keys() == {"drift"}  # no recorded run from that start
+    entry["targets"] = got
+    table = targets.format_targets([entry, {"sequence": "big", "error": "DataError: too wide"}])
+    assert "seq (recorded): within_minutes NO, every_scan_a_pose NO" in table
+    assert "big: failed: DataError: too wide" in table.splitlines()[-1]

@@ -1,0 +1,75 @@
+"""Issue 11's targets read off one sequence's entry of benchmarks/real_data.py (pure functions, no flags, so tests
+import them): the recorded run within the time limit, one pose line per input scan, its map crisper than the
+odometry's and than the classical baseline's; from injected drift, NeLD-BA within 2 cm of its answer from the
+recorded odometry, its map at least as crisp as the recorded odometry's, its ATE against the odometry at or below
+the baseline's. A margin's verdict is the run's own (run.crispness_margin over eval.crispness_draws query draws):
+"every draw" (crisper on each), "a tie" (the draws disagree in sign) or "blurrier" (blurrier on each).
+"""
+
+from __future__ import annotations
+
+
+def pose_lines(path: str) -> int:
+    """Pose lines (not comments, not blank) of a TUM file."""
+    with open(path) as f:
+        return sum(1 for line in f if line.strip() and not line.lstrip().startswith("#"))
+
+
+def _margin_verdict(margin: dict | None):
+    """run.crispness_margin's entry for one other method -> "every draw" (NeLD-BA crisper on each query draw),
+    "a tie" (the draws disagree in sign), "blurrier" (blurrier on each), or None without draws."""
+    if not margin:
+        return None
+    if not margin["all_draws_agree"]:
+        return "a tie"
+    return "every draw" if margin["mean"] < 0 else "blurrier"
+
+
+def target_verdicts(entry: dict, start: str, minutes_limit: float = 10.0) -> dict:
+    """Issue 11's targets for one sequence's entry of benchmarks/real_data.py: {"recorded": {...}} for the
+    recorded run from `start` (train.init_poses; the drift run's own), and {"drift": {...}} when there is a drift
+    run. Each target is True / False, a margin's verdict ("every draw", "a tie", "blurrier"), or None where the
+    entry lacks what it needs."""
+    def entropy(crispness: dict, method: str):
+        return crispness.get(method, {}).get("entropy")
+
+    def below(a, b, strictly=False):  # None when either figure is missing
+        return None if a is None or b is None else (a < b if strictly else a <= b)
+
+    recorded = entry["recorded"].get(start)
+    out = {}
+    if recorded is not None:
+        crisp = recorded["crispness"]
+        out["recorded"] = {
+            "within_minutes": recorded["wall_s"] <= 60 * minutes_limit,
+            "every_scan_a_pose": (None if recorded.get("pose_lines") is None
+                                  else recorded["pose_lines"] == recorded["scans"]),
+            "crisper_than_odometry": below(entropy(crisp, "optimized"), entropy(crisp, "initial"), strictly=True),
+            "crisper_than_baseline": _margin_verdict((recorded.get("crispness_margin") or {}).get("baseline")),
+        }
+    drift = entry.get("drift")
+    if drift is not None:
+        apart = drift.get("optimized_apart_from_recorded_m")
+        ate = drift["ate_vs_odometry_m"]
+        out["drift"] = {
+            "within_2cm_of_recorded_answer": below(apart, 0.02),
+            "as_crisp_as_odometry": below(entropy(drift["crispness"], "optimized"),
+                                          None if recorded is None else entropy(recorded["crispness"], "initial")),
+            "ate_at_or_below_baseline": below(ate.get("optimized"), ate.get("baseline")),
+            "crisper_than_baseline": _margin_verdict((drift.get("crispness_margin") or {}).get("baseline")),
+        }
+    return out
+
+
+def format_targets(results: list[dict]) -> str:
+    """One line per sequence and target group: the sequence, then each target's verdict (or the error)."""
+    lines = []
+    for entry in results:
+        if "error" in entry:
+            lines.append(f"{entry['sequence']}: failed: {entry['error']}")
+            continue
+        for group, verdicts in entry.get("targets", {}).items():
+            cells = ", ".join(f"{name} {'yes' if v is True else 'NO' if v is False else v}"
+                              for name, v in verdicts.items())
+            lines.append(f"{entry['sequence']} ({group}): {cells}")
+    return "\n".join(lines)

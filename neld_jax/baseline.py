@@ -298,8 +298,17 @@ def correction_m(guess: np.ndarray, transform: np.ndarray) -> float:
     return float(np.linalg.norm((np.linalg.inv(guess) @ transform)[:3, 3]))
 
 
+def _progress_bar(what: str, progress: bool, iterable=None, total: int | None = None):
+    """A tqdm bar over the scans or pairs of one step of the baseline (minutes on real recordings), off unless
+    `progress`."""
+    from tqdm.auto import tqdm  # an effect at the edge, as train.fit's bar
+
+    return tqdm(iterable, total=total, desc=f"baseline: {what}", unit=" registrations", disable=not progress,
+                dynamic_ncols=True)
+
+
 def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSettings,
-                      deadline: float | None = None) -> tuple[np.ndarray | None, np.ndarray]:
+                      deadline: float | None = None, progress: bool = False) -> tuple[np.ndarray | None, np.ndarray]:
     """Register each scan to the local map of the `settings.window` scans before it.
 
     clouds: S Open3D clouds (sensor frame, with normals); init_poses: [S, 4, 4] sensor -> world.
@@ -309,12 +318,13 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
     settings.max_link_correction_m, keeps the odometry's increment; one warning per reason lists those scans.
     poses is None when the chain was given up (settings.chain_min_median_overlap, or the time.perf_counter() value
     `deadline` passed before its last link; one warning says which); fitness then holds the links registered
-    before, NaN after.
+    before, NaN after. progress: a progress bar over the links.
     """
     poses = [np.asarray(init_poses[0], np.float64)]
     fitness = np.ones(len(clouds))
     kept = {"overlap": [], "slide": []}  # links that kept the odometry's increment, by reason: one warning each
-    for s in range(1, len(clouds)):
+    links = _progress_bar("scan-to-map chain", progress, range(1, len(clouds)))
+    for s in links:
         if s - 1 >= max(settings.chain_check_links, 1) and np.median(fitness[1:s]) < settings.chain_min_median_overlap:
             logger.warning("baseline: the first %d chain links overlap their local maps by %.2f%% (median; less "
                            "than chain_min_median_overlap=%.0f%%: keyframes too far apart for scan-to-map ICP): the "
@@ -347,6 +357,7 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
             kept["slide"].append(f"{s} ({moved_m:.2f} m)")
             transform = guess
         poses.append(with_up_axis_of(transform, init_poses[s]) if settings.keep_input_tilt else transform)
+    links.close()
     if kept["overlap"]:
         logger.warning("baseline: %d scan(s) overlap the map of the %d scans before them by less than "
                        "min_chain_fitness=%.0f%% and keep the odometry's increment: %s", len(kept["overlap"]),
@@ -427,11 +438,12 @@ class LoopClosures(NamedTuple):
     global_kept: int
 
 
-def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineSettings
+def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineSettings, progress: bool = False
                       ) -> tuple[np.ndarray, LoopClosures]:
     """The pose graph of the chain plus loop closures, optimised (scan 0 fixed).
 
-    Returns (poses [S, 4, 4] with poses[0] = chain_poses[0], what the loop closures did)."""
+    Returns (poses [S, 4, 4] with poses[0] = chain_poses[0], what the loop closures did). progress: a progress bar
+    over the loop-closure candidates."""
     graph = _reg.PoseGraph()
     for pose in chain_poses:
         graph.nodes.append(_reg.PoseGraphNode(pose))
@@ -453,7 +465,7 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
     kept = kept_global = 0
     drifted, closed = [], []  # loop pairs for the global registration (below); those ICP closed
     loop_icp = dataclasses.replace(settings, icp_distances_m=settings.loop_icp_distances_m)
-    for i, j in loop_pairs:
+    for i, j in _progress_bar("loop closures", progress, loop_pairs):
         guess = np.linalg.inv(chain_poses[j]) @ chain_poses[i]
         transform, result = multiscale_icp(clouds[i], clouds[j], guess, loop_icp)
         moved_m = correction_m(guess, transform)
@@ -535,19 +547,22 @@ class Refinement:
 
 def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettings,
                        on_round: Callable[[int, np.ndarray], None] | None = None,
-                       deadline: float | None = None) -> tuple[np.ndarray, Refinement]:
+                       deadline: float | None = None, progress: bool = False) -> tuple[np.ndarray, Refinement]:
     """`settings.map_rounds` rounds of multi-view refinement (module docstring, step 4); scan 0 stays.
 
     clouds: S Open3D clouds (sensor frame); poses: [S, 4, 4] sensor -> world. on_round(r, poses [S, 4, 4]), when
     given, sees a copy of the poses after each round r = 1 .. map_rounds (benchmarks/baseline_rounds.py).
     deadline: a time.perf_counter() value; no scan is registered after it (each registration moves one scan against
     the others' map, so the poses between two registrations are an answer too; neld_jax.run's `baseline_deadline`).
-    Returns (poses [S, 4, 4], Refinement)."""
+    progress: a progress bar over the scans of all rounds. Returns (poses [S, 4, 4], Refinement)."""
     poses = np.array(poses, dtype=np.float64)
     map_icp = dataclasses.replace(settings, icp_distances_m=settings.map_icp_distances_m)
     tried = rejected = 0
+    bar = _progress_bar(f"{settings.map_rounds} round(s) of multi-view refinement", progress,
+                        total=settings.map_rounds * len(clouds))
 
     def report(rounds_done: float, stopped: bool) -> tuple[np.ndarray, Refinement]:
+        bar.close()
         return poses, Refinement(round(rounds_done, 3), rejected / max(tried, 1), stopped)
 
     for round_index in range(1, settings.map_rounds + 1):
@@ -565,6 +580,7 @@ def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettin
                 if deadline is not None and time.perf_counter() > deadline:
                     return report(round_index - 1 + visited / len(clouds), True)
                 visited += 1
+                bar.update()
                 if s == 0:  # the gauge
                     continue
                 scan_in_world = transform_points(np.asarray(clouds[s].points), poses[s])
@@ -594,7 +610,7 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
                       settings: BaselineSettings = BaselineSettings(),
                       refine_from: Callable[..., np.ndarray] | None = None,
                       on_round: Callable[[int, np.ndarray], None] | None = None,
-                      deadline: float | None = None, report: dict | None = None) -> np.ndarray:
+                      deadline: float | None = None, report: dict | None = None, progress: bool = False) -> np.ndarray:
     """The baseline: scan-to-map chain, the loop-closed pose graph, then the multi-view refinement (module
     docstring).
 
@@ -609,7 +625,8 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
     runs to the end (2-31 s after Riverside02's 158-321 s chains). report, when given, receives
     {"chain_given_up" (scan_to_map_chain's rule or the deadline; then also "refined_from": "input", and refine_from
     is not called), "map_rounds_done": rounds completed (a fraction when the deadline stopped them),
-    "stopped_at_deadline"}.
+    "stopped_at_deadline"}. progress: progress bars over each step's registrations (the chain, the loop closures,
+    the refinement's rounds).
     Returns refined poses [S, 4, 4] with pose 0 equal to init_poses[0] and orthonormal rotations.
     """
     init_poses = np.asarray(init_poses, dtype=np.float64)
@@ -622,13 +639,13 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
     clouds = prepare_clouds(scans, settings)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         t0 = time.perf_counter()
-        chain, fitness = scan_to_map_chain(clouds, init_poses, settings, deadline)
+        chain, fitness = scan_to_map_chain(clouds, init_poses, settings, deadline, progress)
         t1 = time.perf_counter()
         if chain is None:  # given up (scan_to_map_chain warned): no graph, the refinement starts from the input
             optimized = init_poses
             logger.info("baseline: scan-to-map chain given up after %.1f s", t1 - t0)
         else:
-            optimized, loops = loop_closed_graph(clouds, chain, settings)
+            optimized, loops = loop_closed_graph(clouds, chain, settings, progress)
             logger.info("baseline: scan-to-map chain of %d scans in %.1f s (median overlap %.0f%%); pose graph with %d "
                         "of %d loop-closure candidates (overlap >= %.0f%%), %d of them from %d global registrations, "
                         "in %.1f s", len(scans), t1 - t0, 100 * np.median(fitness[1:]), loops.kept, loops.tried,
@@ -646,7 +663,7 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
                 optimized = _orthonormal(refine_from(optimized, chain if settings.keep_input_tilt else None))
             if on_round is not None:
                 on_round(0, optimized.copy())
-            optimized, refinement = refine_against_map(clouds, optimized, settings, on_round, deadline)
+            optimized, refinement = refine_against_map(clouds, optimized, settings, on_round, deadline, progress)
             logger.info("baseline: %g round(s) of multi-view refinement in %.1f s (%.0f%% of the registrations "
                         "rejected by the gates)", refinement.rounds_done, time.perf_counter() - t2,
                         100 * refinement.rejected)
@@ -680,7 +697,7 @@ def _orthonormal(poses: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 
-def run_baseline(config: ml_collections.ConfigDict) -> dict:
+def run_baseline(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     """Run the baseline on `config.data` and write its outputs into `config.output_dir`.
 
     config: the ml_collections ConfigDict of bin/train.py (uses config.data, config.output_dir, config.baseline
@@ -689,6 +706,7 @@ def run_baseline(config: ml_collections.ConfigDict) -> dict:
     map_raw_baseline.ply and the raw-map crispness of "initial" and "baseline" into metrics.json; also
     poses_initial.txt/.kitti, map_raw_initial.ply, poses_gt.txt and map_gt.ply where they do not exist yet, so
     that the folder can be evaluated on its own.
+    progress: progress bars over the registrations (register_sequence).
     Returns {"seconds", "crispness": {method: summary}, "evaluation": evaluate_run's result or None}.
     """
     from neld_jax.run import refinement_start  # the run's own rule, so that both give the same baseline
@@ -698,7 +716,8 @@ def run_baseline(config: ml_collections.ConfigDict) -> dict:
     settings = BaselineSettings.from_config(config.get("baseline"))
     decided, refined = {}, {}
     poses = register_sequence(sequence.scans, sequence.poses, settings,
-                              refine_from=refinement_start(config, sequence, decided), report=refined)
+                              refine_from=refinement_start(config, sequence, decided), report=refined,
+                              progress=progress)
     seconds = time.perf_counter() - t0
     poses_all = propagate_corrections(loaded.poses, sequence.loaded_index, poses, loaded.timestamps)
 

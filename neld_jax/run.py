@@ -110,7 +110,8 @@ class Start:
 START_CHOICES = ("input", "baseline", "crisper")
 
 
-def starting_poses(config: ml_collections.ConfigDict, seq, deadline: float | None = None) -> Start:
+def starting_poses(config: ml_collections.ConfigDict, seq, deadline: float | None = None,
+                   progress: bool = False) -> Start:
     """The keyframe poses training starts from (train.init_poses).
 
     "input": the loaded poses (odometry). "baseline": the classical baseline's (Open3D scan-to-map ICP +
@@ -120,7 +121,8 @@ def starting_poses(config: ml_collections.ConfigDict, seq, deadline: float | Non
     gives the crisper raw map (lower mean map entropy, config.eval's crispness settings). The field refines
     within a few cm and cannot undo a blurrier start (docs/method.md, "Which start"); without ground truth the
     map's crispness is the judge that is at hand. deadline: a time.perf_counter() value after which the baseline's
-    multi-view refinement registers no more scans (`baseline_deadline`; None: it runs all its rounds)."""
+    multi-view refinement registers no more scans (`baseline_deadline`; None: it runs all its rounds). progress: the
+    baseline's progress bars."""
     how = str(config.train.init_poses).lower()
     if how not in START_CHOICES:
         raise ConfigError(f"train.init_poses: unknown value {config.train.init_poses!r} ({' | '.join(START_CHOICES)})")
@@ -132,7 +134,7 @@ def starting_poses(config: ml_collections.ConfigDict, seq, deadline: float | Non
     decided, refined = {}, {}
     settings = BaselineSettings.from_config(config.get("baseline"))
     poses = register_sequence(seq.scans, seq.poses, settings, refinement_start(config, seq, decided),
-                              deadline=deadline, report=refined)
+                              deadline=deadline, report=refined, progress=progress)
     seconds = time.perf_counter() - t0
     logger.info("train.init_poses=%s: the classical baseline took %.1f s", how, seconds)
     if refined.get("stopped_at_deadline"):
@@ -526,7 +528,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     loaded, seq, norm = load_and_prepare(config)
     start = resumed_start(out_dir, chash, seq.poses)
     if start is None:
-        start = starting_poses(config, seq, deadline=baseline_deadline(config, t_start))
+        start = starting_poses(config, seq, deadline=baseline_deadline(config, t_start), progress=progress)
         save_start(out_dir, start, chash, seq.poses)
     else:
         logger.info("resuming: training starts from the %s poses the first run chose (%s; the classical baseline is "

@@ -49,6 +49,21 @@ def test_register_sequence_reduces_ate(drifted_sequence):
                                atol=1e-10)
 
 
+def test_progress_bars_follow_each_step_of_the_baseline_only_when_asked(drifted_sequence, capsys):
+    # Minutes of registrations on a real recording: bin/baseline.py and bin/train.py show a bar per step; the
+    # library's default is quiet. The refinement's bar counts every scan of every round.
+    seq = drifted_sequence
+    quiet = register_sequence(seq.scans, seq.poses, SETTINGS)
+    assert capsys.readouterr().err == ""
+    shown = register_sequence(seq.scans, seq.poses, SETTINGS, progress=True)
+    err = capsys.readouterr().err
+    np.testing.assert_allclose(shown, quiet, atol=1e-5)  # Open3D's threaded sums differ in the last digits
+    rounds = SETTINGS.map_rounds * seq.num_scans
+    assert "baseline: scan-to-map chain" in err and f"{seq.num_scans - 1}/{seq.num_scans - 1}" in err
+    assert "baseline: loop closures" in err
+    assert f"baseline: {SETTINGS.map_rounds} round(s) of multi-view refinement" in err and f"{rounds}/{rounds}" in err
+
+
 def test_the_refinement_starts_from_what_refine_from_gives(drifted_sequence):
     # refine_from gets the pose graph's poses and its answer is what the multi-view rounds refine: given the drifted
     # input back, the rounds (gated at 0.2 m a scan) leave most of its drift, where the graph's start ends near 1 mm.

@@ -66,7 +66,7 @@ def job(config):
         methods[name] = quality.trajectory_at_keyframes(path, loaded, keyframes,
                                                         tol=float(config.data.timestamp_tol_s),
                                                         invert=bool(config.data.get("invert_poses", False)))
-    verdict = quality.judge_trajectories(keyframes, methods, config.eval)
+    verdict = quality.judge_trajectories(keyframes, methods, config.eval, progress=True)
     source = config.data.root or config.data.format
     print(f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans ({source})")
     print(quality.format_crispness_table(verdict["crispness"], ordered=True, digits=4))

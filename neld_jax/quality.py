@@ -43,13 +43,13 @@ def map_crispness(seq, methods: dict[str, np.ndarray], eval_cfg) -> tuple[dict, 
 
 
 def crispness_margins(seq, methods: dict[str, np.ndarray], eval_cfg, against: str = "optimized",
-                      first_draw: dict | None = None, deadline: float | None = None) -> dict:
+                      first_draw: dict | None = None, deadline: float | None = None, progress: bool = False) -> dict:
     """How sure the crispness verdict is: the paired difference of the `against` method's mean map entropy from
     each other method's, on eval.crispness_draws draws of the query points (seeds 0, 1, ...; draw 0 is the one
     map_crispness uses). methods: {name: poses [K, 4, 4]} of the keyframes seq.scans. first_draw: map_crispness's
     summaries of these methods ({name: summary}), whose entropy is draw 0's, so only the later draws are measured.
     deadline: a time.perf_counter() value after which no draw starts (the run's clock); the margins then hold the
-    draws made, and the log says so.
+    draws made, and the log says so. progress: a progress bar over the draws.
 
     Returns {other: {"per_draw": [D], "mean", "std", "all_draws_agree"}} (negative: `against` is crisper), or {}
     with fewer than 2 draws or without the `against` method."""
@@ -60,7 +60,8 @@ def crispness_margins(seq, methods: dict[str, np.ndarray], eval_cfg, against: st
     entropy = crispness.entropy_over_query_draws(
         maps, list(range(1 if first_draw else 0, draws)),
         max_queries=int(eval_cfg.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES)),
-        radius=float(eval_cfg.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)), deadline=deadline)
+        radius=float(eval_cfg.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)), deadline=deadline,
+        progress=progress)
     made = len(next(iter(entropy.values()), [])) + (1 if first_draw else 0)
     if made < draws:
         logger.warning("crispness margins: %d of %d query draws fit the run's clock (train.max_minutes + "
@@ -117,16 +118,18 @@ def trajectory_at_keyframes(path, loaded, keyframes, tol: float = 0.05, invert: 
                     f"keyframes); the file {why}, so it must hold one pose per input scan or per keyframe, in order")
 
 
-def judge_trajectories(seq, methods: dict[str, np.ndarray], eval_cfg) -> dict:
+def judge_trajectories(seq, methods: dict[str, np.ndarray], eval_cfg, progress: bool = False) -> dict:
     """Which trajectory gives the crispest raw map of the keyframes seq.scans, and how sure that is.
 
     methods: {name: poses [K, 4, 4]} (two or more). The crispest is the lowest mean map entropy over
     eval.crispness_draws draws of the query points (draw 0's alone with fewer than 2 draws). Returns
     {"crispness": {name: summary on draw 0}, "crispest": name, "margins": {other: the crispest's entropy minus
-    other's per draw, mean, std, all_draws_agree}} (margins empty without draws)."""
+    other's per draw, mean, std, all_draws_agree}} (margins empty without draws). progress: a progress bar over
+    the draws."""
     crisp, _ = map_crispness(seq, methods, eval_cfg)
     best = crispest(crisp)
-    margins = crispness_margins(seq, methods, eval_cfg, against=best, first_draw=crisp) if best else {}
+    margins = (crispness_margins(seq, methods, eval_cfg, against=best, first_draw=crisp, progress=progress)
+               if best else {})
     over_draws = crispest_over_draws(margins, against=best)
     if over_draws not in (None, best):  # draw 0 alone picked another
         margins, best = margins_against(margins, best, over_draws), over_draws

@@ -603,7 +603,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     # How sure that verdict is: the same comparison over eval.crispness_draws draws of the query points (the
     # figures above are draw 0's)
     margins = quality.crispness_margins(seq, methods, config.eval, first_draw=crisp,
-                                        deadline=margins_deadline(config, t_start))
+                                        deadline=margins_deadline(config, t_start), progress=progress)
     for other, margin in margins.items():
         logger.info("%s", quality.describe_margin(other, margin))
 

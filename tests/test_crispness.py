@@ -55,7 +55,7 @@ def test_misregistration_makes_the_map_less_crisp():
     assert smeared.summary()["mean_plane_thickness_m"] == pytest.approx(0.025, abs=0.004)
 
 
-def test_entropy_over_query_draws_pairs_the_maps_on_each_draw():
+def test_entropy_over_query_draws_pairs_the_maps_on_each_draw(capsys):
     rng = np.random.default_rng(4)
     wall = np.c_[rng.uniform(0, 4, (3000, 2)), rng.normal(0, 0.005, 3000)]
     maps = {"aligned": np.concatenate([wall, wall + rng.normal(0, 0.005, wall.shape)]),
@@ -72,6 +72,10 @@ def test_entropy_over_query_draws_pairs_the_maps_on_each_draw():
     assert (entropy["smeared"] > entropy["aligned"]).all()
     with pytest.raises(ValueError, match="sizes differ"):
         entropy_over_query_draws({"a": wall, "b": wall[:-1]}, seeds=[0])
+    assert capsys.readouterr().err == ""  # quiet unless asked; a run asks for a bar over the draws
+    shown = entropy_over_query_draws(maps, seeds=[0, 5, 9], max_queries=400, radius=0.3, progress=True)
+    assert "crispness over query draws" in capsys.readouterr().err
+    np.testing.assert_array_equal(shown["smeared"], entropy["smeared"])
 
 
 def test_crispness_margins_compare_the_answer_with_each_method_on_every_draw():

@@ -176,9 +176,9 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     chain_deadlines = []
     real_chain = baseline.scan_to_map_chain
 
-    def chain_without_deadline(clouds, init_poses, settings, deadline=None):
+    def chain_without_deadline(clouds, init_poses, settings, deadline=None, progress=False):
         chain_deadlines.append(deadline)
-        return real_chain(clouds, init_poses, settings)
+        return real_chain(clouds, init_poses, settings, progress=progress)
 
     monkeypatch.setattr(baseline, "scan_to_map_chain", chain_without_deadline)
     verdicts = []  # the margins the run's crispest verdict is given, and the verdict

@@ -274,6 +274,8 @@ def test_real_targets_read_issue_11s_targets_off_an_entry(tmp_path):
     entry["drift"].update(optimized_apart_from_recorded_m=0.021,
                           ate_vs_odometry_m={"initial": 1.0, "baseline": 0.0365, "optimized": 0.0366})
     entry["drift"]["crispness"]["optimized"]["entropy"] = -3.39  # blurrier than the recorded odometry's -3.40
+    entry["drift"]["ate_change_vs_odometry"] = {"ate_baseline_mm": 36.44, "ate_optimized_mm": 36.45}
+    entry["drift"]["ate_vs_odometry_m"]["optimized"] = 0.0364  # rounded: the split's own figures decide
     got = targets.target_verdicts(entry, "crisper", minutes_limit=10)
     assert got["recorded"] == {"within_minutes": False, "every_scan_a_pose": False, "crisper_than_odometry": False,
                                "crisper_than_baseline": "blurrier"}

@@ -9,12 +9,6 @@ the baseline's. A margin's verdict is the run's own (run.crispness_margin over e
 from __future__ import annotations
 
 
-def pose_lines(path: str) -> int:
-    """Pose lines (not comments, not blank) of a TUM file."""
-    with open(path) as f:
-        return sum(1 for line in f if line.strip() and not line.lstrip().startswith("#"))
-
-
 def _margin_verdict(margin: dict | None):
     """run.crispness_margin's entry for one other method -> "every draw" (NeLD-BA crisper on each query draw),
     "a tie" (the draws disagree in sign), "blurrier" (blurrier on each), or None without draws."""

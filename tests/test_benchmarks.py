@@ -248,13 +248,10 @@ def _margin(*per_draw):
             "all_draws_agree": all(d < 0 for d in per_draw) or all(d > 0 for d in per_draw)}
 
 
-def test_real_targets_read_issue_11s_targets_off_an_entry(tmp_path):
+def test_real_targets_read_issue_11s_targets_off_an_entry():
     # benchmarks/real_targets.py: each target of a real_data.py entry passes on good figures and fails when one
     # figure crosses its line; missing figures give None, not a verdict.
     targets = _real_targets_module()
-    poses = tmp_path / "poses_optimized.txt"
-    poses.write_text("# timestamp tx ty tz qx qy qz qw\n" + "1.0 0 0 0 0 0 0 1\n" * 3 + "\n")
-    assert targets.pose_lines(str(poses)) == 3
     entry = {"sequence": "seq", "recorded": {"crisper": {
         "scans": 3, "pose_lines": 3, "wall_s": 550.0,
         "crispness": {"initial": {"entropy": -3.40}, "baseline": {"entropy": -3.50}, "optimized": {"entropy": -3.51}},

@@ -3,7 +3,7 @@
 
     python benchmarks/accuracy.py                         # easy and hard drift, the demo (cpu) budget
     python benchmarks/accuracy.py --sequences=hard --budget=paper --output_root=runs/acc
-    python benchmarks/accuracy.py --sequences=hard --init_poses=baseline   # NeLD-BA refines the baseline's poses
+    python benchmarks/accuracy.py --sequences=hard --start=baseline   # NeLD-BA refines the baseline's poses
 
 For each sequence: NeLD-BA (neld_jax.run) and the classical baseline (neld_jax.baseline) on the same
 preprocessed scans, evaluated together; prints one JSON line per sequence with initial / baseline / optimised
@@ -13,13 +13,13 @@ ATE and map metrics and the wall time of each method.
 import json
 import logging
 import os
-import sys
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from absl import app, flags
 
-from absl import app, flags  # noqa: E402
-from neld_jax.hugepages import reexec_with_huge_page_malloc  # noqa: E402
+from neld_jax.hugepages import reexec_with_huge_page_malloc
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 # name -> synthetic overrides. "easy" is the demo's sequence; "hard" doubles the odometry drift on another scene.
 SEQUENCES = {
@@ -32,8 +32,8 @@ BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper)
 OUTPUT_ROOT = flags.DEFINE_string("output_root", "outputs/accuracy", "One output_dir per sequence below this.")
 STEPS = flags.DEFINE_integer("steps", 0, "Override train.steps (0: the budget's).")
 OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. train.pose_lr_rot_init=1e-4.")
-INIT_POSES = flags.DEFINE_enum("init_poses", "input", ["input", "baseline"],
-                               "train.init_poses: start NeLD-BA from the drifted odometry or from the baseline's poses.")
+START = flags.DEFINE_enum("start", "input", ["input", "baseline", "crisper"],
+                          "start.poses: start NeLD-BA from the drifted odometry, the baseline's poses or the crisper.")
 
 
 def _summary(evaluation: dict, method: str) -> dict:
@@ -52,17 +52,16 @@ def _summary(evaluation: dict, method: str) -> dict:
 def main(argv):
     del argv
     logging.basicConfig(level=logging.WARNING)
-    from configs.demo import get_config
-    from neld_jax.baseline import run_baseline
-    from neld_jax.config import apply_overrides
+    from neld_jax.commands.baseline import run_baseline
+    from neld_jax.config import apply_overrides, from_file
     from neld_jax.evaluate import evaluate_run
     from neld_jax.run import run
 
     for name in SEQ.value:
-        config = get_config(BUDGET.value)
+        config = from_file(os.path.join(REPO, "configs", "demo.py"), BUDGET.value)
         config.data.synthetic.update(SEQUENCES[name])
-        config.output_dir = os.path.join(OUTPUT_ROOT.value, f"{name}_{BUDGET.value}_{INIT_POSES.value}")
-        config.train.init_poses = INIT_POSES.value
+        config.output_dir = os.path.join(OUTPUT_ROOT.value, f"{name}_{BUDGET.value}_{START.value}")
+        config.start.poses = START.value
         # The rendered map is scored against the ground truth (F1, Chamfer): every ray, whatever the render takes.
         config.mapping.max_seconds = 0.0
         if STEPS.value:
@@ -71,22 +70,22 @@ def main(argv):
         t0 = time.perf_counter()
         summary = run(config, progress=False)
         t_neld = time.perf_counter() - t0
-        if INIT_POSES.value == "baseline":  # run() registered the baseline already and wrote its poses
-            t_base = summary["baseline_seconds"]
+        if "baseline_seconds" in summary["run"]:  # run() registered the baseline already and wrote its poses
+            t_base = summary["run"]["baseline_seconds"]
         else:
             t0 = time.perf_counter()
-            run_baseline(config)
+            run_baseline(config, progress=False)
             t_base = time.perf_counter() - t0
-        evaluation = evaluate_run(config.output_dir, threshold=config.eval.f1_threshold_m,
-                                  raw_cutoff=config.eval.raw_cutoff_m)
+        evaluation = evaluate_run(config.output_dir)
         print(json.dumps({
-            "sequence": name, "budget": BUDGET.value, "init_poses": INIT_POSES.value, "synthetic": SEQUENCES[name],
-            "steps": summary["steps"], "overrides": OVERRIDES.value,
+            "sequence": name, "budget": BUDGET.value, "start": START.value, "synthetic": SEQUENCES[name],
+            "started_from": summary["run"]["started_from"], "steps": summary["run"]["steps"],
+            "overrides": OVERRIDES.value,
             "initial": _summary(evaluation, "initial"),
             "baseline": dict(_summary(evaluation, "baseline"), wall_s=round(t_base, 1)),
             "neld_ba": dict(_summary(evaluation, "optimized"), wall_s=round(t_neld, 1),
-                            train_s=summary["train_seconds"]),
-            "device": summary["device"],
+                            train_s=summary["run"]["train_seconds"]),
+            "device": summary["run"]["device"],
         }), flush=True)
 
 

@@ -1,44 +1,7 @@
 #!/usr/bin/env python
-"""Evaluate a run's output folder against ground truth and print a table.
+"""neld-evaluate, run from a checkout: see neld_jax/commands/evaluate.py for its usage."""
 
-    python bin/evaluate.py --output_dir=outputs/demo
-    python bin/evaluate.py --output_dir=runs/canteen \
-        --gt_poses=/data/canteen/gt_poses.txt --gt_map=/data/canteen/gt_map.pcd
-
-Reads poses_*.txt and map_*.ply from the folder (see neld_jax/evaluate.py), writes plots and merges
-the numbers into OUTPUT_DIR/metrics.json under "evaluation".
-"""
-
-import logging
-import os
-import sys
-
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from absl import flags  # noqa: E402
-
-from neld_jax.cli import main_with_flags  # noqa: E402
-
-OUTPUT_DIR = flags.DEFINE_string("output_dir", None, "Folder written by bin/train.py or bin/baseline.py.",
-                                 required=True)
-GT_POSES = flags.DEFINE_string("gt_poses", None, "Ground-truth trajectory (TUM, KITTI or Newer College CSV); "
-                               "default OUTPUT_DIR/poses_gt.txt if present.")
-GT_MAP = flags.DEFINE_string("gt_map", None, "Ground-truth map (.ply/.pcd); default OUTPUT_DIR/map_gt.ply if present.")
-THRESHOLD = flags.DEFINE_float("threshold", 0.2, "F1 / inlier distance threshold in metres.")
-RAW_CUTOFF = flags.DEFINE_float("raw_cutoff", 1.0, "Chamfer cutoff of raw maps in metres.")
-MAP_ICP = flags.DEFINE_float("map_icp_m", 0.0, "Refine the map alignment by ICP with this correspondence distance "
-                             "in metres (0: the trajectory alignment alone).")
-
-
-def main():
-    from neld_jax.evaluate import evaluate_run, format_table
-
-    result = evaluate_run(OUTPUT_DIR.value, gt_poses_path=GT_POSES.value, gt_map_path=GT_MAP.value,
-                          threshold=THRESHOLD.value, raw_cutoff=RAW_CUTOFF.value, map_icp_m=MAP_ICP.value)
-    print(format_table(result))
-    print(f"metrics written to {os.path.join(OUTPUT_DIR.value, 'metrics.json')}")
-    return 0
-
+from neld_jax.commands.evaluate import main
 
 if __name__ == "__main__":
-    main_with_flags(main, log_level=logging.WARNING)
+    main()

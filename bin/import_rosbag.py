@@ -1,52 +1,7 @@
 #!/usr/bin/env python
-"""Turn a rosbag (ROS1 .bag or ROS2 folder; no ROS needed) into the generic layout that bin/train.py reads.
+"""neld-import-rosbag, run from a checkout: see neld_jax/commands/import_rosbag.py for its usage."""
 
-    # FAST-LIO2 recorded: body-frame clouds and odometry, both stamped at the end of the scan (the defaults)
-    python bin/import_rosbag.py --bag=fastlio_run.bag --out=/data/run
-    python bin/train.py --config=configs/generic.py:cpu --config.data.root=/data/run
-
-    # other topics, every 2nd cloud, clouds stamped at the start of a 10 Hz sweep against end-of-scan odometry
-    python bin/import_rosbag.py --bag=rec.bag --out=/data/rec --cloud_topic=/os_cloud_node/points \
-        --odometry_topic=/odom --stride=2 --time_offset_s=0.1
-
-Writes OUT/scans/NNNNNN.pcd (the clouds' own frame), OUT/poses.txt (TUM) and OUT/import.json (topics, frame,
-counts); see neld_jax/data/rosbag_import.py for the matching rule and the time conventions.
-"""
-
-import os
-import sys
-
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from absl import flags  # noqa: E402
-
-from neld_jax.cli import main_with_flags  # noqa: E402
-from neld_jax.data import rosbag_import as ri  # noqa: E402
-
-BAG = flags.DEFINE_multi_string("bag", None, "ROS1 .bag file or ROS2 bag folder (repeat for a split recording).",
-                                required=True)
-OUT = flags.DEFINE_string("out", None, "Folder to write scans/, poses.txt and import.json to.", required=True)
-CLOUD = flags.DEFINE_string("cloud_topic", ri.DEFAULT_CLOUD_TOPIC, "sensor_msgs/PointCloud2 topic.")
-ODOM = flags.DEFINE_string("odometry_topic", ri.DEFAULT_ODOMETRY_TOPIC,
-                           "nav_msgs/Odometry or geometry_msgs/PoseStamped topic (pose of the clouds' frame).")
-TOL = flags.DEFINE_float("tolerance_s", ri.DEFAULT_TOLERANCE_S, "Largest cloud-to-odometry stamp gap (seconds).")
-OFFSET = flags.DEFINE_float("time_offset_s", 0.0, "Added to every cloud stamp before matching (seconds).")
-DROP = flags.DEFINE_bool("drop_unmatched", False, "Drop clouds without odometry (counted) instead of failing.")
-STRIDE = flags.DEFINE_integer("stride", 1, "Keep every k-th matched cloud.")
-DIST = flags.DEFINE_float("keyframe_distance_m", 0.0, "Keep a cloud only after moving this far (0: off).")
-ANGLE = flags.DEFINE_float("keyframe_angle_deg", 0.0, "... or after turning this far (0: off).")
-
-
-def main():
-    result = ri.import_bag(BAG.value, OUT.value, cloud_topic=CLOUD.value, odometry_topic=ODOM.value,
-                           tolerance_s=TOL.value, time_offset_s=OFFSET.value, drop_unmatched=DROP.value,
-                           stride=STRIDE.value, keyframe_distance_m=DIST.value, keyframe_angle_deg=ANGLE.value)
-    print(f"wrote {result.scans_written} scans of {result.clouds_read} clouds to {OUT.value} "
-          f"({result.dropped_unmatched} without odometry dropped, {result.skipped_by_keyframe_rule} skipped by "
-          f"--stride/--keyframe_*)")
-    print(result.note)
-    return 0
-
+from neld_jax.commands.import_rosbag import main
 
 if __name__ == "__main__":
-    main_with_flags(main)
+    main()

@@ -1,33 +1,7 @@
 #!/usr/bin/env python
-"""Write the synthetic courtyard sequence of a config in the generic layout (docs/design.md), with ground truth.
+"""neld-make-synthetic, run from a checkout: see neld_jax/commands/make_synthetic.py for its usage."""
 
-    python bin/make_synthetic.py --config=configs/demo.py --root=/tmp/courtyard
-    python bin/train.py --config=configs/generic.py:cpu --config.data.root=/tmp/courtyard
-
-The sequence is config.data.synthetic (seed, scans, beams, drift ...); override any of it on the command line,
-e.g. --config.data.synthetic.seed=3 --config.data.synthetic.drift_trans_m=0.1.
-"""
-
-import os
-import sys
-
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from absl import flags  # noqa: E402
-
-from neld_jax.cli import main_with_config  # noqa: E402
-
-ROOT = flags.DEFINE_string("root", None, "Folder to write the sequence to (scans/, poses.txt, gt_poses.txt, gt_map.pcd).")
-flags.mark_flag_as_required("root")
-
-
-def job(config):
-    from neld_jax.data.synthetic import make_sequence, write_generic
-
-    seq = make_sequence(config.data.synthetic)
-    write_generic(seq, ROOT.value)
-    print(f"wrote {seq.num_scans} scans with ground truth to {ROOT.value}")
-
+from neld_jax.commands.make_synthetic import main
 
 if __name__ == "__main__":
-    main_with_config(job)
+    main()

@@ -2,17 +2,15 @@
 
     python bin/train.py --config=configs/demo.py
     python bin/train.py --config=configs/demo.py:paper   # the paper's model and schedule on the same data
-    python bin/train.py --config=configs/demo.py:gpu     # the GPU budget (the default where a GPU is JAX's backend)
+    python bin/train.py --config=configs/demo.py:gpu     # the gpu budget (the default where a GPU is JAX's backend)
 
 Prints the pose and map error before and after the bundle adjustment.
 """
 
-from neld_jax.config import apply_budget, base_config, default_budget
+from neld_jax import config
 
 
 def get_config(budget: str = ""):
-    c = base_config()
-    c.data.format = "synthetic"
-    c.data.keyframe_interval_s = 0.0  # the generator already spaces its scans as keyframes
+    c = config.synthetic(budget)
     c.output_dir = "outputs/demo"
-    return apply_budget(c, budget or default_budget("cpu"))
+    return c

@@ -12,7 +12,10 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
    apart for ICP; steps 2 and 3 are skipped and step 4 starts from the input). At their coarse
    scales the ICPs here pair points only where their normals agree (`point_to_plane_icp`: thin walls). With
    `keep_input_tilt` (an IMU-aided odometry's input) every link keeps the input's up axis, so that the links' pitch
-   errors do not bow the route (docs/evaluation.md, "Keeping the input's tilt");
+   errors do not bow the route (docs/evaluation.md, "Keeping the input's tilt"). Whether the input's tilt is to be
+   trusted, the data decides: the chain runs twice, keeping the input's up axis and free, and the one whose raw map
+   is crisper goes on (a tie keeps the input's tilt: an IMU-aided odometry's roll and pitch do not drift, a
+   LiDAR-only odometry's do, and then the chain that keeps them blurs the map; `choose_chain`);
 2. a pose graph on the chain's poses: one edge per consecutive pair (the chain's relative pose), and
    loop-closure edges between scans at least `window` apart that lie within `loop_radius_m` IN THE CHAIN'S
    FRAME (candidates found in a drifted frame are wrong or far off), each registered by multi-scale ICP
@@ -30,16 +33,15 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
    points and one map (one KD-tree) serves half the scans. The gates of the loop closures apply. This is what makes
    the map crisp: the chain and the graph only align scans in pairs or to a few neighbours, and their errors of
    about a centimetre per link add up (measured on real keyframes: docs/evaluation.md). The rounds start from the
-   graph's poses, or from those the caller's `refine_from` picks (the run and bin/baseline.py: by
-   `refine_from`, the crispest of the graph's, the chain's and the input's, or of the graph's and the chain's
-   with the input's only when both are bent; never a bent graph: `neld_jax.run.refinement_start`).
+   crisper of the graph's and the chain's poses (a tie keeps the graph's), the input's only where the chain was
+   given up: the rounds keep their start's route-long shape, and the input's is its drift (docs/evaluation.md,
+   "Where the refinement starts").
 
 Information matrices come from `get_information_matrix_from_point_clouds`. Open3D pose-graph convention: node s
 holds T_world_scan[s]; an edge (source i, target j) holds T_j^-1 T_i, the ICP transform that maps scan i's
 points into scan j's frame.
 
-`register_sequence` is the algorithm (arrays in, poses out); `run_baseline` is the effectful edge behind
-bin/baseline.py (load and preprocess like the trainer, register, write, evaluate).
+`register_sequence` is the algorithm (arrays in, poses out); its command-line edge is neld_jax.commands.baseline.
 """
 
 from __future__ import annotations
@@ -47,20 +49,14 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from pathlib import Path
 from typing import Callable, NamedTuple
 
-import ml_collections
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
 
-from neld_jax.data.preprocess import load_preprocessed
-from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
-from neld_jax import quality
-from neld_jax.export import write_json, write_point_cloud, write_poses, write_raw_map
+from neld_jax import judge
 from neld_jax.geometry import nearest_rotations, register_scans, transform_points, with_up_axis_of
-from neld_jax.trajectory import propagate_corrections
 
 logger = logging.getLogger(__name__)
 _reg = o3d.pipelines.registration
@@ -133,34 +129,21 @@ class BaselineSettings:
     # (one KD-tree query); 16 points at the 0.1 m grid cover a plane to about 0.2 m around each scan point.
     map_gather_points: int = 16
     map_gather_m: float = 0.5
-    # Where the refinement starts: "graph": the graph's poses; "crisper": the graph's or the input's, whichever gives
-    # the crisper raw map, and never a graph bent away from the input (train.max_baseline_departure). FAST-LIO2's
-    # inertial odometry can be locally better than the chain between sparse keyframes (docs/evaluation.md, "Where
-    # the refinement starts"). "scans": the crisper of the graph's and (keep_input_tilt) the chain's that is not
-    # bent, the input's only when both are: the rounds keep their start's route-long shape, so only a start the
-    # scans made gives an answer that does not keep the input's drift (docs/evaluation.md, "Why the two starts'
-    # answers differ"). Read by neld_jax.run.refinement_start, which the run and bin/baseline.py pass.
-    refine_from: str = "crisper"
-    # The input comes from an IMU-aided odometry (FAST-LIO2 and the like), whose roll and pitch gravity keeps from
-    # drifting: the chain keeps each scan's up axis from the input (geometry.with_up_axis_of on its guesses and
-    # results) instead of summing its links' tilt errors, and refine_from is also offered the chain, which the pose
-    # graph may tilt again (it does not know gravity). Measured on the HKU main building, an open 95 m route, from
-    # drift in position and heading only: the chain's vertical bow 5.2 -> 1.3 cm, the refined answer 6.7 -> 2.9 cm
-    # from the one from the recorded odometry (docs/evaluation.md, "Keeping the input's tilt"). Off for inputs whose
-    # tilt may have drifted (a LiDAR-only odometry, bin/perturb.py without --keep_tilt).
-    keep_input_tilt: bool = False
+    # The judge of the choices above (which chain, where the rounds start): the raw map's mean map entropy at this
+    # radius over this many query points (the run's eval.crispness_radius_m / crispness_queries)
+    crispness_radius_m: float = 0.3
+    crispness_queries: int = 10_000
 
     @classmethod
-    def from_config(cls, cfg) -> "BaselineSettings":
-        """From config.baseline (a ConfigDict or dict); missing fields keep their defaults."""
-        cfg = dict(cfg or {})
-        unknown = set(cfg) - {f.name for f in dataclasses.fields(cls)}
+    def from_config(cls, config) -> "BaselineSettings":
+        """From a run's config: config.baseline's fields and the judge's (config.eval's crispness settings); the
+        rest keep their defaults."""
+        fields = dict(config.baseline)
+        unknown = set(fields) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise ValueError(f"config.baseline: unknown field(s) {sorted(unknown)}")
-        for name in ("icp_distances_m", "loop_icp_distances_m", "map_icp_distances_m", "global_icp_distances_m"):
-            if name in cfg:
-                cfg[name] = tuple(float(d) for d in cfg[name])
-        return cls(**cfg)
+        return cls(**fields, crispness_radius_m=float(config.eval.crispness_radius_m),
+                   crispness_queries=int(config.eval.crispness_queries))
 
 
 def _prepare_scan(points: np.ndarray, voxel_size: float, normal_radius: float) -> o3d.geometry.PointCloud:
@@ -307,13 +290,13 @@ def _progress_bar(what: str, progress: bool, iterable=None, total: int | None = 
                 dynamic_ncols=True)
 
 
-def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSettings,
+def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSettings, keep_input_tilt: bool = False,
                       deadline: float | None = None, progress: bool = False) -> tuple[np.ndarray | None, np.ndarray]:
     """Register each scan to the local map of the `settings.window` scans before it.
 
     clouds: S Open3D clouds (sensor frame, with normals); init_poses: [S, 4, 4] sensor -> world.
     Returns (poses [S, 4, 4] with poses[0] = init_poses[0], fitness [S] of each link, fitness[0] = 1); with
-    settings.keep_input_tilt every pose has its init_poses' up axis (geometry.with_up_axis_of). A link
+    keep_input_tilt every pose has its init_poses' up axis (geometry.with_up_axis_of). A link
     whose fitness is below settings.min_chain_fitness, or whose ICP moved the scan further than
     settings.max_link_correction_m, keeps the odometry's increment; one warning per reason lists those scans.
     poses is None when the chain was given up (settings.chain_min_median_overlap, or the time.perf_counter() value
@@ -323,7 +306,8 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
     poses = [np.asarray(init_poses[0], np.float64)]
     fitness = np.ones(len(clouds))
     kept = {"overlap": [], "slide": []}  # links that kept the odometry's increment, by reason: one warning each
-    links = _progress_bar("scan-to-map chain", progress, range(1, len(clouds)))
+    links = _progress_bar(f"scan-to-map chain ({'the input' if keep_input_tilt else 'its own'} tilt)", progress,
+                          range(1, len(clouds)))
     for s in links:
         if s - 1 >= max(settings.chain_check_links, 1) and np.median(fitness[1:s]) < settings.chain_min_median_overlap:
             logger.warning("baseline: the first %d chain links overlap their local maps by %.2f%% (median; less "
@@ -342,7 +326,7 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
             fitness[s:] = np.nan
             break
         guess = poses[s - 1] @ np.linalg.inv(init_poses[s - 1]) @ init_poses[s]  # the odometry's increment
-        if settings.keep_input_tilt:
+        if keep_input_tilt:
             guess = with_up_axis_of(guess, init_poses[s])
         local_map = o3d.geometry.PointCloud()
         for k in range(max(0, s - settings.window), s):
@@ -356,7 +340,7 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
         elif moved_m > settings.max_link_correction_m:
             kept["slide"].append(f"{s} ({moved_m:.2f} m)")
             transform = guess
-        poses.append(with_up_axis_of(transform, init_poses[s]) if settings.keep_input_tilt else transform)
+        poses.append(with_up_axis_of(transform, init_poses[s]) if keep_input_tilt else transform)
     links.close()
     if kept["overlap"]:
         logger.warning("baseline: %d scan(s) overlap the map of the %d scans before them by less than "
@@ -606,27 +590,55 @@ def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettin
     return report(settings.map_rounds, False)
 
 
+# A chain that keeps the input's tilt is kept unless the free chain's raw map is crisper by more than this (mean map
+# entropy, nats): a tie trusts the input (docs/evaluation.md, "Keeping the input's tilt")
+TILT_MARGIN = 0.01
+
+
+def choose_chain(chains: dict, scans: list[np.ndarray], settings: BaselineSettings) -> tuple[str, dict]:
+    """Which chain goes on: {"input tilt": poses, "free": poses} (None: given up) -> (the name, {name: mean map
+    entropy of its raw map}). The free chain wins only when crisper by more than TILT_MARGIN."""
+    held = {name: poses for name, poses in chains.items() if poses is not None}
+    if len(held) < 2:
+        return next(iter(held), "free"), {}
+    summaries, _ = judge.compare_maps(scans, held, settings.crispness_radius_m, settings.crispness_queries)
+    entropy = {name: summary["mean_map_entropy"] for name, summary in summaries.items()}
+    tilt, free = entropy["input tilt"], entropy["free"]
+    chosen = "free" if tilt is not None and free is not None and free < tilt - TILT_MARGIN else "input tilt"
+    return chosen, entropy
+
+
+def choose_refinement_start(graph: np.ndarray, chain: np.ndarray, scans: list[np.ndarray],
+                            settings: BaselineSettings) -> tuple[str, dict]:
+    """Where the multi-view refinement starts: the crisper of the graph's and the chain's poses [S, 4, 4] (a tie, or
+    no judge, keeps the graph) -> ("graph" | "chain", {name: mean map entropy})."""
+    summaries, _ = judge.compare_maps(scans, {"graph": graph, "chain": chain}, settings.crispness_radius_m,
+                                      settings.crispness_queries)
+    entropy = {name: summary["mean_map_entropy"] for name, summary in summaries.items()}
+    crisper = judge.crispest(summaries)
+    return ("chain" if crisper == "chain" and entropy["chain"] < entropy["graph"] else "graph"), entropy
+
+
+def _entropy_text(entropy: dict) -> str:
+    return ", ".join(f"{name} {'-' if value is None else f'{value:.3f}'}" for name, value in entropy.items())
+
+
 def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
                       settings: BaselineSettings = BaselineSettings(),
-                      refine_from: Callable[..., np.ndarray] | None = None,
                       on_round: Callable[[int, np.ndarray], None] | None = None,
                       deadline: float | None = None, report: dict | None = None, progress: bool = False) -> np.ndarray:
-    """The baseline: scan-to-map chain, the loop-closed pose graph, then the multi-view refinement (module
-    docstring).
+    """The baseline: the scan-to-map chains (the input's tilt kept and free; the crisper goes on), the loop-closed
+    pose graph, then the multi-view refinement from the crisper of the graph and the chain (module docstring).
 
     scans: list of S arrays [N_i, 3] in the sensor frame; init_poses: [S, 4, 4] sensor -> world.
-    refine_from(graph_poses [S, 4, 4], chain_poses [S, 4, 4] | None) -> [S, 4, 4]: the poses the multi-view
-    refinement starts from, given the graph's and, with settings.keep_input_tilt, the chain's (None: the graph's).
-    neld_jax.run's `refinement_start` chooses between those and init_poses.
     on_round(r, poses [S, 4, 4]): `refine_against_map`'s, called with r = 0 and the poses the refinement starts
     from too; they are the poses returned up to the final re-anchoring on scan 0 (one rigid transform).
     deadline: a time.perf_counter() value after which the multi-view refinement registers no more scans
     (`refine_against_map`) and a chain not yet finished is given up (`scan_to_map_chain`); the pose graph always
-    runs to the end (2-31 s after Riverside02's 158-321 s chains). report, when given, receives
-    {"chain_given_up" (scan_to_map_chain's rule or the deadline; then also "refined_from": "input", and refine_from
-    is not called), "map_rounds_done": rounds completed (a fraction when the deadline stopped them),
-    "stopped_at_deadline"}. progress: progress bars over each step's registrations (the chain, the loop closures,
-    the refinement's rounds).
+    runs to the end. report, when given, receives what was decided and done: {"tilt": "input" | "free" (the chain
+    that went on), "chain_entropy": {name: entropy}, "chain_given_up", "refined_from": "graph" | "chain" | "input",
+    "start_entropy": {name: entropy}, "map_rounds_done" (a fraction when the deadline stopped them),
+    "stopped_at_deadline", "seconds": {step: seconds}}. progress: progress bars over each step's registrations.
     Returns refined poses [S, 4, 4] with pose 0 equal to init_poses[0] and orthonormal rotations.
     """
     init_poses = np.asarray(init_poses, dtype=np.float64)
@@ -634,41 +646,54 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
         raise ValueError(f"init_poses must have shape [S, 4, 4], got {init_poses.shape}")
     if len(scans) != len(init_poses):
         raise ValueError(f"{len(scans)} scans but {len(init_poses)} initial poses")
+    report = {} if report is None else report
     if len(scans) < 2:
         return init_poses.copy()
     clouds = prepare_clouds(scans, settings)
+    seconds = report.setdefault("seconds", {})
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         t0 = time.perf_counter()
-        chain, fitness = scan_to_map_chain(clouds, init_poses, settings, deadline, progress)
-        t1 = time.perf_counter()
+        chains, fitness = {}, {}
+        for name, keep_tilt in (("input tilt", True), ("free", False)):
+            chains[name], fitness[name] = scan_to_map_chain(clouds, init_poses, settings, keep_tilt, deadline, progress)
+        chosen, entropy = choose_chain(chains, scans, settings)
+        chain = chains[chosen]
+        seconds["chains"] = time.perf_counter() - t0
+        report.update(tilt="input" if chosen == "input tilt" else "free", chain_entropy=entropy,
+                      chain_given_up=chain is None)
         if chain is None:  # given up (scan_to_map_chain warned): no graph, the refinement starts from the input
             optimized = init_poses
-            logger.info("baseline: scan-to-map chain given up after %.1f s", t1 - t0)
+            report["refined_from"] = "input"
+            logger.info("baseline: scan-to-map chain given up after %.1f s", seconds["chains"])
         else:
+            logger.info("baseline: the chain %s (raw-map entropy: %s; median overlap %.0f%%), %.1f s for both",
+                        "keeps the input's tilt" if chosen == "input tilt" else
+                        "finds its own tilt: the input's drifted", _entropy_text(entropy) or "one chain held",
+                        100 * np.nanmedian(fitness[chosen][1:]), seconds["chains"])
+            t1 = time.perf_counter()
             optimized, loops = loop_closed_graph(clouds, chain, settings, progress)
-            logger.info("baseline: scan-to-map chain of %d scans in %.1f s (median overlap %.0f%%); pose graph with %d "
-                        "of %d loop-closure candidates (overlap >= %.0f%%), %d of them from %d global registrations, "
-                        "in %.1f s", len(scans), t1 - t0, 100 * np.median(fitness[1:]), loops.kept, loops.tried,
-                        100 * settings.min_loop_fitness, loops.global_kept, loops.global_tried,
-                        time.perf_counter() - t1)
-        if report is not None:
-            report.update(chain_given_up=chain is None)
-            if chain is None:
-                report.update(refined_from="input")
-        t2 = time.perf_counter()
+            seconds["graph"] = time.perf_counter() - t1
+            logger.info("baseline: pose graph with %d of %d loop-closure candidates (overlap >= %.0f%%), %d of them "
+                        "from %d global registrations, in %.1f s", loops.kept, loops.tried,
+                        100 * settings.min_loop_fitness, loops.global_kept, loops.global_tried, seconds["graph"])
         if settings.map_rounds > 0:
             # The graph's poses carry round-off in the rotations; re-orthonormalise before moving clouds with them.
             optimized = _orthonormal(optimized)
-            if refine_from is not None and chain is not None:
-                optimized = _orthonormal(refine_from(optimized, chain if settings.keep_input_tilt else None))
+            if chain is not None:
+                start, entropy = choose_refinement_start(optimized, _orthonormal(chain), scans, settings)
+                report.update(refined_from=start, start_entropy=entropy)
+                logger.info("baseline: the multi-view refinement starts from the %s's poses (raw-map entropy: %s)",
+                            start, _entropy_text(entropy))
+                optimized = _orthonormal(chain) if start == "chain" else optimized
             if on_round is not None:
                 on_round(0, optimized.copy())
+            t2 = time.perf_counter()
             optimized, refinement = refine_against_map(clouds, optimized, settings, on_round, deadline, progress)
+            seconds["refinement"] = time.perf_counter() - t2
             logger.info("baseline: %g round(s) of multi-view refinement in %.1f s (%.0f%% of the registrations "
-                        "rejected by the gates)", refinement.rounds_done, time.perf_counter() - t2,
+                        "rejected by the gates)", refinement.rounds_done, seconds["refinement"],
                         100 * refinement.rejected)
-            if report is not None:
-                report.update(map_rounds_done=refinement.rounds_done, stopped_at_deadline=refinement.stopped)
+            report.update(map_rounds_done=refinement.rounds_done, stopped_at_deadline=refinement.stopped)
     # Re-anchor exactly on scan 0 (the gauge), whatever the optimiser did with the reference node.
     return anchored(optimized, init_poses[0])
 
@@ -690,61 +715,3 @@ def _orthonormal(poses: np.ndarray) -> np.ndarray:
     poses = np.array(poses, dtype=np.float64)
     poses[:, :3, :3] = nearest_rotations(poses[:, :3, :3])
     return poses
-
-
-# ---------------------------------------------------------------------------------------------
-# The command-line run (effects): load, register, write, evaluate
-# ---------------------------------------------------------------------------------------------
-
-
-def run_baseline(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
-    """Run the baseline on `config.data` and write its outputs into `config.output_dir`.
-
-    config: the ml_collections ConfigDict of bin/train.py (uses config.data, config.output_dir, config.baseline
-    (BaselineSettings) and, when present, config.mapping.voxel_size_m and config.eval). Registers the keyframes and carries their
-    corrections to every input scan (neld_jax.trajectory), as the trainer does. Writes poses_baseline.txt/.kitti,
-    map_raw_baseline.ply and the raw-map crispness of "initial" and "baseline" into metrics.json; also
-    poses_initial.txt/.kitti, map_raw_initial.ply, poses_gt.txt and map_gt.ply where they do not exist yet, so
-    that the folder can be evaluated on its own.
-    progress: progress bars over the registrations (register_sequence).
-    Returns {"seconds", "crispness": {method: summary}, "evaluation": evaluate_run's result or None}.
-    """
-    from neld_jax.run import refinement_start  # the run's own rule, so that both give the same baseline
-
-    loaded, sequence = load_preprocessed(config.data)
-    t0 = time.perf_counter()
-    settings = BaselineSettings.from_config(config.get("baseline"))
-    decided, refined = {}, {}
-    poses = register_sequence(sequence.scans, sequence.poses, settings,
-                              refine_from=refinement_start(config, sequence, decided), report=refined,
-                              progress=progress)
-    seconds = time.perf_counter() - t0
-    poses_all = propagate_corrections(loaded.poses, sequence.loaded_index, poses, loaded.timestamps)
-
-    output_dir = Path(config.output_dir)
-    map_voxel = float(config.mapping.voxel_size_m) if "mapping" in config else 0.0
-    write_poses(output_dir, "poses_baseline", loaded.timestamps, poses_all)
-    write_raw_map(output_dir / "map_raw_baseline.ply", sequence.scans, poses, voxel_size=map_voxel)
-    if not (output_dir / "poses_initial.txt").exists():
-        write_poses(output_dir, "poses_initial", loaded.timestamps, loaded.poses)
-    if not (output_dir / "map_raw_initial.ply").exists():
-        write_raw_map(output_dir / "map_raw_initial.ply", sequence.scans, sequence.poses, voxel_size=map_voxel)
-    if loaded.gt_poses is not None and not (output_dir / GT_POSES_FILE).exists():
-        write_poses(output_dir, GT_POSES_FILE[:-len(".txt")], loaded.timestamps, loaded.gt_poses)
-    if sequence.gt_map is not None and not any((output_dir / name).exists() for name in GT_MAP_FILES):
-        write_point_cloud(output_dir / GT_MAP_FILES[0], sequence.gt_map)
-    evaluation = config.get("eval", ml_collections.ConfigDict())
-    crisp, _ = quality.map_crispness(sequence, {"initial": sequence.poses, "baseline": poses}, evaluation)
-    crisp = quality.record_crispness(output_dir, crisp)
-    write_json(output_dir / "metrics.json", {"baseline": {"seconds": round(seconds, 2),
-                                                          "refined_from": (decided.get("refined_from")
-                                                                           or refined.get("refined_from")),
-                                                          **dataclasses.asdict(settings)}})
-    logger.info("baseline outputs written to %s (registration took %.1f s)", output_dir, seconds)
-
-    result = None
-    if sequence.gt_poses is not None or sequence.gt_map is not None:
-        result = evaluate_run(output_dir, threshold=evaluation.get("f1_threshold_m", 0.2),
-                              raw_cutoff=evaluation.get("raw_cutoff_m", 1.0),
-                              map_icp_m=evaluation.get("map_icp_m", 0.0))
-    return {"seconds": seconds, "crispness": crisp, "evaluation": result}

@@ -1,5 +1,5 @@
-"""Orbax checkpoints of a training run: the whole TrainState plus JSON metadata (normalisation, config hash,
-scan count, and the training history and seconds so far, which a resumed run continues).
+"""Orbax checkpoints of a training run: the whole TrainState plus JSON metadata (config hash, keyframe count, plan
+of cubes, pose steps, and the training history and seconds so far, which a resumed run continues).
 
 A rerun with the same output directory restores the latest checkpoint and continues from its step.
 """
@@ -15,6 +15,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from neld_jax.errors import ConfigError, DataError
+from neld_jax.jsonable import to_jsonable
 
 logger = logging.getLogger(__name__)
 
@@ -69,19 +70,14 @@ class Checkpointer:
         return state, metadata
 
     def _check_data(self, metadata: dict, expected: dict) -> None:
-        """Same scan count and normalisation, else the poses would resume in another frame."""
+        """The same keyframes, plan of cubes (their normalisations) and pose steps, else the poses would resume in
+        another frame or under another rule."""
         differences = []
         if "num_scans" in metadata and int(metadata["num_scans"]) != int(expected["num_scans"]):
-            differences.append(f"{metadata['num_scans']} scans, now {expected['num_scans']}")
-        saved, now = metadata.get("normalization"), expected["normalization"]
-        if saved is not None:
-            a = np.array([saved["scale"], *saved["offset"]], np.float64)
-            b = np.array([now["scale"], *now["offset"]], np.float64)
-            if not np.allclose(a, b, rtol=1e-9, atol=1e-9):
-                differences.append(f"normalisation scale {saved['scale']:.9g} offset {list(saved['offset'])}, "
-                                   f"now scale {now['scale']:.9g} offset {list(now['offset'])}")
-        if "submaps" in expected and metadata.get("submaps") != expected["submaps"]:
-            differences.append("another split into submaps" if metadata.get("submaps") else "one cube, now submaps")
+            differences.append(f"{metadata['num_scans']} keyframes, now {expected['num_scans']}")
+        for key, what in (("plan", "another plan of cubes"), ("pose_steps", "other pose steps")):
+            if key in expected and not _same(metadata.get(key), expected[key]):
+                differences.append(what)
         if differences:
             raise DataError(f"the checkpoint in {self.directory} was written for other data "
                             f"({'; '.join(differences)}); use a new output_dir or delete it")
@@ -90,27 +86,35 @@ class Checkpointer:
         self._manager.close()
 
 
-def fit_resuming(directory: str, metadata: dict, template_state: Callable[[], Any], fit_fn: Callable):
-    """Run fit_fn from the latest checkpoint under `directory` (or from scratch), checkpointing as it goes.
+def fit_resuming(directory: str, metadata: dict, initial_state: Callable[[], Any], fit_fn: Callable):
+    """Run fit_fn from the latest checkpoint under `directory` (or from the initial state), checkpointing as it goes.
 
-    metadata: what every checkpoint records and a resume must match (its "config_hash" and the data's shape:
-    normalisation, scan count, ...); a checkpoint of other data is an error rather than a resume in another
-    frame. template_state(): the state a checkpoint restores into (built only when there is one).
-    fit_fn(state=, checkpoint_fn=, history=, elapsed_s=) -> its result (train.fit or submap_train.fit_submaps),
-    given the restored state with the history and training seconds saved with it, or None, [] and 0.
+    metadata: what every checkpoint records and a resume must match (its "config_hash" and the data's shape: scan
+    count, plan of cubes, ...); a checkpoint of other data is an error rather than a resume in another frame.
+    initial_state(): the state training starts from, also the template a checkpoint restores into.
+    fit_fn(state, checkpoint_fn=, history=, elapsed_s=) -> its result (train.fit), given the restored state with the
+    history and training seconds saved with it, or the initial state, [] and 0.
     """
-    from neld_jax.export import to_jsonable
-
     ckpt = Checkpointer(directory)
-    state, history, elapsed_s = None, [], 0.0
+    state, history, elapsed_s = initial_state(), [], 0.0
     if ckpt.latest_step() is not None:
-        state, saved = ckpt.restore(template_state(), expected_config_hash=metadata["config_hash"],
-                                    expected_data=metadata)
+        state, saved = ckpt.restore(state, expected_config_hash=metadata["config_hash"], expected_data=metadata)
         history, elapsed_s = list(saved.get("history", [])), float(saved.get("train_seconds", 0.0))
 
     def save(s, history, seconds):
         ckpt.save(s, {**metadata, "history": to_jsonable(history), "train_seconds": seconds})
 
-    result = fit_fn(state=state, checkpoint_fn=save, history=history, elapsed_s=elapsed_s)
+    result = fit_fn(state, checkpoint_fn=save, history=history, elapsed_s=elapsed_s)
     ckpt.close()
     return result
+
+
+def _same(saved, now) -> bool:
+    """Whether two JSON records agree, numbers to 1e-9 (relative): a plan's scales read back from JSON."""
+    if isinstance(saved, dict) and isinstance(now, dict):
+        return saved.keys() == now.keys() and all(_same(saved[k], now[k]) for k in saved)
+    if isinstance(saved, (list, tuple)) and isinstance(now, (list, tuple)):
+        return len(saved) == len(now) and all(_same(a, b) for a, b in zip(saved, now))
+    if isinstance(saved, (int, float)) and isinstance(now, (int, float)) and not isinstance(saved, bool):
+        return bool(np.isclose(saved, now, rtol=1e-9, atol=1e-12))
+    return saved == now

@@ -1,4 +1,4 @@
-"""Shared plumbing of the command-line entry points in bin/: absl flags with an ml_collections config file,
+"""Shared plumbing of the command-line entry points (neld_jax.commands, bin/): absl flags with an ml_collections config file,
 logging set-up, and one clear error line (no traceback) for bad input or a bad config.
 """
 
@@ -31,9 +31,17 @@ def _run_guarded(argv, run: Callable[[], int | None], log_level: int, log_format
         _fail(interrupted)
 
 
-def main_with_config(job: Callable) -> None:
+def _usage(doc: str | None) -> None:
+    """--help prints the command's own docstring (absl reads __main__'s; a console script's has none)."""
+    if doc:
+        sys.modules["__main__"].__doc__ = doc
+
+
+def main_with_config(job: Callable, doc: str | None = None) -> None:
     """Parse `--config=FILE[:budget]` and overrides, then run job(config); errors become one line on stderr."""
     from absl import app, flags
+
+    _usage(doc)
     from ml_collections import config_flags
 
     config_flags.DEFINE_config_file("config", None, "Config file (configs/*.py), optionally with ':budget'.",
@@ -48,11 +56,12 @@ def main_with_config(job: Callable) -> None:
     app.run(main, flags_parser=_parse_flags)
 
 
-def main_with_flags(job: Callable[[], int | None], log_level: int = logging.INFO) -> None:
+def main_with_flags(job: Callable[[], int | None], log_level: int = logging.INFO, doc: str | None = None) -> None:
     """For entry points with plain absl flags and no config: run job() (its return value is the exit code);
     a bad flag, bad input or a missing file is one line on stderr."""
     from absl import app
 
+    _usage(doc)
     def main(argv):
         return _run_guarded(argv, job, log_level, "%(levelname)s %(name)s: %(message)s", "interrupted")
 

@@ -18,6 +18,7 @@ import numpy as np
 from neld_jax.data.poses import write_kitti, write_tum
 from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.errors import DataError
+from neld_jax.jsonable import to_jsonable  # noqa: F401  (re-exported: callers write JSON through export)
 from neld_jax.geometry import register_scans
 
 logger = logging.getLogger(__name__)
@@ -74,30 +75,6 @@ def write_raw_map(path: str | os.PathLike, scans: list[np.ndarray], poses: np.nd
     write_point_cloud(path, points)
     logger.info("wrote raw map %s (%d points, voxel %.3g m)", path, len(points), voxel_size)
     return points
-
-
-def to_jsonable(obj: Any) -> Any:
-    """Convert numpy scalars / arrays, paths, tuples and sets into plain JSON types.
-
-    Non-finite floats become None, so the file stays strict JSON that any parser reads.
-    """
-    if isinstance(obj, dict):
-        return {str(key): to_jsonable(value) for key, value in obj.items()}
-    if isinstance(obj, (list, tuple, set)):
-        return [to_jsonable(value) for value in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return to_jsonable(obj.item())
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    if obj is None or isinstance(obj, (str, int, bool)):
-        return obj
-    if hasattr(obj, "to_dict"):  # ml_collections.ConfigDict and friends
-        return to_jsonable(obj.to_dict())
-    raise TypeError(f"cannot convert {type(obj).__name__} to JSON")
 
 
 def read_json(path: str | os.PathLike) -> dict[str, Any]:

@@ -3,8 +3,7 @@
 Architecture after NeRF in the Wild (as NeLD-BA uses it): Fourier-encoded position -> `depth` dense ReLU
 layers of `width`, with the encoded position concatenated again to the input of each layer listed in
 `skip_layers` -> features; density head: concat(features, encoded view direction) -> dense ReLU of
-width // 2 -> dense 1 -> softplus or ReLU. Without view directions the density comes straight from the
-features. Both encodings use the surrogate gradient (eq. 9) unless `surrogate` is False.
+width // 2 -> dense 1 -> softplus. Both encodings use the surrogate gradient (eq. 9) unless `surrogate` is False.
 
 View directions are world-frame unit vectors [..., 3], encoded as they are (their components already lie in
 [-1, 1] like the normalised positions). Not azimuth/elevation angles: their Jacobian is infinite at a vertical
@@ -23,7 +22,6 @@ import jax.numpy as jnp
 
 from neld_jax.encoding import fourier_encode
 
-_ACTIVATIONS = {"softplus": jax.nn.softplus, "relu": jax.nn.relu}
 MATMUL_DTYPES = ("float32", "bfloat16")
 
 
@@ -38,11 +36,9 @@ def bfloat16_dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_
                                precision=precision, preferred_element_type=jnp.float32)
 
 
-def _inverse_activation(name: str, value: float) -> float:
-    """Pre-activation b with activation(b) == value (value > 0)."""
-    if name == "softplus":
-        return math.log(math.expm1(value))
-    return value
+def _inverse_softplus(value: float) -> float:
+    """Pre-activation b with softplus(b) == value (value > 0)."""
+    return math.log(math.expm1(value))
 
 
 class DensityField(nn.Module):
@@ -62,8 +58,6 @@ class DensityField(nn.Module):
     pos_freqs: int = 15
     dir_freqs: int = 4
     surrogate: bool = True
-    use_view_dirs: bool = True
-    density_activation: str = "softplus"
     dtype: Any = jnp.float32
     initial_density: float = 0.1
     matmul_dtype: str = "float32"
@@ -75,10 +69,6 @@ class DensityField(nn.Module):
         view_dirs: jax.Array,
         pos_window: jax.Array | None = None,
     ) -> jax.Array:
-        if self.density_activation not in _ACTIVATIONS:
-            raise ValueError(
-                f"density_activation must be one of {sorted(_ACTIVATIONS)}, got {self.density_activation!r}"
-            )
         if self.matmul_dtype not in MATMUL_DTYPES:
             raise ValueError(f"matmul_dtype must be one of {MATMUL_DTYPES}, got {self.matmul_dtype!r}")
         dot = bfloat16_dot_general if self.matmul_dtype == "bfloat16" else None
@@ -90,24 +80,22 @@ class DensityField(nn.Module):
                 hidden = jnp.concatenate([hidden, encoded], axis=-1)
             hidden = nn.relu(nn.Dense(self.width, dtype=self.dtype, dot_general=dot, name=f"hidden_{layer}")(hidden))
 
-        if self.use_view_dirs:
-            encoded_dir = fourier_encode(view_dirs.astype(self.dtype), self.dir_freqs, surrogate=self.surrogate)
-            hidden = jnp.concatenate([hidden, encoded_dir], axis=-1)
-            hidden = nn.relu(nn.Dense(self.width // 2, dtype=self.dtype, dot_general=dot,
-                                        name="density_hidden")(hidden))
+        encoded_dir = fourier_encode(view_dirs.astype(self.dtype), self.dir_freqs, surrogate=self.surrogate)
+        hidden = jnp.concatenate([hidden, encoded_dir], axis=-1)
+        hidden = nn.relu(nn.Dense(self.width // 2, dtype=self.dtype, dot_general=dot, name="density_hidden")(hidden))
 
         # The untrained field should be nearly transparent but not empty: a zero density (a ReLU below 0)
         # gives no termination weights and so no gradients, and a large one hides everything behind the
-        # first sample. A small output kernel and a bias at activation^-1(initial_density) start every
+        # first sample. A small output kernel and a bias at softplus^-1(initial_density) start every
         # point close to initial_density.
         output = nn.Dense(
             1,
             dtype=self.dtype,
             kernel_init=nn.initializers.variance_scaling(1e-4, "fan_in", "truncated_normal"),
-            bias_init=nn.initializers.constant(_inverse_activation(self.density_activation, self.initial_density)),
+            bias_init=nn.initializers.constant(_inverse_softplus(self.initial_density)),
             name="density_out",
         )(hidden)
-        return _ACTIVATIONS[self.density_activation](output[..., 0])
+        return jax.nn.softplus(output[..., 0])
 
 
 def field_from_config(model_cfg) -> DensityField:
@@ -122,8 +110,5 @@ def field_from_config(model_cfg) -> DensityField:
         pos_freqs=int(model_cfg.pos_freqs),
         dir_freqs=int(model_cfg.dir_freqs),
         surrogate=bool(model_cfg.surrogate_gradient),
-        use_view_dirs=bool(model_cfg.use_view_dirs),
-        density_activation=str(model_cfg.density_activation),
-        initial_density=float(model_cfg.initial_density),
-        matmul_dtype=str(model_cfg.get("matmul_dtype", "float32")),
+        matmul_dtype=str(model_cfg.matmul_dtype),
     )

@@ -8,11 +8,12 @@ the pose representation; tangent vectors are 6-vectors in the same order as jaxl
 
 so that `se3_exp(xi)` equals `jaxlie.SE3.exp(xi).as_matrix()`.
 
-Pose convention of the whole project: a scan's pose is a LEFT correction in the world frame,
+Pose convention of the whole project: a scan's pose is a RIGHT correction in the scan's own (body) frame,
 
-    T = apply_correction(xi, T_init) = exp(xi) @ T_init,
+    T = apply_correction(xi, T_init) = T_init @ exp(xi),
 
-so `xi` moves the already-placed scan rigidly in world coordinates (a zero `xi` keeps the initial pose).
+so `xi` moves the scan relative to where it stands, whatever frame the world is expressed in (a zero `xi` keeps
+the initial pose). Why right and not left: docs/method.md, "Poses".
 
 Numerics: the closed forms (sin(t)/t, (1 - cos t)/t^2, ...) are 0/0 at zero rotation. Below a small
 angle we switch to Taylor series, and the closed-form branch is evaluated at a harmless substitute angle
@@ -215,11 +216,11 @@ def rotate(transform: jax.Array, vectors: jax.Array) -> jax.Array:
 
 
 def apply_correction(xi: jax.Array, T_init: jax.Array) -> jax.Array:
-    """The project's pose convention: exp(xi) @ T_init, a left correction in the world frame.
+    """The project's pose convention: T_init @ exp(xi), a right correction in the scan's body frame.
 
     xi: [..., 6] twists [rho, omega], T_init: [..., 4, 4] -> corrected poses [..., 4, 4].
     """
-    return compose(se3_exp(xi), T_init)
+    return compose(T_init, se3_exp(xi))
 
 
 def se3_exp_float64(xi) -> np.ndarray:

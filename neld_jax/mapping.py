@@ -1,5 +1,6 @@
-"""The rendered map (eq. 14): cast each scan's own ray directions from its optimised pose and keep, per ray,
-the point at argmax_i h_i / delta_i. Works in the normalised frame; the caller maps points back to metres.
+"""The rendered map (eq. 14): cast each keyframe's own ray directions from its optimised pose and keep, per ray, the
+point at argmax_i h_i / delta_i. One renderer for one cube and for many: a ray is rendered by every cube that holds
+its keyframe and kept from the cube that holds its point most centrally.
 """
 
 from __future__ import annotations
@@ -14,31 +15,37 @@ import jax.numpy as jnp
 import numpy as np
 
 from neld_jax import rendering
+from neld_jax.data.normalize import Normalization
+from neld_jax.data.rays import RaySet, build_rays, rays_per_scan
 from neld_jax.field import DensityField
-from neld_jax.model import SamplerSettings, render_rays, world_rays
+from neld_jax.model import SamplerSettings, in_units, render_rays, world_rays
 
 logger = logging.getLogger(__name__)
 
+RAYS_PER_BATCH = 4096  # rays a device call renders (padded, so that the renderer compiles once)
+# Parts of the rays under a time limit with several cubes: each part costs every cube a padded batch of its own
+RENDER_PARTS = 4
 
-@functools.partial(jax.jit, static_argnames=("field", "sampler"))
-def render_map_points(params_field, field: DensityField, sampler: SamplerSettings, T_rays: jax.Array,
-                      directions_local: jax.Array, alpha):
-    """T_rays: [R, 4, 4] pose of each ray's scan, directions_local: [R, 3] -> (points [R, 3], opacity [R]).
 
-    Deterministic sampling (no key): bin midpoints for coarse samples, CDF quantiles for fine ones.
-    """
+@functools.partial(jax.jit, static_argnames=("field", "sampler_m"))
+def render_points(params_field, field: DensityField, sampler_m: SamplerSettings, scale, T_rays: jax.Array,
+                  directions_local: jax.Array, alpha):
+    """One cube's map points: T_rays [R, 4, 4] the pose of each ray's keyframe in the cube's frame, directions_local
+    [R, 3]; sampler_m in metres, scale (traced: one compile for every cube) its units -> (points [R, 3] in the
+    cube's frame, opacity [R]). Deterministic sampling (no key): bin midpoints, CDF quantiles."""
     origins, directions = world_rays(T_rays, directions_local)
-    out = render_rays(params_field, field, sampler, origins, directions, alpha)
+    out = render_rays(params_field, field, in_units(sampler_m, scale), origins, directions, alpha)
     rendered, z = (out.coarse, out.z_coarse) if out.fine is None else (out.fine, out.z_fine)
     z_map = rendering.map_range(rendered.weights, rendered.deltas, z)
     return origins + z_map[:, None] * directions, rendered.opacity
 
 
 class MapRender(NamedTuple):
-    """points: [N, 3] map points of the rays that end on a surface (normalised frame); ranges, opacity: [R]
-    rendered map range (normalised units) and opacity of every ray, for per-ray residuals; NaN for the rays a
-    time limit left out (`num_rendered` tells how many were rendered)."""
+    """rays: the rays cast (ranges in metres); points [N, 3] world: the points of the rays at least min_opacity
+    opaque (before the written map's voxel grid); ranges [R] metres and opacity [R] of every ray, NaN for the rays a
+    time limit left out."""
 
+    rays: RaySet
     points: np.ndarray
     ranges: np.ndarray
     opacity: np.ndarray
@@ -48,65 +55,86 @@ class MapRender(NamedTuple):
         return int(np.isfinite(self.opacity).sum())
 
 
+def mapping_rays(mapping_cfg, keyframes, seed: int) -> RaySet:
+    """The rays the rendered map casts (ranges in metres): each keyframe's own directions, mapping.max_rays_per_scan
+    of them and mapping.max_rays over the sequence (`rays_per_scan`), drawn with their own seed."""
+    per_scan = rays_per_scan(int(mapping_cfg.max_rays_per_scan), int(mapping_cfg.max_rays), keyframes.num_scans)
+    return build_rays(keyframes, Normalization(1.0), max_rays_per_scan=per_scan, seed=seed)
+
+
 def render_order(num_rays: int, max_seconds: float, seed: int) -> np.ndarray:
-    """The order rays are rendered in: [num_rays] indices. Under a time limit (max_seconds > 0) a seeded random
-    permutation, so that the rays rendered before the limit are a uniform sample of every scan's rays rather
-    than the first scans'; otherwise the rays' own order."""
-    if max_seconds > 0:
-        return np.random.default_rng(seed).permutation(num_rays)
-    return np.arange(num_rays)
+    """The order rays are rendered in: under a time limit a seeded permutation, so that the rays rendered before the
+    limit are a uniform sample of every keyframe's; otherwise their own order."""
+    return np.random.default_rng(seed).permutation(num_rays) if max_seconds > 0 else np.arange(num_rays)
 
 
 def out_of_time(started: float, last_started: float, max_seconds: float) -> bool:
-    """The render's stop rule under a time limit (max_seconds > 0; 0: never): stop rather than start another piece
-    of work (a batch, a part of the rays) that would end past the limit if it took as long as the last one.
-    started: time.perf_counter() when the render began; last_started: when the last piece began."""
+    """Stop rather than start a piece of work that would end past the limit if it took as long as the last one
+    (max_seconds <= 0: never)."""
     now = time.perf_counter()
     return max_seconds > 0 and (now - started) + (now - last_started) > max_seconds
 
 
-def render_map(params_field, field: DensityField, sampler: SamplerSettings, T_scans: np.ndarray,
-               directions_local: np.ndarray, scan_index: np.ndarray, alpha: float, rays_per_batch: int = 4096,
-               min_opacity: float = 0.5, progress: bool = False, max_seconds: float = 0.0,
-               seed: int = 0) -> MapRender:
-    """Rendered map of all rays, in the normalised frame.
+def render_map(refined, rays: RaySet, sampler_m: SamplerSettings, min_opacity: float, max_seconds: float = 0.0,
+               seed: int = 0, progress: bool = False) -> MapRender:
+    """Render `rays` (ranges in metres, scan_index: keyframes) with the fields and poses of `refined`
+    (neld_jax.refine.Refined); points in the world, anchored as refined.poses.
 
-    T_scans: [S, 4, 4] optimised poses; directions_local: [R, 3]; scan_index: [R]. Rays whose opacity is below
-    `min_opacity` (they pass through empty space and end nowhere) give no map point.
-    max_seconds > 0: a time limit. The rays are rendered in a random order (render_order), and no batch is started
-    that would end past the limit if it took as long as the one before (the first always runs); the rays left out
-    get NaN range and opacity.
-    Batches are padded to one size so that the renderer compiles once.
-    """
+    Each cube renders the rays of its keyframes in its own frame; a ray held by several cubes keeps the point the
+    most central in its cube. max_seconds > 0: a time limit; the rays go in parts of a random order, and no part is
+    started that would end past the limit if it took as long as the one before; the rays left out get NaN."""
     from tqdm.auto import tqdm
 
-    origins_of_scan = np.asarray(T_scans, np.float32)[:, :3, 3]  # on the host once, for the ranges
-    T_scans = jnp.asarray(T_scans, jnp.float32)
-    r = directions_local.shape[0]
+    plan, fields, field = refined.plan, refined.result.state.params["fields"], refined.field
+    scan_index = np.asarray(rays.scan_index)
+    r = len(scan_index)
+    best = np.full(r, np.inf)
+    points_w, ranges_m, opacity = np.zeros((r, 3)), np.full(r, np.nan), np.full(r, np.nan)
+    cubes = []  # per real cube: each keyframe's slot in it (-1: not a member), its field, frame and poses in it
+    for m in np.flatnonzero(plan.weight > 0):
+        slot_of = np.full(len(refined.poses), -1)
+        slot_of[plan.members[m]] = np.arange(len(plan.members[m]))
+        norm_m = plan.norms[m]
+        cubes.append((slot_of, jax.tree.map(lambda x, m=m: x[m], fields), norm_m,
+                      jnp.asarray(norm_m.poses_to_normalized(refined.poses_in_field[plan.members[m]]), jnp.float32)))
+    max_seconds = float(max_seconds)
     order = render_order(r, max_seconds, seed)
-    ranges, opacities = np.full(r, np.nan), np.full(r, np.nan)
-    kept = [np.zeros((0, 3))]
+    if max_seconds <= 0:
+        parts = [order]
+    else:  # one cube: every batch a part; several: RENDER_PARTS parts, each rendered by every cube
+        parts = np.array_split(order, max(-(-r // RAYS_PER_BATCH), 1) if len(cubes) == 1 else RENDER_PARTS)
+    alpha = jnp.float32(refined.alpha)
     t0 = time.perf_counter()
-    for start in tqdm(range(0, r, rays_per_batch), disable=not progress, desc="rendered map", unit="batch"):
-        t_batch = time.perf_counter()
-        idx = order[start:start + rays_per_batch]
-        pad = rays_per_batch - len(idx)
-        d = np.pad(directions_local[idx], ((0, pad), (0, 0)), mode="edge")
-        s = np.pad(scan_index[idx], (0, pad), mode="edge")
-        points, opacity = render_map_points(params_field, field, sampler, T_scans[s], jnp.asarray(d, jnp.float32),
-                                            alpha)
-        points, opacity = np.asarray(points)[: len(idx)], np.asarray(opacity)[: len(idx)]
-        kept.append(points[opacity >= min_opacity])
-        ranges[idx] = np.linalg.norm(points - origins_of_scan[s[: len(idx)]], axis=1)
-        opacities[idx] = opacity
-        if out_of_time(t0, t_batch, max_seconds):
-            break
-    return MapRender(np.concatenate(kept, axis=0), ranges, opacities)
-
-
-def log_rendered_rays(num_points: int, num_rendered: int, num_rays: int, max_seconds: float) -> None:
-    """One log line for the rendered map, and a warning when its time limit left rays out."""
-    logger.info("rendered map: %d of %d rendered rays end on a surface", num_points, num_rendered)
-    if num_rendered < num_rays:
+    with tqdm(total=r * len(cubes), disable=not progress, desc="rendered map", unit="ray") as bar:
+        for part in parts:
+            t_part = time.perf_counter()
+            for slot_of, fields_m, norm_m, T_n in cubes:
+                sel = part[slot_of[scan_index[part]] >= 0]
+                for start in range(0, len(sel), RAYS_PER_BATCH):
+                    idx = sel[start:start + RAYS_PER_BATCH]
+                    pad = RAYS_PER_BATCH - len(idx)
+                    slots = np.pad(slot_of[scan_index[idx]], (0, pad), mode="edge")
+                    directions = np.pad(rays.directions[idx], ((0, pad), (0, 0)), mode="edge")
+                    p_n, op = render_points(fields_m, field, sampler_m, jnp.float32(norm_m.scale), T_n[slots],
+                                            jnp.asarray(directions, jnp.float32), alpha)
+                    p_n, op = np.asarray(p_n, np.float64)[: len(idx)], np.asarray(op)[: len(idx)]
+                    centrality = np.abs(p_n).max(axis=1)
+                    better = centrality < best[idx]
+                    kept = idx[better]
+                    best[kept] = centrality[better]
+                    points_w[kept] = norm_m.points_to_world(p_n[better])
+                    origins_n = np.asarray(T_n)[slots[: len(idx)][better], :3, 3]
+                    ranges_m[kept] = np.linalg.norm(p_n[better] - origins_n, axis=1) / norm_m.scale
+                    opacity[kept] = op[better]
+                    bar.update(len(idx))
+            if out_of_time(t0, t_part, max_seconds):
+                break
+    hit = opacity >= float(min_opacity)  # NaN (not rendered) is not a hit
+    points = points_w[hit] @ refined.anchor[:3, :3].T + refined.anchor[:3, 3]
+    render = MapRender(rays, points, ranges_m, opacity)
+    logger.info("rendered map: %d of %d rendered rays end on a surface%s", len(points), render.num_rendered,
+                "" if len(cubes) == 1 else f" (stitched from {len(cubes)} submaps)")
+    if render.num_rendered < r:
         logger.warning("rendered map: %d of its %d rays (a uniform sample) were rendered in the %.0f s it may take "
-                       "(mapping.max_seconds; 0 renders every ray)", num_rendered, num_rays, max_seconds)
+                       "(mapping.max_seconds; 0 renders every ray)", render.num_rendered, r, max_seconds)
+    return render

@@ -3,8 +3,8 @@
 Everything here works in the normalised frame (the scene inside [-1, 1]^3) and is a pure function of
 (params, rays, static settings), so that the trainer and the mapper share one rendering path.
 
-Pose convention (see neld_jax.lie): the pose of scan s is `exp(params["poses"][s]) @ T_init[s]`, a left
-correction in the (normalised) world frame.
+Pose convention (docs/method.md, "Poses"): the pose of keyframe s is `T_init[s] @ Exp(xi_s)`, a RIGHT correction
+in the scan's body frame, xi = (rho, omega) with rho in the reference unit of every cube (`corrected_poses`).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from neld_jax import encoding, lie, rendering, sampling
 from neld_jax.field import DensityField
@@ -34,9 +35,13 @@ class SamplerSettings:
     hierarchical: str = "before"  # before | nerf | none
     guided_samples: int = 0
     guided_width: float = 0.0  # normalised units
-    # The expected range reads each sample's range (the paper) or the middle of the interval before it (unbiased
-    # for a sharp surface): rendering.composite
-    range_at_midpoint: bool = False
+
+
+def in_units(sampler_m: SamplerSettings, scale) -> SamplerSettings:
+    """A sampler in metres in a cube's units (scale: normalised units per metre; may be traced: one compile for every
+    cube)."""
+    return dataclasses.replace(sampler_m, z_low=sampler_m.z_low * scale, z_up=sampler_m.z_up * scale,
+                               guided_width=sampler_m.guided_width * scale)
 
 
 class RayOutputs(NamedTuple):
@@ -49,19 +54,28 @@ class RayOutputs(NamedTuple):
     z_far: jax.Array  # [R]
 
 
-def scan_poses(poses: jax.Array, T_init: jax.Array) -> jax.Array:
-    """poses: [S, 6] se(3) corrections, T_init: [S, 4, 4] -> corrected poses [S, 4, 4]."""
-    return lie.apply_correction(poses, T_init)
+def corrected_poses(poses: jax.Array, T_init: jax.Array, scan_global: jax.Array, rho_factor) -> jax.Array:
+    """One cube's keyframe poses: poses [S, 6] the shared corrections (rho in the reference unit), T_init [W, 4, 4]
+    the cube's keyframes' start poses in its normalised frame, scan_global [W] their rows of `poses`, rho_factor:
+    the cube's scale over the reference scale -> [W, 4, 4] = T_init @ Exp((rho_factor rho, omega)).
+
+    A normalisation x -> s (x - o) keeps rotations and scales translations, so the same right correction is exact in
+    every cube that holds the scan: in the world it is T_world @ Exp((rho / s_ref, omega))."""
+    xi = poses[scan_global]
+    xi = jnp.concatenate([xi[:, :3] * rho_factor, xi[:, 3:]], axis=1)
+    return lie.compose(T_init, lie.se3_exp(xi))
 
 
-def anchor_transform(T_opt: jax.Array, T_ref: jax.Array, anchor: int) -> jax.Array:
-    """The rigid transform G [4, 4] with G @ T_opt[anchor] == T_ref[anchor].
+def world_poses(T_start: np.ndarray, poses: np.ndarray, ref_scale: float) -> np.ndarray:
+    """The keyframes' corrected poses in the world, float64: T_start [S, 4, 4] (metres), poses [S, 6] (rho in units of
+    ref_scale per metre) -> [S, 4, 4] = T_start @ Exp((rho / ref_scale, omega))."""
+    return np.asarray(T_start, np.float64) @ body_corrections(poses, ref_scale)
 
-    The density field, not a fixed scan, holds the frame when every pose is free; applying G to all poses and
-    map points afterwards re-expresses the result so that the anchor scan keeps its reference (initial) pose.
-    It changes no relative pose, so trajectory error after alignment and map quality are untouched.
-    """
-    return lie.compose(T_ref[anchor], lie.invert(T_opt[anchor]))
+
+def body_corrections(poses: np.ndarray, ref_scale: float) -> np.ndarray:
+    """Exp of the corrections in metres, float64: poses [S, 6] -> [S, 4, 4]."""
+    xi = np.asarray(poses, np.float64)
+    return lie.se3_exp_float64(np.concatenate([xi[:, :3] / ref_scale, xi[:, 3:]], axis=1))
 
 
 def world_rays(T_scan: jax.Array, directions_local: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -122,8 +136,7 @@ def render_rays(
 
     pos_window = encoding.barf_window(alpha, field.pos_freqs)
     sigma_coarse = _densities(params_field, field, origins, directions, z_coarse, pos_window)
-    midpoints_from = z_near if sampler.range_at_midpoint else None
-    coarse = rendering.composite(sigma_coarse, z_coarse, z_far, midpoints_from)
+    coarse = rendering.composite(sigma_coarse, z_coarse, z_far)
     if sampler.hierarchical == "none" or sampler.num_fine == 0:
         return RayOutputs(coarse, None, z_coarse, None, z_far)
 
@@ -137,5 +150,5 @@ def render_rays(
     sigma_new = _densities(params_field, field, origins, directions, z_new, pos_window)
     z_fine, order = sampling.merge_samples(z_coarse, z_new)
     sigma_fine = jnp.take_along_axis(jnp.concatenate([sigma_coarse, sigma_new], axis=-1), order, axis=-1)
-    fine = rendering.composite(sigma_fine, z_fine, z_far, midpoints_from)
+    fine = rendering.composite(sigma_fine, z_fine, z_far)
     return RayOutputs(coarse, fine, z_coarse, z_fine, z_far)

@@ -39,26 +39,11 @@ def deltas_from_samples(z: jax.Array, z_far: jax.Array | None = None) -> jax.Arr
     return jnp.concatenate([inner, last], axis=-1)
 
 
-def midpoints_before(z: jax.Array, z_near: jax.Array) -> jax.Array:
-    """(z_{i-1} + z_i) / 2 for each sample, with z_{-1} = z_near. z: [R, N] sorted, z_near: [R] -> [R, N].
-
-    A surface at D between two samples puts the ray's termination on the first sample beyond it (its density is
-    the first high one), so z_i reads D + U(0, spacing) late; the middle of the interval before reads D on average.
-    """
-    before = jnp.concatenate([z_near[..., None], z[..., :-1]], axis=-1)
-    return 0.5 * (before + z)
-
-
-def composite(sigma: jax.Array, z: jax.Array, z_far: jax.Array | None = None,
-              midpoints_from: jax.Array | None = None) -> Rendered:
+def composite(sigma: jax.Array, z: jax.Array, z_far: jax.Array | None = None) -> Rendered:
     """Termination weights and expected range of each ray.
 
     sigma: [R, N] densities (>= 0) at the samples z: [R, N] (sorted); z_far: [R] end of the interval, used
     for the last spacing. Returns `Rendered` (weights [R, N], depth [R], opacity [R], deltas [R, N]).
-    midpoints_from: [R] start of the sampled interval (z_near), or None. None: the expected range reads each
-    sample's own range z_i (the paper's eq.). Given: it reads the middle of the interval before each sample,
-    (z_{i-1} + z_i) / 2 with z_{-1} = midpoints_from, which removes the expected range's bias of half a spacing
-    behind a sharp surface (docs/method.md, "Rendering and losses").
     """
     deltas = deltas_from_samples(z, z_far)
     optical = sigma * deltas  # [R, N], sigma_i delta_i
@@ -66,7 +51,7 @@ def composite(sigma: jax.Array, z: jax.Array, z_far: jax.Array | None = None,
     # Exclusive cumulative sum: the optical depth in front of sample i (0 for the first sample).
     in_front = jnp.concatenate([jnp.zeros_like(optical[..., :1]), jnp.cumsum(optical[..., :-1], axis=-1)], axis=-1)
     weights = jnp.exp(-in_front) * alpha
-    depth = jnp.sum(weights * (z if midpoints_from is None else midpoints_before(z, midpoints_from)), axis=-1)
+    depth = jnp.sum(weights * z, axis=-1)
     opacity = jnp.sum(weights, axis=-1)
     return Rendered(weights=weights, depth=depth, opacity=opacity, deltas=deltas)
 

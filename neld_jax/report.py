@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from neld_jax.geometry import invert_poses, rotation_angles_deg
+from neld_jax.metrics import similarity_matrix, umeyama_alignment
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +41,17 @@ def pose_corrections(T_before: np.ndarray, T_after: np.ndarray) -> tuple[np.ndar
     T_before, T_after: [S, 4, 4] -> (translation [S] metres, rotation angle [S] degrees)."""
     delta = invert_poses(T_before) @ T_after
     return np.linalg.norm(delta[:, :3, 3], axis=1), rotation_angles_deg(delta[:, :3, :3])
+
+
+def aligned_corrections(T_before: np.ndarray, T_after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How each scan moved against the others from T_before to T_after ([S, 4, 4] each): the rigid motion of the
+    whole trajectory (the gauge) is removed first by aligning T_after to T_before (SE(3), with 3 scans or more).
+    Returns (translation [S] metres, rotation [S] degrees)."""
+    alignment = np.eye(4)
+    if len(T_before) >= 3:
+        rotation, translation, _ = umeyama_alignment(T_after[:, :3, 3], T_before[:, :3, 3])
+        alignment = similarity_matrix(rotation, translation)
+    return pose_corrections(T_before, alignment @ T_after)
 
 
 def robust_outliers(values: np.ndarray, threshold: float = MAD_THRESHOLD) -> np.ndarray:

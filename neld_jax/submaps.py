@@ -1,8 +1,9 @@
-"""Submaps: a sequence larger than one cube split into overlapping windows of consecutive keyframes.
+"""The plan of cubes: one cube for a sequence it holds at the configured detail, else overlapping windows of
+consecutive keyframes ("submaps"), each with its own cube and field, sharing one pose row per keyframe.
 
-Pure numpy (no jax): the plan (which keyframes each submap holds, its normalisation), the rule that switches
-submaps on, the per-submap ray tensors and the map from the one shared pose parameter into each submap's frame.
-docs/method.md ("Submaps") states the conventions; neld_jax.submap_train trains them.
+Pure numpy (no jax): the plan (which keyframes each cube holds, its normalisation), the rule that switches submaps
+on, and the per-cube ray tensors the trainer stacks (neld_jax.train). docs/method.md ("Submaps") states the
+conventions.
 
 Windows, not spatial tiles: a scan's rays reach as far as its range, so a tile would have to clip scans (a ray
 that ends in the next tile has no measured range inside its own) or hold every scan whose footprint touches
@@ -12,8 +13,8 @@ measured range; the windows are equally long so that the submaps stack into one 
 
 Shared pose, one row per keyframe: xi = (rho, omega) [S, 6] is a RIGHT correction in the scan's body frame,
 T_s = T_init[s] @ Exp(xi_s) (metres / s_ref for rho). A normalisation x_n = s_m (x - o_m) keeps rotations and
-scales translations, so in submap m the same correction is exactly Exp((s_m / s_ref) rho, omega) on the right
-of the submap's normalised initial pose: `rho_factor[m] = s_m / s_ref`.
+scales translations, so in cube m the same correction is exactly Exp((s_m / s_ref) rho, omega) on the right
+of the cube's normalised initial pose: `rho_factor[m] = s_m / s_ref` (1 for a single cube).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import dataclasses
 import logging
 import numpy as np
 
-from neld_jax.data.normalize import Normalization, fit_normalization
+from neld_jax.data.normalize import NORMALIZATION_MARGIN, fit_normalization
 from neld_jax.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -132,7 +133,7 @@ def submaps_wanted(config, extent_m: float) -> bool:
         return False
     if how != "auto":
         raise ConfigError(f"submaps.enabled: unknown value {config.submaps.enabled!r} (auto | on | off)")
-    detail = single_cube_detail_m(extent_m, config.model.pos_freqs, config.data.normalization_margin)
+    detail = single_cube_detail_m(extent_m, config.model.pos_freqs, NORMALIZATION_MARGIN)
     return detail > float(config.submaps.max_detail_m)
 
 
@@ -195,14 +196,17 @@ def plan_submaps(scans: list[np.ndarray], poses: np.ndarray, window: int, overla
     return SubmapPlan(members=members, norms=tuple(norms), ref_scale=ref_scale, weight=weight)
 
 
-def plan_from_config(seq, norm: Normalization, config, num_devices: int = 1) -> SubmapPlan | None:
-    """The plan for a preprocessed sequence (seq.scans, seq.poses) and its whole-sequence normalisation, or None
-    when one cube holds it (submaps_wanted). Logs how the sequence was split."""
-    margin = float(config.data.normalization_margin)
-    extent_m = 2.0 * margin / norm.scale
+def plan_from_config(seq, config, num_devices: int = 1) -> SubmapPlan:
+    """The plan of a preprocessed sequence (seq.scans, seq.poses: the poses training starts from): one cube fitted to
+    every keyframe when it holds them at submaps.max_detail_m (or submaps.enabled="off"), else windows. Logs how the
+    sequence was split."""
+    norm = fit_normalization(seq.scans, seq.poses, margin=NORMALIZATION_MARGIN)
+    extent_m = 2.0 * NORMALIZATION_MARGIN / norm.scale
     if not submaps_wanted(config, extent_m):
-        return None
+        return SubmapPlan(members=np.arange(seq.num_scans)[None], norms=(norm,), ref_scale=norm.scale,
+                          weight=np.ones(1))
     sc = config.submaps
+    margin = NORMALIZATION_MARGIN
     max_extent = max_submap_extent_m(float(sc.max_detail_m), config.model.pos_freqs, margin)
     window = int(sc.keyframes)
     if window <= 0:
@@ -216,8 +220,8 @@ def plan_from_config(seq, norm: Normalization, config, num_devices: int = 1) -> 
                 "data.max_range_m or set submaps.keyframes to choose)", seq.source or seq.name, max_extent,
                 sc.max_detail_m, config.model.pos_freqs, int(sc.overlap) + 1, largest, int(sc.overlap) + 1)
             window = int(sc.overlap) + 1
-    closure_radius = float(sc.get("closure_radius_m", 0.0))
-    limit = int(sc.get("max_submaps", 0))
+    closure_radius = float(sc.closure_radius_m)
+    limit = int(sc.max_submaps)
     if limit > 0 and int(sc.keyframes) <= 0:
         wanted = window
         window = window_for_limit(seq.poses, window, int(sc.overlap), closure_radius, limit)
@@ -277,7 +281,7 @@ class SubmapArrays:
     """Per-submap tensors (numpy), stacked over M submaps, rays padded to R (the largest submap's count).
 
     directions [M, R, 3] float32 sensor frame; ranges [M, R] float32 in the submap's normalised units;
-    scan_index [M, R] int32 local slot (0..W-1); scan_start, scan_count [M, W] int32; num_rays [M] int32;
+    scan_index [M, R] int32 local slot (0..W-1); num_rays [M] int32;
     T_init [M, W, 4, 4] float32 initial poses in each submap's normalised frame; scan_global [M, W] int32
     keyframe of each slot (a row of the shared poses); scale [M] float32 s_m (metres -> normalised);
     rho_factor [M] float32 s_m / s_ref; weight [M] float32."""
@@ -285,8 +289,6 @@ class SubmapArrays:
     directions: np.ndarray
     ranges: np.ndarray
     scan_index: np.ndarray
-    scan_start: np.ndarray
-    scan_count: np.ndarray
     num_rays: np.ndarray
     T_init: np.ndarray
     scan_global: np.ndarray
@@ -306,8 +308,7 @@ def submap_arrays(plan: SubmapPlan, rays_m, poses: np.ndarray) -> SubmapArrays:
     r = max(max(per), 1)
     out = SubmapArrays(
         directions=np.zeros((m, r, 3), np.float32), ranges=np.ones((m, r), np.float32),
-        scan_index=np.zeros((m, r), np.int32), scan_start=np.zeros((m, w), np.int32),
-        scan_count=np.zeros((m, w), np.int32), num_rays=np.asarray(per, np.int32),
+        scan_index=np.zeros((m, r), np.int32), num_rays=np.asarray(per, np.int32),
         T_init=np.zeros((m, w, 4, 4), np.float32), scan_global=plan.members.astype(np.int32),
         scale=plan.scales.astype(np.float32), rho_factor=plan.rho_factor.astype(np.float32),
         weight=plan.weight.astype(np.float32))
@@ -319,44 +320,11 @@ def submap_arrays(plan: SubmapPlan, rays_m, poses: np.ndarray) -> SubmapArrays:
             out.directions[i, at:at + n] = rays_m.directions[sl]
             out.ranges[i, at:at + n] = rays_m.ranges[sl] * norm.scale
             out.scan_index[i, at:at + n] = slot
-            out.scan_start[i, slot], out.scan_count[i, slot] = at, n
             at += n
         # Padding rays (never drawn: the sampler draws below num_rays) repeat the first ray, harmless values.
         out.directions[i, at:] = out.directions[i, 0] if at else (1.0, 0.0, 0.0)
         out.T_init[i] = norm.poses_to_normalized(poses[row]).astype(np.float32)
     return out
-
-
-def body_correction_matrices(xi: np.ndarray, rho_unit: float) -> np.ndarray:
-    """Exp of the shared corrections in metres: xi [S, 6] (rho in units of rho_unit per metre) -> [S, 4, 4].
-
-    T_world = T_init_world @ body_correction_matrices(xi, s_ref)."""
-    from neld_jax.lie import se3_exp_float64
-
-    xi = np.asarray(xi, np.float64)
-    return se3_exp_float64(np.concatenate([xi[:, :3] / rho_unit, xi[:, 3:]], axis=1))
-
-
-def global_poses(T_init_world: np.ndarray, xi: np.ndarray, ref_scale: float) -> np.ndarray:
-    """Optimised keyframe poses [S, 4, 4] in the world (metres) from the shared parameter xi [S, 6]."""
-    return np.asarray(T_init_world, np.float64) @ body_correction_matrices(xi, ref_scale)
-
-
-def owner_submap(points_world: np.ndarray, plan: SubmapPlan, candidates: np.ndarray) -> np.ndarray:
-    """For each point [N, 3] (world) among its candidate submaps [N, C] (-1: none), the one whose cube holds it
-    most centrally (smallest largest normalised coordinate). Returns [N] indices into candidates' values."""
-    best = np.full(len(points_world), -1, np.int64)
-    best_r = np.full(len(points_world), np.inf)
-    for c in range(candidates.shape[1]):
-        m = candidates[:, c]
-        valid = m >= 0
-        for sub in np.unique(m[valid]):
-            sel = valid & (m == sub)
-            r = np.abs(plan.norms[sub].points_to_normalized(points_world[sel])).max(axis=1)
-            better = r < best_r[sel]
-            idx = np.flatnonzero(sel)[better]
-            best[idx], best_r[idx] = sub, r[better]
-    return best
 
 
 def describe_membership(plan: SubmapPlan, num_scans: int) -> np.ndarray:

@@ -49,17 +49,3 @@ def propagate_corrections(T_input: np.ndarray, keyframe_index: np.ndarray, T_key
     refined = C @ T_input
     refined[keyframe_index] = T_keyframes  # exact, without the round trip through exp/log
     return refined
-
-
-def mean_of_corrections(T_start: np.ndarray, answers: np.ndarray) -> np.ndarray:
-    """The poses [S, 4, 4] T_start Exp(mean_n Log(T_start^-1 T_n)): the mean of N answers' right corrections
-    from one start, on se(3) (for example N training seeds' refined poses from the same start; their mean keeps
-    what the seeds agree on and shrinks what each seed adds on its own).
-
-    T_start: [S, 4, 4]; answers: [N, S, 4, 4] (N >= 1)."""
-    T_start = np.asarray(T_start, np.float64)
-    answers = np.asarray(answers, np.float64)
-    if answers.ndim != 4 or answers.shape[1:] != T_start.shape or len(answers) == 0:
-        raise ValueError(f"answers of shape {answers.shape} for start poses of shape {T_start.shape}")
-    xi = lie.se3_log_float64(invert_poses(T_start)[None] @ answers)  # [N, S, 6]
-    return T_start @ lie.se3_exp_float64(xi.mean(axis=0))

@@ -7,11 +7,11 @@ import pytest
 # Tests run on the CPU, whatever the machine has.
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-from neld_jax.config import base_config  # noqa: E402
+from neld_jax.config import defaults  # noqa: E402
 
 
 def make_tiny_config(output_dir: str = "", steps: int = 20):
-    c = base_config()
+    c = defaults()
     c.output_dir = output_dir
     c.data.format = "synthetic"
     c.data.keyframe_interval_s = 0.0
@@ -23,7 +23,6 @@ def make_tiny_config(output_dir: str = "", steps: int = 20):
     c.model.width, c.model.depth, c.model.skip_layers = 16, 2, (1,)
     c.model.pos_freqs, c.model.dir_freqs = 8, 2
     c.sampling.coarse_stages, c.sampling.fine_stages = (8, 12), (4, 6)
-    c.sampling.sample_ramp_fraction = 0.5
     c.train.steps = steps
     c.train.batch_rays = 32
     c.train.c2f_end_fraction = 0.5
@@ -33,7 +32,6 @@ def make_tiny_config(output_dir: str = "", steps: int = 20):
     c.train.checkpoint_every = 5
     c.train.log_every = 1
     c.mapping.num_coarse, c.mapping.num_fine = 8, 8
-    c.mapping.rays_per_batch = 128
     c.mapping.max_rays_per_scan = 64
     c.mapping.voxel_size_m = 0.0
     c.mapping.min_opacity = 0.0  # a 12-step field is still mostly transparent
@@ -41,11 +39,11 @@ def make_tiny_config(output_dir: str = "", steps: int = 20):
 
 
 def fake_training_clock(monkeypatch, seconds_per_step: float = 1.0, compile_s: float = 5.0) -> list:
-    """Make neld_jax.train's clock a fake one that only the fused chunks (train's and submap_train's) move: `seconds_per_step` a step, plus
+    """Make neld_jax.train's clock a fake one that only the fused chunks move: `seconds_per_step` a step, plus
     `compile_s` on each jitted chunk's first call. Returns the clock, [seconds]."""
     import types
 
-    from neld_jax import submap_train, train
+    from neld_jax import train
 
     clock = [0.0]
     monkeypatch.setattr(train, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
@@ -62,7 +60,6 @@ def fake_training_clock(monkeypatch, seconds_per_step: float = 1.0, compile_s: f
         return timed
 
     monkeypatch.setattr(train, "jit_chunk", timed_jit_chunk)
-    monkeypatch.setattr(submap_train, "jit_chunk", timed_jit_chunk)  # imported by name there
     return clock
 
 

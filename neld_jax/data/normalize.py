@@ -12,6 +12,9 @@ import numpy as np
 
 from neld_jax.errors import DataError
 
+# The largest half-extent of the scans and sensor origins maps to this: room for the poses' corrections in the cube
+NORMALIZATION_MARGIN = 0.9
+
 
 @dataclass(frozen=True)
 class Normalization:
@@ -63,7 +66,7 @@ class Normalization:
             raise DataError(f"invalid normalisation record {d!r}: {exc}") from exc
 
 
-def fit_normalization(scans: list[np.ndarray], poses: np.ndarray, margin: float = 0.95) -> Normalization:
+def fit_normalization(scans: list[np.ndarray], poses: np.ndarray, margin: float = NORMALIZATION_MARGIN) -> Normalization:
     """Fit the normalisation to all scan points (in the world via the initial poses) and the sensor origins.
 
     scans: S arrays [N_i, 3] sensor frame; poses: [S, 4, 4] sensor -> world.

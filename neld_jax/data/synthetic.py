@@ -25,10 +25,30 @@ from scipy.spatial.transform import Rotation
 from neld_jax.data.poses import write_tum
 from neld_jax.data.scans import write_scan
 from neld_jax.data.sequence import Sequence
-from neld_jax.config import synthetic_defaults
 from neld_jax.errors import ConfigError
 
 logger = logging.getLogger(__name__)
+
+
+def synthetic_defaults() -> ml_collections.ConfigDict:
+    """Every field of the synthetic sequence generator with its default."""
+    s = ml_collections.ConfigDict()
+    s.seed = 0
+    s.route = "loop"
+    s.route_length_m = 600.0
+    s.num_scans = 24
+    s.scene_size_m = 60.0
+    s.trajectory_radius_m = 15.0
+    s.num_beams = 32
+    s.num_columns = 512
+    s.fov_up_deg = 15.0
+    s.fov_down_deg = -15.0
+    s.max_range_m = 60.0
+    s.range_noise_m = 0.01
+    s.drift_trans_m = 0.05
+    s.drift_rot_deg = 0.5
+    s.gt_map_points = 200_000
+    return s
 
 MIN_RANGE_M = 0.5  # LiDAR minimum range, as in the paper's preprocessing
 SENSOR_HEIGHT_M = 1.8

@@ -1,40 +1,36 @@
-"""Quality of a run without ground truth (effects: files in output_dir): map crispness per method, the per-scan
-report (scans_report.csv / .png) and the top view of the raw map before and after (map_topdown.png); and the same
-crispness verdict for any trajectory files of a sequence's scans (bin/crispness.py).
+"""Which poses give the crisper raw map, and how sure that is: the crispness (neld_jax.crispness) of one set of
+scans registered with each method's poses, on the same query points, and the paired differences over several
+draws of them (docs/evaluation.md, "How sure a difference is"). No ground truth needed.
 
-The maths lives in neld_jax.crispness and neld_jax.report; this module feeds them a run's arrays.
+Methods are named: "initial" (the input), "baseline" (the classical baseline), "optimized" (NeLD-BA), or any
+trajectory a user brings (neld-crispness).
 """
 
 from __future__ import annotations
 
 import logging
-import os
 
 import numpy as np
 
-from neld_jax import crispness, metrics, plots, report
-from neld_jax.data.sequence import match_by_timestamp
-from neld_jax.errors import DataError
-from neld_jax.export import read_json, write_json
-from neld_jax.geometry import invert_poses, register_scans
+from neld_jax import crispness
+from neld_jax.geometry import register_scans
 
 logger = logging.getLogger(__name__)
 
 
-def map_crispness(seq, methods: dict[str, np.ndarray], eval_cfg) -> tuple[dict, dict]:
-    """Crispness of the keyframes' raw map (seq.scans, sensor frame) under each method's poses [K, 4, 4].
+def compare_maps(scans: list[np.ndarray], methods: dict[str, np.ndarray], radius: float = crispness.DEFAULT_RADIUS_M,
+                 max_queries: int = crispness.DEFAULT_MAX_QUERIES) -> tuple[dict, dict]:
+    """Crispness of the raw map of `scans` (K arrays [N_i, 3], sensor frame) under each method's poses [K, 4, 4].
 
-    Every method is measured on the same query points (the same scans, the same seed), so the figures compare.
+    Every method is measured on the same query points (the same scans, seed 0), so the figures compare.
     Returns ({method: crispness summary + radius}, {method: per-keyframe mean entropy [K]})."""
-    radius = float(eval_cfg.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M))
-    max_queries = int(eval_cfg.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES))
-    scan_of_point = np.repeat(np.arange(seq.num_scans), [len(s) for s in seq.scans])
-    queries = crispness.sample_queries(len(scan_of_point), max_queries, seed=0)
+    scan_of_point = np.repeat(np.arange(len(scans)), [len(s) for s in scans])
+    queries = crispness.sample_queries(len(scan_of_point), int(max_queries), seed=0)
     summaries, per_scan = {}, {}
     for name, poses in methods.items():
-        result = crispness.crispness(register_scans(seq.scans, poses), radius=radius, query_index=queries)
-        summaries[name] = {**result.summary(), "radius_m": radius}
-        per_scan[name] = crispness.per_scan_means(result.entropy, queries, scan_of_point, seq.num_scans)
+        result = crispness.crispness(register_scans(scans, poses), radius=float(radius), query_index=queries)
+        summaries[name] = {**result.summary(), "radius_m": float(radius)}
+        per_scan[name] = crispness.per_scan_means(result.entropy, queries, scan_of_point, len(scans))
     logger.info("raw-map crispness (radius %.2f m, %d query points): %s", radius, len(queries),
                 "; ".join(f"{name}: entropy {s['mean_map_entropy']:.3f}, thickness "
                           f"{100 * s['mean_plane_thickness_m']:.2f} cm" for name, s in summaries.items()
@@ -42,30 +38,34 @@ def map_crispness(seq, methods: dict[str, np.ndarray], eval_cfg) -> tuple[dict, 
     return summaries, per_scan
 
 
-def crispness_margins(seq, methods: dict[str, np.ndarray], eval_cfg, against: str = "optimized",
+def map_crispness(keyframes, methods: dict[str, np.ndarray], eval_cfg) -> tuple[dict, dict]:
+    """`compare_maps` of a sequence's keyframes with config.eval's crispness settings."""
+    return compare_maps(keyframes.scans, methods, float(eval_cfg.crispness_radius_m), int(eval_cfg.crispness_queries))
+
+
+def crispness_margins(keyframes, methods: dict[str, np.ndarray], eval_cfg, against: str = "optimized",
                       first_draw: dict | None = None, deadline: float | None = None, progress: bool = False) -> dict:
     """How sure the crispness verdict is: the paired difference of the `against` method's mean map entropy from
     each other method's, on eval.crispness_draws draws of the query points (seeds 0, 1, ...; draw 0 is the one
-    map_crispness uses). methods: {name: poses [K, 4, 4]} of the keyframes seq.scans. first_draw: map_crispness's
+    map_crispness uses). methods: {name: poses [K, 4, 4]} of the keyframes' scans. first_draw: map_crispness's
     summaries of these methods ({name: summary}), whose entropy is draw 0's, so only the later draws are measured.
     deadline: a time.perf_counter() value after which no draw starts (the run's clock); the margins then hold the
     draws made, and the log says so. progress: a progress bar over the draws.
 
     Returns {other: {"per_draw": [D], "mean", "std", "all_draws_agree"}} (negative: `against` is crisper), or {}
     with fewer than 2 draws or without the `against` method."""
-    draws = int(eval_cfg.get("crispness_draws", 0))
+    draws = int(eval_cfg.crispness_draws)
     if draws < 2 or against not in methods:
         return {}
-    maps = {name: register_scans(seq.scans, poses) for name, poses in methods.items()}
+    maps = {name: register_scans(keyframes.scans, poses) for name, poses in methods.items()}
     entropy = crispness.entropy_over_query_draws(
         maps, list(range(1 if first_draw else 0, draws)),
-        max_queries=int(eval_cfg.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES)),
-        radius=float(eval_cfg.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)), deadline=deadline,
+        max_queries=int(eval_cfg.crispness_queries),
+        radius=float(eval_cfg.crispness_radius_m), deadline=deadline,
         progress=progress)
     made = len(next(iter(entropy.values()), [])) + (1 if first_draw else 0)
     if made < draws:
-        logger.warning("crispness margins: %d of %d query draws fit the run's clock (train.max_minutes + "
-                       "mapping.max_seconds + eval.crispness_draws_max_seconds)%s", made, draws,
+        logger.warning("crispness margins: %d of %d query draws fit the run's clock (max_minutes)%s", made, draws,
                        "" if made >= 2 else "; no margin without two")
     if made < 2:
         return {}
@@ -95,40 +95,17 @@ def describe_margin(other: str, margin: dict, against: str = "NeLD-BA") -> str:
             f"(std {margin['std']:.5f} over query draws), {verdict}")
 
 
-def trajectory_at_keyframes(path, loaded, keyframes, tol: float = 0.05, invert: bool = False) -> np.ndarray:
-    """The poses [K, 4, 4] that a trajectory file (TUM, KITTI or Newer College CSV, in the convention of the
-    sequence's own pose file; invert: world -> sensor, as data.invert_poses) gives the keyframes `keyframes` of the
-    input scans `loaded`: by time when the file and the scans have timestamps (every keyframe needs a pose within
-    `tol` s), else by order, one pose per input scan or one per keyframe. Another back-end's answer for the same
-    scans is judged this way (bin/crispness.py); a file that fits neither is one DataError naming it."""
-    from neld_jax.evaluate import read_trajectory  # it imports open3d; run.train_keyframes' imports must not
-
-    stamps, poses = read_trajectory(path)
-    poses = invert_poses(poses) if invert else poses
-    index = keyframes.loaded_index
-    if stamps is not None and loaded.timestamps is not None:
-        labels = None if loaded.files is None else [loaded.files[i] for i in index]
-        return poses[match_by_timestamp(loaded.timestamps[index], stamps, tol=tol, what=str(path), scan_labels=labels)]
-    if len(poses) == loaded.num_scans:
-        return poses[index]
-    if len(poses) == keyframes.num_scans:
-        return poses
-    why = "has no timestamps" if stamps is None else "has timestamps but the scans have none"
-    raise DataError(f"{path}: {len(poses)} poses for {loaded.num_scans} input scans ({keyframes.num_scans} "
-                    f"keyframes); the file {why}, so it must hold one pose per input scan or per keyframe, in order")
-
-
-def judge_trajectories(seq, methods: dict[str, np.ndarray], eval_cfg, progress: bool = False) -> dict:
-    """Which trajectory gives the crispest raw map of the keyframes seq.scans, and how sure that is.
+def judge_trajectories(keyframes, methods: dict[str, np.ndarray], eval_cfg, progress: bool = False) -> dict:
+    """Which trajectory gives the crispest raw map of the keyframes' scans, and how sure that is.
 
     methods: {name: poses [K, 4, 4]} (two or more). The crispest is the lowest mean map entropy over
     eval.crispness_draws draws of the query points (draw 0's alone with fewer than 2 draws). Returns
     {"crispness": {name: summary on draw 0}, "crispest": name, "margins": {other: the crispest's entropy minus
     other's per draw, mean, std, all_draws_agree}} (margins empty without draws). progress: a progress bar over
     the draws."""
-    crisp, _ = map_crispness(seq, methods, eval_cfg)
+    crisp, _ = map_crispness(keyframes, methods, eval_cfg)
     best = crispest(crisp)
-    margins = (crispness_margins(seq, methods, eval_cfg, against=best, first_draw=crisp, progress=progress)
+    margins = (crispness_margins(keyframes, methods, eval_cfg, against=best, first_draw=crisp, progress=progress)
                if best else {})
     over_draws = crispest_over_draws(margins, against=best)
     if over_draws not in (None, best):  # draw 0 alone picked another
@@ -143,66 +120,6 @@ def margins_against(margins: dict, reference: str, new: str) -> dict:
     moved = {other: margin_over_draws(np.asarray(m["per_draw"]) - to_new)
              for other, m in margins.items() if other != new}
     return {**moved, reference: margin_over_draws(-to_new)}
-
-
-def aligned_corrections(T_before: np.ndarray, T_after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """How each scan moved against the others from T_before to T_after ([S, 4, 4] each): the rigid motion of the
-    whole trajectory (the gauge, e.g. the anchor scan's own correction) is removed first by aligning T_after to
-    T_before (SE(3), with 3 scans or more). Returns (translation [S] metres, rotation [S] degrees)."""
-    alignment = np.eye(4)
-    if len(T_before) >= 3:
-        rotation, translation, _ = metrics.umeyama_alignment(T_after[:, :3, 3], T_before[:, :3, 3])
-        alignment = metrics.similarity_matrix(rotation, translation)
-    return report.pose_corrections(T_before, alignment @ T_after)
-
-
-def write_scan_report(out_dir, loaded, seq, keyframe_index, T_all, raysets, rendered, norm, per_scan_entropy,
-                      min_opacity: float, start_poses: np.ndarray | None = None,
-                      refined_poses: np.ndarray | None = None) -> list[dict]:
-    """scans_report.csv and scans_report.png: one row per input scan (neld_jax.report).
-
-    rendered: (mapping rays, MapRender) from the rendered map, or None (then no residuals). start_poses,
-    refined_poses: [K, 4, 4] the keyframes' poses training started from and its answer, for the refinement columns
-    (None: the correction from the input stands for it)."""
-    num_keyframes = seq.num_scans
-    rays_per_keyframe = np.bincount(raysets.scan_index, minlength=num_keyframes)
-    residual = np.full(num_keyframes, np.nan)
-    if rendered is not None:
-        mapping_rays, render = rendered
-        hit = render.opacity >= min_opacity
-        error_m = np.abs(render.ranges - mapping_rays.ranges) / norm.scale
-        # build_rays groups the rays by scan: split once instead of masking all rays for every scan.
-        bounds = np.cumsum(np.bincount(mapping_rays.scan_index, minlength=num_keyframes))[:-1]
-        for k, (errors, hits) in enumerate(zip(np.split(error_m, bounds), np.split(hit, bounds))):
-            if hits.any():
-                residual[k] = float(np.median(errors[hits]))
-    correction_m, correction_deg = aligned_corrections(loaded.poses, T_all)
-    refinement_m = refinement_deg = None
-    if start_poses is not None and refined_poses is not None:
-        refinement_m, refinement_deg = aligned_corrections(start_poses, refined_poses)
-    rows = report.scan_report(loaded.num_scans, keyframe_index, loaded.files, loaded.timestamps, rays_per_keyframe,
-                              residual, correction_m, correction_deg, per_scan_entropy.get("initial"),
-                              per_scan_entropy.get("optimized"), refinement_m, refinement_deg)
-    report.write_csv(os.path.join(out_dir, "scans_report.csv"), rows)
-    plots.plot_scan_report(os.path.join(out_dir, "scans_report.png"), rows)
-    logger.info("scans_report.csv: %d input scans, %d keyframes trained on", loaded.num_scans, num_keyframes)
-    return rows
-
-
-def write_topdown(out_dir, seq, methods: dict[str, np.ndarray]) -> None:
-    """map_topdown.png: the keyframes' raw map from above under each method's poses, with close-ups where the
-    first and the last differ most (plots.plot_map_topdown)."""
-    plots.plot_map_topdown(os.path.join(out_dir, "map_topdown.png"),
-                           {name: register_scans(seq.scans, poses) for name, poses in methods.items()})
-
-
-def record_crispness(out_dir, summaries: dict) -> dict:
-    """Merge {method: crispness summary} into the "crispness" section of OUT_DIR/metrics.json (the trainer and
-    the baseline each add their methods); returns the merged section."""
-    path = os.path.join(out_dir, "metrics.json")
-    merged = {**read_json(path).get("crispness", {}), **summaries}
-    write_json(path, {"crispness": merged})
-    return merged
 
 
 def crispest(summaries: dict) -> str | None:

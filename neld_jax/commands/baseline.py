@@ -1,0 +1,81 @@
+"""neld-baseline (bin/baseline.py): the classical baseline on a sequence, into a run's output folder.
+
+    neld-baseline --config=configs/demo.py
+    neld-baseline --config=configs/generic.py --config.data.root=/data/seq --config.output_dir=runs/seq
+
+Loads and preprocesses the sequence exactly like neld-train, registers the keyframes (Open3D scan-to-map ICP, a
+loop-closed pose graph, multi-view refinement; neld_jax.baseline), carries their corrections to every input scan,
+writes poses_baseline.txt / .kitti and map_raw_baseline.ply (and the input's and the ground truth's where the folder
+lacks them, so that it can be evaluated on its own), the raw map's crispness into metrics.json and, where ground
+truth exists, evaluates the folder (initial / baseline / optimized if present).
+"""
+
+import dataclasses
+import logging
+import time
+from pathlib import Path
+
+from neld_jax.cli import main_with_config
+
+logger = logging.getLogger(__name__)
+
+
+def run_baseline(config, progress: bool = True) -> dict:
+    """Run the baseline on config.data into config.output_dir. Returns {"seconds", "crispness": {method: summary},
+    "evaluation": evaluate_run's result or None, "report": what the baseline decided}."""
+    from neld_jax import judge
+    from neld_jax.baseline import BaselineSettings, register_sequence
+    from neld_jax.data import load_keyframes
+    from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
+    from neld_jax.export import write_json, write_point_cloud, write_poses, write_raw_map
+    from neld_jax.outputs import record_crispness
+    from neld_jax.trajectory import propagate_corrections
+
+    loaded, keyframes = load_keyframes(config.data)
+    settings = BaselineSettings.from_config(config)
+    report = {}
+    t0 = time.perf_counter()
+    poses = register_sequence(keyframes.scans, keyframes.poses, settings, report=report, progress=progress)
+    seconds = time.perf_counter() - t0
+
+    out = Path(config.output_dir)
+    voxel = float(config.mapping.voxel_size_m)
+    write_poses(out, "poses_baseline", loaded.timestamps,
+                propagate_corrections(loaded.poses, keyframes.loaded_index, poses, loaded.timestamps))
+    write_raw_map(out / "map_raw_baseline.ply", keyframes.scans, poses, voxel_size=voxel)
+    if not (out / "poses_initial.txt").exists():
+        write_poses(out, "poses_initial", loaded.timestamps, loaded.poses)
+    if not (out / "map_raw_initial.ply").exists():
+        write_raw_map(out / "map_raw_initial.ply", keyframes.scans, keyframes.poses, voxel_size=voxel)
+    if loaded.gt_poses is not None and not (out / GT_POSES_FILE).exists():
+        write_poses(out, GT_POSES_FILE[:-len(".txt")], loaded.timestamps, loaded.gt_poses)
+    if keyframes.gt_map is not None and not any((out / name).exists() for name in GT_MAP_FILES):
+        write_point_cloud(out / GT_MAP_FILES[0], keyframes.gt_map)
+    crisp, _ = judge.map_crispness(keyframes, {"initial": keyframes.poses, "baseline": poses}, config.eval)
+    crisp = record_crispness(str(out), crisp)
+    write_json(out / "metrics.json", {"baseline": {"seconds": round(seconds, 2), **report,
+                                                   "settings": dataclasses.asdict(settings)}})
+    logger.info("baseline outputs written to %s (registration took %.1f s)", out, seconds)
+    evaluation = None
+    if keyframes.gt_poses is not None or keyframes.gt_map is not None:
+        evaluation = evaluate_run(out, map_icp_m=float(config.eval.map_icp_m))
+    return {"seconds": seconds, "crispness": crisp, "evaluation": evaluation, "report": report}
+
+
+def job(config) -> None:
+    from neld_jax.evaluate import format_table
+    from neld_jax.judge import format_crispness_table
+
+    result = run_baseline(config)
+    print(f"baseline ({result['seconds']:.0f} s) written to {config.output_dir}")
+    print(format_crispness_table(result["crispness"]))
+    if result["evaluation"] is not None:
+        print(format_table(result["evaluation"]))
+
+
+def main() -> None:
+    main_with_config(job, __doc__)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,5 +1,6 @@
 """FusionPortable (2022 handheld sequences: 20220216_canteen_day, 20220215_canteen_night, 20220216_garden_day,
-20220215_garden_night), as the dataset's devkit exports a FAST-LIO2 run (neld_jax.data.datasets.load_fusionportable):
+20220215_garden_night), as the dataset's devkit exports a FAST-LIO2 run
+(neld_jax.data.fusionportable.load_fusionportable):
 
     python bin/train.py --config=configs/fusionportable.py --config.data.root=/data/FusionPortable/sensor_data/handheld/20220216_canteen_day
 

@@ -1,5 +1,5 @@
 """Newer College: the 2021 release (quad/maths, easy to hard; OS0-128 rosbags) after bin/import_rosbag.py, or the
-2020 release's cloud_<sec>_<nsec>.pcd (neld_jax.data.datasets.load_newer_college):
+2020 release's cloud_<sec>_<nsec>.pcd (neld_jax.data.newer_college.load_newer_college):
 
     python bin/import_rosbag.py --bag=fastlio_quad_easy.bag --out=/data/quad_easy   # FAST-LIO2's clouds + odometry
     cp gt-nc-quad-easy.csv /data/quad_easy/

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ml_collections
 
+from neld_jax.data.synthetic import synthetic_defaults
 from neld_jax.errors import ConfigError
 
 BUDGETS = ("paper", "gpu", "cpu")
@@ -260,29 +261,6 @@ def base_config() -> ml_collections.ConfigDict:
     # (neld_jax.run.margins_deadline); 0: no limit.
     c.eval.crispness_draws_max_seconds = 30.0
     return c
-
-
-def synthetic_defaults() -> ml_collections.ConfigDict:
-    """Every field of the synthetic sequence generator (neld_jax.data.synthetic) with its default."""
-    s = ml_collections.ConfigDict()
-    s.seed = 0
-    # loop: one courtyard, a loop of trajectory_radius_m. courtyards: a route_length_m loop through a ring of
-    # connected courtyards (walls across the route with gates, buildings along it): a sequence larger than one cube.
-    s.route = "loop"
-    s.route_length_m = 600.0
-    s.num_scans = 24
-    s.scene_size_m = 60.0
-    s.trajectory_radius_m = 15.0
-    s.num_beams = 32
-    s.num_columns = 512
-    s.fov_up_deg = 15.0
-    s.fov_down_deg = -15.0
-    s.max_range_m = 60.0
-    s.range_noise_m = 0.01
-    s.drift_trans_m = 0.05
-    s.drift_rot_deg = 0.5
-    s.gt_map_points = 200_000
-    return s
 
 
 def refine_odometry(c: ml_collections.ConfigDict) -> ml_collections.ConfigDict:

@@ -13,7 +13,7 @@ import os
 import numpy as np
 
 from neld_jax import crispness, metrics, plots, report
-from neld_jax.data.sequence import match_by_timestamp
+from neld_jax.data.timing import match_by_timestamp
 from neld_jax.errors import DataError
 from neld_jax.export import read_json, write_json
 from neld_jax.geometry import invert_poses, register_scans

@@ -13,8 +13,9 @@ from scipy.spatial.transform import Rotation
 
 from conftest import tiny_synthetic_sequence
 from neld_jax import report
-from neld_jax.data.datasets import load_sequence
-from neld_jax.data.lio_keyframes import load_lio_keyframes, read_times
+from neld_jax.data.formats import load_sequence
+from neld_jax.data.lio_keyframes import load_lio_keyframes
+from neld_jax.data.timing import read_times
 from neld_jax.data.poses import read_tum, write_kitti
 from neld_jax.data.preprocess import select_keyframes
 from neld_jax.data.pseudo_gt import with_drift

@@ -1,11 +1,18 @@
-"""Data handling at the edge of the library (imports Open3D and SciPy; the core does not import this package):
+"""Data handling, the library's lowest layer besides `neld_jax.errors` and `neld_jax.geometry` (nothing here
+imports any other neld_jax module):
 
 - `scans`, `poses`: scan and trajectory formats (PCD/PLY/KITTI .bin/.npy; TUM, KITTI, Newer College CSV);
-- `sequence`: the in-memory `Sequence` every loader returns, timestamp matching, pose-jump checks;
-- `datasets`, `lio_keyframes`: loaders of the layouts in docs/design.md;
+- `sequence`: the in-memory `Sequence` every loader returns, pose-jump checks;
+- `timing`: timestamp files, nearest-time lookup, matching scans to poses by time;
+- `formats`: the registry of formats and `load_sequence(config.data)`; one module per format: `generic`,
+  `fusionportable`, `newer_college`, `lio_keyframes`, `hba`, `synthetic` (also the generator's defaults);
+  `layout`: what the folder formats share; `ground_truth`: explicit paths and published frame offsets;
+  `frames`: scans and poses in the expected frames;
 - `preprocess`: keyframes, range crop, voxel grid; `normalize`: the [-1, 1]^3 cube; `rays`: training rays;
-- `synthetic`: a seeded synthetic sequence with exact ground truth; `pseudo_gt`: drifted copies of real ones.
+- `pseudo_gt`: drifted copies of real sequences; `rosbag_import`: rosbags into the generic layout.
 
-Import the module you need (`from neld_jax.data.datasets import load_sequence`); this package file imports
+Most modules import Open3D or SciPy. The core (model, trainer, mapping, metrics, config) imports only
+`timing` (metrics), `synthetic` for its defaults (config) and `sequence`, which import neither when loaded.
+Import the module you need (`from neld_jax.data.formats import load_sequence`); this package file imports
 nothing, so that `import neld_jax.data.poses` stays light.
 """

@@ -92,7 +92,7 @@ def _ate(evaluation: dict, method: str):
 
 
 def run_sequence(name: str, root: str) -> dict:
-    from neld_jax.data.datasets import load_sequence
+    from neld_jax.data.formats import load_sequence
     from neld_jax.data.poses import read_tum
     from neld_jax.data.pseudo_gt import with_drift
     from neld_jax.data.synthetic import write_generic

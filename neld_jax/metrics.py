@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from neld_jax.data.timing import nearest_times
 from neld_jax.geometry import invert_poses, rotation_angles_deg
 
 logger = logging.getLogger(__name__)
@@ -198,24 +199,6 @@ def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> dict[str, Any]:
         "delta": int(delta),
         "num_pairs": int(len(translation_errors)),
     }
-
-
-def nearest_times(query_times: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each query time, the index of the nearest of `times` (any order; the earlier one on a tie) and the gap.
-
-    query_times: [Q], times: [P] with P >= 1 -> (indices [Q] int64 into times, |gaps| [Q] seconds)."""
-    query_times = np.asarray(query_times, dtype=np.float64).reshape(-1)
-    times = np.asarray(times, dtype=np.float64).reshape(-1)
-    order = np.argsort(times, kind="stable")
-    sorted_times = times[order]
-    right = np.clip(np.searchsorted(sorted_times, query_times), 1, max(len(sorted_times) - 1, 1))
-    left = right - 1
-    if len(sorted_times) == 1:
-        nearest = np.zeros_like(right)
-    else:
-        pick_right = np.abs(sorted_times[right] - query_times) < np.abs(sorted_times[left] - query_times)
-        nearest = np.where(pick_right, right, left)
-    return order[nearest], np.abs(sorted_times[nearest] - query_times)
 
 
 def associate_timestamps(stamps_est: np.ndarray, stamps_gt: np.ndarray, max_diff: float = 0.01

@@ -13,8 +13,9 @@ import logging
 import jax
 import ml_collections
 
-from neld_jax import data, mapping, outputs, refine, start, train
+from neld_jax import mapping, outputs, refine, start, train
 from neld_jax.budget import TimeBudget
+from neld_jax.data.preprocess import load_keyframes
 
 logger = logging.getLogger(__name__)
 
@@ -25,8 +26,8 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     out_dir, config_hash = outputs.prepare(config)
     logger.info("budget %s on jax's %s backend: %s", config.budget, jax.default_backend(), budget.describe())
 
-    # 1. Load every input scan, and the preprocessed keyframes training works on (neld_jax.data).
-    loaded, keyframes = data.load_keyframes(config.data)
+    # 1. Load every input scan, and the preprocessed keyframes training works on (neld_jax.data.preprocess).
+    loaded, keyframes = load_keyframes(config.data)
 
     # 2. Choose the start: the input or the classical baseline's poses, and the pose steps from there
     #    (neld_jax.start); a resumed run keeps the start its first run chose.

@@ -9,18 +9,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neld_jax.config import base_config
-from neld_jax.data.datasets import (
-    DEFAULT_TIMESTAMP_TOLERANCE_S,
-    align_poses,
-    load_fusionportable,
-    load_generic,
-    load_newer_college,
-    load_sequence,
-)
+from neld_jax.data.formats import load_sequence
+from neld_jax.data.fusionportable import load_fusionportable
+from neld_jax.data.generic import load_generic
+from neld_jax.data.layout import align_poses
+from neld_jax.data.newer_college import load_newer_college
 from neld_jax.data.poses import write_newer_college_csv, write_tum
 from neld_jax.data.preprocess import preprocess
 from neld_jax.data.scans import write_scan
-from neld_jax.data.sequence import Sequence, check_pose_jumps, match_by_timestamp
+from neld_jax.data.sequence import Sequence, check_pose_jumps
+from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S, match_by_timestamp
 from neld_jax.errors import ConfigError, DataError
 
 
@@ -97,7 +95,7 @@ def test_load_generic_one_scan_more_than_poses_names_the_scan(tmp_path):
 def test_load_generic_drop_unmatched_tail_drops_and_names_the_scan(tmp_path, caplog):
     scans, poses = make_scans(4), make_poses(3)
     write_generic_folder(tmp_path, scans, poses, np.arange(3.0))
-    with caplog.at_level(logging.WARNING, logger="neld_jax.data.datasets"):
+    with caplog.at_level(logging.WARNING, logger="neld_jax.data.layout"):
         seq = load_generic(tmp_path, drop_unmatched_tail=True)
     assert seq.num_scans == 3 and seq.files == ["scans/000000.npy", "scans/000001.npy", "scans/000002.npy"]
     np.testing.assert_allclose(seq.poses, poses, atol=1e-12)
@@ -111,7 +109,7 @@ def test_align_poses_drop_unmatched_tail_is_limited_and_works_for_extra_poses(tm
         align_poses(make_poses(12), np.arange(12.0), tmp_path / "poses.txt", files, drop_unmatched_tail=True,
                     root=tmp_path)
     # more poses than scans: the trailing poses go, every scan stays; without times the poses are numbered
-    with caplog.at_level(logging.WARNING, logger="neld_jax.data.datasets"):
+    with caplog.at_level(logging.WARNING, logger="neld_jax.data.layout"):
         out = align_poses(make_poses(21), None, tmp_path / "poses.kitti", files, drop_unmatched_tail=True)
     assert out.poses.shape == (20, 4, 4) and out.timestamps is None
     np.testing.assert_array_equal(out.scan_indices, np.arange(20))
@@ -130,7 +128,7 @@ def test_load_generic_unsorted_pose_times_by_time_is_a_warning(tmp_path, caplog)
     pose_times = 1650000000.0 + np.array([3.0, 0.0, 1.5])  # counts differ: matched by time
     poses = make_poses(3)
     write_generic_folder(tmp_path, make_scans(2), poses, pose_times, names=[f"{t:.6f}" for t in scan_times])
-    with caplog.at_level(logging.WARNING, logger="neld_jax.data.datasets"):
+    with caplog.at_level(logging.WARNING, logger="neld_jax.data.layout"):
         seq = load_generic(tmp_path)
     np.testing.assert_allclose(seq.poses, poses[[1, 0]], atol=1e-12)
     assert any("not in time order" in r.getMessage() for r in caplog.records)

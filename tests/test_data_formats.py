@@ -261,7 +261,7 @@ def test_duplicate_timestamp_names_file_and_both_lines(tmp_path, reader, lines):
 
 
 def test_unsorted_timestamps_are_read_in_file_order(tmp_path):
-    """The reader keeps file order; datasets.align_poses decides (error by order, warning by time)."""
+    """The reader keeps file order; layout.align_poses decides (error by order, warning by time)."""
     (tmp_path / "p.txt").write_text("2.0 0 0 0 0 0 0 1\n1.0 1 0 0 0 0 0 1\n")
     times, poses = read_tum(tmp_path / "p.txt")
     np.testing.assert_array_equal(times, [2.0, 1.0])

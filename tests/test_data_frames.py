@@ -9,7 +9,7 @@ import pytest
 
 from conftest import tiny_synthetic_sequence
 from neld_jax.data import frames
-from neld_jax.data.datasets import load_sequence
+from neld_jax.data.formats import load_sequence
 from neld_jax.data.synthetic import write_generic
 from neld_jax.errors import DataError
 from neld_jax.geometry import transform_points

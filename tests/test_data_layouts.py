@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neld_jax.config import base_config
-from neld_jax.data.datasets import load_sequence
+from neld_jax.data.formats import load_sequence
 from neld_jax.data.ground_truth import published_offset
 from neld_jax.data.poses import write_hba_poses, write_newer_college_csv, write_tum
 from neld_jax.data.scans import write_scan

@@ -6,17 +6,17 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from neld_jax.data.datasets import load_generic
+from neld_jax.data.generic import load_generic
 from neld_jax.data.preprocess import select_keyframes
 from neld_jax.data.synthetic import (
     add_odometry_drift,
     cast_scan,
-    default_synthetic_config,
     make_scene,
     make_scene_meshes,
     make_sequence,
     smooth_trajectory,
     spinning_lidar_directions,
+    synthetic_defaults,
     write_generic,
 )
 from neld_jax.errors import ConfigError
@@ -178,7 +178,10 @@ def test_generic_round_trip(tmp_path, small_sequence):
 
 
 def test_config_defaults_and_errors():
-    cfg = default_synthetic_config()
+    from neld_jax.config import base_config
+
+    cfg = synthetic_defaults()
+    assert base_config().data.synthetic.to_dict() == cfg.to_dict()  # the config takes the generator's defaults
     assert cfg.num_scans == 24 and cfg.num_beams == 32 and cfg.num_columns == 512
     assert cfg.gt_map_points == 200000 and cfg.drift_rot_deg == 0.5
     with pytest.raises(ConfigError, match="unknown field 'beams'"):

@@ -13,8 +13,9 @@ from scipy.spatial.transform import Rotation
 
 from conftest import tiny_synthetic_sequence
 from neld_jax import report
-from neld_jax.data.datasets import load_sequence
-from neld_jax.data.lio_keyframes import load_lio_keyframes, read_times
+from neld_jax.data.formats import load_sequence
+from neld_jax.data.lio_keyframes import load_lio_keyframes
+from neld_jax.data.timing import read_times
 from neld_jax.data.poses import read_tum, write_kitti
 from neld_jax.data.preprocess import select_keyframes
 from neld_jax.data.pseudo_gt import with_drift
@@ -220,11 +221,11 @@ def test_entropy_trajectory_benchmark_follows_the_poses(tmp_path):
 
 def _loaded_and_keyframes(root, keyframe_interval_s=0.0):
     from configs.lio_keyframes import get_config
-    from neld_jax.data.preprocess import load_preprocessed
+    from neld_jax.data.preprocess import load_keyframes
 
     data = get_config("cpu").data
     data.root, data.keyframe_interval_s = str(root), keyframe_interval_s
-    return load_preprocessed(data)
+    return load_keyframes(data)
 
 
 def test_another_trajectory_is_matched_to_the_keyframes_by_time_or_by_order(tmp_path):

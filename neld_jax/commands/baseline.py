@@ -25,7 +25,7 @@ def run_baseline(config, progress: bool = True) -> dict:
     "evaluation": evaluate_run's result or None, "report": what the baseline decided}."""
     from neld_jax import judge
     from neld_jax.baseline import BaselineSettings, register_sequence
-    from neld_jax.data import load_keyframes
+    from neld_jax.data.preprocess import load_keyframes
     from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
     from neld_jax.export import write_json, write_point_cloud, write_poses, write_raw_map
     from neld_jax.outputs import record_crispness

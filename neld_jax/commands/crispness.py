@@ -54,7 +54,7 @@ def trajectory_at_keyframes(path, loaded, keyframes, tol: float = TIME_TOLERANCE
     pose file; invert: world -> sensor, as data.invert_poses) gives the keyframes of the input scans `loaded`: by
     time when the file and the scans have timestamps (every keyframe needs a pose within `tol` s), else by order, one
     pose per input scan or one per keyframe. A file that fits neither is one DataError naming it."""
-    from neld_jax.data.sequence import match_by_timestamp
+    from neld_jax.data.timing import match_by_timestamp
     from neld_jax.errors import DataError
     from neld_jax.evaluate import read_trajectory
     from neld_jax.geometry import invert_poses
@@ -76,7 +76,7 @@ def trajectory_at_keyframes(path, loaded, keyframes, tol: float = TIME_TOLERANCE
 
 def job(config) -> None:
     from neld_jax import judge
-    from neld_jax.data import load_keyframes
+    from neld_jax.data.preprocess import load_keyframes
     from neld_jax.errors import ConfigError
     from neld_jax.export import write_json
 

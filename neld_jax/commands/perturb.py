@@ -23,7 +23,7 @@ flags.mark_flag_as_required("out")
 
 
 def job(config) -> None:
-    from neld_jax.data.datasets import load_sequence
+    from neld_jax.data.formats import load_sequence
     from neld_jax.data.pseudo_gt import with_drift
     from neld_jax.data.synthetic import write_generic
     from neld_jax.metrics import ate

@@ -15,7 +15,15 @@ from __future__ import annotations
 
 import os
 
-from neld_jax.data.datasets import _check_root, _list_scans, align_poses, build_sequence
+from neld_jax.data.layout import (
+    align_poses,
+    build_sequence,
+    check_root,
+    config_root,
+    list_scans,
+    load_options,
+    with_explicit_ground_truth,
+)
 from neld_jax.data.poses import read_hba_poses
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
@@ -28,9 +36,9 @@ def load_hba(root: str | os.PathLike, drop_unmatched_tail: bool = False) -> Sequ
     """Load the layout of this module's docstring (scans, poses; no stamps, no ground truth).
 
     A scan name that is not an index, an index missing from 0..S-1, or a pose count other than the scan count
-    is a DataError naming the file (drop_unmatched_tail: see datasets.align_poses)."""
-    root = _check_root(root)
-    files = [f for f in _list_scans(root / SCAN_FOLDER)]
+    is a DataError naming the file (drop_unmatched_tail: see layout.align_poses)."""
+    root = check_root(root)
+    files = [f for f in list_scans(root / SCAN_FOLDER)]
     indexed = {}
     for f in files:
         if f.suffix.lower() != ".pcd" or not f.stem.isdigit():
@@ -48,3 +56,12 @@ def load_hba(root: str | os.PathLike, drop_unmatched_tail: bool = False) -> Sequ
     aligned = align_poses(poses, None, pose_file, files, None, drop_unmatched_tail=drop_unmatched_tail, root=root)
     files = [files[i] for i in aligned.scan_indices]
     return build_sequence(root, files, aligned.poses, None, None, pose_file)
+
+
+def load(data_cfg) -> Sequence:
+    """data.format = 'hba': load_hba(data.root) with data.drop_unmatched_tail; data.gt_poses_path / gt_map_path,
+    when set, give the ground truth (matched by order: the layout has no stamps; layout.load_options)."""
+    root = config_root(data_cfg, "hba")
+    options = load_options(data_cfg)
+    seq = load_hba(root, drop_unmatched_tail=options.drop_unmatched_tail)
+    return with_explicit_ground_truth(seq, root, options)

@@ -20,11 +20,17 @@ import logging
 import os
 from pathlib import Path
 
-import numpy as np
-
-from neld_jax.data.datasets import MAX_UNMATCHED_TAIL, build_sequence
+from neld_jax.data.layout import (
+    MAX_UNMATCHED_TAIL,
+    build_sequence,
+    check_root,
+    config_root,
+    load_options,
+    with_explicit_ground_truth,
+)
 from neld_jax.data.poses import read_kitti
 from neld_jax.data.sequence import Sequence
+from neld_jax.data.timing import read_times
 from neld_jax.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -32,38 +38,6 @@ logger = logging.getLogger(__name__)
 SCAN_FOLDERS = ("Scans", "scans")
 TIMES_FILE = "times.txt"
 DEFAULT_POSE_FILE = "odom_poses.txt"
-
-
-def read_times(path: str | os.PathLike) -> np.ndarray:
-    """A file of one timestamp (seconds) per line -> [S] float64; blank lines and '#' comments are skipped.
-
-    Raises DataError naming the file and line for a non-numeric or non-finite value, or for stamps that go
-    backwards (scans are matched by order, so a stamp out of order means the files are out of step)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: timestamp file does not exist")
-    stamps, lines = [], []
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
-        text = line.strip()
-        if not text or text.startswith("#"):
-            continue
-        try:
-            value = float(text.split()[0])
-        except ValueError:
-            raise DataError(f"{path}, line {number}: not a timestamp: {text[:40]!r}") from None
-        if not np.isfinite(value):
-            raise DataError(f"{path}, line {number}: timestamp is not finite")
-        stamps.append(value)
-        lines.append(number)
-    if not stamps:
-        raise DataError(f"{path}: no timestamps")
-    stamps = np.asarray(stamps, dtype=np.float64)
-    steps = np.diff(stamps)
-    if np.any(steps <= 0):
-        i = int(np.flatnonzero(steps <= 0)[0])
-        raise DataError(f"{path}, lines {lines[i]} and {lines[i + 1]}: timestamps do not increase "
-                        f"({stamps[i]:.6f} then {stamps[i + 1]:.6f})")
-    return stamps
 
 
 def _scan_files(root: Path) -> tuple[Path, list[Path]]:
@@ -87,9 +61,7 @@ def load_lio_keyframes(root: str | os.PathLike, pose_file: str = DEFAULT_POSE_FI
                        drop_unmatched_tail: bool = False) -> Sequence:
     """Load the layout of this module's docstring into a Sequence (scans in the sensor frame, initial poses,
     timestamps; no ground truth). `pose_file` is relative to ROOT."""
-    root = Path(root).expanduser()
-    if not root.is_dir():
-        raise DataError(f"data root {root} does not exist (or is not a folder)")
+    root = check_root(root)
     folder, files = _scan_files(root)
     pose_path = root / pose_file
     if not pose_path.is_file():
@@ -124,3 +96,14 @@ def load_lio_keyframes(root: str | os.PathLike, pose_file: str = DEFAULT_POSE_FI
 
     # Scans read, dropped points counted, files named relative to the root, pose jumps checked: as every loader.
     return build_sequence(root, files, poses, stamps, None, pose_path)
+
+
+def load(data_cfg) -> Sequence:
+    """data.format = 'lio_keyframes': load_lio_keyframes(data.root) with data.pose_file ('' = DEFAULT_POSE_FILE)
+    and data.drop_unmatched_tail; data.gt_poses_path / gt_map_path, when set, give the ground truth (matched by
+    time against times.txt when both have stamps; layout.load_options)."""
+    root = config_root(data_cfg, "lio_keyframes")
+    options = load_options(data_cfg)
+    seq = load_lio_keyframes(root, pose_file=data_cfg.get("pose_file", "") or DEFAULT_POSE_FILE,
+                             drop_unmatched_tail=options.drop_unmatched_tail)
+    return with_explicit_ground_truth(seq, root, options)

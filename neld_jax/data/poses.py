@@ -10,7 +10,7 @@ Validation (each raises `DataError` naming the file and the line):
   Newer College CSV) two lines with the same timestamp (naming both lines): matching by time would be
   ambiguous, and trajectory evaluation (evo) associates by time.
 Timestamps out of order are returned as they are, in file order: whoever matches the poses to scans
-decides (datasets.align_poses: fine by time, with a warning; an error by order).
+decides (layout.align_poses: fine by time, with a warning; an error by order).
 """
 
 from __future__ import annotations

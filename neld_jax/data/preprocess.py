@@ -129,14 +129,14 @@ def preprocess(
     )
 
 
-def load_preprocessed(data_cfg) -> tuple[Sequence, Sequence]:
+def load_keyframes(data_cfg) -> tuple[Sequence, Sequence]:
     """Load the sequence that `data_cfg` (config.data) names and preprocess it with the config's settings.
 
     Returns (loaded, keyframes): every input scan as read, and the preprocessed keyframes that training
     uses (`keyframes.source_index` indexes `loaded`). The one place where bin/train.py and bin/baseline.py
     turn a config into the scans they work on.
     """
-    from neld_jax.data.datasets import load_sequence
+    from neld_jax.data.formats import load_sequence
 
     loaded = load_sequence(data_cfg)
     keyframes = preprocess(loaded, keyframe_interval_s=data_cfg.keyframe_interval_s,

@@ -5,7 +5,7 @@
     OUT/import.json            what was read: bag, topics, the clouds' frame, tolerance, counts (kept, dropped)
 
 Reads ROS1 .bag files and ROS2 bag folders with `rosbags.highlevel.AnyReader` (the `rosbags` package; no ROS
-installation). The layout is the one `datasets.load_generic` reads (docs/design.md, "Data on disk").
+installation). The layout is the one `generic.load_generic` reads (docs/design.md, "Data on disk").
 
 Clouds: sensor_msgs/PointCloud2; x, y, z are decoded from the message's own field table (offset, datatype,
 endianness, point_step, row_step), so organised (height > 1, Ouster) and padded clouds read as well as dense
@@ -46,9 +46,9 @@ import numpy as np
 
 from neld_jax.data.poses import make_poses, write_tum
 from neld_jax.data.scans import drop_invalid_points, write_scan
+from neld_jax.data.timing import nearest_times
 from neld_jax.errors import DataError
 from neld_jax.geometry import moved_enough
-from neld_jax.metrics import nearest_times
 
 logger = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
-"""The in-memory LiDAR sequence that every loader returns and the trainer consumes, matching poses to
-scans by time, and a plausibility check on consecutive poses.
+"""The in-memory LiDAR sequence that every loader returns and the trainer consumes, and a plausibility check
+on consecutive poses (matching poses to scans by time: timing.py).
 
 Messages about one scan name its file (`Sequence.scan_label`: "scans/000002.pcd (t=1650000006.000000)"),
 because after keyframe selection, or with files named by timestamp, an index does not tell the user
@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from neld_jax.errors import DataError
-from neld_jax.metrics import nearest_times
 
 logger = logging.getLogger(__name__)
 
@@ -102,32 +101,6 @@ class Sequence:
     def num_points(self) -> int:
         """Total number of points over all scans."""
         return int(sum(scan.shape[0] for scan in self.scans))
-
-
-def match_by_timestamp(
-    scan_times: np.ndarray, pose_times: np.ndarray, tol: float = 0.05, what: str = "poses",
-    scan_labels: list[str] | None = None,
-) -> np.ndarray:
-    """For each scan time, the index of the nearest pose time.
-
-    scan_times: [S], pose_times: [P] (any order) -> indices [S] int64 into pose_times.
-    Raises DataError when some scan has no pose within `tol` seconds; `what` names the pose source
-    (e.g. a file) in that message and `scan_labels` [S] (e.g. file names) the scans."""
-    scan_times = np.asarray(scan_times, dtype=np.float64).reshape(-1)
-    pose_times = np.asarray(pose_times, dtype=np.float64).reshape(-1)
-    if pose_times.size == 0:
-        raise DataError(f"{what}: no pose timestamps to match {scan_times.size} scans against")
-    nearest, gaps = nearest_times(scan_times, pose_times)
-    unmatched = np.flatnonzero(gaps > tol)
-    if unmatched.size:
-        i = int(unmatched[0])
-        first = f"scan {i}" if scan_labels is None else scan_labels[i]
-        raise DataError(
-            f"{what}: {unmatched.size} of {scan_times.size} scans have no pose within {tol} s "
-            f"(first: {first} at t={scan_times[i]:.6f}, nearest pose {gaps[i]:.6f} s away); "
-            f"{pose_times.size} poses for {scan_times.size} scans"
-        )
-    return nearest
 
 
 # A step is a jump when it is JUMP_FACTOR times the 90th-percentile step, and at least MIN_JUMP_M.

@@ -9,6 +9,9 @@ Ground-truth map: points sampled uniformly (by area) on the mesh surfaces and ke
 VISIBLE from at least one ground-truth sensor pose: inside the vertical field of view, within the
 LiDAR's range limits and not occluded (checked by casting a ray from the sensor to the point). So the
 map covers the surfaces the scans observed, at a uniform density, without the gaps between beam rings.
+
+The generator's fields and their defaults (config.data.synthetic) are `synthetic_defaults`; `write_generic` writes a
+sequence in the generic layout.
 """
 
 from __future__ import annotations
@@ -16,16 +19,18 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import ml_collections
 import numpy as np
-import open3d as o3d
-from scipy.spatial.transform import Rotation
 
-from neld_jax.data.poses import write_tum
-from neld_jax.data.scans import write_scan
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import ConfigError
+
+# Open3D and SciPy are imported in the functions that use them: config.py imports synthetic_defaults from here, and
+# the training path imports the config on machines without Open3D.
+if TYPE_CHECKING:
+    import open3d as o3d
 
 logger = logging.getLogger(__name__)
 
@@ -41,8 +46,6 @@ def synthetic_defaults() -> ml_collections.ConfigDict:
     s.trajectory_radius_m = 15.0
     s.num_beams = 32
     s.num_columns = 512
-    s.fov_up_deg = 15.0
-    s.fov_down_deg = -15.0
     s.max_range_m = 60.0
     s.range_noise_m = 0.01
     s.drift_trans_m = 0.05
@@ -50,21 +53,14 @@ def synthetic_defaults() -> ml_collections.ConfigDict:
     s.gt_map_points = 200_000
     return s
 
+
+
 MIN_RANGE_M = 0.5  # LiDAR minimum range, as in the paper's preprocessing
+FOV_DEG = (-15.0, 15.0)  # the simulated LiDAR's vertical field of view (lowest, highest beam), a VLP-32's
 SENSOR_HEIGHT_M = 1.8
 PATH_WOBBLE = 0.08  # relative radial wobble of the loop; the scene keeps this band clear
 SCAN_INTERVAL_S = 3.0  # 30 frames of 0.1 s: one keyframe per scan at the paper's 3 s spacing
 GT_MAP_VISIBILITY_TOLERANCE_M = 0.02
-
-
-def default_synthetic_config() -> ml_collections.ConfigDict:
-    """Every field that `make_sequence` reads, with its default (kept in neld_jax.config, the one place)."""
-    return synthetic_defaults()
-
-
-# --------------------------------------------------------------------------------------------------
-# Scene
-# --------------------------------------------------------------------------------------------------
 
 
 def _yaw_matrix(yaw: float) -> np.ndarray:
@@ -73,6 +69,8 @@ def _yaw_matrix(yaw: float) -> np.ndarray:
 
 
 def _ground(half_size: float) -> o3d.geometry.TriangleMesh:
+    import open3d as o3d
+
     h = half_size
     vertices = np.array([[-h, -h, 0.0], [h, -h, 0.0], [h, h, 0.0], [-h, h, 0.0]])
     triangles = np.array([[0, 1, 2], [0, 2, 3]])
@@ -81,6 +79,8 @@ def _ground(half_size: float) -> o3d.geometry.TriangleMesh:
 
 def _box(size_xyz, centre_xy, yaw: float = 0.0, base_z: float = 0.0) -> o3d.geometry.TriangleMesh:
     """A box standing on z = base_z, centred at centre_xy, rotated by yaw about z."""
+    import open3d as o3d
+
     sx, sy, sz = size_xyz
     mesh = o3d.geometry.TriangleMesh.create_box(sx, sy, sz)
     mesh.translate((-sx / 2, -sy / 2, 0.0))
@@ -90,6 +90,8 @@ def _box(size_xyz, centre_xy, yaw: float = 0.0, base_z: float = 0.0) -> o3d.geom
 
 
 def _cylinder(radius: float, height: float, centre_xy, base_z: float = 0.0) -> o3d.geometry.TriangleMesh:
+    import open3d as o3d
+
     mesh = o3d.geometry.TriangleMesh.create_cylinder(radius=radius, height=height, resolution=12, split=1)
     mesh.translate((centre_xy[0], centre_xy[1], base_z + height / 2))
     return mesh
@@ -97,6 +99,8 @@ def _cylinder(radius: float, height: float, centre_xy, base_z: float = 0.0) -> o
 
 def _blob(radii, centre, rng: np.random.Generator) -> o3d.geometry.TriangleMesh:
     """A lumpy ellipsoid (vegetation-like): a sphere with per-vertex radial noise, scaled per axis."""
+    import open3d as o3d
+
     mesh = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=8)
     vertices = np.asarray(mesh.vertices)
     vertices = vertices * rng.uniform(0.85, 1.15, size=(len(vertices), 1)) * np.asarray(radii)
@@ -186,6 +190,8 @@ def make_scene_meshes(
 
 def raycasting_scene(meshes: list[o3d.geometry.TriangleMesh]) -> o3d.t.geometry.RaycastingScene:
     """An Open3D RaycastingScene holding all the meshes."""
+    import open3d as o3d
+
     scene = o3d.t.geometry.RaycastingScene()
     for mesh in meshes:
         scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
@@ -226,6 +232,8 @@ def smooth_trajectory(num_scans: int, radius_m: float, seed: int) -> np.ndarray:
 
     The loop has radius radius_m with a gentle radial wobble (at most PATH_WOBBLE * radius_m); the
     sensor rides about 1.8 m above the ground, its yaw follows the motion, with small roll and pitch."""
+    from scipy.spatial.transform import Rotation
+
     rng = np.random.default_rng(seed)
     start, wobble_phase, z_phase, roll_phase, pitch_phase = rng.uniform(0.0, 2 * np.pi, size=5)
     wobble = PATH_WOBBLE * rng.uniform(0.5, 1.0)
@@ -260,6 +268,8 @@ def add_odometry_drift(gt_poses: np.ndarray, trans_sigma_m: float, rot_sigma_deg
     keep_tilt: the drift of an IMU-aided odometry instead, whose roll and pitch gravity keeps: each step's rotation
     noise is a turn ~ N(0, rot_sigma_deg) about the world's up axis (+z) through the scan, and the translation
     noise ~ N(0, trans_sigma_m) per world axis; every scan keeps gt's up axis (position and heading drift)."""
+    from scipy.spatial.transform import Rotation
+
     gt_poses = np.asarray(gt_poses, dtype=np.float64)
     rng = np.random.default_rng(seed)
     num_steps = max(gt_poses.shape[0] - 1, 0)
@@ -316,6 +326,8 @@ def courtyard_route(num_scans: int, length_m: float, seed: int) -> tuple[np.ndar
     """Ground-truth poses [S, 4, 4] evenly along a closed route of length_m (a rounded rectangle, so that it
     passes a ring of courtyards), and the dense route [N, 2] for placing the scene. Yaw follows the route;
     height, roll and pitch wobble a little as in smooth_trajectory."""
+    from scipy.spatial.transform import Rotation
+
     rng = np.random.default_rng(seed)
     z_phase, roll_phase, pitch_phase = rng.uniform(0.0, 2 * np.pi, size=3)
     dense = _rounded_rectangle(length_m)
@@ -393,6 +405,8 @@ def make_courtyards_meshes(seed: int, route_xy: np.ndarray) -> list[o3d.geometry
 
 def _cast(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """origins: [R, 3] or [3], directions: [R, 3] unit (world) -> first-hit distances [R] float64 (inf: miss)."""
+    import open3d as o3d
+
     rays = np.empty((directions.shape[0], 6), dtype=np.float32)
     rays[:, :3] = origins
     rays[:, 3:] = directions
@@ -506,7 +520,7 @@ def observed_surface_points(
 
 
 def _resolve_config(cfg) -> ml_collections.ConfigDict:
-    resolved = default_synthetic_config()
+    resolved = synthetic_defaults()
     if cfg is None:
         return resolved
     items = cfg.items() if hasattr(cfg, "items") else dict(cfg).items()
@@ -521,10 +535,6 @@ def _resolve_config(cfg) -> ml_collections.ConfigDict:
             raise ConfigError(f"data.synthetic.{key}: cannot use {value!r} ({exc})") from exc
     if resolved.num_scans < 1 or resolved.num_beams < 1 or resolved.num_columns < 1:
         raise ConfigError("data.synthetic: num_scans, num_beams and num_columns must be at least 1")
-    if resolved.fov_down_deg >= resolved.fov_up_deg:
-        raise ConfigError(
-            f"data.synthetic: fov_down_deg ({resolved.fov_down_deg}) must be below fov_up_deg ({resolved.fov_up_deg})"
-        )
     if resolved.route not in ("loop", "courtyards"):
         raise ConfigError(f"data.synthetic.route: unknown route {resolved.route!r} (loop | courtyards)")
     if resolved.route == "courtyards" and resolved.route_length_m < 100.0:
@@ -543,7 +553,7 @@ def _resolve_config(cfg) -> ml_collections.ConfigDict:
 def make_sequence(cfg=None) -> Sequence:
     """A synthetic Sequence: scans cast from the ground-truth poses, drifted initial poses, GT poses and map.
 
-    cfg: ConfigDict or dict with any of the fields of default_synthetic_config() (missing ones take the
+    cfg: ConfigDict or dict with any of the fields of synthetic_defaults() (missing ones take the
     defaults, unknown ones raise ConfigError). Timestamps are SCAN_INTERVAL_S (3 s) apart, so keyframe
     selection at 3 s keeps every scan."""
     cfg = _resolve_config(cfg)
@@ -556,13 +566,13 @@ def make_sequence(cfg=None) -> Sequence:
         scene, meshes = make_scene(cfg.seed, cfg.scene_size_m, path_radius_m=cfg.trajectory_radius_m)
         gt_poses = smooth_trajectory(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
     init_poses = add_odometry_drift(gt_poses, cfg.drift_trans_m, cfg.drift_rot_deg, cfg.seed + 1)
-    directions = spinning_lidar_directions(cfg.num_beams, cfg.fov_up_deg, cfg.fov_down_deg, cfg.num_columns)
+    directions = spinning_lidar_directions(cfg.num_beams, FOV_DEG[1], FOV_DEG[0], cfg.num_columns)
     rng = np.random.default_rng(cfg.seed + 2)
     scans = [cast_scan(scene, pose, directions, cfg.max_range_m, cfg.range_noise_m, rng) for pose in gt_poses]
     gt_map = None
     if cfg.gt_map_points > 0:
         gt_map = observed_surface_points(
-            meshes, scene, gt_poses, cfg.gt_map_points, cfg.fov_down_deg, cfg.fov_up_deg, cfg.max_range_m,
+            meshes, scene, gt_poses, cfg.gt_map_points, FOV_DEG[0], FOV_DEG[1], cfg.max_range_m,
             np.random.default_rng(cfg.seed + 3),
         )
     logger.info(
@@ -581,10 +591,18 @@ def make_sequence(cfg=None) -> Sequence:
     )
 
 
+def load(data_cfg) -> Sequence:
+    """data.format = 'synthetic': make_sequence(data.synthetic) (data.root is not read)."""
+    return make_sequence(data_cfg.get("synthetic", None))
+
+
 def write_generic(seq: Sequence, root) -> None:
     """Write seq in the generic layout: ROOT/scans/%06d.pcd, poses.txt, gt_poses.txt (TUM), gt_map.pcd.
 
     Scans are written as binary PCD (float32 coordinates). Without timestamps, 0, 1, 2, ... are written."""
+    from neld_jax.data.poses import write_tum
+    from neld_jax.data.scans import write_scan
+
     root = Path(root)
     (root / "scans").mkdir(parents=True, exist_ok=True)
     for i, scan in enumerate(seq.scans):

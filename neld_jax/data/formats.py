@@ -1,0 +1,80 @@
+"""The registry of dataset formats and `load_sequence`, which turns config.data into a `Sequence`.
+
+Each format is one module with a `load(data_cfg) -> Sequence` (config.data.format names it):
+
+    generic         generic.py         ROOT/scans/ + poses.txt (+ gt_poses.txt, gt_map.pcd|ply)
+    fusionportable  fusionportable.py  the devkit's export of a FAST-LIO2 run, with the download's ground truth
+    newer_college   newer_college.py   2021 (imported clouds + gt CSV) or 2020 (cloud_<sec>_<nsec>.pcd)
+    lio_keyframes   lio_keyframes.py   Scans/ + KITTI poses + times.txt, as LiDAR-inertial front-ends save them
+    hba             hba.py             HBA's input: pcd/<i>.pcd + pose.json
+    synthetic       synthetic.py       a seeded synthetic sequence with exact ground truth (no files)
+
+load_sequence adds what every folder format gets: the scan and pose frames converted or checked (frames.py), and a
+warning naming what was looked for when no ground truth is found.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from neld_jax.data import frames, fusionportable, generic, ground_truth, hba, lio_keyframes, newer_college, synthetic
+from neld_jax.data.sequence import Sequence
+from neld_jax.errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+FORMATS = {
+    "generic": generic.load,
+    "fusionportable": fusionportable.load,
+    "newer_college": newer_college.load,
+    "lio_keyframes": lio_keyframes.load,
+    "hba": hba.load,
+    "synthetic": synthetic.load,
+}
+
+# Where each folder format looks for ground truth by itself (for the "evaluation is skipped" warning).
+GT_SEARCHED = {
+    "generic": ("ROOT/gt_poses.txt", "ROOT/gt_map.pcd|ply"),
+    "fusionportable": ("groundtruth/traj/<sequence>.txt in or above ROOT (or ROOT/gt_poses.txt)",
+                       "groundtruth/map/<sequence>/merged_scan.pcd in or above ROOT (or ROOT/gt_map.pcd|ply)"),
+    "newer_college": ("ROOT/gt-nc-*.csv, gt_state_*.csv or registered_poses.csv", "ROOT/gt_map.pcd|ply"),
+    "lio_keyframes": ("nothing (the layout has no ground truth)", "ROOT/gt_map.pcd|ply"),
+    "hba": ("nothing (the layout has no ground truth)", "ROOT/gt_map.pcd|ply"),
+}
+
+
+def load_sequence(data_cfg) -> Sequence:
+    """Load the sequence that data_cfg (ml_collections.ConfigDict) names.
+
+    Reads data_cfg.format (one of FORMATS), data_cfg.root (folder formats) and data_cfg.synthetic (for
+    'synthetic'); an optional data_cfg.timestamp_tol_s overrides the 0.05 s matching tolerance.
+    Ground truth: data_cfg.gt_poses_path / gt_map_path, when set, replace what the layout has (a path that is set
+    but missing is a DataError naming it); data_cfg.gt_from_scan (7 numbers, T_G_S) replaces the published frame
+    offset, data_cfg.scan_frame picks which published offset (neld_jax/data/ground_truth.py), data_cfg.gt_time_offset_s
+    shifts the scan stamps when matching ground truth (another stamping convention); layout.load_options reads
+    them for every folder format. When no ground-truth trajectory is found the log says so, what was looked for,
+    and that pose evaluation is skipped. Preprocessing is left to the caller (see preprocess.preprocess)."""
+    fmt = str(data_cfg.format).lower()
+    if fmt not in FORMATS:
+        raise ConfigError(f"data.format: unknown format '{data_cfg.format}' (expected one of {', '.join(FORMATS)})")
+    seq = FORMATS[fmt](data_cfg)
+    if fmt == "synthetic":  # generated in the sensor frame with exact ground truth: nothing to convert or report
+        return seq
+    root = data_cfg.get("root", None)
+    # Poses sensor -> world and scans in the sensor frame: converted when the config says so, else checked (and
+    # refused with a line naming the option when they look the other way).
+    invert = bool(data_cfg.get("invert_poses", False))
+    seq = frames.inverted_poses(seq, str(root)) if invert else seq
+    seq = frames.in_sensor_frame(seq, str(root), bool(data_cfg.get("scans_in_world_frame", False)))
+    if not invert:
+        frames.check_pose_direction(seq, str(root))
+
+    if seq.gt_poses is None:
+        gt_poses_file = ground_truth.explicit_path(data_cfg, "gt_poses_path")
+        looked = f"data.gt_poses_path {gt_poses_file}" if gt_poses_file else GT_SEARCHED[fmt][0]
+        logger.warning("%s: no ground-truth trajectory (looked for %s; set data.gt_poses_path to give one): pose "
+                       "errors (ATE/RPE) will not be evaluated", root, looked)
+    if seq.gt_map is None:
+        logger.warning("%s: no ground-truth map (looked for %s; set data.gt_map_path to give one): map errors will "
+                       "not be evaluated", root, GT_SEARCHED[fmt][1])
+    return seq

@@ -1,0 +1,108 @@
+"""FusionPortable (fusionportable.github.io): a sequence as the dataset's devkit exports a FAST-LIO2 run, with the
+download's ground truth; or scans named by timestamp beside a pose file (load_fusionportable)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from neld_jax.data import ground_truth
+from neld_jax.data.layout import (
+    check_root,
+    config_root,
+    list_scans,
+    load_options,
+    sorted_by_name,
+    timestamp_from_name,
+    timestamped_sequence,
+)
+from neld_jax.data.sequence import Sequence
+from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S, read_times
+from neld_jax.errors import DataError
+
+POSE_FILES = ("fastlio2_poses.txt", "poses.txt", "odometry.txt")
+GT_FILES = ("gt_poses.txt", "traj/gt_poses.txt", "ground_truth.txt", "traj/ground_truth.txt")
+# The devkit's exports (fusionportable_dataset_tools, src/data_loader/ros_msg/pointcloud.py and odometry.py, driven
+# by src/write_alg_bag_to_data.ipynb and src/write_bag_to_data.ipynb): (scan folder, frame of its clouds).
+# algorithm_result/ holds FAST-LIO2's /cloud_registered_body (frame body_imu, src/cfg/algorithm/cfg_fastlio2.py).
+DEVKIT_SCANS = (("algorithm_result/ouster00_undistort/points", "body_imu"),
+                ("raw_data/ouster00/points", "ouster00"))
+DEVKIT_ODOMETRY = ("algorithm_result/odometry/odometry.txt", "odometry.txt")
+
+
+def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+                        gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
+                        gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
+                        gt_time_offset_s: float = 0.0) -> Sequence:
+    """Load a FusionPortable sequence. ROOT is the devkit's sequence folder (<dataset_path>/<sequence>, e.g.
+    .../sensor_data/handheld/20220216_canteen_day); its export, as the devkit writes it:
+
+        ROOT/algorithm_result/ouster00_undistort/points/data/000000.pcd ...   FAST-LIO2's /cloud_registered_body,
+                                                                               IMU (body_imu) frame
+        ROOT/algorithm_result/ouster00_undistort/points/timestamps.txt         one stamp per cloud (sec.nsec),
+                                                                               header stamps: END of the scan
+        ROOT/algorithm_result/odometry/odometry.txt                            FAST-LIO2 /Odometry, TUM, same stamps
+        (or ROOT/raw_data/ouster00/points/... raw Ouster clouds, frame ouster00, with ROOT/odometry.txt)
+
+    and the dataset's ground truth, found beside or up to three folders above ROOT (the download's layout,
+    fusionportable.github.io/dataset/fusionportable, "Data Organization"):
+
+        groundtruth/traj/<sequence>.txt                  TUM, <sequence> = ROOT's folder name
+        groundtruth/map/<sequence>/merged_scan.pcd       TLS map (1 cm), in the ground truth's world frame
+
+    gt_poses_file / gt_map_file (config data.gt_poses_path / gt_map_path) override the search. Ground-truth poses
+    are moved into the scans' frame by gt_from_scan (T_G_S [4, 4]; None: the published extrinsic for the scan
+    frame, ground_truth.PUBLISHED_GT_FROM_SCAN; scan_frame overrides the frame the folder implies).
+
+    Also read: ROOT/scans/<timestamp>.pcd with ROOT/fastlio2_poses.txt (or poses.txt, odometry.txt) and
+    ROOT/gt_poses.txt (or traj/gt_poses.txt, ground_truth.txt, traj/ground_truth.txt), ground truth in the scan
+    frame unless gt_from_scan says otherwise. Odometry and ground truth are matched to the scans by nearest
+    stamp within `tol` seconds; a scan without one is a DataError naming it."""
+    root = check_root(root)
+    if (root / "scans").is_dir():
+        scan_folder = root / "scans"
+        files = sorted_by_name(list_scans(scan_folder))
+        scan_times = _timestamps_from_names(files, scan_folder, "<timestamp>.pcd")
+        return timestamped_sequence(root, files, scan_times, POSE_FILES, GT_FILES, tol, gt_poses_file, gt_map_file,
+                                    gt_from_scan, gt_time_offset_s)
+
+    found = next(((root / folder, frame) for folder, frame in DEVKIT_SCANS if (root / folder / "data").is_dir()),
+                 None)
+    if found is None:
+        looked = ", ".join(f"{folder}/data/" for folder, _ in DEVKIT_SCANS)
+        raise DataError(f"{root}: no FusionPortable scans (looked for scans/ and the devkit's {looked})")
+    points_folder, frame = found
+    files = sorted_by_name(list_scans(points_folder / "data"))
+    scan_times = read_times(points_folder / "timestamps.txt")
+    if len(scan_times) != len(files):
+        raise DataError(f"{points_folder / 'timestamps.txt'} has {len(scan_times)} stamps but {points_folder / 'data'} "
+                        f"has {len(files)} scans (the devkit writes one stamp per cloud, in order)")
+    if gt_from_scan is None:
+        gt_from_scan = ground_truth.published_offset("fusionportable", scan_frame or frame)
+    name = root.name
+    gt_poses_file = gt_poses_file or ground_truth.first_upwards(root, f"groundtruth/traj/{name}.txt")
+    gt_map_file = gt_map_file or ground_truth.first_upwards(root, f"groundtruth/map/{name}/merged_scan.pcd")
+    return timestamped_sequence(root, files, scan_times, DEVKIT_ODOMETRY, (), tol, gt_poses_file, gt_map_file,
+                                gt_from_scan, gt_time_offset_s)
+
+
+def _timestamps_from_names(files: list[Path], folder: Path, pattern: str) -> np.ndarray:
+    """The stamps [S] that the scan names encode (layout.timestamp_from_name); DataError naming the first that
+    does not."""
+    times = [timestamp_from_name(f) for f in files]
+    bad = [f.name for f, t in zip(files, times) if t is None]
+    if bad:
+        raise DataError(f"{folder}: scan names must be timestamps ({pattern}); not a timestamp: {bad[0]}")
+    return np.asarray(times, dtype=np.float64)
+
+
+def load(data_cfg) -> Sequence:
+    """data.format = 'fusionportable': load_fusionportable(data.root) with the ground-truth options of
+    layout.load_options (explicit paths, gt_from_scan, scan_frame, gt_time_offset_s) and data.timestamp_tol_s."""
+    root = config_root(data_cfg, "fusionportable")
+    options = load_options(data_cfg)
+    return load_fusionportable(root, tol=options.tol, gt_poses_file=options.gt_poses_file,
+                               gt_map_file=options.gt_map_file, gt_from_scan=options.gt_from_scan,
+                               scan_frame=options.scan_frame, gt_time_offset_s=options.gt_time_offset_s)

@@ -1,0 +1,74 @@
+"""The generic layout (docs/design.md, "Data on disk"): the one bin/import_rosbag.py and synthetic.write_generic
+write.
+
+    ROOT/scans/*.{pcd,ply,bin,npy}   one scan per file, sensor frame, sorted by name
+    ROOT/poses.txt                   initial poses, TUM
+    ROOT/gt_poses.txt                optional ground-truth poses, TUM
+    ROOT/gt_map.pcd | gt_map.ply     optional ground-truth map, world frame
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from neld_jax.data.layout import (
+    align_poses,
+    build_sequence,
+    check_root,
+    config_root,
+    list_scans,
+    load_options,
+    sorted_by_name,
+    timestamp_from_name,
+    with_explicit_ground_truth,
+)
+from neld_jax.data.poses import read_tum
+from neld_jax.data.sequence import Sequence
+from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S
+
+
+def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+                 drop_unmatched_tail: bool = False) -> Sequence:
+    """Load the layout of this module's docstring.
+
+    Poses match scans by order (their timestamps must then increase). Only when the counts differ and
+    every scan name is a timestamp (1650000000.123456.pcd, or 10/13/16/19-digit integer s/ms/us/ns;
+    zero-padded frame numbers such as 000012.pcd are not) are they matched by timestamp, nearest within
+    `tol` seconds. Ground-truth poses follow the same rule (a different count is matched against the scan
+    timestamps). drop_unmatched_tail: see layout.align_poses (a few trailing scans without a pose are dropped
+    with a warning instead of an error)."""
+    root = check_root(root)
+    scan_folder = root / "scans"
+    files = sorted_by_name(list_scans(scan_folder))
+    name_times = [timestamp_from_name(f) for f in files]
+    names_are_times = all(t is not None for t in name_times)
+
+    pose_file = root / "poses.txt"
+    pose_times, poses = read_tum(pose_file)
+    by_time = names_are_times and poses.shape[0] != len(files)
+    scan_times = np.asarray(name_times, dtype=np.float64) if by_time else None
+    aligned = align_poses(poses, pose_times, pose_file, files, scan_times, tol=tol,
+                          drop_unmatched_tail=drop_unmatched_tail, root=root)
+    files = [files[i] for i in aligned.scan_indices]
+    timestamps = aligned.timestamps
+
+    gt_poses = None
+    gt_file = root / "gt_poses.txt"
+    if gt_file.is_file():
+        gt_times, gt_all = read_tum(gt_file)
+        gt_by_time = by_time or (gt_all.shape[0] != len(files))
+        gt_poses = align_poses(gt_all, gt_times, gt_file, files, timestamps if gt_by_time else None,
+                               tol=tol, root=root).poses
+
+    return build_sequence(root, files, aligned.poses, timestamps, gt_poses, pose_file)
+
+
+def load(data_cfg) -> Sequence:
+    """data.format = 'generic': load_generic(data.root) with data.timestamp_tol_s and data.drop_unmatched_tail;
+    data.gt_poses_path / gt_map_path, when set, replace the layout's ground truth (layout.load_options)."""
+    root = config_root(data_cfg, "generic")
+    options = load_options(data_cfg)
+    seq = load_generic(root, tol=options.tol, drop_unmatched_tail=options.drop_unmatched_tail)
+    return with_explicit_ground_truth(seq, root, options)

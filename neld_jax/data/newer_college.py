@@ -1,0 +1,117 @@
+"""Newer College (ori-drs.github.io/newer-college-dataset): the 2021 release's clouds imported from its rosbags with
+a FAST-LIO2 run, or the 2020 release's cloud_<sec>_<nsec>.pcd as extracted, each with its ground truth
+(load_newer_college)."""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from neld_jax.data import ground_truth
+from neld_jax.data.layout import (
+    align_poses,
+    build_sequence,
+    check_root,
+    config_root,
+    first_existing,
+    list_scans,
+    load_options,
+    matched_ground_truth,
+    sorted_by_name,
+    timestamped_sequence,
+)
+from neld_jax.data.poses import read_tum
+from neld_jax.data.sequence import Sequence
+from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S
+from neld_jax.errors import DataError
+
+SCAN_FOLDERS = ("clouds", "raw_format/ouster_scan", "raw_format/clouds")
+POSE_FILES = ("odometry.txt", "poses.txt", "fastlio2_poses.txt")
+GT_FILES = ("registered_poses.csv", "ground_truth/registered_poses.csv")
+# 2021 ground truth as downloaded (gt-nc-quad-easy.csv ...; gt_state_easy.csv ... for the maths sequences) and as
+# evalio's downloader names it (ground_truth.csv): github.com/contagon/evalio, newer_college_2021.py.
+GT_2021_PATTERNS = ("gt-nc-*.csv", "gt_state_*.csv", "ground_truth.csv")
+_CLOUD_NAME = re.compile(r"^cloud_(\d+)_(\d+)$")
+
+
+def newer_college_release(gt_file: Path) -> str:
+    """Which release a ground-truth file belongs to, by its name: registered_poses.csv is the 2020 release's,
+    anything else (gt-nc-*.csv, gt_state_*.csv) the 2021 release's."""
+    return "newer_college_2020" if gt_file.name == "registered_poses.csv" else "newer_college_2021"
+
+
+def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+                       gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
+                       gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
+                       gt_time_offset_s: float = 0.0) -> Sequence:
+    """Load a Newer College sequence, 2021 or 2020 release.
+
+    2021 (multi-cam, OS0-128; the paper's quad/maths sequences) comes as rosbags: import the clouds and a
+    FAST-LIO2 run with bin/import_rosbag.py, then put the ground-truth CSV beside them:
+
+        ROOT/scans/000000.pcd ...                 clouds (bin/import_rosbag.py), sensor frame
+        ROOT/poses.txt                            initial poses, TUM, one line per scan (scans match by order)
+        ROOT/gt-nc-quad-easy.csv | gt_state_easy.csv   ground truth, sec,nsec,x,y,z,qx,qy,qz,qw, BASE frame
+
+    2020 (stereo-cam, OS1-64) as extracted:
+
+        ROOT/clouds/cloud_<sec>_<nsec>.pcd      Ouster scans in the sensor frame (also read from
+                                                ROOT/raw_format/ouster_scan/ or ROOT/raw_format/clouds/)
+        ROOT/odometry.txt                       initial poses, TUM (else ROOT/poses.txt or fastlio2_poses.txt)
+        ROOT/registered_poses.csv               ground truth, '#sec,nsec,x,y,z,qx,qy,qz,qw'
+                                                (also ROOT/ground_truth/registered_poses.csv)
+
+    and, for both, an optional ROOT/gt_map.pcd|ply (or gt_map_file). gt_poses_file overrides the search. The
+    ground truth is moved into the scans' frame by gt_from_scan (T_G_S [4, 4]; None: the published offset of the
+    release the file name implies, newer_college_release, for scan_frame: '' = os_sensor, the raw clouds and
+    FAST-LIO2's body frame as its shipped ouster64.yaml starts it (identity LiDAR-IMU extrinsic, estimated online
+    unless mapping/extrinsic_est_en is false); 'os_imu' for a FAST-LIO2 run configured with the Ouster IMU's
+    extrinsic; the two are 2.4 cm apart). Ground truth is matched to scans by
+    nearest stamp within `tol` seconds; a scan without one is a DataError naming it. Points at the origin (no
+    return in organised Ouster clouds) are dropped when read and counted in one log line."""
+    root = check_root(root)
+    if (root / "scans").is_dir() and (root / "poses.txt").is_file():
+        files = sorted_by_name(list_scans(root / "scans"))
+        pose_file = root / "poses.txt"
+        pose_times, poses = read_tum(pose_file)
+        aligned = align_poses(poses, pose_times, pose_file, files, None, tol=tol, root=root)
+        scan_times = aligned.timestamps
+        gt_file = gt_poses_file or next((p for pattern in GT_2021_PATTERNS for p in sorted(root.glob(pattern))), None)
+        gt_poses = None
+        if gt_file is not None:
+            offset = gt_from_scan if gt_from_scan is not None else ground_truth.published_offset(
+                newer_college_release(gt_file), scan_frame)
+            gt_poses = matched_ground_truth(root, files, scan_times, gt_file, tol, offset, gt_time_offset_s)
+        return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file, gt_map_file)
+
+    scan_folder = next((root / f for f in SCAN_FOLDERS if (root / f).is_dir()), None)
+    if scan_folder is None:
+        raise DataError(f"{root}: no scan folder (looked for scans/ with poses.txt, {', '.join(SCAN_FOLDERS)})")
+    files = list_scans(scan_folder)
+    times = []
+    for f in files:
+        match = _CLOUD_NAME.match(f.stem)
+        if match is None:
+            raise DataError(f"{f}: Newer College scan names must be cloud_<sec>_<nsec>{f.suffix}")
+        times.append(int(match.group(1)) + int(match.group(2)) * 1e-9)
+    order = np.argsort(times, kind="stable")
+    files = [files[i] for i in order]
+    scan_times = np.asarray(times, dtype=np.float64)[order]
+    gt_file = gt_poses_file or first_existing(root, GT_FILES)
+    if gt_from_scan is None and gt_file is not None:
+        gt_from_scan = ground_truth.published_offset(newer_college_release(gt_file), scan_frame)
+    return timestamped_sequence(root, files, scan_times, POSE_FILES, GT_FILES, tol, gt_file, gt_map_file,
+                                gt_from_scan, gt_time_offset_s)
+
+
+def load(data_cfg) -> Sequence:
+    """data.format = 'newer_college': load_newer_college(data.root) with the ground-truth options of
+    layout.load_options (explicit paths, gt_from_scan, scan_frame, gt_time_offset_s) and data.timestamp_tol_s."""
+    root = config_root(data_cfg, "newer_college")
+    options = load_options(data_cfg)
+    return load_newer_college(root, tol=options.tol, gt_poses_file=options.gt_poses_file,
+                              gt_map_file=options.gt_map_file, gt_from_scan=options.gt_from_scan,
+                              scan_frame=options.scan_frame, gt_time_offset_s=options.gt_time_offset_s)

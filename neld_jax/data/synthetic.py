@@ -56,7 +56,7 @@ def synthetic_defaults() -> ml_collections.ConfigDict:
 
 
 MIN_RANGE_M = 0.5  # LiDAR minimum range, as in the paper's preprocessing
-FOV_DEG = (-15.0, 15.0)  # the simulated LiDAR's vertical field of view (lowest, highest beam), a VLP-32's
+FOV_DEG = (-15.0, 15.0)  # the simulated LiDAR's vertical field of view: its lowest and highest beams
 SENSOR_HEIGHT_M = 1.8
 PATH_WOBBLE = 0.08  # relative radial wobble of the loop; the scene keeps this band clear
 SCAN_INTERVAL_S = 3.0  # 30 frames of 0.1 s: one keyframe per scan at the paper's 3 s spacing

@@ -4,7 +4,7 @@ baseline's poses and NeLD-BA's (which starts from them) into what correlates wit
 does not.
 
     python benchmarks/ate_change.py --runs=/tmp/real/HKU_2_bag/drift,/tmp/real/HKU_MB_..._bag/drift \\
-        --out=benchmarks/results/ate_change.json
+        --out=/tmp/ate_change.json
 
 Each run folder holds poses_gt.txt, poses_baseline.txt and poses_optimized.txt (TUM; a run of bin/train.py with
 ground truth and train.init_poses=baseline or crisper, such as benchmarks/real_data.py's drift runs, whose

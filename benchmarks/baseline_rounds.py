@@ -1,10 +1,10 @@
 #!/usr/bin/env python
 """How the classical baseline's multi-view refinement converges, round by round, from a real sequence's recorded
 odometry and from the same odometry with drift injected: whether more rounds bring the two starts' answers together
-(issue 11's "within 2 cm of the answer from the recorded odometry") and how the raw map's crispness moves.
+(the drift test's "within 2 cm of the answer from the recorded odometry") and how the raw map's crispness moves.
 
     python benchmarks/baseline_rounds.py --root=<output>/HKU_MB_2020-09-20-13-34-51_bag --rounds=10 --keep_tilt \\
-        --out=benchmarks/results/baseline_rounds_mb.json
+        --out=/tmp/baseline_rounds.json
 
 One baseline per start (configs/lio_keyframes.py's settings, cpu budget; the drifted start with
 train.max_baseline_departure=0 as in benchmarks/real_data.py), with --rounds rounds of refinement
@@ -39,7 +39,7 @@ KEEP_TILT = flags.DEFINE_bool("keep_tilt", False, "Drift in position and heading
                               "for both starts (benchmarks/real_data.py --keep_tilt).")
 REGRAPH = flags.DEFINE_bool("regraph", False, "After the rounds, the pose graph again from each answer and two "
                               "rounds after it (module docstring).")
-OUT = flags.DEFINE_string("out", "benchmarks/results/baseline_rounds.json", "JSON output.")
+OUT = flags.DEFINE_string("out", "outputs/baseline_rounds.json", "JSON output.")
 flags.mark_flag_as_required("root")
 
 

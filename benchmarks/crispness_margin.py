@@ -2,12 +2,12 @@
 """How sure is a run's crispness verdict? The raw map's mean map entropy under a run's poses, over several draws
 of the query points, and the paired differences between the run's methods.
 
-    python benchmarks/crispness_margin.py --run_dir=runs/hku1 --out=benchmarks/results/hku1_margin.json
+    python benchmarks/crispness_margin.py --run_dir=runs/hku1 --out=/tmp/hku1_margin.json
     python benchmarks/crispness_margin.py --run_dir=runs/hku1 --root=/data/HKU_1_bag --draws=10
 
 A run judges itself on one draw of 10,000 query points (eval.crispness_queries, seed 0). The draw alone moves a
 sequence's entropy by about 0.01 nats; the methods are measured on the same points, so most of that cancels in
-their difference, but not all. Runs since the sixteenth session also write the margin over eval.crispness_draws
+their difference, but not all. Every run also writes the margin over eval.crispness_draws
 (5) draws to metrics.json (run.crispness_margin, neld_jax.quality.crispness_margins); this script measures it
 for a finished run, written before or with other draws. It reads the run's config.json (the sequence, its
 preprocessing, eval.crispness_radius_m) and its poses_<method>.kitti (initial, baseline when present, optimized),

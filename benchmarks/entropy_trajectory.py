@@ -28,7 +28,7 @@ from absl import app, flags  # noqa: E402
 ROOT = flags.DEFINE_string("root", None, "A sequence in the lio_keyframes layout (Scans/, odom_poses.txt, times.txt).")
 POSE_FILE = flags.DEFINE_string("pose_file", "", "KITTI poses to start from (absolute, or relative to --root).")
 EVERY = flags.DEFINE_integer("every", 250, "Measure the map's crispness every this many steps.")
-OUT = flags.DEFINE_string("out", "benchmarks/results/entropy_trajectory.json", "The JSON file written.")
+OUT = flags.DEFINE_string("out", "outputs/entropy_trajectory.json", "The JSON file written.")
 OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE, e.g. train.pose_lr_trans_init=5e-6.")
 
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Every GPU measurement of issue 13 in one process, within a time budget, into one JSON file.
+"""Every GPU measurement in one process, within a time budget, into one JSON file.
 
     python benchmarks/gpu_suite.py --prepare              # here (open3d needed): the demo's rays and poses
     bash benchmarks/gpu_suite.sh                          # on the GPU machine (installs .whl/ if needed)

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Every GPU measurement of issue 13 in one call (benchmarks/gpu_suite.py; JSON under $OUT, default
+# Every GPU measurement in one call (benchmarks/gpu_suite.py; JSON under $OUT, default
 # benchmarks/results/). Prepare on a machine with open3d first, from the repository root:
 #   python benchmarks/gpu_suite.py --prepare        # .gpu_data/demo.npz, the demo's rays and poses
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \

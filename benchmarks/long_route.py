@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""The long synthetic route (issue 16): submaps against one cube, and the submap step's throughput on 1-8 devices.
+"""The long synthetic route: submaps against one cube, and the submap step's throughput on 1-8 devices.
 
     python benchmarks/long_route.py                                  # the full target: 200 keyframes, 600 m
     python benchmarks/long_route.py --num_scans=66 --route_length_m=200 --steps=600   # a shortened run

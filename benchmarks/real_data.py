@@ -3,8 +3,9 @@
 map out. Reads sequences in the lio_keyframes layout (Scans/, odom_poses.txt, times.txt) from a path; nothing is
 downloaded or committed.
 
-    python benchmarks/real_data.py --root=/data/Fast-LIO2_SC-SLAM/output --sequences=HKU_1_bag,HKU_2_bag \\
-        --work=/tmp/real --out=benchmarks/results/real_data.json
+    python benchmarks/real_data.py --root=/data/Fast-LIO2_SC-SLAM/output --keep_tilt --work=/tmp/real \\
+        --sequences=HKU_1_bag,HKU_2_bag,2020-09-16-quick-shack_bag,HKU_MB_2020-09-20-13-34-51_bag \\
+        --out=benchmarks/results/real_data_cpu_handheld.json   # benchmarks/RESULTS.md, the cpu budget's tables
 
 Per sequence (one JSON object each, also printed as a line):
 - "recorded": from the recorded odometry, one NeLD-BA run per start in --recorded_starts (train.init_poses:
@@ -19,7 +20,7 @@ Per sequence (one JSON object each, also printed as a line):
   each map, and how far the baseline's and NeLD-BA's answers lie from the same configuration's answers from the
   recorded odometry (ATE between the two, SE(3)-aligned), and the split of NeLD-BA's ATE change from the
   baseline's (benchmarks/ate_change.py: its move off the baseline and how it correlates with the baseline's error).
-- "targets": issue 11's targets read off the two (benchmarks/real_targets.py): the recorded run within --minutes_limit
+- "targets": the targets for real recordings read off the two (benchmarks/real_targets.py): the recorded run within --minutes_limit
   minutes end to end, one line per input scan in poses_optimized.txt, its map crisper than the odometry's and than
   the baseline's ("every draw", "a tie" or "blurrier" over the run's query draws); from drift, NeLD-BA's answer
   within 2 cm of its answer from the recorded odometry, its map at least as crisp as the recorded odometry's, and
@@ -44,7 +45,7 @@ from neld_jax.hugepages import reexec_with_huge_page_malloc  # noqa: E402
 ROOT = flags.DEFINE_string("root", None, "Folder holding one sub-folder per sequence (lio_keyframes layout).")
 SEQUENCES = flags.DEFINE_list("sequences", None, "Sub-folders of --root to run (default: every sub-folder with Scans/).")
 WORK = flags.DEFINE_string("work", "outputs/real_data", "Output folders of the runs go below this.")
-OUT = flags.DEFINE_string("out", "benchmarks/results/real_data.json", "JSON file with one entry per sequence.")
+OUT = flags.DEFINE_string("out", "outputs/real_data/real_data.json", "JSON file with one entry per sequence.")
 BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper).")
 MAX_MINUTES = flags.DEFINE_float("max_minutes", -1.0, "Override train.max_minutes (-1: the budget's).")
 RECORDED_STARTS = flags.DEFINE_list("recorded_starts", ["crisper"],
@@ -59,7 +60,7 @@ KEEP_TILT = flags.DEFINE_bool("keep_tilt", False, "The drift of an IMU-aided odo
                               "baseline.keep_input_tilt=True (the same configuration from both starts).")
 OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. train.steps=2000.")
 MINUTES_LIMIT = flags.DEFINE_float("minutes_limit", 10.0, "The end-to-end time target of a recorded run [min] "
-                                   "(issue 11: 10 on the cpu budget's 2 cores).")
+                                   "(10 on the cpu budget's 2 cores).")
 flags.mark_flag_as_required("root")
 
 
@@ -196,7 +197,7 @@ def main(argv):
         with open(OUT.value, "w") as f:
             json.dump({"budget": BUDGET.value, "overrides": OVERRIDES.value, "keep_tilt": KEEP_TILT.value,
                        "sequences": results}, f, indent=1)
-    print("issue 11's targets (benchmarks/RESULTS.md):\n" + real_targets.format_targets(results), flush=True)
+    print("targets for real recordings (benchmarks/RESULTS.md):\n" + real_targets.format_targets(results), flush=True)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Issue 11's targets read off one sequence's entry of benchmarks/real_data.py (pure functions, no flags, so tests
+"""The targets for real recordings read off one sequence's entry of benchmarks/real_data.py (pure functions, no flags, so tests
 import them): the recorded run within the time limit, one pose line per input scan, its map crisper than the
 odometry's and than the classical baseline's; from injected drift, NeLD-BA within 2 cm of its answer from the
 recorded odometry, its map at least as crisp as the recorded odometry's, its ATE against the odometry at or below
@@ -20,7 +20,7 @@ def _margin_verdict(margin: dict | None):
 
 
 def target_verdicts(entry: dict, start: str, minutes_limit: float = 10.0) -> dict:
-    """Issue 11's targets for one sequence's entry of benchmarks/real_data.py: {"recorded": {...}} for the
+    """The targets for real recordings, for one sequence's entry of benchmarks/real_data.py: {"recorded": {...}} for the
     recorded run from `start` (train.init_poses; the drift run's own), and {"drift": {...}} when there is a drift
     run. Each target is True / False, a margin's verdict ("every draw", "a tie", "blurrier"), or None where the
     entry lacks what it needs."""

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """A PyTorch peer of the NeLD-BA train step, timed against the JAX step in the same process.
 
-    python benchmarks/torch_peer.py                                  # CPU, eager float32, the issue's sizes
+    python benchmarks/torch_peer.py                                  # CPU, eager float32, the cpu budget's sizes
     python benchmarks/torch_peer.py --torch_device=cuda --torch_modes=eager,tf32,compile
 
 torch is not a dependency of neld_jax (nor of its tests): install it beside it to run this (`pip install torch`).
@@ -15,7 +15,7 @@ densities, as in JAX; --reevaluate_coarse evaluates the coarse samples again in 
 NeRF implementation does), alpha compositing, the L1 range and termination losses of eq. 13, and Adam on the
 field and the poses. Left out (negligible work): the learning-rate schedules (constant rates here).
 
-Defaults are the issue's CPU sizes: 512 rays x (32 coarse + 16 fine), width 128, depth 4 (skip at 2), L = 10,
+Defaults are the cpu budget's sizes: 512 rays x (32 coarse + 16 fine), width 128, depth 4 (skip at 2), L = 10,
 4 view frequencies. Modes: eager (float32), tf32 (CUDA: TF32 matmuls), compile (torch.compile of the loss,
 with TF32 on CUDA). Each of --repeats rounds times --steps JAX steps, then --steps steps of each mode; the
 figures are medians over the rounds. One JSON line on stdout.
@@ -313,6 +313,6 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    FLAGS.set_default("dir_freqs", 4)  # the issue's peer sizes: 4 view frequencies
+    FLAGS.set_default("dir_freqs", 4)  # the peer's sizes: 4 view frequencies
     reexec_with_huge_page_malloc()  # the same allocator for both (neld_jax/hugepages.py)
     app.run(main)

@@ -34,8 +34,8 @@ REFINE_POSE_LR = (5e-6, 2.5e-7)
 def defaults() -> ml_collections.ConfigDict:
     """The paper's configuration (the "paper" budget)."""
     c = ml_collections.ConfigDict()
-    c.output_dir = "outputs/run"
-    c.seed = 0
+    c.output_dir = "outputs/run"  # where the run writes (a rerun resumes from its checkpoints)
+    c.seed = 0  # the field's initialisation, the rays drawn, the batches
     c.budget = "paper"  # the budget the preset applied (paper | gpu | cpu); a record, not read by the run
     c.max_minutes = 0.0  # the whole run's wall-clock budget (neld_jax.budget); 0: none
 
@@ -55,6 +55,7 @@ def defaults() -> ml_collections.ConfigDict:
     c.data.first_scan = 0  # keyframes from this input scan on ...
     c.data.max_scans = 0  # ... and at most this many (0: all): a long sequence in pieces
     c.data.max_rays_per_scan = 0  # training rays per keyframe, a random subset (0: every point)
+    c.data.timestamp_tol_s = 0.05  # scans and poses match by time within this
     c.data.gt_poses_path = ""  # ground-truth trajectory (TUM, or Newer College .csv) in place of the layout's
     c.data.gt_map_path = ""  # ground-truth map (.pcd / .ply) in place of the layout's
     c.data.gt_from_scan = ()  # the scan frame's pose in the ground truth's body frame (tx ty tz qx qy qz qw)
@@ -87,14 +88,14 @@ def defaults() -> ml_collections.ConfigDict:
     c.loss.lambda_termination = 1.0  # eq. 13 (ablation: 0)
 
     c.train = ml_collections.ConfigDict()
-    c.train.steps = 160_000
+    c.train.steps = 160_000  # optimiser steps
     c.train.batch_rays = 1024  # rays a step (over every submap)
     c.train.field_lr_init = 5e-5  # the field's Adam learning rate, decaying exponentially ...
     c.train.field_lr_final = 2e-5  # ... to this
     c.train.pose_lr_rot_init = 5e-5  # the poses' rotation learning rate ...
-    c.train.pose_lr_rot_final = 2e-5
+    c.train.pose_lr_rot_final = 2e-5  # ... decaying to this
     c.train.pose_lr_trans_init = 5e-5  # ... and translation learning rate
-    c.train.pose_lr_trans_final = 2e-5
+    c.train.pose_lr_trans_final = 2e-5  # ... decaying to this
     c.train.c2f_end_fraction = 0.75  # coarse-to-fine: every frequency active after this fraction of the steps
     c.train.pose_start_freq = 6  # k*: the poses move once this frequency is active
     c.train.fixed_scans = (0,)  # scans that never move (the gauge; (): every pose free, anchored on scan 0 after)
@@ -125,7 +126,7 @@ def defaults() -> ml_collections.ConfigDict:
     c.mapping = ml_collections.ConfigDict()
     c.mapping.enabled = True  # render map_rendered.ply
     c.mapping.num_coarse = 128  # samples per ray of the rendered map (eq. 14)
-    c.mapping.num_fine = 128
+    c.mapping.num_fine = 128  # ... coarse and fine
     c.mapping.max_rays_per_scan = 0  # rays per keyframe (0: every ray) ...
     c.mapping.max_rays = 0  # ... and over the sequence (0: no limit; each keyframe an equal share, >= 256)
     c.mapping.voxel_size_m = 0.05  # the written maps' grid (0: none)
@@ -167,6 +168,7 @@ def with_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Con
     c.mapping.update(num_coarse=64, num_fine=64, max_rays_per_scan=2048, max_rays=262_144, voxel_size_m=0.1,
                      max_seconds=60.0)
     c.submaps.update(max_submaps=32, width=64, step_rays_factor=3.0)
+    c.data.synthetic.gt_map_points = 100_000
     if budget == "gpu":
         paper = defaults()
         c.train.update(steps=30_000, log_every=500, checkpoint_every=5000)

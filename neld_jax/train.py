@@ -412,7 +412,7 @@ class Trainer(NamedTuple):
     step: Callable  # unjitted step(state, rays, frames, sampler)
     chunk: Callable  # jit_chunk(step)
     batch_rays: int  # per cube
-    sharding: Any  # the state's NamedSharding tree (None without a mesh)
+    sharding: Any  # the state's NamedSharding tree
 
 
 def sampler_settings(config: ml_collections.ConfigDict, num_coarse: int, num_fine: int) -> SamplerSettings:
@@ -463,17 +463,15 @@ def make_trainer(config: ml_collections.ConfigDict, num_scans: int, num_submaps:
                  start_poses: np.ndarray | None = None, total_steps: int | None = None,
                  mesh: Mesh | None = None) -> Trainer:
     """The optimiser, schedules, field, sampler and step of a plan of total_steps (None: train.steps) over S
-    keyframes in M cubes. start_poses [S, 4, 4] (world): what pose_steps.keep_scale keeps the scale of. With a mesh
-    the step keeps the state on it (its sharding from `init_state`'s structure)."""
+    keyframes in M cubes. start_poses [S, 4, 4] (world): what pose_steps.keep_scale keeps the scale of. The step
+    keeps the state on the mesh (None: one device), where `init_state` puts it."""
     steps = int(config.train.steps if total_steps is None else total_steps)
     schedules = make_schedules(config, pose_steps, steps, field_lr_factor(config, num_submaps, steps))
     tx = make_optimizer(config, schedules, num_scans, pose_steps, start_poses)
     field = make_field(config, num_submaps)
     batch = batch_rays_per_cube(config, num_submaps)
-    sharding = None
-    if mesh is not None:
-        sharding = state_sharding(jax.eval_shape(lambda: _initial_state(config, tx, field, num_scans, num_submaps)),
-                                  mesh)
+    shapes = jax.eval_shape(lambda: _initial_state(config, tx, field, num_scans, num_submaps))
+    sharding = state_sharding(shapes, make_mesh(1) if mesh is None else mesh)
     step = make_step(tx, schedules, field, loss_settings(config, num_submaps), batch, sharding)
 
     def sampler(step_index: int) -> SamplerSettings:
@@ -494,7 +492,7 @@ def init_state(config: ml_collections.ConfigDict, trainer: Trainer, num_scans: i
     """The state training starts from (cube m's field from key m of config.seed's split), placed as the trainer
     shards it; also the template a checkpoint restores into."""
     state = jax.jit(lambda: _initial_state(config, trainer.tx, trainer.field, num_scans, num_submaps))()
-    return state if trainer.sharding is None else jax.device_put(state, trainer.sharding)
+    return jax.device_put(state, trainer.sharding)
 
 
 # ------------------------------------------------------------------------------------------------ the loop

@@ -88,3 +88,27 @@ def similarity_scale(T_moved, T_start) -> float:
 @pytest.fixture
 def tiny_config(tmp_path):
     return make_tiny_config(str(tmp_path / "run"))
+
+
+def sphere_plan(num_scans: int = 3, per_scan: int = 64, seed: int = 0, window: int = 0, overlap: int = 1,
+                num_devices: int = 1):
+    """The sphere scene (sensors within 0.2 of the origin looking at a sphere of radius 0.8; metres are the cube's
+    units) as the trainer's data: one cube (window 0) or windows of `window` keyframes sharing `overlap`.
+    Returns (rays, frames, plan, T [S, 4, 4]) with rays and frames on a mesh of the plan's size."""
+    import numpy as np
+
+    from neld_jax import submaps, train
+    from neld_jax.data.normalize import Normalization
+    from neld_jax.data.rays import sphere_scene_rays
+
+    rays, T = sphere_scene_rays(num_scans, per_scan, seed, spread=0.2)
+    if window:
+        scans = [rays.directions[rays.scan_index == s] * rays.ranges[rays.scan_index == s, None]
+                 for s in range(num_scans)]
+        plan = submaps.plan_submaps(scans, T, window, overlap, 0.9, num_devices=num_devices)
+    else:
+        plan = submaps.SubmapPlan(members=np.arange(num_scans)[None], norms=(Normalization(1.0),), ref_scale=1.0,
+                                  weight=np.ones(1))
+    mesh = train.make_mesh(submaps.mesh_size(plan, num_devices))
+    device_rays, frames = train.device_data(submaps.submap_arrays(plan, rays, T), mesh)
+    return device_rays, frames, plan, T

@@ -1,24 +1,21 @@
-"""Run by tests/test_submaps.py in a subprocess with XLA_FLAGS=--xla_force_host_platform_device_count=8 (the flag
-must be set before jax is imported). Prints one "OK <name>" line per check; an assertion stops it."""
+"""Run by tests/test_train.py in a subprocess with XLA_FLAGS=--xla_force_host_platform_device_count=8 (the flag must
+be set before jax is imported). Prints one "OK <name>" line per check; an assertion stops it."""
 
 import os
 import sys
 
 assert "--xla_force_host_platform_device_count=8" in os.environ.get("XLA_FLAGS", ""), "run with 8 CPU devices"
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # conftest's helpers
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
-from conftest import make_tiny_config  # noqa: E402
-from neld_jax import submap_train as st  # noqa: E402
-from neld_jax import submaps  # noqa: E402
+from conftest import make_tiny_config, sphere_plan  # noqa: E402
+from neld_jax import train  # noqa: E402
 from neld_jax.checkpoint import Checkpointer  # noqa: E402
-from neld_jax.data.rays import sphere_scene_rays  # noqa: E402
 
 
 def main(tmp: str) -> None:
@@ -30,24 +27,22 @@ def main(tmp: str) -> None:
     cfg.train.c2f_end_fraction = 0.0  # poses move from step 0, so the pose updates are compared too
     cfg.sampling.coarse_stages, cfg.sampling.fine_stages = (8,), (4,)
     num_scans = 17
-    rays_np, T = sphere_scene_rays(num_scans, 48, seed=0)
-    scans = [rays_np.directions[rays_np.scan_index == s] * rays_np.ranges[rays_np.scan_index == s, None]
-             for s in range(num_scans)]
     # 17 keyframes in windows of 3 sharing 1: 8 submaps (starts 0, 2, ..., 14), one per device.
-    plan = submaps.plan_submaps(scans, T, 3, 1, 0.9, num_devices=8)
-    assert plan.num_submaps == 8 and plan.weight.min() == 1 and submaps.mesh_size(plan, 8) == 8
-    rays, frames = st.from_arrays(submaps.submap_arrays(plan, rays_np, T))
+    rays8, frames8, plan, T = sphere_plan(num_scans, 48, window=3, num_devices=8)
+    rays1, frames1, _, _ = sphere_plan(num_scans, 48, window=3, num_devices=1)
+    assert plan.num_submaps == 8 and plan.weight.min() == 1
+    steps = train.PoseSteps.from_config(cfg)
 
     # 1. The sharded step equals the unsharded one to float32 precision, over 3 steps.
-    one = st.create_submap_state(cfg, num_scans, plan.num_submaps)
-    mesh = st.make_mesh(8)
-    eight = st.create_submap_state(cfg, num_scans, plan.num_submaps, mesh)
-    rays8, frames8 = st.place(rays, st.data_sharding(rays, mesh)), st.place(frames, st.data_sharding(frames, mesh))
+    one = train.make_trainer(cfg, num_scans, 8, steps, T, mesh=train.make_mesh(1))
+    eight = train.make_trainer(cfg, num_scans, 8, steps, T, mesh=train.make_mesh(8))
+    step1 = jax.jit(one.step, static_argnames=("sampler",))
+    step8 = jax.jit(eight.step, static_argnames=("sampler",))
     sampler = one.sampler(0)
-    a, b = one.state, eight.state
+    a, b = train.init_state(cfg, one, num_scans, 8), train.init_state(cfg, eight, num_scans, 8)
     for _ in range(3):
-        a, ma = one.step_fn(a, rays, frames, sampler)
-        b, mb = eight.step_fn(b, rays8, frames8, sampler)
+        a, ma = step1(a, rays1, frames1, sampler)
+        b, mb = step8(b, rays8, frames8, sampler)
     for (path, x), y in zip(jax.tree_util.tree_flatten_with_path(a.params)[0], jax.tree.leaves(b.params)):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6, err_msg=jax.tree_util.keystr(path))
     np.testing.assert_allclose(float(ma["loss"]), float(mb["loss"]), rtol=1e-5)
@@ -58,14 +53,14 @@ def main(tmp: str) -> None:
     print("OK sharded step equals unsharded", f"({time.perf_counter() - t0:.1f} s)")
 
     # 2. A scan shared by two submaps: one row of poses whose gradient is the sum of both submaps' contributions.
-    loss_fn = st.make_submap_loss(one.field, st.LossSettings.from_config(cfg.loss), 32)
+    loss_fn = train.make_loss(one.field, train.loss_settings(cfg, 8), 32)
     key, alpha = jax.random.PRNGKey(3), jnp.float32(4.0)
     params = a.params
 
     @jax.jit
     def pose_grad_of(weight):
-        f = frames._replace(weight=weight)
-        return jax.grad(lambda p: loss_fn(p, rays, f, key, alpha, sampler)[0])(params)["poses"]
+        f = frames1._replace(weight=weight)
+        return jax.grad(lambda p: loss_fn(p, rays1, f, key, alpha, sampler)[0])(params)["poses"]
 
     def pose_grad(weight):
         return np.asarray(pose_grad_of(jnp.asarray(weight, jnp.float32)))
@@ -84,16 +79,15 @@ def main(tmp: str) -> None:
     ckpt.save(b, {"num_scans": num_scans})
     c = b
     for _ in range(2):
-        c, _ = eight.step_fn(c, rays8, frames8, sampler)
-    template = st.create_submap_state(cfg, num_scans, plan.num_submaps, mesh).state
-    restored, _ = ckpt.restore(template)
+        c, _ = step8(c, rays8, frames8, sampler)
+    restored, _ = ckpt.restore(train.init_state(cfg, eight, num_scans, 8))
     ckpt.close()
     assert int(restored.step) == 3
     restored_leaf = jax.tree.leaves(restored.params["fields"])[0]
     assert restored_leaf.sharding.spec == P("submaps"), restored_leaf.sharding
     d = restored
     for _ in range(2):
-        d, _ = eight.step_fn(d, rays8, frames8, sampler)
+        d, _ = step8(d, rays8, frames8, sampler)
     for x, y in zip(jax.tree.leaves(c), jax.tree.leaves(d)):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-7)
     print("OK resume with sharded state", f"({time.perf_counter() - t0:.1f} s)")

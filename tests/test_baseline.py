@@ -1,5 +1,6 @@
-"""The classical baseline reduces the drift of a small synthetic sequence, its answer does not depend on how far
-the start drifted; bin/baseline.py end to end."""
+"""The classical baseline (neld_jax.baseline) reduces the drift of a small synthetic sequence, its answer does not
+depend on how far the start drifted, it decides from the scans whether to trust the input's tilt and where its
+refinement starts; neld-baseline end to end."""
 
 import dataclasses
 import json
@@ -14,6 +15,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from neld_jax import baseline
 from neld_jax.baseline import (BaselineSettings, TargetIndex, candidate_pairs, loop_closed_graph, multiscale_icp,
                               point_to_plane_icp, prepare_clouds, refine_against_map, register_sequence)
 from neld_jax.data.preprocess import preprocess
@@ -57,27 +59,51 @@ def test_progress_bars_follow_each_step_of_the_baseline_only_when_asked(drifted_
     assert capsys.readouterr().err == ""
     shown = register_sequence(seq.scans, seq.poses, SETTINGS, progress=True)
     err = capsys.readouterr().err
-    np.testing.assert_allclose(shown, quiet, atol=1e-5)  # Open3D's threaded sums differ in the last digits
+    np.testing.assert_allclose(shown, quiet, atol=1e-5)
     rounds = SETTINGS.map_rounds * seq.num_scans
-    assert "baseline: scan-to-map chain" in err and f"{seq.num_scans - 1}/{seq.num_scans - 1}" in err
+    assert "baseline: scan-to-map chain (the input tilt)" in err and "baseline: scan-to-map chain (its own tilt)" in err
+    assert f"{seq.num_scans - 1}/{seq.num_scans - 1}" in err
     assert "baseline: loop closures" in err
     assert f"baseline: {SETTINGS.map_rounds} round(s) of multi-view refinement" in err and f"{rounds}/{rounds}" in err
 
 
-def test_the_refinement_starts_from_what_refine_from_gives(drifted_sequence):
-    # refine_from gets the pose graph's poses and its answer is what the multi-view rounds refine: given the drifted
-    # input back, the rounds (gated at 0.2 m a scan) leave most of its drift, where the graph's start ends near 1 mm.
+def test_the_refinement_starts_from_the_crisper_of_the_graph_and_the_chain(drifted_sequence):
+    # choose_refinement_start: the crisper raw map of the two (a tie keeps the graph); register_sequence reports it
+    # and on_round sees that start as round 0, then every round.
     seq = drifted_sequence
-    graphs, rounds = [], []
-    from_input = register_sequence(seq.scans, seq.poses, SETTINGS,
-                                   lambda graph, chain: (graphs.append(graph), seq.poses)[1],
-                                   on_round=lambda r, poses: rounds.append((r, poses)))
-    before = ate(seq.poses, seq.gt_poses)["translation_rmse_m"]
-    assert len(graphs) == 1 and ate(graphs[0], seq.gt_poses)["translation_rmse_m"] < 0.25 * before
-    # on_round sees the start (round 0: refine_from's answer) and every round
+    truth, drifted = seq.gt_poses, seq.poses
+    assert baseline.choose_refinement_start(truth, drifted, seq.scans, SETTINGS)[0] == "graph"
+    start, entropy = baseline.choose_refinement_start(drifted, truth, seq.scans, SETTINGS)
+    assert start == "chain" and entropy["chain"] < entropy["graph"]
+    assert baseline.choose_refinement_start(truth, truth, seq.scans, SETTINGS)[0] == "graph"  # a tie
+    rounds, report = [], {}
+    register_sequence(seq.scans, seq.poses, SETTINGS, on_round=lambda r, poses: rounds.append((r, poses)),
+                      report=report)
     assert [r for r, _ in rounds] == list(range(SETTINGS.map_rounds + 1))
-    np.testing.assert_allclose(rounds[0][1], seq.poses, atol=1e-9)
-    assert ate(from_input, seq.gt_poses)["translation_rmse_m"] > 0.5 * before
+    assert report["refined_from"] in ("graph", "chain") and set(report["start_entropy"]) == {"graph", "chain"}
+    before = ate(seq.poses, seq.gt_poses)["translation_rmse_m"]
+    assert ate(rounds[0][1], seq.gt_poses)["translation_rmse_m"] < 0.25 * before  # the rounds start from the scans
+
+
+def test_the_chain_that_goes_on_keeps_the_input_tilt_unless_the_free_one_is_clearly_crisper(drifted_sequence):
+    # choose_chain: a tie (within TILT_MARGIN) trusts the input's tilt; a free chain crisper by more wins.
+    seq = drifted_sequence
+    truth, drifted = seq.gt_poses, seq.poses
+    chosen, entropy = baseline.choose_chain({"input tilt": drifted, "free": truth}, seq.scans, SETTINGS)
+    assert chosen == "free" and entropy["free"] < entropy["input tilt"] - baseline.TILT_MARGIN
+    assert baseline.choose_chain({"input tilt": truth, "free": drifted}, seq.scans, SETTINGS)[0] == "input tilt"
+    assert baseline.choose_chain({"input tilt": truth, "free": truth}, seq.scans, SETTINGS)[0] == "input tilt"
+    assert baseline.choose_chain({"input tilt": None, "free": truth}, seq.scans, SETTINGS) == ("free", {})
+    # From a drift of position and heading only (an IMU-aided odometry's), the run trusts the input's tilt ...
+    kept_tilt = with_drift(dataclasses.replace(seq, poses=truth), 0.15, 1.0, seed=3, keep_tilt=True)
+    report = {}
+    register_sequence(kept_tilt.scans, kept_tilt.poses, dataclasses.replace(SETTINGS, map_rounds=0), report=report)
+    assert report["tilt"] == "input", report["chain_entropy"]
+    # ... and from a drift that tilts the scans (a LiDAR-only odometry's), it finds its own
+    tilted = with_drift(dataclasses.replace(seq, poses=truth), 0.05, 3.0, seed=3)
+    report = {}
+    register_sequence(tilted.scans, tilted.poses, dataclasses.replace(SETTINGS, map_rounds=0), report=report)
+    assert report["tilt"] == "free", report["chain_entropy"]
 
 
 def test_answer_does_not_depend_on_the_start(drifted_sequence):
@@ -94,10 +120,14 @@ def test_answer_does_not_depend_on_the_start(drifted_sequence):
 
 
 def test_settings_from_config_checks_fields():
-    assert BaselineSettings.from_config({"window": 3, "icp_distances_m": [0.5, 0.1]}) == BaselineSettings(
-        window=3, icp_distances_m=(0.5, 0.1))
+    from neld_jax.config import defaults
+
+    config = defaults()
+    config.baseline.window, config.eval.crispness_queries = 3, 500
+    assert BaselineSettings.from_config(config) == BaselineSettings(window=3, crispness_queries=500)
+    config.baseline.windwo = 3
     with pytest.raises(ValueError, match="unknown field"):
-        BaselineSettings.from_config({"windwo": 3})
+        BaselineSettings.from_config(config)
 
 
 def test_candidate_pairs_are_neighbours_and_close_non_neighbours():
@@ -148,153 +178,42 @@ def test_cli_writes_baseline_outputs_and_table(tmp_path):
 
 
 def test_training_starts_from_the_baseline_of_config_baseline(drifted_sequence):
-    # train.init_poses=baseline: the run registers first, with config.baseline's settings, and trains from
-    # the result; "input" trains from the loaded poses.
-    from neld_jax.config import base_config
-    from neld_jax.run import starting_poses
+    # start.poses=baseline: the run registers first, with config.baseline's settings, and trains from the result;
+    # "input" trains from the loaded poses.
+    from neld_jax.config import defaults
+    from neld_jax.start import choose_start
 
-    config = base_config()
+    config = defaults()
     config.baseline.window, config.baseline.voxel_size_m = SETTINGS.window, SETTINGS.voxel_size_m
-    config.train.init_poses = "baseline"
-    start = starting_poses(config, drifted_sequence)
-    assert start.baseline_seconds > 0 and start.chosen == "baseline"
-    assert start.refined_from == "graph"  # the drifted input's map is the blurrier: refined from the pose graph
-    # Two runs agree to round-off, not bit for bit: the refinement's voxel-downsampled map may order its points
-    # differently each time (a hash map), and ICP sums over them in that order.
-    np.testing.assert_allclose(start.poses, register_sequence(drifted_sequence.scans, drifted_sequence.poses,
-                                                              SETTINGS), atol=1e-5)
-    config.train.init_poses = "input"
-    start = starting_poses(config, drifted_sequence)
-    assert start.baseline_seconds is None and start.poses is drifted_sequence.poses and start.chosen == "input"
-
-
-def test_crisper_start_takes_the_crisper_map(drifted_sequence, monkeypatch):
-    # train.init_poses=crisper: the baseline runs, and training starts from whichever poses give the crisper raw
-    # map. From the drifted poses the baseline's map is the crisper one (entropy about -5.1 against -3.5); from the
-    # ground truth, with a baseline made to return the drifted poses (a stand-in for a baseline that failed), the
-    # input is.
-    import neld_jax.baseline
-    from neld_jax.config import base_config
-    from neld_jax.run import starting_poses
-
-    config = base_config()
-    config.baseline.window, config.baseline.voxel_size_m = SETTINGS.window, SETTINGS.voxel_size_m
-    config.train.init_poses = "crisper"
-    start = starting_poses(config, drifted_sequence)
-    assert start.chosen == "baseline" and start.poses is start.baseline_poses
-    # The input's crispness, measured once when the baseline chose where its refinement starts, is the one a
-    # fresh measurement gives.
-    from neld_jax import quality
-    fresh = quality.map_crispness(drifted_sequence, {"initial": drifted_sequence.poses,
-                                                     "baseline": start.baseline_poses}, config.eval)
-    assert list(start.judged[0]) == ["initial", "baseline"] and start.judged[0] == fresh[0]
-    for name in fresh[1]:
-        np.testing.assert_array_equal(start.judged[1][name], fresh[1][name])
-    # Its trajectory departs from the drifted input by the drift it undid; an input trusted to drift less than
-    # that (train.max_baseline_departure) is kept, whatever the crispness says.
-    assert start.departure_m > 0.01
-    config.train.max_baseline_departure = 1e-6
-    kept = starting_poses(config, drifted_sequence)
-    assert kept.chosen == "input" and kept.poses is drifted_sequence.poses and kept.bent and not start.bent
-    config.train.baseline_departure_floor_m = 10.0 * start.departure_m  # a short path: the floor allows it
-    assert starting_poses(config, drifted_sequence).chosen == "baseline"
-    config.train.max_baseline_departure, config.train.baseline_departure_floor_m = 0.0, 0.0
-
-    from_truth = dataclasses.replace(drifted_sequence, poses=drifted_sequence.gt_poses)
-    monkeypatch.setattr(neld_jax.baseline, "register_sequence",
-                        lambda scans, poses, settings, refine_from=None, **_: drifted_sequence.poses)
-    start = starting_poses(config, from_truth)
-    assert start.chosen == "input" and start.poses is from_truth.poses
-    assert start.baseline_poses is drifted_sequence.poses  # still written as poses_baseline by the run
-
-
-def test_the_refinement_starts_from_the_crisper_start_or_the_scans_registration_and_never_from_a_bent_graph(
-        drifted_sequence):
-    # refinement_start (the run's and bin/baseline.py's refine_from) gets the pose graph's poses and returns what
-    # the multi-view refinement starts from. Here the "graph" is the ground truth or the drifted poses.
-    from neld_jax.config import base_config
-    from neld_jax.errors import ConfigError
-    from neld_jax.run import refinement_start
-
-    config = base_config()
-    truth, drifted = drifted_sequence.gt_poses, drifted_sequence.poses
-    decided = {}
-    choose = refinement_start(config, drifted_sequence, decided)  # the input is the drifted sequence
-    assert choose(truth) is truth and decided["refined_from"] == "graph"
-    assert decided["graph_entropy"] < decided["input_entropy"]
-    from_truth = dataclasses.replace(drifted_sequence, poses=truth)  # an input crisper than its graph
-    choose = refinement_start(config, from_truth, decided)
-    assert choose(drifted) is truth and decided["refined_from"] == "input"
-    # A graph bent away from the input (more than train.max_baseline_departure allows) is not refined, however
-    # crisp: the judge is local.
-    config.train.max_baseline_departure = 1e-6
-    choose = refinement_start(config, drifted_sequence, decided)
-    assert choose(truth) is drifted and decided["refined_from"] == "input" and decided["graph_departure_m"] > 0.01
-    # "scans": the graph (or the chain) whenever it is not bent, however crisp the input: the answer then does not
-    # keep the input's drift; the input only when the graph is bent.
-    config.baseline.refine_from = "scans"
-    assert refinement_start(config, drifted_sequence, decided)(truth) is drifted and decided["refined_from"] == "input"
-    config.train.max_baseline_departure = 0.0  # no limit: nothing is bent
-    choose = refinement_start(config, from_truth, decided)
-    assert choose(drifted) is drifted and decided["refined_from"] == "graph"
-    assert decided["graph_entropy"] > decided["input_entropy"]
-    config.baseline.refine_from = "graph"  # the graph's, always
-    assert refinement_start(config, drifted_sequence) is None
-    config.baseline.refine_from = "odometry"
-    with pytest.raises(ConfigError, match="baseline.refine_from"):
-        refinement_start(config, drifted_sequence)
+    config.start.poses = "baseline"
+    chosen = choose_start(config, drifted_sequence)
+    assert chosen.baseline_seconds > 0 and chosen.chosen == "baseline" and chosen.pose_steps.keep_scale
+    assert chosen.baseline_report["refined_from"] in ("graph", "chain")
+    np.testing.assert_array_equal(chosen.poses, register_sequence(drifted_sequence.scans, drifted_sequence.poses,
+                                                                  BaselineSettings.from_config(config)))
+    config.start.poses = "input"
+    chosen = choose_start(config, drifted_sequence)
+    assert chosen.baseline_seconds is None and chosen.poses is drifted_sequence.poses and chosen.chosen == "input"
 
 
 def test_a_chain_that_keeps_the_input_tilt_gives_every_scan_the_inputs_up_axis(drifted_sequence):
-    # An input that drifted in position and heading only (an IMU-aided odometry): with keep_input_tilt the chain's
-    # scans have the input's up axes exactly and its drift is undone as without; the multi-view refinement is then
-    # offered the chain beside the graph, and only then.
-    import neld_jax.baseline as baseline
-
+    # An input that drifted in position and heading only (an IMU-aided odometry): the chain that keeps the input's
+    # tilt gives its scans the input's up axes exactly and undoes the drift as the free one does.
     truth = drifted_sequence.gt_poses
     kept_tilt = with_drift(dataclasses.replace(drifted_sequence, poses=truth), 0.15, 1.0, seed=3, keep_tilt=True)
     np.testing.assert_allclose(kept_tilt.poses[:, 2, :3], truth[:, 2, :3], atol=1e-12)
     clouds = prepare_clouds(kept_tilt.scans, SETTINGS)
-    levelled = dataclasses.replace(SETTINGS, keep_input_tilt=True)
-    chain, _ = baseline.scan_to_map_chain(clouds, kept_tilt.poses, levelled)
+    chain, _ = baseline.scan_to_map_chain(clouds, kept_tilt.poses, SETTINGS, keep_input_tilt=True)
     free, _ = baseline.scan_to_map_chain(clouds, kept_tilt.poses, SETTINGS)
     np.testing.assert_allclose(chain[:, 2, :3], kept_tilt.poses[:, 2, :3], atol=1e-9)
     assert np.abs(free[:, 2, :3] - kept_tilt.poses[:, 2, :3]).max() > 1e-6  # ICP alone tilts them a little
     before = ate(kept_tilt.poses, truth)["translation_rmse_m"]
     assert before > 0.1 and ate(chain, truth)["translation_rmse_m"] < 0.25 * before
-    offered = []
-    for settings in (levelled, SETTINGS):
-        register_sequence(kept_tilt.scans, kept_tilt.poses, dataclasses.replace(settings, map_rounds=1),
-                          lambda graph, chain: (offered.append(chain), graph)[1])
-    assert offered[0] is not None and offered[1] is None
-    np.testing.assert_allclose(offered[0][:, 2, :3], kept_tilt.poses[:, 2, :3], atol=1e-9)
-
-
-def test_the_refinement_may_start_from_the_chain_when_it_is_the_crispest_and_not_bent(drifted_sequence, caplog):
-    import logging
-
-    from neld_jax.config import base_config
-    from neld_jax.run import refinement_start
-
-    config = base_config()
-    truth, drifted = drifted_sequence.gt_poses, drifted_sequence.poses
-    decided = {}
-    choose = refinement_start(config, drifted_sequence, decided)
-    assert choose(drifted, truth) is truth and decided["refined_from"] == "chain"
-    assert decided["chain_entropy"] < decided["graph_entropy"] and decided["chain_departure_m"] > 0.01
-    assert choose(truth, drifted) is truth and decided["refined_from"] == "graph"
-    config.train.max_baseline_departure = 1e-6  # the chain departs from the input: bent, not taken (the "graph"
-    choose = refinement_start(config, drifted_sequence, decided)  # here is the input itself, a tie: the graph)
-    with caplog.at_level(logging.INFO, logger="neld_jax.run"):
-        assert choose(drifted, truth) is drifted and decided["refined_from"] == "graph"
-    assert f"the chain {decided['chain_departure_m']:.2f} m: bent" in caplog.text  # the log says why it was not taken
 
 
 def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence, monkeypatch, caplog):
     # A link whose ICP result lies further than max_link_correction_m from the odometry's increment (with a good
     # overlap, as in a corridor) keeps the increment. ICP is replaced by one that slides 2 m along x.
-    import neld_jax.baseline as baseline
-
     seq = drifted_sequence
     clouds = prepare_clouds(seq.scans, SETTINGS)
     slide = np.eye(4)
@@ -316,8 +235,6 @@ def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence
 def test_a_chain_whose_links_overlap_too_little_is_given_up(drifted_sequence, monkeypatch, caplog):
     # Keyframes too far apart for ICP (MulRan Riverside02): once the links' median overlap falls below
     # chain_min_median_overlap, the chain stops, the pose graph is skipped and the refinement starts from the input.
-    import neld_jax.baseline as baseline
-
     seq = drifted_sequence
     clouds = prepare_clouds(seq.scans, SETTINGS)
 
@@ -337,21 +254,19 @@ def test_a_chain_whose_links_overlap_too_little_is_given_up(drifted_sequence, mo
     assert baseline.scan_to_map_chain(clouds, seq.poses, settings)[0] is not None  # at the threshold: kept
 
     def not_called(*args):
-        raise AssertionError("refine_from is not asked without a chain")
+        raise AssertionError("no pose graph without a chain")
 
     Result.fitness = 0.2
     monkeypatch.setattr(baseline, "loop_closed_graph", not_called)
     report = {}
-    poses = register_sequence(seq.scans, seq.poses, settings, refine_from=not_called, report=report)
+    poses = register_sequence(seq.scans, seq.poses, settings, report=report)
     np.testing.assert_allclose(poses, seq.poses, atol=1e-9)  # no rounds here: the input as it came
-    assert report == {"chain_given_up": True, "refined_from": "input"}
+    assert report["chain_given_up"] and report["refined_from"] == "input" and report["chain_entropy"] == {}
 
 
 def test_a_chain_still_running_at_the_deadline_is_given_up(drifted_sequence, monkeypatch, caplog):
     # A sequence too long for the run's clock: the chain stops between two links once the deadline has passed,
     # the pose graph is skipped and (no time left for the rounds) the input is the baseline's answer.
-    import neld_jax.baseline as baseline
-
     seq = drifted_sequence
     clouds = prepare_clouds(seq.scans, SETTINGS)
     clock = iter(range(1000))
@@ -368,10 +283,10 @@ def test_a_chain_still_running_at_the_deadline_is_given_up(drifted_sequence, mon
     monkeypatch.setattr(baseline, "loop_closed_graph", not_called)
     report = {}
     poses = register_sequence(seq.scans, seq.poses, dataclasses.replace(SETTINGS, map_rounds=2),
-                              refine_from=not_called, deadline=time.perf_counter() - 1.0, report=report)
+                              deadline=time.perf_counter() - 1.0, report=report)
     np.testing.assert_allclose(poses, seq.poses, atol=1e-9)
-    assert report == {"chain_given_up": True, "refined_from": "input", "map_rounds_done": 0,
-                      "stopped_at_deadline": True}
+    assert report["chain_given_up"] and report["refined_from"] == "input"
+    assert report["map_rounds_done"] == 0 and report["stopped_at_deadline"]
 
 
 def test_multi_view_refinement_pulls_a_scan_onto_the_others_map_and_gates_a_far_one(drifted_sequence):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from neld_jax.config import base_config
+from neld_jax.config import defaults as base_config
 from neld_jax.data.formats import load_sequence
 from neld_jax.data.fusionportable import load_fusionportable
 from neld_jax.data.generic import load_generic

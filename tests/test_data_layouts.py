@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from neld_jax.config import base_config
+from neld_jax.config import defaults as base_config
 from neld_jax.data.formats import load_sequence
 from neld_jax.data.ground_truth import published_offset
 from neld_jax.data.poses import write_hba_poses, write_newer_college_csv, write_tum

@@ -178,15 +178,16 @@ def test_generic_round_trip(tmp_path, small_sequence):
 
 
 def test_config_defaults_and_errors():
-    from neld_jax.config import base_config
+    from neld_jax.config import defaults as base_config
 
     cfg = synthetic_defaults()
     assert base_config().data.synthetic.to_dict() == cfg.to_dict()  # the config takes the generator's defaults
     assert cfg.num_scans == 24 and cfg.num_beams == 32 and cfg.num_columns == 512
     assert cfg.gt_map_points == 200000 and cfg.drift_rot_deg == 0.5
+    assert base_config().data.synthetic.gt_map_points == 200000  # the cpu and gpu budgets sample half as many
     with pytest.raises(ConfigError, match="unknown field 'beams'"):
         make_sequence({"beams": 3})
     with pytest.raises(ConfigError, match="trajectory_radius_m"):
         make_sequence({"trajectory_radius_m": 40.0})
-    with pytest.raises(ConfigError, match="fov_down_deg"):
+    with pytest.raises(ConfigError, match="unknown field 'fov_down_deg'"):  # the field of view is the generator's own
         make_sequence({"fov_down_deg": 20.0})

@@ -22,11 +22,10 @@ def _inputs(n=64, seed=0):
 
 
 @lru_cache(maxsize=None)
-def _initial_params(use_view_dirs: bool = True, activation: str = "softplus"):
-    """One real initialisation per configuration, shared by the tests (XLA-compiling the initialisers is
-    the slow part; the surrogate flag does not change the parameters)."""
-    field = DensityField(use_view_dirs=use_view_dirs, density_activation=activation, **SMALL)
-    return jax.jit(field.init)(jax.random.key(1), *_inputs(4))
+def _initial_params():
+    """One real initialisation, shared by the tests (XLA-compiling the initialisers is the slow part; the surrogate
+    flag does not change the parameters)."""
+    return jax.jit(DensityField(**SMALL).init)(jax.random.key(1), *_inputs(4))
 
 
 def _param_count(params):
@@ -41,21 +40,17 @@ def test_paper_sized_parameter_count():
     first, hidden, skip = pos * w + w, w * w + w, (w + pos) * w + w
     head = (w + dirs) * (w // 2) + w // 2 + (w // 2 + 1)
     assert _param_count(shapes) == first + 6 * hidden + skip + head
-    no_dirs = jax.eval_shape(DensityField(use_view_dirs=False).init, jax.random.key(0), jnp.zeros((1, 3)), None)
-    assert _param_count(no_dirs) == first + 6 * hidden + skip + (w + 1)
 
 
-@pytest.mark.parametrize("activation, use_view_dirs", [("softplus", True), ("relu", False)])
-def test_output_shape_non_negative_and_small_at_init(activation, use_view_dirs):
-    field = DensityField(density_activation=activation, use_view_dirs=use_view_dirs, **SMALL)
+def test_output_shape_non_negative_and_small_at_init():
+    field = DensityField(**SMALL)
     positions, view_dirs = _inputs()
-    params = _initial_params(use_view_dirs, activation)
+    params = _initial_params()
     sigma = jax.jit(field.apply)(params, positions, view_dirs)
     assert sigma.shape == (64,) and sigma.dtype == jnp.float32
     assert np.all(np.asarray(sigma) >= 0)
     # Untrained: close to the small positive initial density everywhere (no dead, no opaque start).
     assert np.all(np.abs(np.asarray(sigma) - field.initial_density) < 0.05)
-    assert ("density_hidden" in params["params"]) == use_view_dirs
 
 
 def test_leading_axes_are_kept():
@@ -113,30 +108,30 @@ def test_surrogate_flag_changes_only_the_backward_pass():
     assert grad_norm(exact) > 2 * grad_norm(smooth)  # the exact gradient carries the 2^k pi amplification
 
 
-def test_unknown_activation_is_rejected():
-    with pytest.raises(ValueError, match="density_activation"):
-        DensityField(width=8, depth=1, density_activation="tanh").init(jax.random.key(0), *_inputs(2))
+def test_unknown_matmul_dtype_is_rejected():
     with pytest.raises(ValueError, match="matmul_dtype"):
         DensityField(width=8, depth=1, matmul_dtype="float16").init(jax.random.key(0), *_inputs(2))
 
 
 def test_field_from_config_sets_every_architecture_field():
-    """Each DensityField option has a config.model field that reaches the module (surrogate: surrogate_gradient)."""
+    """Each DensityField setting has a config.model field that reaches the module (surrogate: surrogate_gradient)."""
     import dataclasses
 
-    from neld_jax.config import base_config
+    from neld_jax.config import defaults
     from neld_jax.field import field_from_config
 
-    model = base_config().model
+    model = defaults().model
     names = {"surrogate": "surrogate_gradient"}
-    options = [f.name for f in dataclasses.fields(DensityField) if f.name not in ("dtype", "parent", "name")]
-    assert set(options) >= {"width", "depth", "skip_layers", "initial_density", "density_activation"}
+    # initial_density is a constant of the architecture, not a setting
+    options = [f.name for f in dataclasses.fields(DensityField)
+               if f.name not in ("dtype", "parent", "name", "initial_density")]
+    assert set(options) >= {"width", "depth", "skip_layers", "matmul_dtype"}
     # Every option's default is the config's default ...
     default = field_from_config(model)
     assert default == DensityField(), [o for o in options if getattr(default, o) != getattr(DensityField(), o)]
     # ... and a changed config value changes the module.
     changed = dict(width=8, depth=2, skip_layers=[1], pos_freqs=3, dir_freqs=1, surrogate_gradient=False,
-                   use_view_dirs=False, density_activation="relu", initial_density=0.5, matmul_dtype="bfloat16")
+                   matmul_dtype="bfloat16")
     assert {names.get(o, o) for o in options} == set(changed)
     model.update(changed)
     field = field_from_config(model)

@@ -189,16 +189,16 @@ def test_compose_invert_apply_rotate():
     np.testing.assert_allclose(lie.apply(T[0], many), many @ T[0, :3, :3].T + T[0, :3, 3], atol=1e-14)
 
 
-def test_apply_correction_is_left_multiplication():
+def test_apply_correction_is_right_multiplication():
     xi = _random_twists(10) * 0.1
     T_init = np.asarray(se3_exp(_random_twists(11)))
     corrected = jax.jit(lie.apply_correction)(xi, T_init)
-    np.testing.assert_allclose(corrected, np.asarray(se3_exp(xi)) @ T_init, atol=1e-14)
+    np.testing.assert_allclose(corrected, T_init @ np.asarray(se3_exp(xi)), atol=1e-14)
     np.testing.assert_allclose(lie.apply_correction(jnp.zeros(6), T_init[0]), T_init[0], atol=1e-15)
-    # The correction moves points in the world frame: exp(xi) applied after T_init.
+    # The correction moves the scan in its own frame: a point is moved by exp(xi) first, then placed by T_init.
     point = np.array([0.3, -0.2, 0.5])
-    in_world = np.asarray(lie.apply(T_init[0], point))
-    np.testing.assert_allclose(lie.apply(corrected[0], point), lie.apply(se3_exp(xi)[0], in_world), atol=1e-14)
+    in_body = np.asarray(lie.apply(se3_exp(xi)[0], point))
+    np.testing.assert_allclose(lie.apply(corrected[0], point), lie.apply(T_init[0], in_body), atol=1e-14)
 
 
 def test_batch_shapes():

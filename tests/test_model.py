@@ -6,17 +6,18 @@ import numpy as np
 
 from neld_jax import encoding, lie
 from neld_jax.field import DensityField
-from neld_jax.model import SamplerSettings, render_rays, scan_poses, world_rays
+from neld_jax import lie as _lie
+from neld_jax.model import SamplerSettings, corrected_poses, render_rays, world_poses, world_rays
 
 SAMPLER = SamplerSettings(num_coarse=16, num_fine=8, z_low=0.01, z_up=4.0)
-FIELD = DensityField(width=32, depth=2, skip_layers=(1,), pos_freqs=4, dir_freqs=4, use_view_dirs=True)
+FIELD = DensityField(width=32, depth=2, skip_layers=(1,), pos_freqs=4, dir_freqs=4)
 
 
 def _pose_gradient(direction_local, params_field, T_init):
     """d(rendered range)/d(pose correction) [6] of one ray with the given sensor-frame direction."""
 
     def rendered_range(xi):
-        T = scan_poses(xi[None], T_init[None])
+        T = _lie.apply_correction(xi[None], T_init[None])
         origins, directions = world_rays(T, direction_local[None])
         out = render_rays(params_field, FIELD, SAMPLER, origins, directions, jnp.asarray(4.0))
         return out.fine.depth[0]
@@ -56,24 +57,22 @@ def test_view_input_is_the_world_direction():
     assert encoding.encoded_dim(3, FIELD.dir_freqs) == 3 * (1 + 2 * FIELD.dir_freqs)
 
 
-def test_range_at_midpoint_changes_only_the_reading_of_the_ranges():
-    # sampler.range_at_midpoint reads D_hat at the middle of the interval before each sample, in both passes; the
-    # weights (and so the termination loss) are the same.
-    import dataclasses
+def test_a_shared_correction_is_the_same_motion_in_every_cube():
+    # The pose row of a keyframe is a right (body-frame) correction; a cube's normalisation x -> s (x - o) scales
+    # its translation part by s / s_ref (rho_factor), so every cube that holds the scan moves it the same in the world.
+    from neld_jax.data.normalize import Normalization
 
-    from neld_jax import rendering
-
-    params = FIELD.init(jax.random.PRNGKey(0), jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"]
-    origins = jnp.zeros((3, 3))
-    directions = jnp.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8], [0.0, 0.0, -1.0]])
-    key = jax.random.PRNGKey(1)
-    at_sample = render_rays(params, FIELD, SAMPLER, origins, directions, jnp.asarray(4.0), key)
-    midpoint = dataclasses.replace(SAMPLER, range_at_midpoint=True)
-    at_midpoint = render_rays(params, FIELD, midpoint, origins, directions, jnp.asarray(4.0), key)
-    np.testing.assert_allclose(at_midpoint.fine.weights, at_sample.fine.weights, rtol=1e-6)
-    z_near = jnp.full((3,), SAMPLER.z_low)  # the rays start inside the cube, so their interval starts at z_low
-    for got, z, weights in ((at_midpoint.coarse, at_midpoint.z_coarse, at_sample.coarse.weights),
-                            (at_midpoint.fine, at_midpoint.z_fine, at_sample.fine.weights)):
-        expected = jnp.sum(weights * rendering.midpoints_before(z, z_near), axis=-1)
-        np.testing.assert_allclose(got.depth, expected, rtol=1e-5)
-    assert np.all(np.asarray(at_midpoint.fine.depth) < np.asarray(at_sample.fine.depth))  # read earlier
+    rng = np.random.default_rng(0)
+    T = np.asarray(lie.se3_exp(rng.normal(0, 0.5, (3, 6))), np.float64)
+    T[:, :3, 3] *= 20.0
+    xi = rng.normal(0, 0.01, (3, 6))
+    ref_scale = 0.05
+    expected = world_poses(T, xi, ref_scale)
+    np.testing.assert_allclose(expected, T @ np.asarray(lie.se3_exp(np.concatenate([xi[:, :3] / ref_scale,
+                                                                                     xi[:, 3:]], 1))), atol=1e-9)
+    for scale, offset in ((0.05, np.zeros(3)), (0.11, np.array([5.0, -3.0, 1.0]))):
+        norm = Normalization(scale, offset)
+        with jax.enable_x64(True):
+            in_cube = corrected_poses(jnp.asarray(xi), jnp.asarray(norm.poses_to_normalized(T)), jnp.arange(3),
+                                      scale / ref_scale)
+        np.testing.assert_allclose(norm.poses_to_world(np.asarray(in_cube)), expected, atol=1e-9)

@@ -75,28 +75,6 @@ def test_expected_range_of_a_step_density_is_the_step(step):
     assert abs(float(rendering.map_range(out.weights, out.deltas, z)[0]) - step) <= spacing
 
 
-def test_midpoint_reading_removes_the_expected_ranges_bias_behind_a_sharp_surface():
-    # Stratified samples, 16 over 2 m (spacing 12.5 cm), a step of density at a uniform D: the sample reading puts
-    # the range on the first sample beyond D (half a spacing late on average); the midpoint reading on D.
-    rng = np.random.default_rng(0)
-    num_rays, near, far = 20_000, 4.0, 6.0
-    step = rng.uniform(near + 0.2, far - 0.2, num_rays)
-    edges = np.linspace(near, far, 17)
-    z = edges[:-1] + (edges[1] - edges[0]) * rng.uniform(size=(num_rays, 16))
-    z_near, z_far = np.full(num_rays, near), np.full(num_rays, far)
-    sigma = jnp.asarray(np.where(z > step[:, None], 1e5, 0.0))
-    at_sample = composite(sigma, jnp.asarray(z), jnp.asarray(z_far))
-    at_midpoint = composite(sigma, jnp.asarray(z), jnp.asarray(z_far), jnp.asarray(z_near))
-    np.testing.assert_allclose(at_sample.weights, at_midpoint.weights)  # only the reading differs
-    bias_sample = float(np.mean(at_sample.depth - step))
-    bias_midpoint = float(np.mean(at_midpoint.depth - step))
-    assert 0.05 < bias_sample < 0.08  # half of 12.5 cm, and a little more (the first sample beyond D)
-    assert abs(bias_midpoint) < 0.003
-    # The midpoints themselves: the interval before each sample, the first one from z_near.
-    np.testing.assert_allclose(rendering.midpoints_before(jnp.array([[1.0, 2.0, 4.0]]), jnp.array([0.0])),
-                               [[0.5, 1.5, 3.0]])
-
-
 def test_map_range_uses_density_not_weight_and_guards_zero_spacing():
     # Same weight, different spacing: the narrower bin has the higher termination density.
     weights = jnp.array([[0.3, 0.3, 0.0, 0.0]])

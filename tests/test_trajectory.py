@@ -4,7 +4,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from neld_jax.lie import se3_exp_float64
-from neld_jax.trajectory import mean_of_corrections, propagate_corrections
+from neld_jax.trajectory import propagate_corrections
 
 
 def _poses(n, seed=0):
@@ -43,16 +43,3 @@ def test_interpolation_halfway_in_time_and_ends_clamped():
     by_index = propagate_corrections(T_in, keyframes, refined_kf)  # halfway by index
     C_2 = by_index[2] @ np.linalg.inv(T_in[2])
     np.testing.assert_allclose(C_2[:3, :3], Rotation.from_rotvec([0, 0, 0.2]).as_matrix(), atol=1e-12)
-
-
-def test_mean_of_corrections_cancels_opposite_moves_and_keeps_a_shared_one():
-    """Seeds that moved each scan by +xi and -xi average to the start; a move every answer makes is kept whole;
-    one answer is its own mean."""
-    rng = np.random.default_rng(1)
-    T0 = _poses(6)
-    xi = np.concatenate([rng.normal(0, 0.01, (6, 3)), rng.normal(0, 0.005, (6, 3))], axis=1)
-    plus, minus = T0 @ se3_exp_float64(xi), T0 @ se3_exp_float64(-xi)
-    np.testing.assert_allclose(mean_of_corrections(T0, np.stack([plus, minus])), T0, atol=1e-12)
-    shared = T0 @ se3_exp_float64(2 * xi)
-    np.testing.assert_allclose(mean_of_corrections(T0, np.stack([shared, shared])), shared, atol=1e-12)
-    np.testing.assert_allclose(mean_of_corrections(T0, plus[None]), plus, atol=1e-12)

@@ -7,7 +7,7 @@ does not.
         --out=/tmp/ate_change.json
 
 Each run folder holds poses_gt.txt, poses_baseline.txt and poses_optimized.txt (TUM; a run of bin/train.py with
-ground truth and train.init_poses=baseline or crisper, such as benchmarks/real_data.py's drift runs, whose
+ground truth and start.poses=baseline or crisper, such as benchmarks/real_data.py's drift runs, whose
 ground truth is the recorded odometry). With e_i the baseline's position error after its SE(3) alignment to the
 ground truth and d_i NeLD-BA's move (its positions rigidly aligned onto the baseline's, so that a motion of the
 whole trajectory does not count, then put through the baseline's alignment):
@@ -32,11 +32,8 @@ least as large in magnitude (on 200 pairs of independent random walks, 6.5 % of 
 import argparse
 import json
 import os
-import sys
 
 import numpy as np
-
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 def _correlation(a: np.ndarray, b: np.ndarray) -> float:

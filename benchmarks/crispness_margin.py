@@ -8,7 +8,7 @@ of the query points, and the paired differences between the run's methods.
 A run judges itself on one draw of 10,000 query points (eval.crispness_queries, seed 0). The draw alone moves a
 sequence's entropy by about 0.01 nats; the methods are measured on the same points, so most of that cancels in
 their difference, but not all. Every run also writes the margin over eval.crispness_draws
-(5) draws to metrics.json (run.crispness_margin, neld_jax.quality.crispness_margins); this script measures it
+(5) draws to metrics.json (run.crispness_margin, neld_jax.judge.crispness_margins); this script measures it
 for a finished run, written before or with other draws. It reads the run's config.json (the sequence, its
 preprocessing, eval.crispness_radius_m) and its poses_<method>.kitti (initial, baseline when present, optimized),
 measures the entropy of the keyframes' raw map under each on --draws draws (seeds 0, 1, ...; draw 0 is the run's
@@ -24,11 +24,8 @@ elsewhere is refused with one line). Writes one JSON object to --out.
 
 import json
 import os
-import sys
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-from absl import app, flags  # noqa: E402
+from absl import app, flags
 
 RUN_DIR = flags.DEFINE_string("run_dir", None, "Output folder of a bin/train.py run (config.json, poses_*.kitti).")
 ROOT = flags.DEFINE_string("root", "", "The sequence's folder, if it is not the run's data.root any more.")
@@ -36,11 +33,27 @@ DRAWS = flags.DEFINE_integer("draws", 5, "Draws of the query points (seeds 0 .. 
 QUERIES = flags.DEFINE_integer("queries", 0, "Query points a draw (0: the run's eval.crispness_queries).")
 MEAN_OF = flags.DEFINE_list("mean_of", [], "Other run folders from the same start (other training seeds): the answer "
                        "judged is the mean, on se(3), of this run's and their corrections from this run's initial "
-                       "poses (neld_jax.trajectory.mean_of_corrections).")
+                       "poses (`mean_of_corrections`).")
 OUT = flags.DEFINE_string("out", "", "JSON file written (none if empty).")
 flags.mark_flag_as_required("run_dir")
 
 METHODS = ("initial", "baseline", "optimized")
+
+
+def mean_of_corrections(T_start, answers):
+    """The poses [S, 4, 4] T_start Exp(mean_n Log(T_start^-1 T_n)): the mean of N answers' right corrections from
+    one start, on se(3) (N training seeds' refined poses from the same start: their mean keeps what the seeds agree
+    on and shrinks what each seed adds on its own). T_start: [S, 4, 4]; answers: [N, S, 4, 4] (N >= 1)."""
+    import numpy as np
+
+    from neld_jax.lie import se3_exp_float64, se3_log_float64
+
+    T_start = np.asarray(T_start, np.float64)
+    answers = np.asarray(answers, np.float64)
+    if answers.ndim != 4 or answers.shape[1:] != T_start.shape or len(answers) == 0:
+        raise ValueError(f"answers of shape {answers.shape} for start poses of shape {T_start.shape}")
+    xi = se3_log_float64(np.linalg.inv(T_start)[None] @ answers)  # [N, S, 6]
+    return T_start @ se3_exp_float64(xi.mean(axis=0))
 
 
 def _run_poses(folder: str, loaded_index) -> dict:
@@ -74,7 +87,8 @@ def main(argv):
     import ml_collections
     import numpy as np
 
-    from neld_jax import crispness, quality, run
+    from neld_jax import crispness, judge
+    from neld_jax.data.preprocess import load_keyframes
 
     with open(os.path.join(RUN_DIR.value, "config.json")) as f:
         config = ml_collections.ConfigDict(json.load(f))
@@ -83,26 +97,24 @@ def main(argv):
     config.eval.crispness_draws = DRAWS.value
     if QUERIES.value:
         config.eval.crispness_queries = QUERIES.value
-    _, seq, _ = run.load_and_prepare(config)
+    _, seq = load_keyframes(config.data)
     methods = _run_poses(RUN_DIR.value, seq.loaded_index)
     if MEAN_OF.value:
         if "initial" not in methods:
             raise SystemExit(f"{RUN_DIR.value}: no poses_initial.kitti, the start --mean_of averages from")
-        from neld_jax.trajectory import mean_of_corrections
-
         answers = [methods["optimized"]]
         for other in MEAN_OF.value:
             poses = _run_poses(other, seq.loaded_index)
             _check_same_start(other, poses.get("initial"), methods["initial"])
             answers.append(poses["optimized"])
         methods["optimized"] = mean_of_corrections(methods["initial"], np.stack(answers))
-    margins = quality.crispness_margins(seq, methods, config.eval)
+    margins = judge.crispness_margins(seq, methods, config.eval)
     result = {"run_dir": RUN_DIR.value, "sequence": config.data.root, "draws": DRAWS.value,
               "queries": int(config.eval.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES)),
               "radius_m": float(config.eval.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)),
               "mean_of": MEAN_OF.value, "optimized_minus": margins}
     for other, margin in margins.items():
-        print(quality.describe_margin(other, margin) + ": " + " ".join(f"{d:+.5f}" for d in margin["per_draw"]))
+        print(judge.describe_margin(other, margin) + ": " + " ".join(f"{d:+.5f}" for d in margin["per_draw"]))
     if OUT.value:
         with open(OUT.value, "w") as f:
             json.dump(result, f, indent=1)

@@ -4,57 +4,80 @@
     python benchmarks/entropy_trajectory.py --root=<output>/HKU_2_bag \\
         --pose_file=/tmp/real/HKU_2_bag/recorded_crisper/poses_baseline.kitti \\
         --set=train.pose_lr_trans_init=5e-6 --out=/tmp/hku2_trajectory.json
+    python benchmarks/entropy_trajectory.py --root=<output>/HKU_2_bag --pose_file=.../poses_baseline.kitti \\
+        --as_baseline --out=/tmp/hku2_from_baseline.json
 
 Trains the lio_keyframes config (cpu budget) from the poses in --pose_file (KITTI, one line per scan of ROOT;
-default: the layout's odom_poses.txt) exactly as `bin/train.py` would from those poses (train.init_poses=input,
-no wall-clock guard), and every --every steps measures the mean map entropy of the keyframes' raw map under the
-current poses (anchored on train.anchor_scan, 0, as the run writes them; the same 10,000 query points each
-time). Writes one JSON object: the overrides and, per measurement, the step, the entropy, the last batch's range
-error (mean and median) and the mean pose correction so far. Nothing is written besides --out. A baseline's
-poses file is an input here: a run from the baseline also gets train.pose_prior_from_baseline and
-train.keep_scale_from_baseline, so pass --set=train.pose_prior_weight=300.0 --set=train.keep_start_scale=True to
-measure what such a run does.
+default: the layout's odom_poses.txt) exactly as `bin/train.py` would from those poses (start.poses=input, no
+wall-clock budget: the same plan of cubes, rays, trainer and fit as neld_jax.refine), and every --every steps
+measures the mean map entropy of the keyframes' raw map under the current poses (anchored on keyframe 0, as the
+run writes them; the same 10,000 query points each time). Writes one JSON object: the overrides and, per
+measurement, the step, the entropy, the last batch's range error (mean and median) and the mean pose correction so
+far. Nothing is written besides --out. A baseline's poses file is an input here; --as_baseline trains with the pose
+steps a run takes from the baseline's poses (neld_jax.start.pose_steps_from_baseline: learning rates capped at
+start.pose_lr_from_baseline, the prior of start.prior_from_baseline, heavier where the start's map is thinner
+than start.thin_map_m, and the start's scale kept) to measure what such a run does.
 """
 
+import functools
 import json
 import os
-import sys
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from absl import app, flags
 
-from absl import app, flags  # noqa: E402
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 ROOT = flags.DEFINE_string("root", None, "A sequence in the lio_keyframes layout (Scans/, odom_poses.txt, times.txt).")
 POSE_FILE = flags.DEFINE_string("pose_file", "", "KITTI poses to start from (absolute, or relative to --root).")
 EVERY = flags.DEFINE_integer("every", 250, "Measure the map's crispness every this many steps.")
+AS_BASELINE = flags.DEFINE_bool("as_baseline", False, "Train with the pose steps of a run that starts from the "
+                                "classical baseline's poses (module docstring).")
 OUT = flags.DEFINE_string("out", "outputs/entropy_trajectory.json", "The JSON file written.")
 OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE, e.g. train.pose_lr_trans_init=5e-6.")
 
 
 def main(argv):
     del argv
-    import jax.numpy as jnp
+    import jax
+    import numpy as np
 
-    from configs import lio_keyframes
-    from neld_jax import quality, run, train
-    from neld_jax.config import apply_overrides
+    from neld_jax import judge, submaps, train
+    from neld_jax.config import apply_overrides, from_file
+    from neld_jax.data.normalize import Normalization
+    from neld_jax.data.preprocess import load_keyframes
     from neld_jax.data.rays import build_rays
+    from neld_jax.model import world_poses
 
-    config = lio_keyframes.get_config("cpu")
+    config = from_file(os.path.join(REPO, "configs", "lio_keyframes.py"), "cpu")
     config.data.root, config.data.pose_file = ROOT.value, POSE_FILE.value
-    config.train.init_poses, config.train.max_minutes, config.train.checkpoint_every = "input", 0.0, EVERY.value
+    config.start.poses, config.max_minutes, config.train.checkpoint_every = "input", 0.0, EVERY.value
     apply_overrides(config, OVERRIDES.value)
-    _, seq, norm = run.load_and_prepare(config)
-    rays = train.device_rays(build_rays(seq, norm, max_rays_per_scan=(config.data.max_rays_per_scan or None),
-                                        seed=config.seed))
-    T_init = jnp.asarray(norm.poses_to_normalized(seq.poses), jnp.float32)
+    _, keyframes = load_keyframes(config.data)
+    start_poses, num_scans = keyframes.poses, keyframes.num_scans
+    if AS_BASELINE.value:
+        from neld_jax.start import pose_steps_from_baseline
+
+        judged, _ = judge.map_crispness(keyframes, {"start": start_poses}, config.eval)
+        pose_steps = pose_steps_from_baseline(config, judged["start"].get("mean_plane_thickness_m"))
+    else:
+        pose_steps = train.PoseSteps.from_config(config)
+    # The training of a run (neld_jax.refine.refine_keyframes) without its checkpoints, the measurements in their place
+    devices = len(jax.devices())
+    plan = submaps.plan_from_config(keyframes, config, num_devices=devices)
+    rays_m = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
+                        seed=config.seed)
+    mesh = train.make_mesh(submaps.mesh_size(plan, devices))
+    rays, frames = train.device_data(submaps.submap_arrays(plan, rays_m, start_poses), mesh)
+    plan_of = functools.partial(train.make_trainer, config, num_scans, plan.num_submaps, pose_steps, start_poses,
+                                mesh=mesh)
+    state = train.init_state(config, plan_of(int(config.train.steps)), num_scans, plan.num_submaps)
     records = []
 
     def measure(step: int, poses, history: list) -> None:
-        T_n, G_n = run.field_poses(poses, T_init, config.train.anchor_scan)
-        T_world = norm.poses_to_world(G_n @ T_n)
-        summary, _ = quality.map_crispness(seq, {"poses": T_world}, config.eval)
+        in_field = world_poses(start_poses, np.asarray(poses), plan.ref_scale)
+        T_world = np.asarray(start_poses[0], np.float64) @ np.linalg.inv(in_field[0]) @ in_field  # keyframe 0 stays
+        summary, _ = judge.map_crispness(keyframes, {"poses": T_world}, config.eval)
         last = history[-1] if history else {}
         records.append({"step": step, "mean_map_entropy": summary["poses"]["mean_map_entropy"],
                         "mean_plane_thickness_m": summary["poses"]["mean_plane_thickness_m"],
@@ -65,11 +88,12 @@ def main(argv):
         print(json.dumps(records[-1]), flush=True)
         with open(OUT.value, "w") as f:
             json.dump({"root": ROOT.value, "pose_file": POSE_FILE.value, "overrides": OVERRIDES.value,
-                       "scans": seq.num_scans, "records": records}, f, indent=1)
+                       "as_baseline": AS_BASELINE.value, "pose_steps": pose_steps.to_dict(), "scans": num_scans,
+                       "submaps": plan.num_submaps, "records": records}, f, indent=1)
 
     t0 = time.perf_counter()
-    measure(0, jnp.zeros((seq.num_scans, 6)), [])
-    train.fit(config, rays, T_init, norm.scale, progress=False,
+    measure(0, np.zeros((num_scans, 6)), [])
+    train.fit(config, plan_of, rays, frames, plan.ref_scale, state, progress=False,
               checkpoint_fn=lambda state, history, seconds: measure(int(state.step), state.params["poses"], history))
     print(f"done in {time.perf_counter() - t0:.0f} s", flush=True)
 

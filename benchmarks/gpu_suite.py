@@ -6,8 +6,9 @@
     python benchmarks/gpu_suite.py --smoke                # the same path end to end on tiny sizes, any backend
 
 A GPU image may lack open3d (and ml-collections, which gpu_suite.sh installs from .whl/), so the demo sequence
-is generated here by `--prepare` into .gpu_data/demo.npz (rays in the normalised frame, initial and ground-truth
-poses, the normalisation scale) and the suite trains on it with neld_jax.train alone.
+is generated here by `--prepare` into .gpu_data/demo.npz (the keyframes' rays in metres, initial and ground-truth
+poses, the normalisation of its one cube) and the suite trains on it with neld_jax.train alone, as a plan of one
+cube (train.make_trainer, train.init_state, train.fit: the path a run takes).
 
 Sections, in order of priority (each is skipped once --budget_s is spent; a failing one records its error
 and the next runs):
@@ -15,8 +16,8 @@ and the next runs):
 - matmul_peak: float32 and bfloat16 matmul peaks at the paper's MLP shape and squares.
 - fit_vs_step: train.fit's fused loop against the bare step, at the paper's stage 0 and the gpu budget's size.
 - demo_gpu: the demo with the gpu budget: ATE every checkpoint_every steps against the training seconds.
-- paper_schedule: the paper budget's fit steps/s in each stage (runs from each stage's first step, stopped by
-  train.max_minutes), extrapolated to the whole 160k-step schedule.
+- paper_schedule: the paper budget's fit steps/s in each stage (runs from each stage's first step, stopped after
+  a few seconds of chunks), extrapolated to the whole 160k-step schedule.
 - render_map: the rendered map of every demo ray at the paper's 128 + 128 samples, for a few batch sizes.
 - bfloat16: the paper-size step with model.matmul_dtype=bfloat16, and the demo's ATE with it.
 - torch_peer: benchmarks/torch_peer.py at the paper's last stage on CUDA (eager, TF32, torch.compile), when
@@ -34,16 +35,15 @@ import subprocess
 import sys
 import time
 import traceback
+from typing import NamedTuple
+
+from absl import app, flags
+import numpy as np
+
+import train_step as ts  # this folder's benchmarks/train_step.py (its flags are defined too; the suite sets sizes)
+from neld_jax.hugepages import reexec_with_huge_page_malloc
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-
-from absl import app, flags  # noqa: E402
-import numpy as np  # noqa: E402
-
-import train_step as ts  # noqa: E402  (its flags are defined too; the suite sets sizes itself)
-from neld_jax.hugepages import reexec_with_huge_page_malloc  # noqa: E402
 
 logger = logging.getLogger("gpu_suite")
 FLAGS = flags.FLAGS
@@ -72,57 +72,100 @@ def extrapolate_schedule(stage_starts: tuple, total: int, rates: list) -> dict:
             "mean_steps_per_s": total / sum(seconds)}
 
 
-def ate_m(poses: np.ndarray, T_init_n: np.ndarray, gt_n: np.ndarray, scale: float) -> dict:
-    """ATE (SE(3)-aligned, neld_jax.metrics) of the corrected poses, normalised frame -> metres (/ scale)."""
-    import jax.numpy as jnp
-
+def ate_m(poses: np.ndarray, start_poses: np.ndarray, gt_poses: np.ndarray, ref_scale: float) -> dict:
+    """ATE (SE(3)-aligned, neld_jax.metrics) of the corrected poses: poses [S, 6] (rho in units of ref_scale per
+    metre) on the start poses [S, 4, 4] (metres), against the ground truth [S, 4, 4] (metres)."""
     from neld_jax import metrics
-    from neld_jax.model import scan_poses
+    from neld_jax.model import world_poses
 
-    T = np.asarray(scan_poses(jnp.asarray(poses), jnp.asarray(T_init_n, jnp.float32)), np.float64)
-    result = metrics.ate(T, gt_n)
-    return {"ate_m": result["translation_rmse_m"] / scale, "rot_deg": result["rotation_rmse_deg"]}
+    result = metrics.ate(world_poses(start_poses, np.asarray(poses), ref_scale), gt_poses)
+    return {"ate_m": result["translation_rmse_m"], "rot_deg": result["rotation_rmse_deg"]}
 
 
 # ----------------------------------------------------------------------------------------------------------
 # The demo's data
 
 
-def prepare(path: str, smoke: bool) -> dict:
-    """Generate the demo sequence (configs/demo.py, gpu budget's rays per scan) and save what training needs."""
-    from configs.demo import get_config
-    from neld_jax.data.rays import build_rays
-    from neld_jax.run import load_and_prepare
+def demo_config(budget: str):
+    """configs/demo.py at `budget`."""
+    from neld_jax.config import from_file
 
-    config = get_config("gpu")
+    return from_file(os.path.join(ROOT, "configs", "demo.py"), budget)
+
+
+def prepare(path: str, smoke: bool) -> dict:
+    """Generate the demo sequence (configs/demo.py, gpu budget's rays per scan) and save what training needs: the
+    keyframes' rays in metres, their initial and ground-truth poses, and the normalisation of one cube around them."""
+    from neld_jax.data.normalize import NORMALIZATION_MARGIN, Normalization, fit_normalization
+    from neld_jax.data.preprocess import load_keyframes
+    from neld_jax.data.rays import build_rays
+
+    config = demo_config("gpu")
     if smoke:
         s = config.data.synthetic
         s.num_scans, s.num_beams, s.num_columns, s.gt_map_points = 4, 8, 64, 2000
         s.scene_size_m, s.trajectory_radius_m, s.max_range_m = 30.0, 5.0, 30.0
         config.data.max_rays_per_scan = 256
-    _, seq, norm = load_and_prepare(config)
-    rays = build_rays(seq, norm, max_rays_per_scan=(config.data.max_rays_per_scan or None), seed=config.seed)
+    _, keyframes = load_keyframes(config.data)
+    norm = fit_normalization(keyframes.scans, keyframes.poses, NORMALIZATION_MARGIN)
+    rays = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
+                      seed=config.seed)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    np.savez_compressed(path, directions=rays.directions, ranges=rays.ranges, scan_index=rays.scan_index,
-                        T_init_n=norm.poses_to_normalized(seq.poses), gt_n=norm.poses_to_normalized(seq.gt_poses),
-                        scale=norm.scale)
-    return {"path": path, "num_scans": seq.num_scans, "num_rays": int(rays.num_rays), "scale": float(norm.scale)}
+    np.savez_compressed(path, directions=rays.directions, ranges_m=rays.ranges, scan_index=rays.scan_index,
+                        poses=keyframes.poses, gt_poses=keyframes.gt_poses, scale=norm.scale, offset=norm.offset)
+    return {"path": path, "num_scans": keyframes.num_scans, "num_rays": int(rays.num_rays), "scale": float(norm.scale)}
 
 
-def load_demo(path: str):
-    """(RayData on the device, T_init [S, 4, 4] float32 normalised, ground truth [S, 4, 4] normalised, scale)."""
-    import jax.numpy as jnp
+class Demo(NamedTuple):
+    """The prepared demo as the trainer takes it: rays (RaySet, metres), the one cube's (Rays, Frames) on a
+    one-device mesh, the start and ground-truth poses [S, 4, 4] (metres) and the cube's scale."""
 
-    from neld_jax import train
+    rays_m: object
+    rays: object
+    frames: object
+    start_poses: np.ndarray
+    gt_poses: np.ndarray
+    scale: float
+    plan: object
+    mesh: object
+
+    @property
+    def num_scans(self) -> int:
+        return len(self.start_poses)
+
+
+def load_demo(path: str) -> Demo:
+    """The prepared demo (`prepare`) as a plan of one cube, placed on one device."""
+    from neld_jax import submaps, train
+    from neld_jax.data.normalize import Normalization
+    from neld_jax.data.rays import RaySet
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: no prepared demo; run `python benchmarks/gpu_suite.py --prepare` first")
     d = np.load(path)
+    if "ranges_m" not in d:
+        raise FileNotFoundError(f"{path}: a demo prepared in another layout; run `python benchmarks/gpu_suite.py "
+                                "--prepare` again")
+    rays_m = RaySet(d["directions"], d["ranges_m"], d["scan_index"])
+    scale = float(d["scale"])
+    num_scans = len(d["poses"])
+    plan = submaps.SubmapPlan(members=np.arange(num_scans)[None], norms=(Normalization(scale, d["offset"]),),
+                              ref_scale=scale, weight=np.ones(1))
+    mesh = train.make_mesh(1)
+    rays, frames = train.device_data(submaps.submap_arrays(plan, rays_m, d["poses"]), mesh)
+    return Demo(rays_m, rays, frames, d["poses"], d["gt_poses"], scale, plan, mesh)
 
-    class Rays:  # the fields train.device_rays reads
-        directions, ranges, scan_index = d["directions"], d["ranges"], d["scan_index"]
 
-    return train.device_rays(Rays), jnp.asarray(d["T_init_n"], jnp.float32), d["gt_n"], float(d["scale"])
+def demo_trainer(config, demo: Demo, total_steps: int | None = None):
+    """train.make_trainer of the demo's one cube with the config's own pose steps (a run from the input poses)."""
+    from neld_jax import train
+
+    return train.make_trainer(config, demo.num_scans, 1, train.PoseSteps.from_config(config), demo.start_poses,
+                              total_steps=total_steps, mesh=demo.mesh)
+
+
+class _Enough(Exception):
+    """Raised from fit's checkpoint hook once a measurement has the chunks it needs."""
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -149,9 +192,7 @@ class Suite:
         return config, sizes
 
     def config(self, budget: str):
-        from configs.demo import get_config
-
-        config = get_config(budget)
+        config = demo_config(budget)
         if self.smoke:
             config.model.width, config.model.depth, config.model.skip_layers = 8, 2, (1,)
             config.model.pos_freqs, config.model.dir_freqs = 4, 2
@@ -209,9 +250,11 @@ class Suite:
         return out
 
     def _demo_run(self, budget: str, matmul_dtype: str = "float32"):
+        import functools
+
         from neld_jax import train
 
-        rays, T_init, gt, scale = self.demo()
+        demo = self.demo()
         config = self.config(budget)
         config.model.matmul_dtype = matmul_dtype
         if self.smoke:
@@ -220,10 +263,13 @@ class Suite:
 
         def probe(state, history, seconds):  # at every checkpoint step and the end: the ATE so far
             probes.append({"step": int(state.step), "train_s": seconds,
-                           **ate_m(np.asarray(state.params["poses"]), np.asarray(T_init), gt, scale)})
+                           **ate_m(np.asarray(state.params["poses"]), demo.start_poses, demo.gt_poses, demo.scale)})
 
-        result = train.fit(config, rays, T_init, scale, checkpoint_fn=probe, progress=False)
-        initial = ate_m(np.zeros((T_init.shape[0], 6), np.float32), np.asarray(T_init), gt, scale)
+        plan_of = functools.partial(demo_trainer, config, demo)
+        state = train.init_state(config, plan_of(), demo.num_scans, 1)
+        result = train.fit(config, plan_of, demo.rays, demo.frames, demo.scale, state, checkpoint_fn=probe,
+                           progress=False)
+        initial = ate_m(np.zeros((demo.num_scans, 6), np.float32), demo.start_poses, demo.gt_poses, demo.scale)
         final = probes[-1]
         return {"budget": budget, "matmul_dtype": matmul_dtype, "steps": int(result.state.step),
                 "train_s": result.train_seconds, "first_chunk_s": result.history[0]["elapsed_s"],
@@ -235,59 +281,77 @@ class Suite:
         return self._demo_run("gpu")
 
     def paper_schedule(self):
+        import functools
+
+        import jax
         import jax.numpy as jnp
 
         from neld_jax import train
 
-        rays, T_init, _, scale = self.demo()
+        demo = self.demo()
         config = self.config("paper")
-        config.train.checkpoint_every = 0
         if self.smoke:
             config.train.log_every = 10
-        schedules = train.make_schedules(config)
+        config.train.checkpoint_every = config.train.log_every  # the hook below sees every chunk end
+        plan_of = functools.partial(demo_trainer, config, demo)
+        schedules = plan_of().schedules
         stage_steps = self.record["sections"].get("step_per_stage", {})
         rates = []
         per_stage = []
         for i, start in enumerate(schedules.stage_starts):
-            # train.max_minutes counts the first chunk's compile too: 1.5x the step's compile time (measured
-            # above) plus 12 s of chunks (smoke: 6 s).
+            # Chunks for 1.5x the step's compile time (measured above) plus 12 s (smoke: 6 s), and two at least:
+            # the first chunk compiles and is not counted; fit is stopped from its hook, so that its plan stays the
+            # whole schedule's (a time limit of its own would compress it).
             compile_s = stage_steps.get(f"stage{i}", {}).get("compile_s", 5.0 if self.smoke else 30.0)
-            config.train.max_minutes = (1.5 * compile_s + (6.0 if self.smoke else 12.0)) / 60.0
-            state = train.initial_state(config, int(T_init.shape[0]), scale).replace(step=jnp.asarray(start, jnp.int32))
+            allowed_s = 1.5 * compile_s + (6.0 if self.smoke else 12.0)
+            state = train.init_state(config, plan_of(), demo.num_scans, 1)
+            # at the stage's first step, placed as the step's output is (another placement would compile again)
+            state = state.replace(step=jax.device_put(jnp.asarray(start, jnp.int32), state.step.sharding))
+            marks = []  # (step, seconds) at each chunk end
+
+            def mark(state, history, seconds, marks=marks):
+                marks.append((int(state.step), time.perf_counter()))
+                if len(marks) >= 2 and marks[-1][1] - t > allowed_s:
+                    raise _Enough
+
             t = time.perf_counter()
-            history = train.fit(config, rays, T_init, scale, state=state, progress=False).history
-            if len(history) < 2:
-                raise RuntimeError(f"stage {i}: only {len(history)} chunk ran within train.max_minutes")
-            first, last = history[0], history[-1]
-            rate = (last["step"] - first["step"]) / max(last["elapsed_s"] - first["elapsed_s"], 1e-9)
+            try:
+                train.fit(config, plan_of, demo.rays, demo.frames, demo.scale, state, checkpoint_fn=mark,
+                          progress=False)
+            except _Enough:
+                pass
+            if len(marks) < 2:
+                raise RuntimeError(f"stage {i}: only {len(marks)} chunk ran (the schedule ended)")
+            (first_step, first_t), (last_step, last_t) = marks[0], marks[-1]
+            rate = (last_step - first_step) / max(last_t - first_t, 1e-9)
             rates.append(rate)
-            per_stage.append({"start": start, "steps_run": last["step"] - start, "steps_per_s": rate,
+            per_stage.append({"start": start, "steps_run": last_step - start, "steps_per_s": rate,
                               "samples": schedules.samples(start), "wall_s": time.perf_counter() - t})
         return {"stages": per_stage, **extrapolate_schedule(schedules.stage_starts, schedules.total_steps, rates),
                 "target": "the 160k-step schedule in <= 600 s (>= 270 steps/s)"}
 
     def render_map(self):
-        import dataclasses
+        from neld_jax import mapping, refine, train
 
-        from neld_jax import train
-        from neld_jax.mapping import render_map
-
-        rays, T_init, _, scale = self.demo()
+        demo = self.demo()
         out = {}
         for budget in ("gpu", "paper"):
             config = self.config(budget)
-            setup = train.create_train_state(config, int(T_init.shape[0]), scale)
-            sampler = dataclasses.replace(train.sampler_settings(config, scale, config.mapping.num_coarse,
-                                                                 config.mapping.num_fine), guided_samples=0)
-            directions, scan_index = np.asarray(rays.directions), np.asarray(rays.scan_index)
-            T = np.asarray(T_init)
+            trainer = demo_trainer(config, demo)
+            state = train.init_state(config, trainer, demo.num_scans, 1)
+            total = trainer.schedules.total_steps  # every frequency active, as after training
+            result = train.FitResult(state.replace(step=state.step + total), [], False, 0.0, trainer.schedules)
+            refined = refine.Refined(result, demo.plan, trainer.field, demo.start_poses, demo.start_poses, np.eye(4),
+                                     np.bincount(demo.rays_m.scan_index, minlength=demo.num_scans))
+            sampler = train.sampler_settings(config, config.mapping.num_coarse, config.mapping.num_fine)
             rows = []
             # A [rays x 256 samples, width] float32 activation is 4 GiB at 8192 rays and width 512.
+            default_batch = mapping.RAYS_PER_BATCH
             for batch in ((64,) if self.smoke else (4096, 16384, 32768)):
                 def render():
-                    return render_map(setup.state.params["field"], setup.field, sampler, T, directions, scan_index,
-                                      float(config.model.pos_freqs), rays_per_batch=batch, min_opacity=0.0)
+                    return mapping.render_map(refined, demo.rays_m, sampler, min_opacity=0.0)
 
+                mapping.RAYS_PER_BATCH = batch  # the rays a device call renders (a constant of the module)
                 try:
                     t = time.perf_counter()
                     render()  # compiles
@@ -298,9 +362,11 @@ class Suite:
                 except Exception as e:  # out of memory at this batch size: keep the others
                     rows.append({"rays_per_batch": batch, "error": f"{type(e).__name__}: {str(e)[:300]}"})
                     continue
-                rows.append({"rays_per_batch": batch, "seconds": seconds, "rays_per_s": len(directions) / seconds,
-                             "first_call_s": first_s})
-            out[budget] = {"width": config.model.width, "depth": config.model.depth, "rays": int(len(directions)),
+                finally:
+                    mapping.RAYS_PER_BATCH = default_batch
+                rows.append({"rays_per_batch": batch, "seconds": seconds,
+                             "rays_per_s": demo.rays_m.num_rays / seconds, "first_call_s": first_s})
+            out[budget] = {"width": config.model.width, "depth": config.model.depth, "rays": demo.rays_m.num_rays,
                            "samples": [sampler.num_coarse, sampler.num_fine], "batches": rows}
         return out
 

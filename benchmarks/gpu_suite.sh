@@ -15,6 +15,8 @@ if [ ! -f .gpu_data/demo.npz ]; then
   echo "error: .gpu_data/demo.npz is missing: run 'python benchmarks/gpu_suite.py --prepare' first" >&2
   exit 1
 fi
+# This checkout's package, whether or not the image has it installed
+export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
 export PYTHONUNBUFFERED=1
 # JAX takes 75% of the GPU's memory by default; the torch peer (a subprocess) needs room too.
 export XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-0.5}

@@ -3,7 +3,7 @@
 
     python benchmarks/real_gpu.py --prepare --run_dir=runs/hku1              # here: .gpu_data/hku1.pkl
     bash benchmarks/real_gpu.sh [--max_train_s=150] [--budget_s=480]          # there: $OUT/<name>_trained.npz
-    bash benchmarks/real_gpu.sh --set=sampling.range_at_midpoint=True --out_dir=$OUT/mid   # a variant of the same
+    bash benchmarks/real_gpu.sh --set=seed=1 --out_dir=$OUT/seed1             # a variant of the same
     python benchmarks/real_gpu.py --evaluate --run_dir=runs/hku1 --trained=DIR/hku1_trained.npz \
         --out_dir=runs/hku1_gpu                                               # here: poses files, margins JSON
 
@@ -11,12 +11,13 @@ A run reads PCD files and runs the classical baseline with open3d, which a GPU i
 carry there); only training needs the GPU. --prepare takes a finished bin/train.py run of a sequence (any budget:
 its config.json names the sequence, its start_poses.npz holds the start the run chose, the classical baseline's
 poses or the input's) and writes what the gpu budget's training needs: the keyframes' training rays as sensor-frame
-points (the same seeded subset a run draws), the start, the normalisation and the submap plan, the config of
-configs/lio_keyframes.py:gpu as the run would train it (neld_jax.run.pose_steps_for_start). The default mode trains
-every prepared sequence there with neld_jax.run.train_keyframes, the step a run takes, one after the other, and
-writes the keyframes' poses and the training's figures. --evaluate measures here, on the whole preprocessed
-keyframes, the raw map's crispness under the input's, the baseline's, the GPU's and the given run's own poses over
-eval.crispness_draws query draws, and writes poses_<method>.kitti / .txt for every input scan, as a run does.
+points (the same seeded subset a run draws), the start, and the config of configs/lio_keyframes.py:gpu with the
+pose steps a run takes from that start (neld_jax.start). The default mode trains every prepared sequence there
+with neld_jax.refine.refine_keyframes, the step a run takes (it plans the cubes from the prepared points on the
+devices it finds), one after the other, and writes the keyframes' poses and the training's figures. --evaluate
+measures here, on the whole preprocessed keyframes, the raw map's crispness under the input's, the baseline's, the
+GPU's and the given run's own poses over eval.crispness_draws query draws, and writes poses_<method>.kitti / .txt
+for every input scan, as a run does.
 """
 
 from __future__ import annotations
@@ -26,34 +27,34 @@ import json
 import logging
 import os
 import pickle
-import sys
 import tempfile
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+from absl import app, flags
+import numpy as np
 
-from absl import app, flags  # noqa: E402
-import numpy as np  # noqa: E402
+from packed_points import pack_points, unpack_points  # this folder's benchmarks/packed_points.py
 
-from packed_points import pack_points, unpack_points  # noqa: E402
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 logger = logging.getLogger("real_gpu")
-PREPARE = flags.DEFINE_bool("prepare", False, "Write --run_dir's sequence, start and plan to --data (needs open3d).")
+PREPARE = flags.DEFINE_bool("prepare", False, "Write --run_dir's sequence and start to --data (needs open3d).")
 EVALUATE = flags.DEFINE_bool("evaluate", False, "Judge --trained against --run_dir's poses (needs open3d).")
 RUN_DIR = flags.DEFINE_string("run_dir", "", "A finished bin/train.py run (config.json, start_poses.npz).")
 NAME = flags.DEFINE_string("name", "", "The prepared sequence's name (default: --run_dir's folder name).")
-DATA = flags.DEFINE_string("data", os.path.join(ROOT, ".gpu_data"), "Folder of the prepared sequences.")
-CONFIG = flags.DEFINE_string("config", "configs/lio_keyframes.py", "The config file the run used (its get_config).")
+DATA = flags.DEFINE_string("data", os.path.join(REPO, ".gpu_data"), "Folder of the prepared sequences.")
+CONFIG = flags.DEFINE_string("config", "configs/lio_keyframes.py", "The config file the run used (its get_config; "
+                             "relative to the repository).")
 BUDGET = flags.DEFINE_string("budget", "gpu", "The budget of --config to train with.")
 SET = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (neld_jax.config.apply_overrides): with "
-                                "--prepare on the run's config, in training on the prepared one (a variant).")
+                                "--prepare on the run's config, in training on the prepared one (a variant; the "
+                                "pose steps stay the prepared ones).")
 TRAINED = flags.DEFINE_string("trained", "", "--evaluate: a <name>_trained.npz the GPU wrote.")
 OUT_DIR = flags.DEFINE_string("out_dir", "", "--evaluate: folder for the poses files and evaluation.json; "
                               "training: folder for <name>_trained.npz and real_gpu.json (default $OUT).")
 NAMES = flags.DEFINE_list("names", [], "Training: the prepared sequences to train, in this order (default: all).")
-MAX_TRAIN_S = flags.DEFINE_float("max_train_s", 150.0, "Training: each sequence's training guard, seconds.")
+MAX_TRAIN_S = flags.DEFINE_float("max_train_s", 150.0, "Training: each sequence's training time, seconds (the "
+                                 "schedule is compressed to it).")
 BUDGET_S = flags.DEFINE_float("budget_s", 480.0, "Training: start no sequence after this many seconds.")
 
 
@@ -63,16 +64,11 @@ SEQUENCE_KEYS = ("format", "root", "drop_unmatched_tail", "pose_file", "first_sc
 
 def run_config(run_dir: str, config_file: str, budget: str, overrides: list):
     """config_file's get_config(budget) on the run's sequence (SEQUENCE_KEYS of its data section), with overrides."""
-    import importlib.util
-
-    from neld_jax.config import apply_overrides
+    from neld_jax.config import apply_overrides, from_file
 
     with open(os.path.join(run_dir, "config.json")) as f:
         data = json.load(f)["data"]
-    spec = importlib.util.spec_from_file_location("run_config_file", os.path.join(ROOT, config_file))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    config = module.get_config(budget)
+    config = from_file(os.path.join(REPO, config_file), budget)
     for key in SEQUENCE_KEYS:
         if isinstance(data.get(key), dict):
             config.data[key].update(data[key])
@@ -81,46 +77,72 @@ def run_config(run_dir: str, config_file: str, budget: str, overrides: list):
     return apply_overrides(config, overrides)
 
 
-def read_start(run_dir: str, input_poses: np.ndarray):
-    """The run.Start a run trained from (its poses [K, 4, 4], chosen "baseline" | "input", baseline_poses or None);
-    a run whose baseline did not run saved none (run.load_start) and started from its input."""
-    from neld_jax.run import START_FILE, Start, load_start, same_input_poses
+def read_start(run_dir: str, input_poses: np.ndarray) -> tuple[np.ndarray, str, np.ndarray | None]:
+    """The start a run trained from: (its poses [K, 4, 4], "baseline" | "input", the baseline's poses or None). A
+    run whose baseline did not run saved none (neld_jax.start.Start.save) and started from its input."""
+    from neld_jax.start import FILE
 
-    saved = load_start(run_dir)
-    if saved is None:
-        return Start(input_poses, "input")
-    start, _, saved_input = saved
-    if not same_input_poses(saved_input, input_poses):
-        raise SystemExit(f"{os.path.join(run_dir, START_FILE)}: its input poses are not this sequence's keyframes "
-                         "(another sequence's run?)")
-    return start
+    path = os.path.join(run_dir, FILE)
+    if not os.path.isfile(path):
+        return input_poses, "input", None
+    with np.load(path) as saved:
+        meta = json.loads(str(saved["meta"]))
+        saved_input = saved["input_poses"]
+        if saved_input.shape != np.shape(input_poses) or not np.allclose(saved_input, input_poses, rtol=0.0,
+                                                                          atol=1e-9):
+            raise SystemExit(f"{path}: its input poses are not this sequence's keyframes (another sequence's run?)")
+        return saved["poses"], meta["chosen"], saved["baseline_poses"]
+
+
+def pose_steps_for(config, keyframes, chosen: str, start_poses: np.ndarray):
+    """The pose steps a run takes from its start (neld_jax.start): the config's own from the input; from the
+    baseline's poses capped, with the prior (heavier where the start's map is thinner than start.thin_map_m) and
+    the start's scale kept."""
+    from neld_jax import judge
+    from neld_jax.start import pose_steps_from_baseline
+    from neld_jax.train import PoseSteps
+
+    if chosen != "baseline":
+        return PoseSteps.from_config(config)
+    judged, _ = judge.map_crispness(keyframes, {"baseline": start_poses}, config.eval)
+    return pose_steps_from_baseline(config, judged["baseline"].get("mean_plane_thickness_m"))
+
+
+def prepared_keyframes(d: dict):
+    """The keyframes of a prepared file: the training rays as sensor-frame points, the input poses."""
+    from neld_jax.data.sequence import Sequence
+
+    scans = np.split(unpack_points(d["points"]), np.cumsum(d["counts"])[:-1])
+    return Sequence(scans=scans, poses=d["poses"], timestamps=d["timestamps"], name=d["name"], source=d["source"])
 
 
 def prepare(run_dir: str, name: str) -> dict:
-    """Write DATA/<name>.pkl: what train_keyframes needs, the keyframes' training rays as sensor-frame points."""
-    from neld_jax import run
+    """Write DATA/<name>.pkl: what refine_keyframes needs, the keyframes' training rays as sensor-frame points."""
+    import dataclasses
+
+    from neld_jax import submaps
     from neld_jax.data.normalize import Normalization
+    from neld_jax.data.preprocess import load_keyframes
     from neld_jax.data.rays import build_rays
 
     config = run_config(run_dir, CONFIG.value, BUDGET.value, SET.value)
-    _, seq, norm = run.load_and_prepare(config)
-    start = run.judge_start(config, seq, read_start(run_dir, seq.poses))
-    config = run.pose_steps_for_start(config, start.chosen, run.start_thickness(start))
-    # One device: the plan pads the submaps to a multiple of the devices it will run on (a GPU machine lent here has one)
-    norm, plan = run.training_frame(config, seq, norm, start, num_devices=1)
-    rays = build_rays(seq, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
+    _, keyframes = load_keyframes(config.data)
+    T_start, chosen, _ = read_start(run_dir, keyframes.poses)
+    pose_steps = pose_steps_for(config, keyframes, chosen, T_start)
+    rays = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
                       seed=config.seed)
-    chosen, T_start = start.chosen, start.poses
-    prepared = {"name": name, "config": config.to_dict(), "chosen": chosen, "T_start": T_start, "poses": seq.poses,
-                "timestamps": seq.timestamps, "norm": norm, "plan": plan, "source": seq.source,
-                "points": pack_points(rays.directions * rays.ranges[:, None]),
-                "counts": np.bincount(rays.scan_index, minlength=seq.num_scans)}
+    prepared = {"name": name, "config": config.to_dict(), "chosen": chosen, "T_start": T_start,
+                "pose_steps": pose_steps.to_dict(), "poses": keyframes.poses, "timestamps": keyframes.timestamps,
+                "source": keyframes.source, "points": pack_points(rays.directions * rays.ranges[:, None]),
+                "counts": np.bincount(rays.scan_index, minlength=keyframes.num_scans)}
+    # The plan the training will make on one device (it plans on the devices it finds)
+    plan = submaps.plan_from_config(dataclasses.replace(prepared_keyframes(prepared), poses=T_start), config)
     os.makedirs(DATA.value, exist_ok=True)
     path = os.path.join(DATA.value, f"{name}.pkl")
     with open(path, "wb") as f:
         pickle.dump(prepared, f, protocol=pickle.HIGHEST_PROTOCOL)
-    return {"path": path, "keyframes": seq.num_scans, "rays": int(rays.num_rays), "start": chosen,
-            "submaps": None if plan is None else plan.num_submaps, "megabytes": round(os.path.getsize(path) / 1e6, 1)}
+    return {"path": path, "keyframes": keyframes.num_scans, "rays": int(rays.num_rays), "start": chosen,
+            "submaps": plan.num_submaps, "megabytes": round(os.path.getsize(path) / 1e6, 1)}
 
 
 def add_missing_fields(config, defaults, prefix: str = "") -> list:
@@ -141,38 +163,35 @@ def add_missing_fields(config, defaults, prefix: str = "") -> list:
 
 
 def train_prepared(path: str, out_dir: str, max_seconds: float) -> dict:
-    """Train one prepared sequence as a run would (run.train_keyframes); writes OUT/<name>_trained.npz."""
+    """Train one prepared sequence as a run would (neld_jax.refine.refine_keyframes); writes OUT/<name>_trained.npz."""
     import jax
     import ml_collections
 
-    from neld_jax import run
-    from neld_jax.config import apply_overrides, base_config
-    from neld_jax.data.rays import build_rays
-    from neld_jax.data.sequence import Sequence
+    from neld_jax import outputs, refine
+    from neld_jax.config import apply_overrides, defaults
+    from neld_jax.train import PoseSteps
 
     with open(path, "rb") as f:
         d = pickle.load(f)
     # --set here makes a variant of the prepared config (one prepared file, several trainings: --out_dir each)
     config = ml_collections.ConfigDict(d["config"])
-    added = add_missing_fields(config, base_config())
+    added = add_missing_fields(config, defaults())
     config = apply_overrides(config, SET.value)
-    scans = np.split(unpack_points(d["points"]), np.cumsum(d["counts"])[:-1])
-    seq = Sequence(scans=scans, poses=d["poses"], timestamps=d["timestamps"], name=d["name"], source=d["source"])
-    raysets = build_rays(seq, d["norm"], max_rays_per_scan=None, seed=config.seed)  # already the run's subset
+    keyframes = prepared_keyframes(d)
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as checkpoints:
-        trained = run.train_keyframes(config, seq, d["norm"], raysets, d["T_start"], d["plan"], checkpoints,
-                                      run.config_hash(config), progress=False, max_seconds=max_seconds)
+    with tempfile.TemporaryDirectory() as scratch:  # its checkpoints
+        refined = refine.refine_keyframes(config, keyframes, d["T_start"], PoseSteps(**d["pose_steps"]), scratch,
+                                          outputs.config_hash(config), max_seconds, progress=False)
     wall_s = time.perf_counter() - t0
-    result = trained.result
+    result = refined.result
     figures = {"name": d["name"], "device": str(jax.devices()[0]), "jax": jax.__version__,
-               "keyframes": seq.num_scans, "rays": int(raysets.num_rays), "start": d["chosen"],
-               "submaps": None if d["plan"] is None else int((d["plan"].weight > 0).sum()),
-               "steps": int(result.state.step), "schedule_steps": int(result.total_steps or config.train.steps),
-               "overrides": list(SET.value), "defaults_added": added, "stopped_early": bool(result.stopped_early),
-               "train_seconds": round(result.train_seconds, 2),
-               "wall_seconds_with_compile": round(wall_s, 2), "final": result.history[-1] if result.history else {}}
-    np.savez(os.path.join(out_dir, f"{d['name']}_trained.npz"), T_opt=trained.T_opt,
+               "keyframes": keyframes.num_scans, "rays": int(refined.rays_per_keyframe.sum()), "start": d["chosen"],
+               "submaps": int((refined.plan.weight > 0).sum()), "steps": int(result.state.step),
+               "schedule_steps": int(result.schedules.total_steps), "overrides": list(SET.value),
+               "defaults_added": added, "stopped_early": bool(result.stopped_early),
+               "train_seconds": round(result.train_seconds, 2), "wall_seconds_with_compile": round(wall_s, 2),
+               "final": result.history[-1] if result.history else {}}
+    np.savez(os.path.join(out_dir, f"{d['name']}_trained.npz"), T_opt=refined.poses,
              figures=np.array(json.dumps(figures)))
     return figures
 
@@ -200,14 +219,14 @@ def train_all(out_dir: str) -> list:
 def evaluate(run_dir: str, trained_path: str, out_dir: str) -> dict:
     """The raw map's crispness under each method's keyframe poses, over the query draws; poses files for every input
     scan in out_dir (as a run writes them), evaluation.json with the figures."""
-    from neld_jax import export, quality, run
+    from neld_jax import export, judge
     from neld_jax.data.poses import read_kitti
+    from neld_jax.data.preprocess import load_keyframes
     from neld_jax.trajectory import propagate_corrections
 
     config = run_config(run_dir, CONFIG.value, BUDGET.value, SET.value)
-    loaded, seq, _ = run.load_and_prepare(config)
-    start = read_start(run_dir, seq.poses)
-    chosen, baseline = start.chosen, start.baseline_poses
+    loaded, seq = load_keyframes(config.data)
+    _, chosen, baseline = read_start(run_dir, seq.poses)
     saved = np.load(trained_path)
     figures = json.loads(str(saved["figures"]))
     if saved["T_opt"].shape != seq.poses.shape:
@@ -218,10 +237,10 @@ def evaluate(run_dir: str, trained_path: str, out_dir: str) -> dict:
     run_poses = os.path.join(run_dir, "poses_optimized.kitti")
     if os.path.exists(run_poses):  # the given run's own result (e.g. the cpu budget's), on the same query points
         methods["run_optimized"] = read_kitti(run_poses)[seq.loaded_index]
-    crisp, _ = quality.map_crispness(seq, methods, config.eval)
-    margins = quality.crispness_margins(seq, methods, config.eval, first_draw=crisp)
+    crisp, _ = judge.map_crispness(seq, methods, config.eval)
+    margins = judge.crispness_margins(seq, methods, config.eval, first_draw=crisp)
     for other, margin in margins.items():
-        logger.info("%s: %s", figures["name"], quality.describe_margin(other, margin))
+        logger.info("%s: %s", figures["name"], judge.describe_margin(other, margin))
     os.makedirs(out_dir, exist_ok=True)
     export.write_poses(out_dir, "poses_initial", loaded.timestamps, loaded.poses)
     T_all = propagate_corrections(loaded.poses, seq.loaded_index, saved["T_opt"], loaded.timestamps)
@@ -258,7 +277,7 @@ def main(argv):
         else:
             print(json.dumps(evaluate(RUN_DIR.value, TRAINED.value, OUT_DIR.value or f"{RUN_DIR.value}_{BUDGET.value}")))
         return
-    out_dir = OUT_DIR.value or os.environ.get("OUT") or os.path.join(ROOT, "benchmarks", "results")
+    out_dir = OUT_DIR.value or os.environ.get("OUT") or os.path.join(REPO, "benchmarks", "results")
     os.makedirs(out_dir, exist_ok=True)
     print(json.dumps(train_all(out_dir)))
 

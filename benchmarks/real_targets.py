@@ -21,7 +21,7 @@ def _margin_verdict(margin: dict | None):
 
 def target_verdicts(entry: dict, start: str, minutes_limit: float = 10.0) -> dict:
     """The targets for real recordings, for one sequence's entry of benchmarks/real_data.py: {"recorded": {...}} for the
-    recorded run from `start` (train.init_poses; the drift run's own), and {"drift": {...}} when there is a drift
+    recorded run from `start` (start.poses; the drift run's own), and {"drift": {...}} when there is a drift
     run. Each target is True / False, a margin's verdict ("every draw", "a tie", "blurrier"), or None where the
     entry lacks what it needs."""
     def entropy(crispness: dict, method: str):

@@ -8,8 +8,8 @@ torch is not a dependency of neld_jax (nor of its tests): install it beside it t
 
 The peer is written as research code usually is: an nn.Module MLP, the surrogate Fourier encoding as a
 torch.autograd.Function, torch.optim.Adam. It does the same work per step as the JAX step
-(neld_jax.train.make_step_body), at the same sizes: a uniform batch of rays, per-scan SE(3) corrections
-(exp, then compose with the initial pose), the cube interval (eq. 7), stratified coarse samples, NeLD-BA's fine
+(neld_jax.train.make_step over one cube), at the same sizes: a uniform batch of rays, per-scan SE(3) corrections
+(exp, composed on the right of the initial pose), the cube interval (eq. 7), stratified coarse samples, NeLD-BA's fine
 samples in the bin before each coarse sample, one MLP evaluation per sample (the fine pass reuses the coarse
 densities, as in JAX; --reevaluate_coarse evaluates the coarse samples again in the fine pass, as a typical
 NeRF implementation does), alpha compositing, the L1 range and termination losses of eq. 13, and Adam on the
@@ -26,18 +26,15 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import statistics
 import sys
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # benchmarks/ (train_step's flags and runner)
+from absl import app, flags
+import numpy as np
 
-from absl import app, flags  # noqa: E402
-import numpy as np  # noqa: E402
-
-import train_step  # noqa: E402  (defines the size flags: --rays, --coarse, --fine, --width, ...)
-from neld_jax.hugepages import reexec_with_huge_page_malloc  # noqa: E402
+import train_step  # this folder's benchmarks/train_step.py: the size flags (--rays, --coarse, ...) and its runner
+from neld_jax.hugepages import reexec_with_huge_page_malloc
 
 logger = logging.getLogger(__name__)
 FLAGS = flags.FLAGS
@@ -185,7 +182,7 @@ def build_peer(torch, sizes: dict, rays_np, T_init_np, device: str, reevaluate_c
 
     def loss_fn(idx):
         window = 0.5 * (1 - torch.cos(math.pi * torch.clamp(alpha_c2f - torch.arange(L, device=dev), 0.0, 1.0)))
-        T = (se3_exp(poses) @ T_init)[scan_all[idx]]
+        T = (T_init @ se3_exp(poses))[scan_all[idx]]  # a right correction in the scan's frame, as in JAX
         o, d = T[:, :3, 3], (T[:, :3, :3] @ directions[idx][:, :, None])[:, :, 0]
         ranges = ranges_all[idx]
         with torch.no_grad():

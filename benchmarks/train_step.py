@@ -8,7 +8,8 @@
     python benchmarks/train_step.py --preset=cpu --fit --steps 200  # train.fit's loop against the bare step
     python benchmarks/train_step.py --rays 256 --coarse 16 --fine 8 --width 64 --depth 2
 
-Each run prints ONE JSON line on stdout (logs go to stderr). The train step runs on synthetic rays built in
+Each run prints ONE JSON line on stdout (logs go to stderr). The train step is the trainer's own
+(train.make_trainer and train.init_state over a plan of one cube, as a run builds them) on synthetic rays built in
 memory (a few scans inside the normalisation cube looking at a sphere), so no dataset is needed.
 
 Timing: the step is lowered and compiled once (compile_s), run once to warm up, then `--repeats` times
@@ -44,6 +45,7 @@ the JSON: thread-milliseconds per step by kind of XLA op (matmul, sin/cos, sort,
 
 from __future__ import annotations
 
+import functools
 import glob
 import json
 import logging
@@ -53,19 +55,19 @@ import re
 import statistics
 import sys
 import time
-from typing import Callable
+from typing import Callable, NamedTuple
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from absl import app, flags
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
 
-from absl import app, flags  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import ml_collections  # noqa: E402
-
-from neld_jax import train  # noqa: E402
-from neld_jax.hugepages import reexec_with_huge_page_malloc  # noqa: E402
-from neld_jax.data.rays import sphere_scene_rays  # noqa: E402
-from neld_jax.config import apply_budget, base_config  # noqa: E402
+from neld_jax import submaps, train
+from neld_jax.config import defaults, with_budget
+from neld_jax.data.normalize import Normalization
+from neld_jax.data.rays import RaySet, sphere_scene_rays
+from neld_jax.hugepages import reexec_with_huge_page_malloc
 
 logger = logging.getLogger(__name__)
 
@@ -76,8 +78,8 @@ SIZE_FLAGS = ("rays", "coarse", "fine", "guided", "width", "depth", "skip_layers
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("preset", "none", ["cpu", "gpu", "paper", "none"],
-                  "cpu, gpu, paper: the sizes of apply_budget(base_config(), preset) (paper: base_config() itself, "
-                  "called 'gpu' before the gpu budget existed); none: the flags only.")
+                  "cpu, gpu, paper: the sizes of with_budget(defaults(), preset) (paper: defaults() itself); "
+                  "none: the flags only.")
 flags.DEFINE_integer("stage", 0, "Which sample-count stage of the preset (index into sampling.coarse_stages).")
 flags.DEFINE_integer("rays", 512, "Rays per step (train.batch_rays).")
 flags.DEFINE_integer("coarse", 32, "Stratified coarse samples per ray.")
@@ -115,7 +117,7 @@ SYNTHETIC_SCALE = 1.0 / 40.0
 
 def preset_sizes(preset: str, stage: int = 0) -> tuple[ml_collections.ConfigDict, dict]:
     """(config, sizes) of a preset: the config supplies everything the size flags do not (losses, sampling)."""
-    config = apply_budget(base_config(), preset)
+    config = with_budget(defaults(), preset)
     m, s = config.model, config.sampling
     sizes = {
         "rays": int(config.train.batch_rays),
@@ -146,13 +148,40 @@ def configure(config: ml_collections.ConfigDict, sizes: dict, train_steps: int) 
     return c
 
 
-def synthetic_rays(num_scans: int, rays_per_scan: int, seed: int = 0) -> tuple[train.RayData, jax.Array]:
-    """Rays of `num_scans` sensors inside the cube looking at a sphere of radius 0.8 around the origin.
+class SyntheticCube(NamedTuple):
+    """The in-memory training data of one cube: the trainer's (Rays, Frames) on a one-device mesh, and the start
+    poses [S, 4, 4] in metres (world) that make_trainer takes."""
 
-    Returns (RayData with R = num_scans * rays_per_scan rays, T_init [S, 4, 4]), float32, on the device.
-    """
-    rays, T = sphere_scene_rays(num_scans, rays_per_scan, seed)
-    return train.device_rays(rays), jnp.asarray(T, jnp.float32)
+    rays: train.Rays
+    frames: train.Frames
+    start_poses: np.ndarray
+    mesh: object
+
+
+def one_cube_plan(num_scans: int, scale: float) -> submaps.SubmapPlan:
+    """A plan of one cube holding every scan, normalised by `scale` (normalised units per metre) about the origin."""
+    return submaps.SubmapPlan(members=np.arange(num_scans)[None], norms=(Normalization(scale),), ref_scale=scale,
+                              weight=np.ones(1))
+
+
+def synthetic_rays(num_scans: int, rays_per_scan: int, seed: int = 0) -> SyntheticCube:
+    """Rays of `num_scans` sensors inside the cube looking at a sphere of radius 0.8 around the origin, as one cube
+    of SYNTHETIC_SCALE normalised units per metre (the sphere is 64 m across), placed as the trainer takes them."""
+    rays, T = sphere_scene_rays(num_scans, rays_per_scan, seed)  # in the normalised frame
+    rays_m = RaySet(rays.directions, (rays.ranges / SYNTHETIC_SCALE).astype(np.float32), rays.scan_index)
+    T_m = np.array(T, np.float64)
+    T_m[:, :3, 3] /= SYNTHETIC_SCALE
+    mesh = train.make_mesh(1)
+    arrays = submaps.submap_arrays(one_cube_plan(num_scans, SYNTHETIC_SCALE), rays_m, T_m)
+    placed, frames = train.device_data(arrays, mesh)
+    return SyntheticCube(placed, frames, T_m, mesh)
+
+
+def trainer_for(config: ml_collections.ConfigDict, cube: SyntheticCube, total_steps: int | None = None
+                ) -> train.Trainer:
+    """train.make_trainer of one cube with the config's own pose steps, as a run from its input poses builds it."""
+    return train.make_trainer(config, len(cube.start_poses), 1, train.PoseSteps.from_config(config),
+                              cube.start_poses, total_steps=total_steps, mesh=cube.mesh)
 
 
 def points_per_step(sizes: dict) -> int:
@@ -167,10 +196,11 @@ def mlp_shaped_matmul(sizes: dict) -> tuple[str, tuple[int, int, int]]:
 
 
 def mlp_flops_per_point(field_params) -> int:
-    """Forward FLOPs of the MLP's dense layers for one point: sum over [in, out] kernels of 2 * in * out."""
+    """Forward FLOPs of the MLP's dense layers for one point: sum over [in, out] kernels of 2 * in * out (kernels
+    stacked over cubes, [M, in, out], count once per cube)."""
     kernels = [leaf for path, leaf in jax.tree_util.tree_leaves_with_path(field_params)
                if getattr(path[-1], "key", None) == "kernel"]
-    return int(sum(2 * k.shape[0] * k.shape[1] for k in kernels))
+    return int(sum(2 * math.prod(k.shape) for k in kernels))
 
 
 def median_seconds(run: Callable[[], object], repeats: int) -> tuple[float, list[float], float]:
@@ -305,29 +335,32 @@ def summarize_profile(xplane_path: str, hlo_text: str, num_steps: int, top: int 
 
 
 class StepRunner:
-    """The trainer's jitted step at `sizes`, compiled once, on in-memory synthetic rays.
+    """The trainer's step at `sizes` (train.make_trainer / train.init_state over one cube, as a run builds them),
+    jitted and compiled once, on in-memory synthetic rays.
 
-    run(n) runs n consecutive steps (the state is donated, as in the trainer, so each step's output feeds the
-    next) and blocks until they are done; it returns the last step's metrics.
+    run(n) runs n consecutive steps (the state is donated, as in the trainer's chunks, so each step's output feeds
+    the next) and blocks until they are done; it returns the last step's metrics.
     """
 
     def __init__(self, config: ml_collections.ConfigDict, sizes: dict, train_steps: int, num_scans: int = 8,
                  rays_per_scan: int = 4096, seed: int = 0):
         self.sizes = sizes
         self.config = configure(config, sizes, train_steps=train_steps)
-        self.rays, self.T_init = synthetic_rays(num_scans, rays_per_scan, seed)
         self.config.seed = seed
-        setup = train.create_train_state(self.config, num_scans, SYNTHETIC_SCALE)  # the trainer's own builder
-        self.state = setup.state
+        self.cube = synthetic_rays(num_scans, rays_per_scan, seed)
+        self.rays, self.frames = self.cube.rays, self.cube.frames
+        self.trainer = trainer_for(self.config, self.cube)
+        self.state = train.init_state(self.config, self.trainer, num_scans, 1)
+        step = jax.jit(self.trainer.step, static_argnames=("sampler",), donate_argnums=(0,))
         t0 = time.perf_counter()
-        self.compiled = setup.step_fn.lower(self.state, self.rays, self.T_init, sampler=setup.sampler(0)).compile()
+        self.compiled = step.lower(self.state, self.rays, self.frames, sampler=self.trainer.sampler(0)).compile()
         self.compile_s = time.perf_counter() - t0
-        self.mlp_flops_per_point = mlp_flops_per_point(self.state.params["field"])  # kernel shapes never change
+        self.mlp_flops_per_point = mlp_flops_per_point(self.state.params["fields"])  # kernel shapes never change
 
     def run(self, n: int):
         state, metrics = self.state, None
         for _ in range(n):
-            state, metrics = self.compiled(state, self.rays, self.T_init)  # donated: feed the newest one back
+            state, metrics = self.compiled(state, self.rays, self.frames)  # donated: feed the newest one back
         jax.block_until_ready((state, metrics))
         self.state = state
         return metrics
@@ -385,8 +418,7 @@ def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: 
         **device_info(),
         "config": {**sizes, "skip_layers": list(runner.config.model.skip_layers), "samples_per_ray": samples_per_ray,
                    "steps": steps, "repeats": repeats, "scans": num_scans, "rays_per_scan": rays_per_scan,
-                   "hierarchical": str(runner.config.sampling.hierarchical),
-                   "use_view_dirs": bool(runner.config.model.use_view_dirs)},
+                   "hierarchical": str(runner.config.sampling.hierarchical)},
     }
 
 
@@ -441,9 +473,10 @@ def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, re
     fit_config.seed = seed
     fit_config.train.log_every = log_every
     fit_config.train.checkpoint_every = log_every  # the hook below runs at every chunk end; no chunk is cut
-    fit_config.train.max_minutes = 0.0
+    fit_config.max_minutes = 0.0
     fit_config.train.pose_start_freq = 0  # poses move from step 0: every chunk is log_every steps long
-    fit_config.train.pose_warmup_steps = 0
+    plan_of = functools.partial(trainer_for, fit_config, runner.cube)
+    num_scans = len(runner.cube.start_poses)
     rounds = []
     for _ in range(max(repeats, 1)):
         marks = []  # (step, wall s, process CPU s) at each chunk end, after fit has fetched its metrics
@@ -451,8 +484,10 @@ def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, re
         def mark(state, history, seconds):
             marks.append((int(state.step), time.perf_counter(), time.process_time()))
 
+        state = train.init_state(fit_config, plan_of(fit_steps), num_scans, 1)
         t0 = time.perf_counter()
-        result = train.fit(fit_config, runner.rays, runner.T_init, SYNTHETIC_SCALE, checkpoint_fn=mark, progress=False)
+        result = train.fit(fit_config, plan_of, runner.rays, runner.frames, SYNTHETIC_SCALE, state,
+                           checkpoint_fn=mark, progress=False)
         total_s = time.perf_counter() - t0
         (first_step, first_wall, first_cpu), (last_step, last_wall, last_cpu) = marks[0], marks[-1]
         fit_rate = (last_step - first_step) / (last_wall - first_wall)
@@ -546,7 +581,7 @@ def benchmark_matmul_peak(sizes: dict, square_sizes: list[int], repeats: int, dt
 def resolve_sizes() -> tuple[ml_collections.ConfigDict, dict]:
     """The preset's config and sizes, with every size flag given on the command line taking precedence."""
     preset = "cpu" if FLAGS.preset == "none" else FLAGS.preset
-    preset_config = apply_budget(base_config(), preset)
+    preset_config = with_budget(defaults(), preset)
     stages = len(preset_config.sampling.coarse_stages)
     if not 0 <= FLAGS.stage < stages:
         raise app.UsageError(f"--stage={FLAGS.stage}: the {preset} preset has stages 0..{stages - 1}")

@@ -40,7 +40,7 @@ def compare_maps(scans: list[np.ndarray], methods: dict[str, np.ndarray], radius
 
 def map_crispness(keyframes, methods: dict[str, np.ndarray], eval_cfg) -> tuple[dict, dict]:
     """`compare_maps` of a sequence's keyframes with config.eval's crispness settings."""
-    return compare_maps(keyframes.scans, methods, float(eval_cfg.crispness_radius_m), int(eval_cfg.crispness_queries))
+    return compare_maps(keyframes.scans, methods, float(eval_cfg["crispness_radius_m"]), int(eval_cfg["crispness_queries"]))
 
 
 def crispness_margins(keyframes, methods: dict[str, np.ndarray], eval_cfg, against: str = "optimized",
@@ -54,14 +54,14 @@ def crispness_margins(keyframes, methods: dict[str, np.ndarray], eval_cfg, again
 
     Returns {other: {"per_draw": [D], "mean", "std", "all_draws_agree"}} (negative: `against` is crisper), or {}
     with fewer than 2 draws or without the `against` method."""
-    draws = int(eval_cfg.crispness_draws)
+    draws = int(eval_cfg["crispness_draws"])
     if draws < 2 or against not in methods:
         return {}
     maps = {name: register_scans(keyframes.scans, poses) for name, poses in methods.items()}
     entropy = crispness.entropy_over_query_draws(
         maps, list(range(1 if first_draw else 0, draws)),
-        max_queries=int(eval_cfg.crispness_queries),
-        radius=float(eval_cfg.crispness_radius_m), deadline=deadline,
+        max_queries=int(eval_cfg["crispness_queries"]),
+        radius=float(eval_cfg["crispness_radius_m"]), deadline=deadline,
         progress=progress)
     made = len(next(iter(entropy.values()), [])) + (1 if first_draw else 0)
     if made < draws:

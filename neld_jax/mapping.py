@@ -101,8 +101,10 @@ def render_map(refined, rays: RaySet, sampler_m: SamplerSettings, min_opacity: f
     order = render_order(r, max_seconds, seed)
     if max_seconds <= 0:
         parts = [order]
-    else:  # one cube: every batch a part; several: RENDER_PARTS parts, each rendered by every cube
-        parts = np.array_split(order, max(-(-r // RAYS_PER_BATCH), 1) if len(cubes) == 1 else RENDER_PARTS)
+    elif len(cubes) == 1:  # one cube: every batch a part
+        parts = [order[i:i + RAYS_PER_BATCH] for i in range(0, r, RAYS_PER_BATCH)]
+    else:  # several: RENDER_PARTS parts, each rendered by every cube
+        parts = np.array_split(order, RENDER_PARTS)
     alpha = jnp.float32(refined.alpha)
     t0 = time.perf_counter()
     with tqdm(total=r * len(cubes), disable=not progress, desc="rendered map", unit="ray") as bar:

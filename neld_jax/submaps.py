@@ -243,7 +243,7 @@ def count_submaps(poses: np.ndarray, window: int, overlap: int, closure_radius_m
 def window_for_limit(poses: np.ndarray, window: int, overlap: int, closure_radius_m: float, limit: int) -> int:
     """The smallest window >= `window` whose plan has at most `limit` submaps (the whole sequence at worst).
 
-    Every submap draws rays each step (submap_train.submap_batch_rays), so their number sets what a step costs
+    Every submap draws rays each step (train.batch_rays_per_cube), so their number sets what a step costs
     and how few rays each field sees: on 2 CPU cores, Riverside02's 0.25 m detail rule made 340 submaps of 3
     keyframes (2.4 s a step). Larger windows mean larger cubes, so coarser detail than submaps.max_detail_m."""
     s = len(poses)

@@ -3,6 +3,7 @@
 No timing assertions: only that the benchmark runs, reports what it promises, and counts FLOPs right.
 """
 
+import functools
 import importlib.util
 import json
 import math
@@ -115,21 +116,29 @@ def test_efficiency_mode_times_step_and_peak_alternately():
 
 
 def test_step_runner_starts_from_the_trainers_state():
-    """The benchmark builds its state and step with train.create_train_state, as fit does: same initial params."""
+    """The benchmark builds its state and step with train.make_trainer and train.init_state over one cube, as a run
+    does: the same initial params as fit starts from."""
+    import functools
+
     from neld_jax import train
 
     config, sizes = bench.preset_sizes("cpu")
     sizes = dict(sizes, rays=16, coarse=4, guided=0, fine=2, width=8, depth=1)
     runner = bench.StepRunner(config, sizes, train_steps=3, num_scans=2, rays_per_scan=64, seed=3)
     assert runner.config.seed == 3
+    assert runner.frames.weight.shape == (1,) and runner.rays.directions.shape == (1, 2 * 64, 3)
     fit_config = runner.config.copy_and_resolve_references()
     fit_config.train.steps = 0  # fit returns the state it starts from
-    fitted = train.fit(fit_config, runner.rays, runner.T_init, bench.SYNTHETIC_SCALE, progress=False).state
-    for expected in (fitted.params, train.initial_state(runner.config, 2, bench.SYNTHETIC_SCALE).params):
+    plan_of = functools.partial(bench.trainer_for, fit_config, runner.cube)
+    start = train.init_state(fit_config, plan_of(0), 2, 1)
+    fitted = train.fit(fit_config, plan_of, runner.rays, runner.frames, bench.SYNTHETIC_SCALE, start,
+                       progress=False).state
+    for expected in (fitted.params, train.init_state(runner.config, runner.trainer, 2, 1).params):
         assert jax.tree.structure(runner.state.params) == jax.tree.structure(expected)
         for a, b in zip(jax.tree.leaves(runner.state.params), jax.tree.leaves(expected)):
             assert jnp.array_equal(a, b)
-    assert runner.state.params["field"]["hidden_0"]["kernel"].shape[1] == 8
+    assert runner.state.params["fields"]["hidden_0"]["kernel"].shape == (1, 63, 8)  # one cube, stacked
+    assert runner.state.params["poses"].shape == (2, 6)
     runner.run(1)
 
 
@@ -145,17 +154,53 @@ def test_fit_mode_times_fit_and_the_bare_step_alternately():
     assert math.isfinite(r["fit_final_loss"])
 
 
-def test_gpu_suite_extrapolates_the_schedule_stage_by_stage():
+@functools.lru_cache(maxsize=None)
+def _gpu_suite_module():
+    """benchmarks/gpu_suite.py, loaded once (its absl flags can be defined only once in a process)."""
     sys.modules.setdefault("train_step", bench)  # the suite imports it by name; its flags are defined once
     spec = importlib.util.spec_from_file_location("gpu_suite", ROOT / "benchmarks" / "gpu_suite.py")
     suite = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(suite)
+    return suite
+
+
+def test_gpu_suite_extrapolates_the_schedule_stage_by_stage():
+    suite = _gpu_suite_module()
     out = suite.extrapolate_schedule((0, 60_000, 120_000), 160_000, [300.0, 200.0, 100.0])
     assert out["stage_steps"] == [60_000, 60_000, 40_000]
     assert out["total_s"] == pytest.approx(200 + 300 + 400)
     assert out["mean_steps_per_s"] == pytest.approx(160_000 / 900)
     with pytest.raises(FileNotFoundError, match="--prepare"):
         suite.load_demo(str(ROOT / "no_such_demo.npz"))
+
+
+def test_gpu_suite_loads_the_prepared_demo_as_one_cube(tmp_path):
+    """A prepared demo (rays in metres, start and ground-truth poses, the cube's normalisation) becomes the plan of
+    one cube the trainer takes; the ATE of zero corrections is the start's."""
+    import numpy as np
+
+    from neld_jax import metrics
+    from neld_jax.data.rays import sphere_scene_rays
+
+    suite = _gpu_suite_module()
+    rays, T = sphere_scene_rays(3, 32, seed=0)  # normalised: taken as metres at scale 0.5 about (1, 2, 3)
+    offset = np.array([1.0, 2.0, 3.0])
+    poses, gt = T.copy(), T.copy()
+    poses[:, :3, 3] = T[:, :3, 3] / 0.5 + offset
+    gt[:, :3, 3] = poses[:, :3, 3] + np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.0, -0.03, 0.01]])
+    path = tmp_path / "demo.npz"
+    np.savez(path, directions=rays.directions, ranges_m=rays.ranges / 0.5, scan_index=rays.scan_index, poses=poses,
+             gt_poses=gt, scale=0.5, offset=offset)
+    demo = suite.load_demo(str(path))
+    assert demo.num_scans == 3 and demo.plan.num_submaps == 1 and demo.scale == 0.5
+    assert demo.rays.directions.shape == (1, 96, 3)
+    np.testing.assert_allclose(np.asarray(demo.rays.ranges)[0], rays.ranges, rtol=1e-6)  # back in the cube's units
+    np.testing.assert_allclose(np.asarray(demo.frames.T_init)[0, :, :3, 3], T[:, :3, 3], atol=1e-6)
+    zero = suite.ate_m(np.zeros((3, 6)), demo.start_poses, demo.gt_poses, demo.scale)
+    assert zero["ate_m"] == pytest.approx(metrics.ate(poses, gt)["translation_rmse_m"]) and zero["ate_m"] > 0
+    config = suite.demo_config("cpu")
+    trainer = suite.demo_trainer(config, demo, total_steps=7)
+    assert trainer.schedules.total_steps == 7 and trainer.batch_rays == config.train.batch_rays
 
 
 def _ate_change_module():
@@ -248,7 +293,7 @@ def _margin(*per_draw):
             "all_draws_agree": all(d < 0 for d in per_draw) or all(d > 0 for d in per_draw)}
 
 
-def test_real_targets_read_issue_11s_targets_off_an_entry():
+def test_real_targets_read_the_targets_off_an_entry():
     # benchmarks/real_targets.py: each target of a real_data.py entry passes on good figures and fails when one
     # figure crosses its line; missing figures give None, not a verdict.
     targets = _real_targets_module()

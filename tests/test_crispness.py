@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from neld_jax.crispness import crispness, entropy_over_query_draws, per_scan_means, sample_queries
-from neld_jax.quality import (crispest, crispest_over_draws, crispness_margins, describe_margin, map_crispness,
+from neld_jax.judge import (crispest, crispest_over_draws, crispness_margins, describe_margin, map_crispness,
                                margin_over_draws, warn_if_not_crispest)
 
 
@@ -115,7 +115,7 @@ def test_the_margins_stop_drawing_at_the_runs_deadline(caplog):
     assert {name: len(v) for name, v in entropy_over_query_draws(
         {"a": wall, "b": wall}, [0, 1], 300, deadline=past).items()} == {"a": 0, "b": 0}
     summaries, _ = map_crispness(seq, methods, eval_cfg)
-    with caplog.at_level("WARNING", logger="neld_jax.quality"):
+    with caplog.at_level("WARNING", logger="neld_jax.judge"):
         assert crispness_margins(seq, methods, eval_cfg, first_draw=summaries, deadline=past) == {}
     assert "1 of 4 query draws fit the run's clock" in caplog.text and "no margin without two" in caplog.text
     far = time.perf_counter() + 3600.0
@@ -152,17 +152,17 @@ def test_query_sampling_and_per_scan_means():
 def test_a_run_names_the_crispest_poses_and_warns_when_they_are_not_its_own(caplog):
     summaries = {"initial": {"mean_map_entropy": -3.42}, "baseline": {"mean_map_entropy": -3.49},
                  "optimized": {"mean_map_entropy": -3.475}}
-    with caplog.at_level("WARNING", logger="neld_jax.quality"):
+    with caplog.at_level("WARNING", logger="neld_jax.judge"):
         assert warn_if_not_crispest(summaries) == "baseline"
     assert "poses_baseline.txt" in caplog.text and "-3.490" in caplog.text and "-3.475" in caplog.text
     caplog.clear()
     summaries["optimized"]["mean_map_entropy"] = -3.5
-    with caplog.at_level("WARNING", logger="neld_jax.quality"):
+    with caplog.at_level("WARNING", logger="neld_jax.judge"):
         assert warn_if_not_crispest(summaries) == "optimized"
     assert caplog.text == ""
     # A baseline the run refused (bent as a whole) is not named, whatever its local crispness: the input is.
     summaries["optimized"]["mean_map_entropy"] = -3.40
-    with caplog.at_level("INFO", logger="neld_jax.quality"):
+    with caplog.at_level("INFO", logger="neld_jax.judge"):
         assert warn_if_not_crispest(summaries, {"baseline": "it departs 33.68 m"}) == "initial"
     assert "poses_initial.txt" in caplog.text and "poses_baseline.txt" not in caplog.text
     assert "does not trust them: it departs 33.68 m" in caplog.text
@@ -175,23 +175,23 @@ def test_the_crispest_poses_are_judged_over_the_query_draws_and_a_tie_is_not_war
                  "optimized": {"mean_map_entropy": -3.475}}
     tie = {"initial": margin_over_draws([-0.05, -0.04, -0.06, -0.05, -0.05]),
            "baseline": margin_over_draws([0.015, -0.002, -0.001, 0.001, -0.003])}
-    with caplog.at_level("INFO", logger="neld_jax.quality"):
+    with caplog.at_level("INFO", logger="neld_jax.judge"):
         assert warn_if_not_crispest(summaries, margins=tie) == "baseline"  # the lower mean, but a tie
     assert "WARNING" not in caplog.text and "a tie" in caplog.text and "poses_baseline.txt" in caplog.text
     caplog.clear()
     # Every draw puts the baseline ahead: a warning, with the mean over the draws.
     ahead = dict(tie, baseline=margin_over_draws([0.015, 0.002, 0.001, 0.004, 0.003]))
-    with caplog.at_level("WARNING", logger="neld_jax.quality"):
+    with caplog.at_level("WARNING", logger="neld_jax.judge"):
         assert warn_if_not_crispest(summaries, margins=ahead) == "baseline"
     assert "poses_baseline.txt" in caplog.text and "0.00500 on average over 5 query draws" in caplog.text
     caplog.clear()
     # The mean over the draws below every other method's: NeLD-BA's own poses, though draw 0 says otherwise.
     behind = dict(tie, baseline=margin_over_draws([0.001, -0.004, -0.003, -0.002, -0.004]))
-    with caplog.at_level("INFO", logger="neld_jax.quality"):
+    with caplog.at_level("INFO", logger="neld_jax.judge"):
         assert warn_if_not_crispest(summaries, margins=behind) == "optimized"
     assert caplog.text == ""
     # A refused baseline is left out of the verdict over the draws too.
-    with caplog.at_level("WARNING", logger="neld_jax.quality"):
+    with caplog.at_level("WARNING", logger="neld_jax.judge"):
         assert warn_if_not_crispest(summaries, {"baseline": "it departs 33.68 m"}, margins=ahead) == "optimized"
     assert caplog.text == ""
     assert crispest_over_draws({}) is None

@@ -22,7 +22,7 @@ SCRIPT = os.path.join(REPO, "benchmarks", "real_gpu.py")
 SIZES = ["--budget=cpu", "--set=train.steps=4", "--set=train.log_every=2", "--set=model.width=16",
          "--set=model.depth=2", "--set=model.skip_layers=()", "--set=train.batch_rays=32",
          "--set=data.max_rays_per_scan=64", "--set=eval.crispness_queries=300", "--set=eval.crispness_draws=2",
-         "--set=train.init_poses='input'"]
+         "--set=start.poses='input'"]
 # Run a script with every import of open3d failing, as on a GPU image that lacks it.
 WITHOUT_OPEN3D = """
 import runpy, sys
@@ -32,6 +32,7 @@ class NoOpen3d:
             raise ImportError('no open3d here')
 sys.meta_path.insert(0, NoOpen3d())
 sys.argv = sys.argv[1:]
+sys.path.insert(0, __import__('os').path.dirname(sys.argv[0]))  # as `python benchmarks/real_gpu.py` would
 runpy.run_path(sys.argv[0], run_name='__main__')
 """
 
@@ -82,25 +83,25 @@ def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
     assert summary["keyframes"] == 5 and summary["start"] == "input" and summary["rays"] == 5 * 64
 
     # The prepared points are the rays a run draws (the same seeded subset), to the packing's rounding.
-    from neld_jax import run
     from neld_jax.config import apply_overrides
+    from neld_jax.data.normalize import Normalization
+    from neld_jax.data.preprocess import load_keyframes
     from neld_jax.data.rays import build_rays
     from configs.lio_keyframes import get_config
 
     config = get_config("cpu")
     config.data.root = json.loads((run_dir / "config.json").read_text())["data"]["root"]
     config = apply_overrides(config, [s[len("--set="):] for s in SIZES if s.startswith("--set=")])
-    _, keyframes, norm = run.load_and_prepare(config)
+    _, keyframes = load_keyframes(config.data)
     with open(data / "tiny.pkl", "rb") as f:
         d = pickle.load(f)
     sys.path.insert(0, os.path.join(REPO, "benchmarks"))
     import packed_points
 
-    expected = build_rays(keyframes, norm, max_rays_per_scan=64, seed=config.seed)
+    expected = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=64, seed=config.seed)
     points = packed_points.unpack_points(d["points"])
-    np.testing.assert_allclose(points, expected.directions * (expected.ranges / norm.scale)[:, None],
-                               atol=1e-4)
-    assert d["counts"].tolist() == [64] * 5 and d["plan"] is None
+    np.testing.assert_allclose(points, expected.directions * expected.ranges[:, None], atol=1e-4)
+    assert d["counts"].tolist() == [64] * 5 and d["chosen"] == "input"
 
     trained = _real_gpu(f"--data={data}", f"--out_dir={out}", "--max_train_s=300", without_open3d=True)
     assert trained.returncode == 0, trained.stderr[-3000:]
@@ -112,17 +113,17 @@ def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
     # was prepared (the field gets its default first)
     older = tmp_path / "older"
     older.mkdir()
-    del d["config"]["sampling"]["range_at_midpoint"]
+    del d["config"]["sampling"]["guided_width_m"]
     with open(older / "tiny.pkl", "wb") as f:
         pickle.dump(d, f)
-    overrides = ["train.steps=2", "sampling.range_at_midpoint=True"]
+    overrides = ["train.steps=2", "sampling.guided_width_m=0.5"]
     variant = _real_gpu(f"--data={older}", f"--out_dir={tmp_path / 'variant'}", "--max_train_s=300",
                         *[f"--set={o}" for o in overrides], without_open3d=True)
     assert variant.returncode == 0, variant.stderr[-3000:]
     varied = json.loads((tmp_path / "variant" / "real_gpu.json").read_text())[0]
     assert "error" not in varied, varied
     assert varied["steps"] == varied["schedule_steps"] == 2 and varied["overrides"] == overrides
-    assert varied["defaults_added"] == ["sampling.range_at_midpoint"]
+    assert varied["defaults_added"] == ["sampling.guided_width_m"]
 
     judged_run = _real_gpu("--evaluate", f"--run_dir={run_dir}", f"--trained={out / 'tiny_trained.npz'}",
                            f"--out_dir={judged}", *SIZES)
@@ -143,8 +144,10 @@ def test_prepare_names_a_run_of_another_sequence(finished_run, tmp_path):
     other = tmp_path / "other_run"
     other.mkdir()
     (other / "config.json").write_text((run_dir / "config.json").read_text())
-    from neld_jax.run import Start, save_start
+    from neld_jax.start import Start
+    from neld_jax.train import PoseSteps
 
-    save_start(str(other), Start(seq.poses[:3], "baseline", baseline_poses=seq.poses[:3]), "0" * 12, seq.poses[:3])
+    Start(seq.poses[:3], "baseline", PoseSteps(), baseline_poses=seq.poses[:3], baseline_seconds=1.0,
+          departure_m=0.0).save(str(other), "0" * 12, seq.poses[:3])
     result = _real_gpu("--prepare", f"--run_dir={other}", f"--data={tmp_path}", *SIZES)
     assert result.returncode != 0 and "not this sequence's keyframes" in result.stderr

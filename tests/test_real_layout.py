@@ -123,7 +123,7 @@ def test_the_report_flags_the_bundle_adjustments_own_moves_not_its_starts():
 
 
 def test_aligned_corrections_remove_the_trajectorys_rigid_motion():
-    from neld_jax.quality import aligned_corrections
+    from neld_jax.report import aligned_corrections
     T = np.tile(np.eye(4), (4, 1, 1))
     T[:, 0, 3] = np.arange(4.0)
     moved = T.copy()
@@ -186,17 +186,6 @@ def test_train_on_the_layout_writes_every_input_scan_and_quality(tmp_path):
     assert "mean map entropy" in result.stdout
 
 
-def test_a_scene_too_large_for_one_field_is_one_clear_line(tmp_path):
-    seq = tiny_synthetic_sequence()
-    _write_layout(tmp_path, seq)
-    result = _cli("train.py", "--config=configs/lio_keyframes.py:cpu", f"--config.data.root={tmp_path}",
-                  f"--config.output_dir={tmp_path / 'out'}", "--config.data.max_extent_m=10")
-    assert result.returncode == 1
-    lines = result.stderr.strip().splitlines()
-    assert lines[-1].startswith("error: ") and "more than data.max_extent_m=10 m" in lines[-1]
-    assert "data.first_scan" in lines[-1]
-
-
 def test_entropy_trajectory_benchmark_follows_the_poses(tmp_path):
     """benchmarks/entropy_trajectory.py: the map's entropy before the poses start equals the start's, and moves
     once they do; one record per --every steps and one at the end."""
@@ -230,7 +219,7 @@ def _loaded_and_keyframes(root, keyframe_interval_s=0.0):
 
 def test_another_trajectory_is_matched_to_the_keyframes_by_time_or_by_order(tmp_path):
     from neld_jax.data.poses import write_tum
-    from neld_jax.quality import trajectory_at_keyframes
+    from neld_jax.commands.crispness import trajectory_at_keyframes
 
     seq = tiny_synthetic_sequence(6)
     _write_layout(tmp_path / "rec", seq, times=np.arange(6) * 1.0)
@@ -258,7 +247,7 @@ def test_another_trajectory_is_matched_to_the_keyframes_by_time_or_by_order(tmp_
 
 
 def test_judging_trajectories_finds_the_true_poses_crisper_on_every_draw():
-    from neld_jax.quality import judge_trajectories, margins_against
+    from neld_jax.judge import judge_trajectories, margins_against
 
     seq = tiny_synthetic_sequence(6)
     eval_cfg = ml_collections.ConfigDict({"crispness_radius_m": 3.0, "crispness_queries": 800, "crispness_draws": 3})

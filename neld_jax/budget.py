@@ -1,5 +1,5 @@
 """The run's wall clock: one budget (config.max_minutes) shared by its steps, so that a run ends on time however
-long its classical baseline or its map took (docs/design.md, "One run, read top to bottom").
+long its classical baseline or its map took (docs/design.md, "One run, top to bottom").
 
 The budget runs from the run's start. After training it keeps back `mapping.max_seconds` for the rendered map and
 JUDGING_S for the crispness margins; training ends where that reserve begins, but always gets at least
@@ -11,7 +11,6 @@ refinement stops where only that floor would be left. A step that overran its sh
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 
 # Kept back at the end of the run for the crispness margins' query draws (a 1.5 M-point map: 15 s a draw of three
@@ -79,6 +78,3 @@ class TimeBudget:
         return (f"{self.total_s / 60:g} minutes: training until {self.training_share_s / 60:.1f} min, then "
                 f"{self.render_s:g} s for the rendered map and {JUDGING_S:g} s for the crispness draws")
 
-
-def minutes(seconds: float) -> str:
-    return "-" if not math.isfinite(seconds) else f"{seconds / 60:.1f} min"

@@ -8,7 +8,7 @@ width // 2 -> dense 1 -> softplus. Both encodings use the surrogate gradient (eq
 View directions are world-frame unit vectors [..., 3], encoded as they are (their components already lie in
 [-1, 1] like the normalised positions). Not azimuth/elevation angles: their Jacobian is infinite at a vertical
 ray, which fed NaN or huge values into the pose gradients of LiDARs that see straight up or down
-(docs/method.md, "View directions").
+(docs/method.md, "The field").
 """
 
 from __future__ import annotations

@@ -68,7 +68,6 @@ def with_up_axis_of(poses: np.ndarray, reference: np.ndarray) -> np.ndarray:
     a = np.einsum("...ij,...kj,k->...i", poses[..., :3, :3], reference[..., :3, :3], up)
     a = a / np.linalg.norm(a, axis=-1, keepdims=True)
     axis = np.cross(a, up)  # |axis| = sin(angle)
-    sin = np.linalg.norm(axis, axis=-1)[..., None, None]
     cos = a[..., 2][..., None, None]
     skew = np.zeros(a.shape[:-1] + (3, 3))
     skew[..., 0, 1], skew[..., 0, 2], skew[..., 1, 2] = -axis[..., 2], axis[..., 1], -axis[..., 0]

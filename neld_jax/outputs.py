@@ -1,4 +1,4 @@
-"""A run's outputs (docs/design.md, "Outputs of one run"): the output folder and config.json, the poses of every
+"""A run's outputs (docs/design.md, "Outputs of a run"): the output folder and config.json, the poses of every
 input scan and the maps, then the verdict: the raw map's crispness before and after (and the classical
 baseline's), how sure that is over query draws, the per-scan report, metrics.json and, where ground truth
 exists, the evaluation against it.

@@ -92,7 +92,7 @@ def test_preprocess_scan_left_empty_is_an_error():
 
 
 def test_preprocess_scan_left_empty_names_its_file_and_time_after_keyframes(tmp_path):
-    """The issue's case: after keyframe selection the index would point at the wrong scan; the file does not."""
+    """The case to guard: after keyframe selection the index would point at the wrong scan; the file does not."""
     from neld_jax.data.generic import load_generic
     from neld_jax.data.synthetic import write_generic
 

@@ -3,7 +3,6 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from neld_jax.lie import se3_exp_float64
 from neld_jax.trajectory import propagate_corrections
 
 

@@ -7,8 +7,8 @@ in the sensor frame its points lie nearer the frame's origin than the scan's pos
 frame nearer t. Each scan far enough from the origin to tell (|t| >= 1 m and at least half the scan's typical
 range) votes by the 25th percentile of its points' distances to the origin and to t.
 
-Measured on the six FAST-LIO2 sequences of daxuanzi515/Fast-LIO2_SC-SLAM (benchmarks/RESULTS.md, thirteenth
-session; 164-198 voters of up to 200 scans): sensor-frame scans vote "world" 0-35 % of the time (indoor scans whose
+Measured on the six FAST-LIO2 sequences of daxuanzi515/Fast-LIO2_SC-SLAM (EPYC,
+2026-12-03; 164-198 voters of up to 200 scans): sensor-frame scans vote "world" 0-35 % of the time (indoor scans whose
 pose lies inside what they see vote either way), the same scans moved into the world frame 100 %; Hilti
 quick-shack (a room, |t| < 0.5 m) has no voters, so nothing is decided there.
 

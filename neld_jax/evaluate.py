@@ -302,3 +302,26 @@ def _lookup(entry: dict[str, Any], keys: tuple[str, ...]) -> float | None:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return None
     return float(value)
+
+
+def trajectory_at_keyframes(path, loaded, keyframes, tol: float = 0.05, invert: bool = False) -> np.ndarray:
+    """The poses [K, 4, 4] a trajectory file (TUM, KITTI or Newer College CSV, in the convention of the sequence's own
+    pose file; invert: world -> sensor, as data.invert_poses) gives the keyframes of the input scans `loaded`: by
+    time when the file and the scans have timestamps (every keyframe needs a pose within `tol` s), else by order, one
+    pose per input scan or one per keyframe. A file that fits neither is one DataError naming it."""
+    from neld_jax.data.timing import match_by_timestamp
+    from neld_jax.geometry import invert_poses
+
+    stamps, poses = read_trajectory(path)
+    poses = invert_poses(poses) if invert else poses
+    index = keyframes.loaded_index
+    if stamps is not None and loaded.timestamps is not None:
+        labels = None if loaded.files is None else [loaded.files[i] for i in index]
+        return poses[match_by_timestamp(loaded.timestamps[index], stamps, tol=tol, what=str(path), scan_labels=labels)]
+    if len(poses) == loaded.num_scans:
+        return poses[index]
+    if len(poses) == keyframes.num_scans:
+        return poses
+    why = "has no timestamps" if stamps is None else "has timestamps but the scans have none"
+    raise DataError(f"{path}: {len(poses)} poses for {loaded.num_scans} input scans ({keyframes.num_scans} "
+                    f"keyframes); the file {why}, so it must hold one pose per input scan or per keyframe, in order")

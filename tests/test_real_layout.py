@@ -219,7 +219,7 @@ def _loaded_and_keyframes(root, keyframe_interval_s=0.0):
 
 def test_another_trajectory_is_matched_to_the_keyframes_by_time_or_by_order(tmp_path):
     from neld_jax.data.poses import write_tum
-    from neld_jax.commands.crispness import trajectory_at_keyframes
+    from neld_jax.evaluate import trajectory_at_keyframes
 
     seq = tiny_synthetic_sequence(6)
     _write_layout(tmp_path / "rec", seq, times=np.arange(6) * 1.0)

@@ -15,7 +15,6 @@ eval.crispness_draws draws of the query points, "crisper on every draw" or "a ti
 
 import os
 
-import numpy as np
 from absl import flags
 
 from neld_jax.cli import main_with_config
@@ -24,7 +23,6 @@ POSES = flags.DEFINE_list("poses", [], "Trajectories to judge, NAME=PATH or PATH
                           "output folder stands for its poses_optimized.txt), comma-separated; the sequence's own "
                           "poses are always judged too, as 'input'.")
 OUT = flags.DEFINE_string("out", "", "JSON file with every figure (none if empty).")
-TIME_TOLERANCE_S = 0.05  # a trajectory's pose must lie this close in time to its keyframe
 
 
 def named_paths(items: list[str]) -> dict[str, str]:
@@ -49,35 +47,11 @@ def named_paths(items: list[str]) -> dict[str, str]:
     return named
 
 
-def trajectory_at_keyframes(path, loaded, keyframes, tol: float = TIME_TOLERANCE_S, invert: bool = False) -> np.ndarray:
-    """The poses [K, 4, 4] a trajectory file (TUM, KITTI or Newer College CSV, in the convention of the sequence's own
-    pose file; invert: world -> sensor, as data.invert_poses) gives the keyframes of the input scans `loaded`: by
-    time when the file and the scans have timestamps (every keyframe needs a pose within `tol` s), else by order, one
-    pose per input scan or one per keyframe. A file that fits neither is one DataError naming it."""
-    from neld_jax.data.timing import match_by_timestamp
-    from neld_jax.errors import DataError
-    from neld_jax.evaluate import read_trajectory
-    from neld_jax.geometry import invert_poses
-
-    stamps, poses = read_trajectory(path)
-    poses = invert_poses(poses) if invert else poses
-    index = keyframes.loaded_index
-    if stamps is not None and loaded.timestamps is not None:
-        labels = None if loaded.files is None else [loaded.files[i] for i in index]
-        return poses[match_by_timestamp(loaded.timestamps[index], stamps, tol=tol, what=str(path), scan_labels=labels)]
-    if len(poses) == loaded.num_scans:
-        return poses[index]
-    if len(poses) == keyframes.num_scans:
-        return poses
-    why = "has no timestamps" if stamps is None else "has timestamps but the scans have none"
-    raise DataError(f"{path}: {len(poses)} poses for {loaded.num_scans} input scans ({keyframes.num_scans} "
-                    f"keyframes); the file {why}, so it must hold one pose per input scan or per keyframe, in order")
-
-
 def job(config) -> None:
     from neld_jax import judge
     from neld_jax.data.preprocess import load_keyframes
     from neld_jax.errors import ConfigError
+    from neld_jax.evaluate import trajectory_at_keyframes
     from neld_jax.export import write_json
 
     paths = named_paths(POSES.value)
@@ -86,7 +60,8 @@ def job(config) -> None:
     loaded, keyframes = load_keyframes(config.data)
     methods = {"input": keyframes.poses}
     for name, path in paths.items():
-        methods[name] = trajectory_at_keyframes(path, loaded, keyframes, invert=bool(config.data.invert_poses))
+        methods[name] = trajectory_at_keyframes(path, loaded, keyframes, tol=float(config.data.timestamp_tol_s),
+                                                invert=bool(config.data.invert_poses))
     verdict = judge.judge_trajectories(keyframes, methods, config.eval, progress=True)
     print(f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans ({config.data.root or config.data.format})")
     print(judge.format_crispness_table(verdict["crispness"], ordered=True, digits=4))

@@ -53,7 +53,7 @@ def run_baseline(config, progress: bool = True) -> dict:
         write_point_cloud(out / GT_MAP_FILES[0], keyframes.gt_map)
     crisp, _ = judge.map_crispness(keyframes, {"initial": keyframes.poses, "baseline": poses}, config.eval)
     crisp = record_crispness(str(out), crisp)
-    write_json(out / "metrics.json", {"baseline": {"seconds": round(seconds, 2), **report,
+    write_json(out / "metrics.json", {"baseline": {"seconds": round(seconds, 2), "decided": report,
                                                    "settings": dataclasses.asdict(settings)}})
     logger.info("baseline outputs written to %s (registration took %.1f s)", out, seconds)
     evaluation = None

@@ -6,6 +6,7 @@
     python benchmarks/train_step.py --preset=cpu --matmul_peak    # GFLOP/s of plain matmuls, same backend
     python benchmarks/train_step.py --preset=cpu --efficiency     # both, alternately: the step's share of the peak
     python benchmarks/train_step.py --preset=cpu --fit --steps 200  # train.fit's loop against the bare step
+    python benchmarks/train_step.py --preset=cpu --viewer --steps 200 --repeats 6  # fit with the live view's hook
     python benchmarks/train_step.py --rays 256 --coarse 16 --fine 8 --width 64 --depth 2
 
 Each run prints ONE JSON line on stdout (logs go to stderr). The train step is the trainer's own
@@ -37,6 +38,10 @@ wall and CPU clocks between the first and the last chunk end (a checkpoint_fn ho
 metrics are fetched), so the first chunk, which compiles, is left out; then it times the same number of bare
 steps (one jitted call each, as in the default mode). "ratio" is the median of the rounds' fit / step rates of
 wall time, "cpu_ratio" that of process CPU time (all threads; steadier where other jobs share the cores).
+
+--viewer times train.fit with the hook a run with viz.live hands it (neld_jax.viewer: run.rrd and a gRPC server
+on a local port, the training curves and the keyframes' poses at every log) against fit without it, in the same
+way, the order alternating between rounds; "slowdown" is the median of the rounds' plain / live rate less 1.
 
 --profile_dir traces a few steps with jax.profiler.trace (open it in TensorBoard / XProf) and adds "profile" to
 the JSON: thread-milliseconds per step by kind of XLA op (matmul, sin/cos, sort, gather, ...) and the top ops.
@@ -101,7 +106,8 @@ flags.DEFINE_bool("matmul_peak", False, "Measure float32 matmul GFLOP/s instead 
 flags.DEFINE_bool("efficiency", False, "Time the step and the matmul peak alternately in this process and report "
                   "the step's GFLOP/s as a fraction of the peak (median over --repeats rounds).")
 flags.DEFINE_bool("fit", False, "Time train.fit (the fused loop) against the bare step, alternately (see --fit above).")
-flags.DEFINE_integer("log_every", 0, "--fit: train.log_every, the steps per device call (0: the preset's).")
+flags.DEFINE_bool("viewer", False, "Time train.fit with the live viewer's hook against fit without it (--viewer).")
+flags.DEFINE_integer("log_every", 0, "--fit, --viewer: train.log_every, the steps per device call (0: the preset's).")
 flags.DEFINE_list("matmul_sizes", ["256", "512", "1024", "2048"], "Square matmul sizes for --matmul_peak.")
 flags.DEFINE_string("profile_dir", "", "If set, trace --profile_steps steps with jax.profiler.trace into it.")
 flags.DEFINE_integer("profile_steps", 5, "Steps inside the profiler trace.")
@@ -460,12 +466,13 @@ def benchmark_efficiency(config: ml_collections.ConfigDict, sizes: dict, steps: 
     }
 
 
-def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
-                  num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0) -> dict:
-    """Steps/s of train.fit against the bare jitted step at `sizes`, alternately (module docstring, --fit)."""
+def fit_setup(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
+              num_scans: int, rays_per_scan: int, seed: int):
+    """(runner, the fit config, plan_of, fit_steps, timed_steps) for timing train.fit in chunks of log_every steps
+    (the first chunk compiles and is not timed)."""
     log_every = max(int(log_every), 1)
     chunks = max(1, math.ceil(steps / log_every))
-    fit_steps = log_every * (chunks + 1)  # the first chunk compiles and is not timed
+    fit_steps = log_every * (chunks + 1)
     timed_steps = log_every * chunks
     runner = StepRunner(config, sizes, timed_steps * repeats + 2, num_scans, rays_per_scan, seed)
     runner.run(1)  # warm-up
@@ -475,29 +482,42 @@ def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, re
     fit_config.train.checkpoint_every = log_every  # the hook below runs at every chunk end; no chunk is cut
     fit_config.max_minutes = 0.0
     fit_config.train.pose_start_freq = 0  # poses move from step 0: every chunk is log_every steps long
-    plan_of = functools.partial(trainer_for, fit_config, runner.cube)
-    num_scans = len(runner.cube.start_poses)
+    return runner, fit_config, functools.partial(trainer_for, fit_config, runner.cube), fit_steps, timed_steps
+
+
+def timed_fit(fit_config: ml_collections.ConfigDict, plan_of: Callable, runner: "StepRunner", fit_steps: int,
+              on_log: Callable | None = None) -> dict:
+    """One train.fit from a fresh state; its rate from the wall and CPU clocks between the first and the last chunk
+    end (a checkpoint_fn hook, called once a chunk's metrics are fetched and on_log has run)."""
+    marks = []  # (step, wall s, process CPU s) at each chunk end
+
+    def mark(state, history, seconds):
+        marks.append((int(state.step), time.perf_counter(), time.process_time()))
+
+    state = train.init_state(fit_config, plan_of(fit_steps), len(runner.cube.start_poses), 1)
+    t0 = time.perf_counter()
+    result = train.fit(fit_config, plan_of, runner.rays, runner.frames, SYNTHETIC_SCALE, state,
+                       checkpoint_fn=mark, progress=False, on_log=on_log)
+    (first_step, first_wall, first_cpu), (last_step, last_wall, last_cpu) = marks[0], marks[-1]
+    return {"steps_per_s": (last_step - first_step) / (last_wall - first_wall),
+            "cpu_ms_per_step": 1e3 * (last_cpu - first_cpu) / (last_step - first_step),
+            "total_s": time.perf_counter() - t0, "final_loss": result.history[-1]["loss"]}
+
+
+def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
+                  num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0) -> dict:
+    """Steps/s of train.fit against the bare jitted step at `sizes`, alternately (module docstring, --fit)."""
+    runner, fit_config, plan_of, fit_steps, timed_steps = fit_setup(config, sizes, steps, repeats, log_every,
+                                                                    num_scans, rays_per_scan, seed)
     rounds = []
     for _ in range(max(repeats, 1)):
-        marks = []  # (step, wall s, process CPU s) at each chunk end, after fit has fetched its metrics
-
-        def mark(state, history, seconds):
-            marks.append((int(state.step), time.perf_counter(), time.process_time()))
-
-        state = train.init_state(fit_config, plan_of(fit_steps), num_scans, 1)
-        t0 = time.perf_counter()
-        result = train.fit(fit_config, plan_of, runner.rays, runner.frames, SYNTHETIC_SCALE, state,
-                           checkpoint_fn=mark, progress=False)
-        total_s = time.perf_counter() - t0
-        (first_step, first_wall, first_cpu), (last_step, last_wall, last_cpu) = marks[0], marks[-1]
-        fit_rate = (last_step - first_step) / (last_wall - first_wall)
-        fit_cpu_ms = 1e3 * (last_cpu - first_cpu) / (last_step - first_step)
+        fitted = timed_fit(fit_config, plan_of, runner, fit_steps)
         step_s, _, step_cpu_s = median_seconds(lambda: runner.run(timed_steps), 1)
         step_rate, step_cpu_ms = timed_steps / step_s, 1e3 * step_cpu_s / timed_steps
-        rounds.append({"fit_steps_per_s": fit_rate, "step_steps_per_s": step_rate, "ratio": fit_rate / step_rate,
-                       "fit_cpu_ms_per_step": fit_cpu_ms, "step_cpu_ms_per_step": step_cpu_ms,
-                       "cpu_ratio": step_cpu_ms / fit_cpu_ms, "fit_total_s": total_s,
-                       "fit_final_loss": result.history[-1]["loss"]})
+        rounds.append({"fit_steps_per_s": fitted["steps_per_s"], "step_steps_per_s": step_rate,
+                       "ratio": fitted["steps_per_s"] / step_rate, "fit_cpu_ms_per_step": fitted["cpu_ms_per_step"],
+                       "step_cpu_ms_per_step": step_cpu_ms, "cpu_ratio": step_cpu_ms / fitted["cpu_ms_per_step"],
+                       "fit_total_s": fitted["total_s"], "fit_final_loss": fitted["final_loss"]})
     median = lambda key: statistics.median(r[key] for r in rounds)  # noqa: E731
     return {
         "benchmark": "fit",
@@ -513,8 +533,60 @@ def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, re
         "compile_s": runner.compile_s,
         **device_info(),
         "config": {**sizes, "skip_layers": list(runner.config.model.skip_layers), "log_every": log_every,
-                   "fit_steps": fit_steps, "timed_steps": timed_steps, "repeats": repeats, "scans": num_scans,
-                   "rays_per_scan": rays_per_scan},
+                   "fit_steps": fit_steps, "timed_steps": timed_steps, "repeats": repeats,
+                   "scans": len(runner.cube.start_poses), "rays_per_scan": rays_per_scan},
+    }
+
+
+def benchmark_viewer(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
+                     num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0) -> dict:
+    """Steps/s of train.fit with the live viewer's hook against fit without it, alternately (--viewer): the hook a
+    run with viz.live gets (neld_jax.viewer: run.rrd and a gRPC server on a free local port; the training curves and
+    the keyframes' poses at every log, as neld_jax.refine hands them over)."""
+    import socket
+    import tempfile
+
+    from neld_jax import viewer
+    from neld_jax.model import world_poses
+    from neld_jax.refine import anchored
+
+    runner, fit_config, plan_of, fit_steps, timed_steps = fit_setup(config, sizes, steps, repeats, log_every,
+                                                                    num_scans, rays_per_scan, seed)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        viewer.LIVE_PORT = s.getsockname()[1]
+    fit_config.viz.live = True
+    start_poses = runner.cube.start_poses
+    rounds = []
+    with tempfile.TemporaryDirectory() as folder:
+        live = viewer.RunViewer.open(folder, fit_config.viz)
+        hook = live.training_hook()
+
+        def on_log(entry, state):  # what neld_jax.refine's hook does before it calls the viewer
+            in_field = world_poses(start_poses, np.asarray(jax.device_get(state.params["poses"])), SYNTHETIC_SCALE)
+            hook(entry, anchored(start_poses, in_field)[0])
+
+        for r in range(max(repeats, 1)):
+            order = (None, on_log) if r % 2 == 0 else (on_log, None)
+            timed = {("live" if h else "plain"): timed_fit(fit_config, plan_of, runner, fit_steps, h) for h in order}
+            rounds.append({"plain_steps_per_s": timed["plain"]["steps_per_s"],
+                           "live_steps_per_s": timed["live"]["steps_per_s"],
+                           "slowdown": timed["plain"]["steps_per_s"] / timed["live"]["steps_per_s"] - 1.0,
+                           "plain_cpu_ms_per_step": timed["plain"]["cpu_ms_per_step"],
+                           "live_cpu_ms_per_step": timed["live"]["cpu_ms_per_step"]})
+        live.close()
+    median = lambda key: statistics.median(r[key] for r in rounds)  # noqa: E731
+    return {
+        "benchmark": "viewer",
+        "slowdown": median("slowdown"),  # wall time a step with the live hook, over one without, less 1
+        "slowdown_per_round": [r["slowdown"] for r in rounds],
+        "plain_step_ms": 1e3 / median("plain_steps_per_s"),
+        "live_step_ms": 1e3 / median("live_steps_per_s"),
+        "viewer_seconds": live.seconds,
+        "rounds": rounds,
+        **device_info(),
+        "config": {**sizes, "log_every": log_every, "fit_steps": fit_steps, "timed_steps": timed_steps,
+                   "repeats": repeats, "scans": len(start_poses), "rays_per_scan": rays_per_scan},
     }
 
 
@@ -605,13 +677,13 @@ def main(argv):
     del argv
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
     config, sizes = resolve_sizes()
-    if FLAGS.matmul_peak + FLAGS.efficiency + FLAGS.fit > 1:
-        raise app.UsageError("--matmul_peak, --efficiency and --fit are different modes: give one")
-    if FLAGS.fit:
+    if FLAGS.matmul_peak + FLAGS.efficiency + FLAGS.fit + FLAGS.viewer > 1:
+        raise app.UsageError("--matmul_peak, --efficiency, --fit and --viewer are different modes: give one")
+    if FLAGS.fit or FLAGS.viewer:
         preset = "cpu" if FLAGS.preset == "none" else FLAGS.preset
         log_every = FLAGS.log_every or int(preset_sizes(preset)[0].train.log_every)
-        record = benchmark_fit(config, sizes, FLAGS.steps, FLAGS.repeats, log_every, FLAGS.scans,
-                               FLAGS.rays_per_scan, FLAGS.seed)
+        record = (benchmark_viewer if FLAGS.viewer else benchmark_fit)(
+            config, sizes, FLAGS.steps, FLAGS.repeats, log_every, FLAGS.scans, FLAGS.rays_per_scan, FLAGS.seed)
     elif FLAGS.matmul_peak:
         record = benchmark_matmul_peak(sizes, [int(n) for n in FLAGS.matmul_sizes], FLAGS.repeats, FLAGS.matmul_dtype)
     elif FLAGS.efficiency:

@@ -79,8 +79,7 @@ def defaults() -> ml_collections.ConfigDict:
     c.sampling.hierarchical = "before"  # before (NeLD-BA) | nerf (ablation) | none (ablation)
     c.sampling.coarse_stages = (32, 48, 64)  # coarse samples per ray, one stage each (ramp over train.c2f_end_fraction)
     c.sampling.fine_stages = (16, 24, 32)  # fine samples per ray, one stage each
-    c.sampling.guided_samples = 0  # coarse samples placed around the measured range (0: the paper)
-    c.sampling.guided_width_m = 1.0  # ... within this distance of it
+    c.sampling.guided_samples = 0  # coarse samples within 1 m of the measured range (0: the paper)
 
     c.loss = ml_collections.ConfigDict()
     c.loss.lambda_coarse = 0.1  # eq. 13
@@ -136,7 +135,6 @@ def defaults() -> ml_collections.ConfigDict:
     # The classical baseline (neld_jax.baseline): scan-to-map ICP, a loop-closed pose graph, multi-view refinement.
     c.baseline = ml_collections.ConfigDict()
     c.baseline.voxel_size_m = 0.1  # the scans' grid for ICP
-    c.baseline.window = 10  # scans in the chain's local map
     c.baseline.loop_radius_m = 10.0  # loop-closure candidates within this distance
     c.baseline.global_loops_per_scan = 1  # FPFH + RANSAC closures where ICP cannot reach (0: none)
     c.baseline.map_rounds = 2  # rounds of multi-view refinement (0: none)
@@ -146,6 +144,11 @@ def defaults() -> ml_collections.ConfigDict:
     c.eval.crispness_radius_m = 0.3  # the raw map's crispness: neighbourhood radius ...
     c.eval.crispness_queries = 10_000  # ... and query points
     c.eval.crispness_draws = 5  # draws of the query points that say how sure a comparison is (< 2: none)
+
+    # Rerun (neld_jax.viewer): the run's trajectories, maps and training, to look at in Rerun's viewer.
+    c.viz = ml_collections.ConfigDict()
+    c.viz.record = True  # write run.rrd in the output folder
+    c.viz.live = False  # also serve the run on 127.0.0.1:9876 while it trains (`rerun rerun+http://...`)
     return c
 
 
@@ -160,7 +163,7 @@ def with_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Con
         return c
     c.model.update(width=128, depth=4, skip_layers=(2,), pos_freqs=10, dir_freqs=2)
     c.data.max_rays_per_scan = 8192
-    c.sampling.update(coarse_stages=(32,), fine_stages=(16,), guided_samples=16, guided_width_m=1.0)
+    c.sampling.update(coarse_stages=(32,), fine_stages=(16,), guided_samples=16)
     c.train.update(steps=1500, batch_rays=512, field_lr_init=5e-3, field_lr_final=5e-4, c2f_end_fraction=0.5,
                    pose_lr_rot_init=1e-3, pose_lr_rot_final=1e-5, pose_lr_trans_init=1e-3, pose_lr_trans_final=1e-5,
                    fixed_scans=(), checkpoint_every=500, log_every=25)

@@ -26,7 +26,7 @@ logger = logging.getLogger(__name__)
 
 # Fields that do not change what is computed: a resumed run may change them (the budget is a name of the others)
 NOT_HASHED = ("output_dir", "budget", "max_minutes", "train.log_every", "train.checkpoint_every", "mapping", "eval",
-              "data.gt_poses_path", "data.gt_map_path", "data.gt_from_scan", "data.scan_frame",
+              "viz", "data.gt_poses_path", "data.gt_map_path", "data.gt_from_scan", "data.scan_frame",
               "data.gt_time_offset_s")
 
 

@@ -11,6 +11,7 @@ import dataclasses
 import functools
 import logging
 import os
+from typing import Callable
 
 import jax
 import ml_collections
@@ -48,10 +49,11 @@ class Refined:
 
 def refine_keyframes(config: ml_collections.ConfigDict, keyframes, start_poses: np.ndarray,
                      pose_steps: train.PoseSteps, out_dir: str, config_hash: str, max_seconds: float = 0.0,
-                     progress: bool = True) -> Refined:
+                     progress: bool = True, on_log: Callable[[dict, np.ndarray], None] | None = None) -> Refined:
     """Train from the keyframes' start poses [K, 4, 4] (world) with `pose_steps`; resumes from out_dir/checkpoints
     (a checkpoint of another config hash, other keyframes or another plan is an error). max_seconds: training's
-    wall-clock limit (0: none)."""
+    wall-clock limit (0: none). on_log(entry, poses [K, 4, 4]) sees each history entry with the keyframes' poses
+    of that step, anchored as the outputs are (a viewer's hook)."""
     num_scans = keyframes.num_scans
     plan = submaps.plan_from_config(dataclasses.replace(keyframes, poses=start_poses), config,
                                     num_devices=len(jax.devices()))
@@ -67,14 +69,25 @@ def refine_keyframes(config: ml_collections.ConfigDict, keyframes, start_poses: 
                 "device(s)", num_scans, "one cube" if plan.num_submaps == 1 else f"{plan.num_submaps} submaps",
                 rays_m.num_rays, first.batch_rays * plan.num_submaps, first.field.width, float(field_lr(0)),
                 float(field_lr(first.schedules.total_steps)), mesh.size, jax.devices()[0].platform)
+    def observe(entry: dict, state: train.TrainState) -> None:
+        in_field = world_poses(start_poses, np.asarray(jax.device_get(state.params["poses"])), plan.ref_scale)
+        on_log(entry, anchored(start_poses, in_field)[0])
+
     metadata = {"config_hash": config_hash, "num_scans": num_scans, "plan": plan.to_dict(),
                 "pose_steps": pose_steps.to_dict()}
     result = fit_resuming(os.path.join(out_dir, "checkpoints"), metadata,
                           lambda: train.init_state(config, first, num_scans, plan.num_submaps),
                           functools.partial(train.fit, config, plan_of, rays, frames, plan.ref_scale,
-                                            progress=progress, max_seconds=max_seconds))
+                                            progress=progress, max_seconds=max_seconds,
+                                            on_log=None if on_log is None else observe))
     poses_in_field = world_poses(start_poses, np.asarray(result.state.params["poses"]), plan.ref_scale)
-    # Keyframe 0 keeps its start pose (with every pose free the field, not a fixed scan, holds the frame).
-    anchor = np.asarray(start_poses[0], np.float64) @ np.linalg.inv(poses_in_field[0])
-    return Refined(result, plan, first.field, anchor @ poses_in_field, poses_in_field, anchor,
+    poses, anchor = anchored(start_poses, poses_in_field)
+    return Refined(result, plan, first.field, poses, poses_in_field, anchor,
                    np.bincount(rays_m.scan_index, minlength=num_scans))
+
+
+def anchored(start_poses: np.ndarray, poses_in_field: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The poses [K, 4, 4] the fields see, moved rigidly so that keyframe 0 keeps its start pose (with every pose
+    free the field, not a fixed scan, holds the frame): (the anchored poses [K, 4, 4], the anchor [4, 4])."""
+    anchor = np.asarray(start_poses[0], np.float64) @ np.linalg.inv(poses_in_field[0])
+    return anchor @ poses_in_field, anchor

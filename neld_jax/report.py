@@ -7,9 +7,11 @@ part of it the bundle adjustment made (the refinement: from the poses training s
 started from the input, only its own moves when it started from the classical baseline's), and the local
 crispness of the map around its points before and after. A keyframe is flagged when its residual or its
 refinement is an outlier among the keyframes: above median + 3 scaled MADs (1.4826 MAD, the robust standard
-deviation), and for the refinement also at least 1 cm or 0.1 deg (REFINEMENT_FLOOR_*): NeLD-BA's moves off the
-classical baseline are a fraction of a millimetre on the handheld sequences, and the outliers of those are not
-moves to distrust (the raw map's planes are 3-4 cm thick). Flagged scans are the ones the bundle adjustment did
+deviation), and also above a floor in absolute terms, so that a flag means a scan worth a look: a residual at
+least 3 cm above the keyframes' median (RESIDUAL_FLOOR_M; on noise-free synthetic scans the residuals lie within
+a few mm of each other, and the MAD rule alone flagged a scan 2 mm above the rest), a refinement of at least 1 cm
+or 0.1 deg (REFINEMENT_FLOOR_*: NeLD-BA's moves off the classical baseline are a fraction of a millimetre on the
+handheld sequences, and the outliers of those are not moves to distrust; the raw map's planes are 3-4 cm thick). Flagged scans are the ones the bundle adjustment did
 not trust or moved most: look at them first. The baseline's own corrections are not flagged: on Riverside02 its
 gates kept 42 % of its registrations, so its corrections fell in two groups (a few mm and a few cm) and half the
 scans lay above median + 3 MADs (docs/evaluation.md, "Per-scan report")."""
@@ -29,6 +31,7 @@ from neld_jax.metrics import similarity_matrix, umeyama_alignment
 logger = logging.getLogger(__name__)
 
 MAD_THRESHOLD = 3.0
+RESIDUAL_FLOOR_M = 0.03  # a residual is flagged only this far above the keyframes' median or further
 REFINEMENT_FLOOR_M = 0.01  # a refinement is flagged only from this size on (translation) ...
 REFINEMENT_FLOOR_DEG = 0.1  # ... or this (rotation)
 COLUMNS = ("scan", "file", "timestamp", "keyframe", "rays", "median_residual_m", "correction_cm",
@@ -79,12 +82,15 @@ def scan_report(num_scans: int, keyframe_index: np.ndarray, files: list[str] | N
 
     refinement_m / refinement_deg [K]: the bundle adjustment's own move of each keyframe from its start (None: the
     correction's, as when training started from the input). The flag names why a keyframe is an outlier
-    ("residual", "refinement" or both, joined by '+'); a refinement under REFINEMENT_FLOOR_M and
-    REFINEMENT_FLOOR_DEG is never flagged."""
+    ("residual", "refinement" or both, joined by '+'); a residual less than RESIDUAL_FLOOR_M above the median and
+    a refinement under REFINEMENT_FLOOR_M and REFINEMENT_FLOOR_DEG are never flagged."""
     keyframe_index = np.asarray(keyframe_index, np.int64)
     if refinement_m is None or refinement_deg is None:
         refinement_m, refinement_deg = correction_m[keyframe_index], correction_deg[keyframe_index]
-    residual_flags = robust_outliers(residual_per_keyframe)
+    residual = np.asarray(residual_per_keyframe, np.float64)
+    finite = np.isfinite(residual)
+    residual_median = np.median(residual[finite]) if finite.any() else np.inf
+    residual_flags = robust_outliers(residual) & (residual >= residual_median + RESIDUAL_FLOOR_M)
     refinement_flags = ((robust_outliers(refinement_m) & (np.asarray(refinement_m) >= REFINEMENT_FLOOR_M))
                         | (robust_outliers(refinement_deg) & (np.asarray(refinement_deg) >= REFINEMENT_FLOOR_DEG)))
     kf_row = {int(s): k for k, s in enumerate(keyframe_index)}

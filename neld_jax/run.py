@@ -1,6 +1,7 @@
 """One bundle-adjustment run, read top to bottom: load, choose the start, train, render, write, judge.
 
-Each step is a function in the module of its idea; `bin/train.py` (neld-train) calls `run`. The config is the
+Each step is a function in the module of its idea; `bin/train.py` (neld-train) calls `run`. The viewer
+(neld_jax.viewer) records what each step made to run.rrd, and streams it with viz.live. The config is the
 user's, written once to config.json and never changed; what the run decides (the start, the pose steps, a plan
 compressed to the time) is recorded in metrics.json. One clock, config.max_minutes, is shared by the steps
 (neld_jax.budget). A rerun with the same output_dir resumes from its last checkpoint and its saved start.
@@ -16,6 +17,7 @@ import ml_collections
 from neld_jax import mapping, outputs, refine, start, train
 from neld_jax.budget import TimeBudget
 from neld_jax.data.preprocess import load_keyframes
+from neld_jax.viewer import RunViewer
 
 logger = logging.getLogger(__name__)
 
@@ -25,9 +27,11 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     budget = TimeBudget.start(config)
     out_dir, config_hash = outputs.prepare(config)
     logger.info("budget %s on jax's %s backend: %s", config.budget, jax.default_backend(), budget.describe())
+    viewer = RunViewer.open(out_dir, config.viz)
 
     # 1. Load every input scan, and the preprocessed keyframes training works on (neld_jax.data.preprocess).
     loaded, keyframes = load_keyframes(config.data)
+    viewer.log_input(loaded, keyframes)
 
     # 2. Choose the start: the input or the classical baseline's poses, and the pose steps from there
     #    (neld_jax.start); a resumed run keeps the start its first run chose.
@@ -35,10 +39,11 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     if begin is None:
         begin = start.choose_start(config, keyframes, budget.baseline_deadline(), progress)
         begin.save(out_dir, config_hash, keyframes.poses)
+    viewer.log_start(loaded, keyframes, begin)
 
     # 3. Train the field(s) and the poses (neld_jax.refine: one cube, or submaps for a sequence larger than one).
     refined = refine.refine_keyframes(config, keyframes, begin.poses, begin.pose_steps, out_dir, config_hash,
-                                      budget.training_seconds(), progress)
+                                      budget.training_seconds(), progress, viewer.training_hook())
 
     # 4. Render the map (neld_jax.mapping).
     render = None
@@ -47,10 +52,15 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         render = mapping.render_map(refined, mapping.mapping_rays(m, keyframes, config.seed + 1),
                                     train.sampler_settings(config, m.num_coarse, m.num_fine), float(m.min_opacity),
                                     budget.render_seconds(), config.seed + 1, progress)
+        viewer.log_rendered(render)
 
     # 5. Write the poses of every input scan and the maps (neld_jax.outputs).
     T_all = outputs.write_outputs(out_dir, config, loaded, keyframes, begin, refined, render)
+    viewer.log_outputs(keyframes, refined, T_all)
 
     # 6. Judge: crispness before and after, how sure, the per-scan report, metrics.json; ground truth where it exists.
-    return outputs.judge_run(out_dir, config, loaded, keyframes, begin, refined, render, T_all, budget, config_hash,
-                             progress)
+    summary = outputs.judge_run(out_dir, config, loaded, keyframes, begin, refined, render, T_all, budget,
+                                config_hash, progress)
+    viewer.log_verdict(out_dir, loaded, T_all)
+    viewer.close()
+    return summary

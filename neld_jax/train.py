@@ -45,6 +45,7 @@ logger = logging.getLogger(__name__)
 
 AXIS = "submaps"
 MIN_BATCH_RAYS = 8  # rays each cube draws per step, at least
+GUIDED_WIDTH_M = 1.0  # range-guided coarse samples lie within this distance of the measured range
 
 
 # ------------------------------------------------------------------------------------------------ data
@@ -420,7 +421,7 @@ def sampler_settings(config: ml_collections.ConfigDict, num_coarse: int, num_fin
     s = config.sampling
     return SamplerSettings(num_coarse=int(num_coarse), num_fine=int(num_fine), z_low=float(s.z_low_m),
                            z_up=float(s.z_up_m), cube_bound=bool(s.cube_bound), hierarchical=str(s.hierarchical),
-                           guided_samples=int(s.guided_samples), guided_width=float(s.guided_width_m))
+                           guided_samples=int(s.guided_samples), guided_width=GUIDED_WIDTH_M)
 
 
 def make_field(config: ml_collections.ConfigDict, num_submaps: int = 1) -> DensityField:
@@ -545,13 +546,15 @@ def steps_that_fit(done: int, total: int, seconds_left: float, seconds_per_step:
 def fit(config: ml_collections.ConfigDict, plan_of: Callable[[int], Trainer], rays: Rays, frames: Frames,
         ref_scale: float, state: TrainState, checkpoint_fn: Callable[[TrainState, list, float], None] | None = None,
         progress: bool = True, history: list | None = None, elapsed_s: float = 0.0,
-        max_seconds: float = 0.0) -> FitResult:
+        max_seconds: float = 0.0, on_log: Callable[[dict, TrainState], None] | None = None) -> FitResult:
     """Train from `state` to the end of the plan: plan_of(total_steps) builds the Trainer of a plan of that many
     steps (`make_trainer`); the first is train.steps, or the plan a resumed history records.
 
     The steps run in chunks (`chunk_bounds`), one device call each. The history gets the last step of each chunk
-    that ends on a multiple of train.log_every, and the last step; the progress bar and the clock move at chunk ends;
-    checkpoint_fn(state, history, train_seconds) runs every train.checkpoint_every steps and at the end. A resumed
+    that ends on a multiple of train.log_every, and the last step (with the learning rates of that step), and
+    on_log(entry, state) sees each such entry as it is made (a viewer's hook: host code between device calls); the
+    progress bar and the clock move at chunk ends; checkpoint_fn(state, history, train_seconds) runs every
+    train.checkpoint_every steps and at the end. A resumed
     run passes its restored history and elapsed_s. max_seconds > 0: the wall-clock limit of this call; the loop times
     its second chunk (the first compiles) and, when the remaining steps would overrun it, compresses the plan to the
     steps that fit (`steps_that_fit`), so that the coarse-to-fine window, the pose start and the decays end within
@@ -592,10 +595,14 @@ def fit(config: ml_collections.ConfigDict, plan_of: Callable[[int], Trainer], ra
             m = {k: float(v) for k, v in jax.device_get(metrics).items()}
             trans_m, rot_deg = pose_correction_stats(jax.device_get(state.params["poses"]), ref_scale)
             m.update(step=done, total_steps=total, pose_trans_mean_m=trans_m, pose_rot_mean_deg=rot_deg,
-                     elapsed_s=train_seconds())
+                     elapsed_s=train_seconds(), field_lr=float(schedules.field_lr(done - 1)),
+                     pose_lr_trans=float(schedules.pose_lr_trans(done - 1)),
+                     pose_lr_rot=float(schedules.pose_lr_rot(done - 1)))
             history.append(m)
             if not np.isfinite(m["loss"]):
                 raise FloatingPointError(f"loss is {m['loss']} at step {done}; lower the learning rates")
+            if on_log is not None:
+                on_log(m, state)
             bar.set_postfix(loss=f"{m['loss']:.4f}", range_err=f"{m['range_err_m']:.3f}m", freq=f"{m['alpha']:.1f}",
                             dpose=f"{100 * trans_m:.1f}cm/{rot_deg:.2f}deg", refresh=False)
         bar.update(done - begin)

@@ -154,6 +154,19 @@ def test_fit_mode_times_fit_and_the_bare_step_alternately():
     assert math.isfinite(r["fit_final_loss"])
 
 
+def test_viewer_mode_times_fit_with_and_without_the_live_hook(monkeypatch):
+    from neld_jax import viewer
+
+    monkeypatch.setattr(viewer, "LIVE_PORT", viewer.LIVE_PORT)  # the benchmark picks a free port; restore it after
+    config, sizes = bench.preset_sizes("cpu")
+    sizes = dict(sizes, rays=16, coarse=4, guided=0, fine=2, width=8, depth=1)
+    record = bench.benchmark_viewer(config, sizes, steps=2, repeats=2, log_every=1, num_scans=2, rays_per_scan=64)
+    assert record["benchmark"] == "viewer" and len(record["rounds"]) == 2
+    r = record["rounds"][0]
+    assert r["slowdown"] == pytest.approx(r["plain_steps_per_s"] / r["live_steps_per_s"] - 1.0)
+    assert record["viewer_seconds"] > 0  # the hook ran: 3 logs a live fit, two live fits
+
+
 @functools.lru_cache(maxsize=None)
 def _gpu_suite_module():
     """benchmarks/gpu_suite.py, loaded once (its absl flags can be defined only once in a process)."""

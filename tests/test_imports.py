@@ -18,7 +18,7 @@ LAYERS = [
     ("data", {"data"}),
     ("library", {"config", "submaps", "crispness", "metrics", "trajectory", "report", "judge", "baseline", "budget"}),
     ("steps", {"refine", "mapping", "start"}),
-    ("edge", {"run", "outputs", "export", "evaluate", "plots", "cli", "hugepages", "commands"}),
+    ("edge", {"run", "outputs", "export", "evaluate", "plots", "viewer", "cli", "hugepages", "commands"}),
 ]
 
 

@@ -113,17 +113,17 @@ def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
     # was prepared (the field gets its default first)
     older = tmp_path / "older"
     older.mkdir()
-    del d["config"]["sampling"]["guided_width_m"]
+    del d["config"]["viz"]["record"]
     with open(older / "tiny.pkl", "wb") as f:
         pickle.dump(d, f)
-    overrides = ["train.steps=2", "sampling.guided_width_m=0.5"]
+    overrides = ["train.steps=2", "viz.record=False"]
     variant = _real_gpu(f"--data={older}", f"--out_dir={tmp_path / 'variant'}", "--max_train_s=300",
                         *[f"--set={o}" for o in overrides], without_open3d=True)
     assert variant.returncode == 0, variant.stderr[-3000:]
     varied = json.loads((tmp_path / "variant" / "real_gpu.json").read_text())[0]
     assert "error" not in varied, varied
     assert varied["steps"] == varied["schedule_steps"] == 2 and varied["overrides"] == overrides
-    assert varied["defaults_added"] == ["sampling.guided_width_m"]
+    assert varied["defaults_added"] == ["viz.record"]
 
     judged_run = _real_gpu("--evaluate", f"--run_dir={run_dir}", f"--trained={out / 'tiny_trained.npz'}",
                            f"--out_dir={judged}", *SIZES)

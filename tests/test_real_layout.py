@@ -122,6 +122,27 @@ def test_the_report_flags_the_bundle_adjustments_own_moves_not_its_starts():
     assert not any(r["flag"] for r in tiny)
 
 
+def test_the_report_flags_residuals_only_well_above_the_rest():
+    keyframes = 24
+    flat, zeros = np.full(keyframes, 0.1), np.zeros(keyframes)
+
+    def flagged(residual_m):
+        rows = report.scan_report(keyframes, np.arange(keyframes), None, None, flat, residual_m, zeros, zeros,
+                                  flat, flat)
+        return [r["scan"] for r in rows if r["flag"]]
+
+    # Noise-free synthetic scans (the demo): residuals 1.1-1.2 cm and one at 1.37 cm, above median + 3 MADs but
+    # only 2 mm above the rest: not worth a look.
+    clean = 0.011 + 0.001 * np.arange(keyframes) / keyframes
+    clean[8] = 0.0137
+    assert report.robust_outliers(clean)[8] and flagged(clean) == []
+    # A real sequence's scans (median ~3 cm) with two genuine outliers 4 and 15 cm above it: both flagged, and
+    # one just under the floor (2.5 cm above the median, far above the MAD rule) is not.
+    real = 0.03 + 0.004 * np.arange(keyframes) / keyframes
+    real[[3, 14, 20]] = [0.07, 0.18, 0.032 + report.RESIDUAL_FLOOR_M - 0.005]
+    assert report.robust_outliers(real)[20] and flagged(real) == [3, 14]
+
+
 def test_aligned_corrections_remove_the_trajectorys_rigid_motion():
     from neld_jax.report import aligned_corrections
     T = np.tile(np.eye(4), (4, 1, 1))

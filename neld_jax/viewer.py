@@ -1,0 +1,284 @@
+"""A run as a Rerun recording (run.rrd in the output folder), to look at in Rerun's viewer: the trajectories, the
+raw maps before and after, the rendered map, each scan's correction, residual and crispness, training over steps,
+and the ground truth with each scan's error where it exists (docs/viewer.md).
+
+The run's steps (neld_jax.run) hand what they made to a `RunViewer` as they go; nothing here runs inside jitted
+code, and the maths and the trainer do not import rerun (the trainer's loop calls a plain hook). With viz.live the
+same entities also go to a gRPC server on a local port that a viewer connects to while the run trains.
+
+Entities (world frame, z up; timeline "step" for training, everything else static):
+  world/trajectory/{input,baseline,refined,gt}  LineStrips3D: every input scan's position (gt aligned, SE(3))
+  world/scans/{input,baseline,refined}          Arrows3D: one per keyframe, from its position along its x axis
+  world/scans/report                            Points3D: every input scan at its refined position, labelled, with
+                                                 correction_cm / correction_deg / residual_cm / entropy_before /
+                                                 entropy_after / flag (and error_cm / error_deg against ground
+                                                 truth) per scan; flagged scans red and larger
+  world/map/{raw_input,raw_refined,rendered,gt} Points3D coloured by height, voxel-thinned to MAX_MAP_POINTS
+  world/trajectory/training                     LineStrips3D of the keyframes' poses at each logged step
+  train/{loss,range_err_m,frequency,pose_change_cm,pose_change_deg,lr/field,lr/pose_trans,lr/pose_rot}  Scalars
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import logging
+import os
+import time
+
+import ml_collections
+import numpy as np
+
+from neld_jax.geometry import register_scans
+from neld_jax.metrics import ate_errors
+from neld_jax.trajectory import propagate_corrections
+
+logger = logging.getLogger(__name__)
+
+RECORDING = "run.rrd"
+APPLICATION_ID = "neld-jax"
+LIVE_PORT = 9876  # viz.live serves here (Rerun's default port; `rerun rerun+http://127.0.0.1:9876/proxy`)
+MAX_MAP_POINTS = 400_000  # a map the viewer opens in a few seconds
+MARKER_LENGTH_FRACTION = 0.01  # a scan's arrow, as a fraction of the trajectory's extent
+FLAG_COLOUR = (230, 40, 40)
+SCAN_COLOUR = (200, 200, 200)
+TRAJECTORY_COLOURS = {"input": (150, 150, 150), "baseline": (60, 130, 230), "refined": (40, 200, 90),
+                      "gt": (240, 180, 20), "training": (200, 90, 220)}
+SCALARS = {"loss": "loss", "range_err_m": "range_err_m", "alpha": "frequency", "field_lr": "lr/field",
+           "pose_lr_trans": "lr/pose_trans", "pose_lr_rot": "lr/pose_rot"}
+
+
+def _timed(method):
+    """Counts the seconds a viewer call takes toward the run's total (logged at close)."""
+
+    @functools.wraps(method)
+    def timed(self, *args, **kwargs):
+        if not self.enabled:
+            return None
+        started = time.perf_counter()
+        try:
+            return method(self, *args, **kwargs)
+        finally:
+            self.seconds += time.perf_counter() - started
+
+    return timed
+
+
+class RunViewer:
+    """Logs a run's steps to OUT_DIR/run.rrd (and to a local gRPC server with viz.live). A disabled viewer
+    (viz.record and viz.live off) takes every call and does nothing, so the run calls it unconditionally."""
+
+    def __init__(self, stream, live_url: str | None = None, path: str | None = None):
+        self._stream = stream
+        self._path = path
+        self.live_url = live_url
+        self._marker_m = 0.1
+        self._logged_steps: set[int] = set()
+        self.seconds = 0.0  # spent logging
+
+    @classmethod
+    def open(cls, out_dir: str, viz: ml_collections.ConfigDict) -> "RunViewer":
+        if not (viz.record or viz.live):
+            return cls(None)
+        import rerun as rr  # an effect at the edge: only a run that records imports it
+
+        stream = rr.RecordingStream(APPLICATION_ID, recording_id=os.path.basename(os.path.abspath(out_dir)))
+        sinks, url, path = [], None, None
+        if viz.record:
+            path = os.path.join(out_dir, RECORDING)
+            sinks.append(rr.FileSink(path))
+        if viz.live:
+            sinks.append(rr.GrpcServerSink("127.0.0.1", LIVE_PORT))
+            url = f"rerun+http://127.0.0.1:{LIVE_PORT}/proxy"
+            logger.info("live view: `rerun %s` (Rerun's viewer, `pip install rerun-sdk`) shows the run as it trains",
+                        url)
+        stream.set_sinks(*sinks, default_blueprint=layout())
+        stream.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        return cls(stream, url, path)
+
+    @property
+    def enabled(self) -> bool:
+        return self._stream is not None
+
+    # ------------------------------------------------------------------------------------------ the steps
+
+    @_timed
+    def log_input(self, loaded, keyframes) -> None:
+        """Step 1: the input trajectory (every input scan), the keyframes' markers, the raw map from the input,
+        the ground truth's trajectory and map where they exist."""
+        extent = np.ptp(loaded.poses[:, :3, 3], axis=0).max() if loaded.num_scans > 1 else 1.0
+        self._marker_m = max(float(extent) * MARKER_LENGTH_FRACTION, 0.05)
+        self._trajectory("input", loaded.poses, keyframes.poses)
+        self._map("raw_input", register_scans(keyframes.scans, keyframes.poses))
+        if keyframes.gt_map is not None:
+            self._map("gt", keyframes.gt_map)
+
+    @_timed
+    def log_start(self, loaded, keyframes, begin) -> None:
+        """Step 2: the classical baseline's trajectory, where it ran."""
+        if begin.baseline_poses is None:
+            return
+        all_scans = propagate_corrections(loaded.poses, keyframes.loaded_index, begin.baseline_poses,
+                                          loaded.timestamps)
+        self._trajectory("baseline", all_scans, begin.baseline_poses)
+
+    def training_hook(self):
+        """Step 3: on_log(entry, poses [K, 4, 4]) for neld_jax.refine: the training curves and the keyframes' poses
+        at each logged step (None when disabled, so that training runs without a hook)."""
+        return self._timed_training_entry if self.enabled else None
+
+    @_timed
+    def log_rendered(self, render) -> None:
+        """Step 4: the rendered map (the points at argmax h/delta)."""
+        if render is not None and len(render.points):
+            self._map("rendered", render.points)
+
+    @_timed
+    def log_outputs(self, keyframes, refined, T_all: np.ndarray) -> None:
+        """Step 5: the refined trajectory (every input scan, as poses_optimized.txt), its markers and raw map, and
+        the training curves a resumed run's earlier part logged before this process."""
+        for entry in refined.result.history:
+            if int(entry["step"]) not in self._logged_steps:
+                self._log_training_entry(entry, None)
+        self._trajectory("refined", T_all, refined.poses)
+        self._map("raw_refined", register_scans(keyframes.scans, refined.poses))
+
+    @_timed
+    def log_verdict(self, out_dir: str, loaded, T_all: np.ndarray) -> None:
+        """Step 6: every scan at its refined position with the per-scan report (scans_report.csv) attached, the
+        flagged scans highlighted; the ground truth (aligned to the refined trajectory) and each scan's error
+        against it where it exists."""
+        import rerun as rr
+
+        with open(os.path.join(out_dir, "scans_report.csv")) as f:
+            rows = list(csv.DictReader(f))
+        values = {name: np.array([_number(row[column]) for row in rows]) for name, column in (
+            ("correction_cm", "correction_cm"), ("correction_deg", "correction_deg"),
+            ("entropy_before", "entropy_before"), ("entropy_after", "entropy_after"))}
+        values["residual_cm"] = 100.0 * np.array([_number(row["median_residual_m"]) for row in rows])
+        flags = [row["flag"] for row in rows]
+        if loaded.gt_poses is not None:
+            errors_m, errors_deg, alignment, _ = ate_errors(T_all, loaded.gt_poses)
+            values.update(error_cm=100.0 * errors_m, error_deg=errors_deg)
+            self._trajectory("gt", np.linalg.inv(alignment) @ loaded.gt_poses, None)
+        flagged = np.array([bool(flag) for flag in flags])
+        labels = [f"scan {row['scan']}" + (f" ({row['flag']})" if row["flag"] else "") for row in rows]
+        self._stream.log("world/scans/report",
+                         rr.Points3D(T_all[:, :3, 3], labels=labels,
+                                     colors=np.where(flagged[:, None], FLAG_COLOUR, SCAN_COLOUR).astype(np.uint8),
+                                     radii=np.where(flagged, 2.0, 0.6) * self._marker_m / 4),
+                         rr.AnyValues(flag=flags, **values), static=True)
+
+    def close(self) -> None:
+        if not self.enabled:
+            return
+        started = time.perf_counter()
+        self._stream.flush()
+        if self.live_url is None:
+            self._stream.disconnect()
+        self.seconds += time.perf_counter() - started
+        if self._path is not None:
+            logger.info("%s: %.1f MB, %.1f s of logging; open it with `rerun %s`", RECORDING,
+                        os.path.getsize(self._path) / 1e6, self.seconds, self._path)
+
+    # ------------------------------------------------------------------------------------------ entities
+
+    @_timed
+    def _timed_training_entry(self, entry: dict, poses: np.ndarray) -> None:
+        self._log_training_entry(entry, poses)
+
+    def _log_training_entry(self, entry: dict, poses: np.ndarray | None) -> None:
+        import rerun as rr
+
+        step = int(entry["step"])
+        self._logged_steps.add(step)
+        self._stream.set_time("step", sequence=step)
+        for key, path in SCALARS.items():
+            if key in entry:
+                self._stream.log(f"train/{path}", rr.Scalars(float(entry[key])))
+        if "pose_trans_mean_m" in entry:
+            self._stream.log("train/pose_change_cm", rr.Scalars(100.0 * float(entry["pose_trans_mean_m"])))
+            self._stream.log("train/pose_change_deg", rr.Scalars(float(entry["pose_rot_mean_deg"])))
+        if poses is not None:
+            self._stream.log("world/trajectory/training",
+                             rr.LineStrips3D([poses[:, :3, 3]], colors=[TRAJECTORY_COLOURS["training"]]))
+        self._stream.reset_time()
+
+    def _trajectory(self, name: str, poses_all: np.ndarray, poses_keyframes: np.ndarray | None) -> None:
+        """A line through every scan's position; an arrow along each keyframe's x axis (its heading)."""
+        import rerun as rr
+
+        colour = TRAJECTORY_COLOURS[name]
+        self._stream.log(f"world/trajectory/{name}", rr.LineStrips3D([poses_all[:, :3, 3]], colors=[colour]),
+                         static=True)
+        if poses_keyframes is not None:
+            self._stream.log(f"world/scans/{name}",
+                             rr.Arrows3D(origins=poses_keyframes[:, :3, 3],
+                                         vectors=self._marker_m * poses_keyframes[:, :3, 0], colors=[colour]),
+                             static=True)
+
+    def _map(self, name: str, points: np.ndarray) -> None:
+        import rerun as rr
+
+        points = thin_for_viewing(np.asarray(points, np.float64))
+        self._stream.log(f"world/map/{name}", rr.Points3D(points, colors=height_colours(points[:, 2]), radii=0.02),
+                         static=True)
+
+
+def layout():
+    """The viewer's layout: the maps and trajectories after, before and rendered as tabs of one 3-D view (flip
+    between them to see a doubled wall come out single), the training curves beside them."""
+    import rerun.blueprint as rrb
+
+    trajectories = ["world/trajectory/input", "world/trajectory/baseline", "world/trajectory/refined",
+                    "world/trajectory/gt"]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Tabs(
+                rrb.Spatial3DView(name="after: refined poses", origin="world",
+                                  contents=["world/map/raw_refined", "world/scans/refined", "world/scans/report",
+                                            "world/trajectory/training", *trajectories]),
+                rrb.Spatial3DView(name="before: input poses", origin="world",
+                                  contents=["world/map/raw_input", "world/scans/input", *trajectories]),
+                rrb.Spatial3DView(name="rendered map", origin="world",
+                                  contents=["world/map/rendered", "world/map/gt", "world/trajectory/refined"]),
+            ),
+            rrb.Vertical(
+                rrb.TimeSeriesView(name="loss and range error [m]", contents=["train/loss", "train/range_err_m"]),
+                rrb.TimeSeriesView(name="pose change (mean)",
+                                   contents=["train/pose_change_cm", "train/pose_change_deg"]),
+                rrb.TimeSeriesView(name="coarse-to-fine frequency", contents=["train/frequency"]),
+                rrb.TimeSeriesView(name="learning rates", contents=["train/lr/**"]),
+            ),
+            column_shares=[3, 1],
+        ),
+        collapse_panels=True,
+    )
+
+
+def thin_for_viewing(points: np.ndarray, max_points: int = MAX_MAP_POINTS) -> np.ndarray:
+    """points [N, 3] -> at most max_points: the centroids of the occupied voxels, the voxel doubled from 2 cm
+    until they fit."""
+    from neld_jax.data.preprocess import voxel_downsample
+
+    voxel = 0.02
+    thinned = points
+    while len(thinned) > max_points:
+        thinned = voxel_downsample(points, voxel)
+        voxel *= 2.0
+    return thinned
+
+
+def height_colours(z: np.ndarray) -> np.ndarray:
+    """[N] heights -> [N, 3] uint8 colours (matplotlib's turbo over the 2nd-98th percentile)."""
+    from matplotlib import colormaps
+
+    if len(z) == 0:
+        return np.zeros((0, 3), np.uint8)
+    low, high = np.percentile(z, [2, 98])
+    unit = np.clip((z - low) / max(high - low, 1e-9), 0.0, 1.0)
+    return (255 * colormaps["turbo"](unit)[:, :3]).astype(np.uint8)
+
+
+def _number(text: str) -> float:
+    return float(text) if text not in ("", None) else float("nan")

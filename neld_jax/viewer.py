@@ -82,7 +82,7 @@ class RunViewer:
             return cls(None)
         import rerun as rr  # an effect at the edge: only a run that records imports it
 
-        stream = rr.RecordingStream(APPLICATION_ID, recording_id=os.path.basename(os.path.abspath(out_dir)))
+        stream = rr.RecordingStream(APPLICATION_ID)  # a recording id of its own: two runs open side by side
         sinks, url, path = [], None, None
         if viz.record:
             path = os.path.join(out_dir, RECORDING)

@@ -69,6 +69,7 @@ def refine_keyframes(config: ml_collections.ConfigDict, keyframes, start_poses: 
                 "device(s)", num_scans, "one cube" if plan.num_submaps == 1 else f"{plan.num_submaps} submaps",
                 rays_m.num_rays, first.batch_rays * plan.num_submaps, first.field.width, float(field_lr(0)),
                 float(field_lr(first.schedules.total_steps)), mesh.size, jax.devices()[0].platform)
+
     def observe(entry: dict, state: train.TrainState) -> None:
         in_field = world_poses(start_poses, np.asarray(jax.device_get(state.params["poses"])), plan.ref_scale)
         on_log(entry, anchored(start_poses, in_field)[0])

@@ -11,10 +11,11 @@ deviation), and also above a floor in absolute terms, so that a flag means a sca
 least 3 cm above the keyframes' median (RESIDUAL_FLOOR_M; on noise-free synthetic scans the residuals lie within
 a few mm of each other, and the MAD rule alone flagged a scan 2 mm above the rest), a refinement of at least 1 cm
 or 0.1 deg (REFINEMENT_FLOOR_*: NeLD-BA's moves off the classical baseline are a fraction of a millimetre on the
-handheld sequences, and the outliers of those are not moves to distrust; the raw map's planes are 3-4 cm thick). Flagged scans are the ones the bundle adjustment did
-not trust or moved most: look at them first. The baseline's own corrections are not flagged: on Riverside02 its
-gates kept 42 % of its registrations, so its corrections fell in two groups (a few mm and a few cm) and half the
-scans lay above median + 3 MADs (docs/evaluation.md, "Per-scan report")."""
+handheld sequences, and the outliers of those are not moves to distrust; the raw map's planes are 3-4 cm thick).
+Flagged scans are the ones the bundle adjustment did not trust or moved most: look at them first. The baseline's
+own corrections are not flagged: on Riverside02 its gates kept 42 % of its registrations, so its corrections fell in
+two groups (a few mm and a few cm) and half the scans lay above median + 3 MADs (docs/evaluation.md, "Per-scan
+report")."""
 
 from __future__ import annotations
 

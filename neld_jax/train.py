@@ -554,11 +554,11 @@ def fit(config: ml_collections.ConfigDict, plan_of: Callable[[int], Trainer], ra
     that ends on a multiple of train.log_every, and the last step (with the learning rates of that step), and
     on_log(entry, state) sees each such entry as it is made (a viewer's hook: host code between device calls); the
     progress bar and the clock move at chunk ends; checkpoint_fn(state, history, train_seconds) runs every
-    train.checkpoint_every steps and at the end. A resumed
-    run passes its restored history and elapsed_s. max_seconds > 0: the wall-clock limit of this call; the loop times
-    its second chunk (the first compiles) and, when the remaining steps would overrun it, compresses the plan to the
-    steps that fit (`steps_that_fit`), so that the coarse-to-fine window, the pose start and the decays end within
-    the time instead of being cut off; each history entry records its plan's total_steps."""
+    train.checkpoint_every steps and at the end. A resumed run passes its restored history and elapsed_s.
+    max_seconds > 0: the wall-clock limit of this call; the loop times its second chunk (the first compiles) and,
+    when the remaining steps would overrun it, compresses the plan to the steps that fit (`steps_that_fit`), so that
+    the coarse-to-fine window, the pose start and the decays end within the time instead of being cut off; each
+    history entry records its plan's total_steps."""
     from tqdm.auto import tqdm  # an effect at the edge; the step itself is pure
 
     start = int(state.step)

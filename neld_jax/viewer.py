@@ -105,7 +105,7 @@ class RunViewer:
     @_timed
     def log_input(self, loaded, keyframes) -> None:
         """Step 1: the input trajectory (every input scan), the keyframes' markers, the raw map from the input,
-        the ground truth's trajectory and map where they exist."""
+        and the ground-truth map where there is one."""
         extent = np.ptp(loaded.poses[:, :3, 3], axis=0).max() if loaded.num_scans > 1 else 1.0
         self._marker_m = max(float(extent) * MARKER_LENGTH_FRACTION, 0.05)
         self._trajectory("input", loaded.poses, keyframes.poses)
@@ -157,10 +157,13 @@ class RunViewer:
             ("entropy_before", "entropy_before"), ("entropy_after", "entropy_after"))}
         values["residual_cm"] = 100.0 * np.array([_number(row["median_residual_m"]) for row in rows])
         flags = [row["flag"] for row in rows]
-        if loaded.gt_poses is not None:
-            errors_m, errors_deg, alignment, _ = ate_errors(T_all, loaded.gt_poses)
-            values.update(error_cm=100.0 * errors_m, error_deg=errors_deg)
-            self._trajectory("gt", np.linalg.inv(alignment) @ loaded.gt_poses, None)
+        has_gt = (np.zeros(len(T_all), bool) if loaded.gt_poses is None
+                  else np.isfinite(loaded.gt_poses).all(axis=(1, 2)))
+        if has_gt.sum() >= 3:  # the scans with a ground-truth pose, aligned as the ATE aligns them
+            errors_m, errors_deg, alignment, _ = ate_errors(T_all[has_gt], loaded.gt_poses[has_gt])
+            values["error_cm"], values["error_deg"] = np.full(len(T_all), np.nan), np.full(len(T_all), np.nan)
+            values["error_cm"][has_gt], values["error_deg"][has_gt] = 100.0 * errors_m, errors_deg
+            self._trajectory("gt", np.linalg.inv(alignment) @ loaded.gt_poses[has_gt], None)
         flagged = np.array([bool(flag) for flag in flags])
         labels = [f"scan {row['scan']}" + (f" ({row['flag']})" if row["flag"] else "") for row in rows]
         self._stream.log("world/scans/report",

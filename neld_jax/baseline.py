@@ -686,9 +686,10 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
     deadline: a time.perf_counter() value after which the multi-view refinement registers no more scans
     (`refine_against_map`) and a chain not yet finished is given up (`scan_to_map_chain`); the pose graph always
     runs to the end. report, when given, receives what was decided and done: {"tilt": "input" | "free" (the chain
-    that went on), "chain_entropy": {name: entropy}, "chain_given_up", "refined_from": "graph" | "chain" | "input",
-    "start_entropy": {name: entropy}, "map_rounds_done" (a fraction when the deadline stopped them),
-    "stopped_at_deadline", "seconds": {step: seconds}}. progress: progress bars over each step's registrations.
+    that went on; None when both were given up), "chain_entropy": {name: entropy}, "chain_given_up",
+    "refined_from": "graph" | "chain" | "input", "start_entropy": {name: entropy}, "map_rounds_done" (a fraction when
+    the deadline stopped them), "stopped_at_deadline", "seconds": {step: seconds}}. progress: progress bars over
+    each step's registrations.
     Returns refined poses [S, 4, 4] with pose 0 equal to init_poses[0] and orthonormal rotations.
     """
     init_poses = np.asarray(init_poses, dtype=np.float64)
@@ -709,8 +710,8 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
         chosen, entropy = choose_chain(chains, scans, settings)
         chain = chains[chosen]
         seconds["chains"] = time.perf_counter() - t0
-        report.update(tilt="input" if chosen == "input tilt" else "free", chain_entropy=entropy,
-                      chain_given_up=chain is None)
+        report.update(tilt=None if chain is None else ("input" if chosen == "input tilt" else "free"),
+                      chain_entropy=entropy, chain_given_up=chain is None)
         if chain is None:  # given up (scan_to_map_chain warned): no graph, the refinement starts from the input
             optimized = init_poses
             report["refined_from"] = "input"

@@ -293,6 +293,7 @@ def test_a_chain_whose_links_overlap_too_little_is_given_up(drifted_sequence, mo
     poses = register_sequence(seq.scans, seq.poses, settings, report=report)
     np.testing.assert_allclose(poses, seq.poses, atol=1e-9)  # no rounds here: the input as it came
     assert report["chain_given_up"] and report["refined_from"] == "input" and report["chain_entropy"] == {}
+    assert report["tilt"] is None  # no chain went on
 
 
 def test_a_chain_still_running_at_the_deadline_is_given_up(drifted_sequence, monkeypatch, caplog):

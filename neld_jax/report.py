@@ -58,8 +58,9 @@ def aligned_corrections(T_before: np.ndarray, T_after: np.ndarray) -> tuple[np.n
     return pose_corrections(T_before, alignment @ T_after)
 
 
-def robust_outliers(values: np.ndarray, threshold: float = MAD_THRESHOLD) -> np.ndarray:
-    """values: [N] (NaN ignored) -> bool [N], True where value > median + threshold * 1.4826 MAD.
+def robust_outliers(values: np.ndarray, threshold: float = MAD_THRESHOLD, min_excess: float = 0.0) -> np.ndarray:
+    """values: [N] (NaN ignored) -> bool [N], True where value > median + threshold * 1.4826 MAD and value >=
+    median + min_excess (a floor in the values' own units).
 
     With a MAD of zero (most values equal) nothing is flagged: there is no spread to be an outlier of."""
     values = np.asarray(values, np.float64)
@@ -71,7 +72,7 @@ def robust_outliers(values: np.ndarray, threshold: float = MAD_THRESHOLD) -> np.
     mad = 1.4826 * np.median(np.abs(values[finite] - median))
     if mad <= 0:
         return flags
-    flags[finite] = values[finite] > median + threshold * mad
+    flags[finite] = (values[finite] > median + threshold * mad) & (values[finite] >= median + min_excess)
     return flags
 
 
@@ -88,10 +89,7 @@ def scan_report(num_scans: int, keyframe_index: np.ndarray, files: list[str] | N
     keyframe_index = np.asarray(keyframe_index, np.int64)
     if refinement_m is None or refinement_deg is None:
         refinement_m, refinement_deg = correction_m[keyframe_index], correction_deg[keyframe_index]
-    residual = np.asarray(residual_per_keyframe, np.float64)
-    finite = np.isfinite(residual)
-    residual_median = np.median(residual[finite]) if finite.any() else np.inf
-    residual_flags = robust_outliers(residual) & (residual >= residual_median + RESIDUAL_FLOOR_M)
+    residual_flags = robust_outliers(residual_per_keyframe, min_excess=RESIDUAL_FLOOR_M)
     refinement_flags = ((robust_outliers(refinement_m) & (np.asarray(refinement_m) >= REFINEMENT_FLOOR_M))
                         | (robust_outliers(refinement_deg) & (np.asarray(refinement_deg) >= REFINEMENT_FLOOR_DEG)))
     kf_row = {int(s): k for k, s in enumerate(keyframe_index)}

@@ -32,9 +32,10 @@ import numpy as np
 from neld_jax import metrics, plots
 from neld_jax.data.poses import read_kitti, read_newer_college_csv, read_tum
 from neld_jax.data.scans import read_scan
+from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S, match_by_timestamp
 from neld_jax.errors import DataError
 from neld_jax.export import write_json
-from neld_jax.geometry import transform_points
+from neld_jax.geometry import invert_poses, transform_points
 
 logger = logging.getLogger(__name__)
 
@@ -304,14 +305,12 @@ def _lookup(entry: dict[str, Any], keys: tuple[str, ...]) -> float | None:
     return float(value)
 
 
-def trajectory_at_keyframes(path, loaded, keyframes, tol: float = 0.05, invert: bool = False) -> np.ndarray:
+def trajectory_at_keyframes(path, loaded, keyframes, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+                            invert: bool = False) -> np.ndarray:
     """The poses [K, 4, 4] a trajectory file (TUM, KITTI or Newer College CSV, in the convention of the sequence's own
     pose file; invert: world -> sensor, as data.invert_poses) gives the keyframes of the input scans `loaded`: by
     time when the file and the scans have timestamps (every keyframe needs a pose within `tol` s), else by order, one
     pose per input scan or one per keyframe. A file that fits neither is one DataError naming it."""
-    from neld_jax.data.timing import match_by_timestamp
-    from neld_jax.geometry import invert_poses
-
     stamps, poses = read_trajectory(path)
     poses = invert_poses(poses) if invert else poses
     index = keyframes.loaded_index

@@ -547,8 +547,7 @@ def benchmark_viewer(config: ml_collections.ConfigDict, sizes: dict, steps: int,
     import tempfile
 
     from neld_jax import viewer
-    from neld_jax.model import world_poses
-    from neld_jax.refine import anchored
+    from neld_jax.refine import posed
 
     runner, fit_config, plan_of, fit_steps, timed_steps = fit_setup(config, sizes, steps, repeats, log_every,
                                                                     num_scans, rays_per_scan, seed)
@@ -560,12 +559,7 @@ def benchmark_viewer(config: ml_collections.ConfigDict, sizes: dict, steps: int,
     rounds = []
     with tempfile.TemporaryDirectory() as folder:
         live = viewer.RunViewer.open(folder, fit_config.viz)
-        hook = live.training_hook()
-
-        def on_log(entry, state):  # what neld_jax.refine's hook does before it calls the viewer
-            in_field = world_poses(start_poses, np.asarray(jax.device_get(state.params["poses"])), SYNTHETIC_SCALE)
-            hook(entry, anchored(start_poses, in_field)[0])
-
+        on_log = posed(live.training_hook(), start_poses, SYNTHETIC_SCALE)  # the hook a run hands fit
         for r in range(max(repeats, 1)):
             order = (None, on_log) if r % 2 == 0 else (on_log, None)
             timed = {("live" if h else "plain"): timed_fit(fit_config, plan_of, runner, fit_steps, h) for h in order}

@@ -70,21 +70,30 @@ def refine_keyframes(config: ml_collections.ConfigDict, keyframes, start_poses: 
                 rays_m.num_rays, first.batch_rays * plan.num_submaps, first.field.width, float(field_lr(0)),
                 float(field_lr(first.schedules.total_steps)), mesh.size, jax.devices()[0].platform)
 
-    def observe(entry: dict, state: train.TrainState) -> None:
-        in_field = world_poses(start_poses, np.asarray(jax.device_get(state.params["poses"])), plan.ref_scale)
-        on_log(entry, anchored(start_poses, in_field)[0])
-
     metadata = {"config_hash": config_hash, "num_scans": num_scans, "plan": plan.to_dict(),
                 "pose_steps": pose_steps.to_dict()}
     result = fit_resuming(os.path.join(out_dir, "checkpoints"), metadata,
                           lambda: train.init_state(config, first, num_scans, plan.num_submaps),
                           functools.partial(train.fit, config, plan_of, rays, frames, plan.ref_scale,
                                             progress=progress, max_seconds=max_seconds,
-                                            on_log=None if on_log is None else observe))
+                                            on_log=None if on_log is None else posed(on_log, start_poses,
+                                                                                     plan.ref_scale)))
     poses_in_field = world_poses(start_poses, np.asarray(result.state.params["poses"]), plan.ref_scale)
     poses, anchor = anchored(start_poses, poses_in_field)
     return Refined(result, plan, first.field, poses, poses_in_field, anchor,
                    np.bincount(rays_m.scan_index, minlength=num_scans))
+
+
+def posed(on_log: Callable[[dict, np.ndarray], None], start_poses: np.ndarray,
+          ref_scale: float) -> Callable[[dict, train.TrainState], None]:
+    """train.fit's on_log(entry, state) that hands on_log(entry, poses [K, 4, 4]) the keyframes' poses of that step
+    in the world, anchored as the outputs are."""
+
+    def observe(entry: dict, state: train.TrainState) -> None:
+        in_field = world_poses(start_poses, np.asarray(jax.device_get(state.params["poses"])), ref_scale)
+        on_log(entry, anchored(start_poses, in_field)[0])
+
+    return observe
 
 
 def anchored(start_poses: np.ndarray, poses_in_field: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -81,9 +81,10 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, loaded, keyfr
 
 
 def judge_run(out_dir: str, config: ml_collections.ConfigDict, loaded, keyframes, start, refined, render, T_all,
-              budget: TimeBudget, config_hash_: str, progress: bool = True) -> dict:
+              budget: TimeBudget, config_hash_: str, progress: bool = True) -> tuple[dict, list[dict]]:
     """The verdict of a run, written to metrics.json (run, crispness, scans_report; evaluation where ground truth
-    exists), history.json, scans_report.csv / .png and map_topdown.png. Returns metrics.json's content."""
+    exists), history.json, scans_report.csv / .png and map_topdown.png. Returns (metrics.json's content, the
+    per-scan report's rows)."""
     methods = {"initial": keyframes.poses, "optimized": refined.poses}
     if start.baseline_poses is not None:
         methods["baseline"] = start.baseline_poses
@@ -129,7 +130,7 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, loaded, keyframes
         from neld_jax.evaluate import evaluate_run
 
         summary["evaluation"] = evaluate_run(out_dir, map_icp_m=float(config.eval.map_icp_m))
-    return summary
+    return summary, rows
 
 
 def write_scan_report(out_dir: str, loaded, keyframes, T_all: np.ndarray, refined, render, per_scan_entropy: dict,

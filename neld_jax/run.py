@@ -59,8 +59,8 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
     viewer.log_outputs(keyframes, refined, T_all)
 
     # 6. Judge: crispness before and after, how sure, the per-scan report, metrics.json; ground truth where it exists.
-    summary = outputs.judge_run(out_dir, config, loaded, keyframes, begin, refined, render, T_all, budget,
-                                config_hash, progress)
-    viewer.log_verdict(out_dir, loaded, T_all)
+    summary, scan_rows = outputs.judge_run(out_dir, config, loaded, keyframes, begin, refined, render, T_all, budget,
+                                           config_hash, progress)
+    viewer.log_verdict(scan_rows, loaded, T_all)
     viewer.close()
     return summary

@@ -20,7 +20,6 @@ Entities (world frame, z up; timeline "step" for training, everything else stati
 
 from __future__ import annotations
 
-import csv
 import functools
 import logging
 import os
@@ -144,17 +143,14 @@ class RunViewer:
         self._map("raw_refined", register_scans(keyframes.scans, refined.poses))
 
     @_timed
-    def log_verdict(self, out_dir: str, loaded, T_all: np.ndarray) -> None:
-        """Step 6: every scan at its refined position with the per-scan report (scans_report.csv) attached, the
-        flagged scans highlighted; the ground truth (aligned to the refined trajectory) and each scan's error
-        against it where it exists."""
+    def log_verdict(self, rows: list[dict], loaded, T_all: np.ndarray) -> None:
+        """Step 6: every scan at its refined position with its row of the per-scan report (neld_jax.report, as in
+        scans_report.csv) attached, the flagged scans highlighted; the ground truth (aligned to the refined
+        trajectory) and each scan's error against it where it exists."""
         import rerun as rr
 
-        with open(os.path.join(out_dir, "scans_report.csv")) as f:
-            rows = list(csv.DictReader(f))
-        values = {name: np.array([_number(row[column]) for row in rows]) for name, column in (
-            ("correction_cm", "correction_cm"), ("correction_deg", "correction_deg"),
-            ("entropy_before", "entropy_before"), ("entropy_after", "entropy_after"))}
+        values = {name: np.array([_number(row[name]) for row in rows])
+                  for name in ("correction_cm", "correction_deg", "entropy_before", "entropy_after")}
         values["residual_cm"] = 100.0 * np.array([_number(row["median_residual_m"]) for row in rows])
         flags = [row["flag"] for row in rows]
         has_gt = (np.zeros(len(T_all), bool) if loaded.gt_poses is None
@@ -283,5 +279,6 @@ def height_colours(z: np.ndarray) -> np.ndarray:
     return (255 * colormaps["turbo"](unit)[:, :3]).astype(np.uint8)
 
 
-def _number(text: str) -> float:
-    return float(text) if text not in ("", None) else float("nan")
+def _number(value: float | None) -> float:
+    """A report value, NaN where the report has none (a scan that is not a keyframe)."""
+    return float("nan") if value is None else float(value)

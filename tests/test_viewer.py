@@ -113,7 +113,7 @@ def test_no_recording_when_switched_off(tmp_path):
     off = viewer.RunViewer.open(str(tmp_path), viz)
     assert not off.enabled and off.training_hook() is None
     off.log_input(None, None)  # a disabled viewer takes every call and touches nothing
-    off.log_verdict(str(tmp_path), None, None)
+    off.log_verdict([], None, None)
     off.close()
     assert list(tmp_path.iterdir()) == []
 

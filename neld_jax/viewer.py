@@ -257,15 +257,25 @@ def layout():
 
 def thin_for_viewing(points: np.ndarray, max_points: int = MAX_MAP_POINTS) -> np.ndarray:
     """points [N, 3] -> at most max_points: the centroids of the occupied voxels, the voxel doubled from 2 cm
-    until they fit."""
+    until they fit. The voxel is found by counting occupied voxels (a sort), and the points are downsampled once:
+    a real recording's sparse raw map (2.9 M points) needs 64 cm, and a downsample at each size took 14 s."""
     from neld_jax.data.preprocess import voxel_downsample
 
+    if len(points) <= max_points:
+        return points
     voxel = 0.02
-    thinned = points
-    while len(thinned) > max_points:
-        thinned = voxel_downsample(points, voxel)
+    while occupied_voxels(points, voxel) > max_points:
         voxel *= 2.0
-    return thinned
+    return voxel_downsample(points, voxel)
+
+
+def occupied_voxels(points: np.ndarray, voxel: float) -> int:
+    """How many voxels of size `voxel` points [N, 3] occupy, on the grid Open3D's voxel_down_sample uses (cells
+    from the points' minimum less half a voxel): the number of points that downsample returns."""
+    keys = np.floor((points - (points.min(axis=0) - 0.5 * voxel)) / voxel).astype(np.int64)
+    span = keys.max(axis=0) + 1
+    packed = np.sort(keys[:, 0] + span[0] * (keys[:, 1] + span[1] * keys[:, 2]))
+    return int(1 + np.count_nonzero(np.diff(packed)))
 
 
 def height_colours(z: np.ndarray) -> np.ndarray:

@@ -103,6 +103,12 @@ def test_maps_are_thinned_and_coloured_by_height():
     points = rng.uniform(0, 10, size=(5000, 3))
     thinned = viewer.thin_for_viewing(points, max_points=1000)
     assert len(thinned) <= 1000 and len(viewer.thin_for_viewing(points, max_points=10_000)) == 5000
+    # the voxel is chosen by counting: the count is exactly what Open3D's downsample returns at that size
+    from neld_jax.data.preprocess import voxel_downsample
+    for voxel in (0.05, 0.7, 1.3, 4.0):
+        assert viewer.occupied_voxels(points, voxel) == len(voxel_downsample(points, voxel))
+    chosen = voxel_downsample(points, 0.02 * 2**6)  # 2 cm doubled to 1.28 m, the first size with <= 1000
+    np.testing.assert_allclose(np.sort(thinned, axis=0), np.sort(chosen, axis=0))
     colours = viewer.height_colours(np.array([0.0, 5.0, 10.0]))
     assert colours.dtype == np.uint8 and colours.shape == (3, 3) and not np.array_equal(colours[0], colours[2])
 

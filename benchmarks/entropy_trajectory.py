@@ -50,7 +50,7 @@ def main(argv):
     from neld_jax.model import world_poses
 
     config = from_file(os.path.join(REPO, "configs", "lio_keyframes.py"), "cpu")
-    config.data.root, config.data.pose_file = ROOT.value, POSE_FILE.value
+    config.data.root, config.data.initial_poses = ROOT.value, POSE_FILE.value
     config.start.poses, config.max_minutes, config.train.checkpoint_every = "input", 0.0, EVERY.value
     apply_overrides(config, OVERRIDES.value)
     _, keyframes = load_keyframes(config.data)

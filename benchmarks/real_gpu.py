@@ -59,7 +59,7 @@ BUDGET_S = flags.DEFINE_float("budget_s", 480.0, "Training: start no sequence af
 
 
 # What names the run's sequence in its config.json's data section; the budget sets the rest of the section.
-SEQUENCE_KEYS = ("format", "root", "drop_unmatched_tail", "pose_file", "first_scan", "max_scans", "synthetic")
+SEQUENCE_KEYS = ("format", "root", "drop_unmatched_tail", "initial_poses", "first_scan", "max_scans", "synthetic")
 
 
 def run_config(run_dir: str, config_file: str, budget: str, overrides: list):

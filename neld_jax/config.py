@@ -42,7 +42,7 @@ def defaults() -> ml_collections.ConfigDict:
     c.data = ml_collections.ConfigDict()
     c.data.format = "generic"  # one of neld_jax.data.FORMATS
     c.data.root = ""  # the sequence's folder
-    c.data.pose_file = ""  # lio_keyframes: the initial trajectory under root ("": odom_poses.txt)
+    c.data.initial_poses = ""  # "": the layout's poses; kiss_icp: KISS-ICP from the scans; lio_keyframes: a file
     c.data.drop_unmatched_tail = False  # drop up to 5 trailing scans without a pose or stamp instead of failing
     c.data.scans_in_world_frame = False  # the scans are registered already: move them into their sensors' frames
     c.data.invert_poses = False  # the poses file holds world -> sensor transforms

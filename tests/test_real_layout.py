@@ -43,7 +43,7 @@ def test_lio_keyframes_layout_reads_scans_poses_and_stamps(tmp_path):
     np.testing.assert_allclose(loaded.timestamps, 1.6e9 + np.array([0.1, 7.4, 7.8, 9.0]))
     assert loaded.gt_poses is None
     via_config = load_sequence(ml_collections.ConfigDict({"format": "lio_keyframes", "root": str(tmp_path),
-                                                          "pose_file": "", "drop_unmatched_tail": False}))
+                                                          "initial_poses": "", "drop_unmatched_tail": False}))
     np.testing.assert_allclose(via_config.poses, loaded.poses)
 
 

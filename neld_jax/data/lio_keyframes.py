@@ -99,11 +99,11 @@ def load_lio_keyframes(root: str | os.PathLike, pose_file: str = DEFAULT_POSE_FI
 
 
 def load(data_cfg) -> Sequence:
-    """data.format = 'lio_keyframes': load_lio_keyframes(data.root) with data.pose_file ('' = DEFAULT_POSE_FILE)
+    """data.format = 'lio_keyframes': load_lio_keyframes(data.root) with data.initial_poses ('' = DEFAULT_POSE_FILE)
     and data.drop_unmatched_tail; data.gt_poses_path / gt_map_path, when set, give the ground truth (matched by
     time against times.txt when both have stamps; layout.load_options)."""
     root = config_root(data_cfg, "lio_keyframes")
     options = load_options(data_cfg)
-    seq = load_lio_keyframes(root, pose_file=data_cfg.get("pose_file", "") or DEFAULT_POSE_FILE,
+    seq = load_lio_keyframes(root, pose_file=data_cfg.get("initial_poses", "") or DEFAULT_POSE_FILE,
                              drop_unmatched_tail=options.drop_unmatched_tail)
     return with_explicit_ground_truth(seq, root, options)

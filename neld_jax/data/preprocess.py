@@ -126,6 +126,7 @@ def preprocess(
         gt_poses=None if seq.gt_poses is None else seq.gt_poses[keep],
         files=None if seq.files is None else [seq.files[i] for i in keep],
         source_index=keep if seq.source_index is None else seq.source_index[keep],
+        point_times=None,  # the keyframes are rigid: load_sequence has deskewed or refused raw sweeps
     )
 
 

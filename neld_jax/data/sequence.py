@@ -23,7 +23,8 @@ class Sequence:
     """S scans with their initial poses and optional ground truth.
 
     scans:      list of S arrays [N_i, 3] float64, points in the SENSOR frame
-    poses:      [S, 4, 4] float64 initial poses (sensor -> world), e.g. odometry output
+    poses:      [S, 4, 4] float64 initial poses (sensor -> world), e.g. odometry output; None only between a
+                loader that found no poses and load_sequence, which makes them from the scans (odometry.py)
     timestamps: [S] float64 seconds, or None
     gt_poses:   [S, 4, 4] float64 ground-truth poses (sensor -> world), or None
     gt_map:     [M, 3] float64 ground-truth map points in the world frame, or None
@@ -33,10 +34,13 @@ class Sequence:
                 (synthetic); carried through keyframe selection so messages can name the file
     source_index: [S] int64 index of each scan in the sequence as loaded (set by keyframe selection), or
                 None when these are the loaded scans themselves
+    point_times: S arrays [N_i] float64, each point's time in seconds after its scan's timestamp (raw
+                full-rate scans: the sweep's motion is still in them), or None (the scans are rigid)
+    poses_from: "kiss_icp" when load_sequence made the poses from the scans, else "" (the layout's poses)
     """
 
     scans: list[np.ndarray]
-    poses: np.ndarray
+    poses: np.ndarray | None
     timestamps: np.ndarray | None = None
     gt_poses: np.ndarray | None = None
     gt_map: np.ndarray | None = None
@@ -44,6 +48,8 @@ class Sequence:
     source: str = ""
     files: list[str] | None = None
     source_index: np.ndarray | None = None
+    point_times: list[np.ndarray] | None = None
+    poses_from: str = ""
 
     def __post_init__(self) -> None:
         where = f"sequence '{self.name}' ({self.source or 'no source'})"
@@ -56,11 +62,20 @@ class Sequence:
         for i, scan in enumerate(self.scans):
             if scan.ndim != 2 or scan.shape[1] != 3:
                 raise DataError(f"{where}: {self.scan_label(i)} must have shape [N, 3], got {scan.shape}")
-        self.poses = np.asarray(self.poses, dtype=np.float64)
-        if self.poses.ndim != 3 or self.poses.shape[1:] != (4, 4):
-            raise DataError(f"{where}: poses must have shape [S, 4, 4], got {self.poses.shape}")
-        if self.poses.shape[0] != num_scans:
-            raise DataError(f"{where}: {self.poses.shape[0]} poses for {num_scans} scans")
+        if self.poses is not None:
+            self.poses = np.asarray(self.poses, dtype=np.float64)
+            if self.poses.ndim != 3 or self.poses.shape[1:] != (4, 4):
+                raise DataError(f"{where}: poses must have shape [S, 4, 4], got {self.poses.shape}")
+            if self.poses.shape[0] != num_scans:
+                raise DataError(f"{where}: {self.poses.shape[0]} poses for {num_scans} scans")
+        if self.point_times is not None:
+            self.point_times = [np.asarray(t, dtype=np.float64).reshape(-1) for t in self.point_times]
+            if len(self.point_times) != num_scans:
+                raise DataError(f"{where}: per-point times for {len(self.point_times)} of {num_scans} scans")
+            for i, (scan, times) in enumerate(zip(self.scans, self.point_times)):
+                if times.shape[0] != scan.shape[0]:
+                    raise DataError(f"{where}: {self.scan_label(i)} has {scan.shape[0]} points and "
+                                    f"{times.shape[0]} point times")
         if self.timestamps is not None:
             self.timestamps = np.asarray(self.timestamps, dtype=np.float64).reshape(-1)
             if self.timestamps.shape[0] != num_scans:

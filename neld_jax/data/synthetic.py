@@ -228,17 +228,23 @@ def spinning_lidar_directions(
 
 
 def smooth_trajectory(num_scans: int, radius_m: float, seed: int) -> np.ndarray:
-    """Ground-truth poses [S, 4, 4] (sensor -> world) on a smooth closed loop around the origin.
+    """Ground-truth poses [S, 4, 4] (sensor -> world) on a smooth closed loop around the origin, evenly spaced.
 
     The loop has radius radius_m with a gentle radial wobble (at most PATH_WOBBLE * radius_m); the
     sensor rides about 1.8 m above the ground, its yaw follows the motion, with small roll and pitch."""
+    return loop_poses(np.arange(num_scans) / num_scans, radius_m, seed)
+
+
+def loop_poses(fraction: np.ndarray, radius_m: float, seed: int) -> np.ndarray:
+    """Poses [K, 4, 4] (sensor -> world) at fractions [K] of the way round the seed's loop (smooth_trajectory's
+    loop: fraction i / S is its scan i; any fraction in between is where the sensor is at that moment)."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(seed)
     start, wobble_phase, z_phase, roll_phase, pitch_phase = rng.uniform(0.0, 2 * np.pi, size=5)
     wobble = PATH_WOBBLE * rng.uniform(0.5, 1.0)
     lobes = int(rng.integers(2, 4))
-    theta = start + 2 * np.pi * np.arange(num_scans) / num_scans
+    theta = start + 2 * np.pi * np.asarray(fraction, dtype=np.float64).reshape(-1)
 
     rho = radius_m * (1.0 + wobble * np.sin(lobes * theta + wobble_phase))
     d_rho = radius_m * wobble * lobes * np.cos(lobes * theta + wobble_phase)
@@ -250,7 +256,7 @@ def smooth_trajectory(num_scans: int, radius_m: float, seed: int) -> np.ndarray:
     pitch = np.deg2rad(1.5) * np.sin(3 * theta + pitch_phase)
     roll = np.deg2rad(2.0) * np.sin(2 * theta + roll_phase)
 
-    poses = np.tile(np.eye(4), (num_scans, 1, 1))
+    poses = np.tile(np.eye(4), (theta.shape[0], 1, 1))
     poses[:, :3, :3] = Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], axis=1)).as_matrix()
     poses[:, :3, 3] = np.stack([x, y, z], axis=1)
     return poses
@@ -435,6 +441,31 @@ def cast_scan(
     return directions[keep] * ranges[keep, None]
 
 
+def cast_sweep(
+    scene: o3d.t.geometry.RaycastingScene,
+    column_poses: np.ndarray,
+    directions: np.ndarray,
+    max_range: float,
+    range_noise_m: float,
+    rng: np.random.Generator,
+    min_range: float = MIN_RANGE_M,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One sweep of a moving spinning LiDAR: each column of beams fires from where the sensor is at its instant.
+
+    column_poses: [C, 4, 4] sensor -> world at the C columns' instants; directions: [B * C, 3] unit, sensor frame,
+    beam-major (spinning_lidar_directions). Returns (points [N, 3] each in the sensor frame AT ITS OWN INSTANT, as a
+    LiDAR reports them: the motion during the sweep is in them; column [N] int64, which column each point is)."""
+    num_columns = column_poses.shape[0]
+    column = np.tile(np.arange(num_columns), directions.shape[0] // num_columns)
+    rotations, origins = column_poses[column, :3, :3], column_poses[column, :3, 3]
+    ranges = _cast(scene, origins, np.einsum("nij,nj->ni", rotations, directions))
+    hit = np.isfinite(ranges)
+    if range_noise_m > 0:
+        ranges[hit] += rng.normal(0.0, range_noise_m, size=int(hit.sum()))
+    keep = hit & (ranges >= min_range) & (ranges <= max_range)
+    return directions[keep] * ranges[keep, None], column[keep]
+
+
 # --------------------------------------------------------------------------------------------------
 # Ground-truth map
 # --------------------------------------------------------------------------------------------------
@@ -550,13 +581,20 @@ def _resolve_config(cfg) -> ml_collections.ConfigDict:
     return resolved
 
 
-def make_sequence(cfg=None) -> Sequence:
+def make_sequence(cfg=None, rate_hz: float = 0.0) -> Sequence:
     """A synthetic Sequence: scans cast from the ground-truth poses, drifted initial poses, GT poses and map.
 
     cfg: ConfigDict or dict with any of the fields of synthetic_defaults() (missing ones take the
     defaults, unknown ones raise ConfigError). Timestamps are SCAN_INTERVAL_S (3 s) apart, so keyframe
-    selection at 3 s keeps every scan."""
+    selection at 3 s keeps every scan.
+
+    rate_hz > 0: the raw sweeps of a LiDAR spinning at that rate instead, as a recording holds them (the loop
+    route only): num_scans sweeps 1 / rate_hz apart, each point cast from where the sensor was at its column's
+    instant, `point_times` [N_i] seconds after the sweep's stamp, ground truth at the sweeps' stamps (their
+    starts), and no initial poses (poses None: a run makes them from the scans, data/odometry.py)."""
     cfg = _resolve_config(cfg)
+    if rate_hz > 0 and cfg.route != "loop":
+        raise ConfigError(f"synthetic sweeps at {rate_hz} Hz follow the loop route, not {cfg.route!r}")
     started = time.perf_counter()
     if cfg.route == "courtyards":
         gt_poses, route_xy = courtyard_route(cfg.num_scans, cfg.route_length_m, cfg.seed)
@@ -565,10 +603,21 @@ def make_sequence(cfg=None) -> Sequence:
     else:
         scene, meshes = make_scene(cfg.seed, cfg.scene_size_m, path_radius_m=cfg.trajectory_radius_m)
         gt_poses = smooth_trajectory(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
-    init_poses = add_odometry_drift(gt_poses, cfg.drift_trans_m, cfg.drift_rot_deg, cfg.seed + 1)
     directions = spinning_lidar_directions(cfg.num_beams, FOV_DEG[1], FOV_DEG[0], cfg.num_columns)
     rng = np.random.default_rng(cfg.seed + 2)
-    scans = [cast_scan(scene, pose, directions, cfg.max_range_m, cfg.range_noise_m, rng) for pose in gt_poses]
+    point_times = None
+    if rate_hz > 0:
+        init_poses, timestamps, scans, point_times = None, np.arange(cfg.num_scans) / rate_hz, [], []
+        column_fraction = np.arange(cfg.num_columns) / cfg.num_columns
+        for i in range(cfg.num_scans):
+            column_poses = loop_poses((i + column_fraction) / cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
+            points, column = cast_sweep(scene, column_poses, directions, cfg.max_range_m, cfg.range_noise_m, rng)
+            scans.append(points)
+            point_times.append(column_fraction[column] / rate_hz)
+    else:
+        init_poses = add_odometry_drift(gt_poses, cfg.drift_trans_m, cfg.drift_rot_deg, cfg.seed + 1)
+        timestamps = SCAN_INTERVAL_S * np.arange(cfg.num_scans, dtype=np.float64)
+        scans = [cast_scan(scene, pose, directions, cfg.max_range_m, cfg.range_noise_m, rng) for pose in gt_poses]
     gt_map = None
     if cfg.gt_map_points > 0:
         gt_map = observed_surface_points(
@@ -583,11 +632,12 @@ def make_sequence(cfg=None) -> Sequence:
     return Sequence(
         scans=scans,
         poses=init_poses,
-        timestamps=SCAN_INTERVAL_S * np.arange(cfg.num_scans, dtype=np.float64),
+        timestamps=timestamps,
         gt_poses=gt_poses,
         gt_map=gt_map,
-        name=f"synthetic_seed{cfg.seed}",
+        name=f"synthetic_seed{cfg.seed}" + (f"_{rate_hz:g}hz" if rate_hz > 0 else ""),
         source="synthetic",
+        point_times=point_times,
     )
 
 

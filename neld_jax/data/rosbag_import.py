@@ -74,34 +74,43 @@ def stamp_seconds(header) -> float:
     return int(header.stamp.sec) + int(header.stamp.nanosec) * 1e-9
 
 
-def cloud_xyz(msg) -> np.ndarray:
-    """A sensor_msgs/PointCloud2 -> its x, y, z as [height * width, 3] float64 (every point, none dropped).
+def cloud_fields(msg, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """A sensor_msgs/PointCloud2's scalar fields `names` -> {name: [height * width] array in the field's own
+    numpy type} (every point, none dropped).
 
     Decoded by each field's offset and datatype within point_step, rows of row_step bytes (padding at the row
-    end skipped), byte order from is_bigendian. Raises ValueError when x, y or z is missing or not scalar."""
+    end skipped), byte order from is_bigendian. Raises ValueError when a field is missing or not one number."""
     fields = {f.name: f for f in msg.fields}
-    missing = [name for name in "xyz" if name not in fields]
+    missing = [name for name in names if name not in fields]
     if missing:
         raise ValueError(f"the cloud has no field {', '.join(missing)} (fields: {', '.join(fields) or 'none'})")
     order = ">" if msg.is_bigendian else "<"
     formats = []
-    for name in "xyz":
+    for name in names:
         f = fields[name]
         if f.datatype not in _POINTFIELD_TYPES or f.count != 1:
             raise ValueError(f"field {name} has datatype {f.datatype} and count {f.count}; expected one number")
         formats.append(order + _POINTFIELD_TYPES[f.datatype])
-    point_dtype = np.dtype({"names": list("xyz"), "formats": formats,
-                            "offsets": [fields[n].offset for n in "xyz"], "itemsize": int(msg.point_step)})
+    point_dtype = np.dtype({"names": list(names), "formats": formats,
+                            "offsets": [fields[n].offset for n in names], "itemsize": int(msg.point_step)})
     height, width = int(msg.height), int(msg.width)
     if height * width == 0:
-        return np.zeros((0, 3))
+        return {name: np.zeros(0, dtype=point_dtype[name].newbyteorder("=")) for name in names}
     raw = np.frombuffer(memoryview(msg.data), dtype=np.uint8)
     row_bytes = width * int(msg.point_step)
     if raw.size < (height - 1) * int(msg.row_step) + row_bytes:
         raise ValueError(f"the cloud's data holds {raw.size} bytes, fewer than its {height} x {width} points need")
     rows = np.lib.stride_tricks.as_strided(raw, shape=(height, row_bytes), strides=(int(msg.row_step), 1))
     points = np.ascontiguousarray(rows).reshape(-1).view(point_dtype)
-    return np.stack([points[n].astype(np.float64) for n in "xyz"], axis=1)
+    return {name: points[name].astype(point_dtype[name].newbyteorder("=")) for name in names}
+
+
+def cloud_xyz(msg) -> np.ndarray:
+    """A sensor_msgs/PointCloud2 -> its x, y, z as [height * width, 3] float64 (every point, none dropped).
+
+    Decoded as cloud_fields does. Raises ValueError when x, y or z is missing or not scalar."""
+    xyz = cloud_fields(msg, ("x", "y", "z"))
+    return np.stack([xyz[n].astype(np.float64) for n in "xyz"], axis=1)
 
 
 def pose_matrix(msg, msgtype: str) -> np.ndarray:

@@ -183,6 +183,14 @@ def read_lidar_bag(bag: str | os.PathLike | list, topic: str) -> RawSweeps:
     return sweeps
 
 
+def bags_in(root: Path, preferred: str = "") -> list[Path]:
+    """The bag(s) of a sequence folder: ROOT/<preferred> when it exists, else every ROOT/*.bag (the parts of one
+    recording, sorted by name; read_lidar_bag orders their messages by stamp), else []."""
+    if preferred and (root / preferred).is_file():
+        return [root / preferred]
+    return sorted(p for p in root.glob("*.bag") if p.is_file() and not p.name.startswith("."))
+
+
 def pick_topic(bag: str | os.PathLike | list, candidates: tuple[str, ...]) -> str:
     """The first of `candidates` (topics, in order of preference) that the bag has; DataError naming the bag, the
     candidates and the topics it has when none."""
@@ -243,7 +251,9 @@ def _ouster_cloud(store, stamp_ns: int, frame_id: str, points: np.ndarray, times
     if times is not None:
         data["t"] = np.round(np.asarray(times, dtype=np.float64) * 1e9).astype(np.uint32)
     data["ring"] = np.arange(n) % max(height, 1)
-    data["range"] = np.round(np.nan_to_num(np.linalg.norm(points, axis=1)) * 1e3).astype(np.uint32)
+    with np.errstate(invalid="ignore", over="ignore"):
+        distance = np.linalg.norm(points, axis=1)
+    data["range"] = np.round(np.where(np.isfinite(distance), np.clip(distance, 0, 4e6), 0) * 1e3)  # mm, 0: none
     types = store.types
     point_field = types["sensor_msgs/msg/PointField"]
     header = types["std_msgs/msg/Header"](

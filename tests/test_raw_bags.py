@@ -7,7 +7,10 @@ from scipy.spatial.transform import Rotation
 
 from neld_jax.config import defaults
 from neld_jax.data import fusionportable, newer_college
-from neld_jax.data.raw_bag_downloads import write_fusionportable_download, write_newer_college_download
+from neld_jax.data.raw_bag_downloads import (
+    write_fusionportable_download,
+    write_newer_college_download,
+)
 from neld_jax.data.raw_bags import read_lidar_bag, write_lidar_bag
 from neld_jax.errors import DataError
 
@@ -125,3 +128,30 @@ def test_newer_college_download_in_parts_loads_in_time_order(tmp_path):
     np.testing.assert_allclose(seq.gt_poses, gt, atol=1e-6)
     for got, want in zip(seq.point_times, times):
         np.testing.assert_allclose(got, want, atol=1e-9)
+
+
+def test_import_without_odometry_writes_raw_sweeps_that_the_generic_loader_reads_with_times(tmp_path):
+    from neld_jax.data.generic import load_generic
+    from neld_jax.data.poses import write_tum
+    from neld_jax.data.rosbag_import import import_bag
+
+    n = 3
+    stamps, scans, times = _sweeps(n)
+    scans[0][4] = 0.0
+    write_lidar_bag(tmp_path / "raw.bag", TOPIC, "os_sensor", stamps, scans, times, rows=ROWS)
+    result = import_bag(tmp_path / "raw.bag", tmp_path / "out", cloud_topic=TOPIC, progress=False)  # no /Odometry
+    assert result.odometry_topic == "" and result.scans_written == n and result.point_times_written == n
+    assert result.points_skipped == {"non-finite": 0, "zero": 1} and "KISS-ICP" in result.note
+    out = tmp_path / "out"
+    assert not (out / "poses.txt").exists()
+    names = sorted(p.stem for p in (out / "scans").iterdir())
+    assert names == [f"{t:.9f}" for t in stamps] == sorted(p.stem for p in (out / "point_times").iterdir())
+    # poses.txt added by hand: the layout's stamps and times read back with the scans
+    write_tum(out / "poses.txt", stamps, np.tile(np.eye(4), (n, 1, 1)))
+    seq = load_generic(out)
+    np.testing.assert_allclose(seq.timestamps, stamps, atol=1e-6)
+    keep = np.ones(ROWS * COLUMNS, bool)
+    keep[4] = False
+    np.testing.assert_allclose(seq.point_times[0], times[0][keep], atol=1e-9)
+    np.testing.assert_allclose(seq.scans[0], scans[0][keep], atol=1e-5)
+    np.testing.assert_allclose(seq.point_times[2], times[2], atol=1e-9)

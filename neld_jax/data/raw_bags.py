@@ -5,19 +5,16 @@ own (sensor) frame, with each point's time within the sweep; no poses (load_sequ
     sweeps_sequence(root, sweeps, ...)    -> Sequence with poses=None and the ground truth matched to the stamps
     write_lidar_bag(bag, topic, ...)      a ROS1 .bag of Ouster-style clouds (tests and fixtures)
 
-Per-point time comes from the cloud's own field table (TIME_FIELDS, the first present wins) and is stored as
-seconds after the message's header stamp:
-    t          Ouster driver: uint32 nanoseconds since the start of the sweep (float: seconds)
-    time       Velodyne / Hesai drivers: float32 seconds relative to the header stamp
-    timestamp  float64 absolute seconds: the header stamp is subtracted
-A topic whose clouds have none of these gives point_times None for the whole sequence (logged once): the scans
+Per-point time comes from the cloud's own field table (rosbag_import.cloud_point_times: Ouster `t`, uint32 ns
+since the sweep's start; Velodyne/Hesai `time`, float32 seconds relative; `timestamp`, float64 absolute seconds)
+and is stored as seconds after the message's header stamp. A topic whose clouds have none of these gives point_times None for the whole sequence (logged once): the scans
 are then taken as rigid.
 
 Points with NaN/inf coordinates or exactly at (0, 0, 0) (no return: organised Ouster clouds hold many) are dropped
 with their times and counted (scans.valid_points). A cloud left with no point is skipped and counted. Messages are
 ordered by header stamp, so the parts of a split recording can be given in any order.
 
-The PointCloud2 decoding is rosbag_import's (cloud_fields, cloud_xyz); `rosbags` is imported inside the functions,
+The PointCloud2 decoding is rosbag_import's (cloud_xyz, cloud_point_times); `rosbags` is imported inside the functions,
 so the data layer imports without it.
 """
 
@@ -31,16 +28,21 @@ from pathlib import Path
 import numpy as np
 
 from neld_jax.data.layout import first_existing, matched_ground_truth
-from neld_jax.data.rosbag_import import CLOUD_TYPES, _connections, _topics, cloud_fields, cloud_xyz, stamp_seconds
+from neld_jax.data.rosbag_import import (
+    CLOUD_TYPES,
+    TIME_FIELDS,
+    _connections,
+    _topics,
+    cloud_point_times,
+    cloud_xyz,
+    stamp_seconds,
+    time_field_of,
+)
 from neld_jax.data.scans import read_scan, valid_points
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
 
 logger = logging.getLogger(__name__)
-
-TIME_FIELDS = ("t", "time", "timestamp")
-_INTEGER_TYPES = (1, 2, 3, 4, 5, 6)  # sensor_msgs/PointField INT8 ... UINT32
-
 
 @dataclass
 class RawSweeps:
@@ -66,29 +68,6 @@ class RawSweeps:
     clouds_read: int = 0
     empty_skipped: int = 0
     dropped: dict = field(default_factory=lambda: {"non-finite": 0, "zero": 0})
-
-
-# --------------------------------------------------------------------------------------------------
-# Pure decoding
-# --------------------------------------------------------------------------------------------------
-
-
-def time_field_of(msg) -> str:
-    """The first of TIME_FIELDS that the cloud has, '' when none."""
-    names = {f.name for f in msg.fields}
-    return next((name for name in TIME_FIELDS if name in names), "")
-
-
-def cloud_point_times(msg, stamp: float, name: str) -> np.ndarray:
-    """The per-point times [height * width] float64 of field `name`, in seconds after `stamp` (the module
-    docstring says how each field is read). Raises ValueError as cloud_fields does."""
-    values = cloud_fields(msg, (name,))[name]
-    datatype = next(f.datatype for f in msg.fields if f.name == name)
-    if name == "timestamp":
-        return values.astype(np.float64) - stamp
-    if name == "t" and datatype in _INTEGER_TYPES:
-        return values.astype(np.float64) * 1e-9
-    return values.astype(np.float64)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -291,7 +270,8 @@ def write_lidar_bag(bag: str | os.PathLike, topic: str, frame_id: str, timestamp
     with Writer(bag) as writer:
         connection = writer.add_connection(topic, msgtype, typestore=store)
         for i in np.argsort(timestamps, kind="stable"):
-            stamp_ns = int(round(timestamps[i] * 1e9))
+            sec = int(np.floor(timestamps[i]))  # whole seconds apart: t * 1e9 alone loses ~100 ns to rounding
+            stamp_ns = sec * 1_000_000_000 + int(np.rint((timestamps[i] - sec) * 1e9))
             points = np.asarray(scans[i], dtype=np.float64).reshape(-1, 3)
             times = None if point_times is None else point_times[i]
             msg = _ouster_cloud(store, stamp_ns, frame_id, points, times, rows)

@@ -30,13 +30,14 @@ import numpy as np
 from neld_jax.data.layout import first_existing, matched_ground_truth
 from neld_jax.data.rosbag_import import (
     CLOUD_TYPES,
+    POINTFIELD_TYPES,
     TIME_FIELDS,
-    _connections,
-    _topics,
     cloud_point_times,
     cloud_xyz,
+    list_topics,
     stamp_seconds,
     time_field_of,
+    topic_connections,
 )
 from neld_jax.data.scans import read_scan, valid_points
 from neld_jax.data.sequence import Sequence
@@ -109,7 +110,7 @@ def read_lidar_bag(bag: str | os.PathLike | list, topic: str) -> RawSweeps:
                        labels=[])
     no_time_fields = ""
     try:
-        connections = _connections(reader, topic, CLOUD_TYPES, label, "cloud")
+        connections = topic_connections(reader, topic, CLOUD_TYPES, label, "cloud")
         per_bag: dict[str, int] = {}
         for conn, _, raw in reader.messages(connections=connections):
             msg = reader.deserialize(raw, conn.msgtype)
@@ -180,7 +181,7 @@ def pick_topic(bag: str | os.PathLike | list, candidates: tuple[str, ...]) -> st
         found = next((topic for topic in candidates if topic in present), None)
         if found is None:
             raise DataError(f"{', '.join(str(p) for p in paths)}: no LiDAR topic ({' or '.join(candidates)}) in "
-                            f"the bag; it has: {_topics(reader)}")
+                            f"the bag; it has: {list_topics(reader)}")
         return found
     finally:
         reader.close()
@@ -217,12 +218,10 @@ OUSTER_POINT_STEP = 48
 def _ouster_cloud(store, stamp_ns: int, frame_id: str, points: np.ndarray, times: np.ndarray | None, rows: int):
     """One PointCloud2 of the Ouster layout; organised (height = rows) when rows divides the point count. No `t`
     field when times is None."""
-    from neld_jax.data.rosbag_import import _POINTFIELD_TYPES
-
     n = points.shape[0]
     height = rows if rows > 1 and n % rows == 0 else 1
     fields = [f for f in OUSTER_FIELDS if times is not None or f[0] != "t"]
-    dtype = np.dtype({"names": [f[0] for f in fields], "formats": ["<" + _POINTFIELD_TYPES[f[2]] for f in fields],
+    dtype = np.dtype({"names": [f[0] for f in fields], "formats": ["<" + POINTFIELD_TYPES[f[2]] for f in fields],
                       "offsets": [f[1] for f in fields], "itemsize": OUSTER_POINT_STEP})
     data = np.zeros(n, dtype=dtype)
     for i, axis in enumerate("xyz"):

@@ -74,7 +74,7 @@ POINT_TIMES_FOLDER = "point_times"
 _LISTED = 5
 
 # sensor_msgs/PointField datatypes (INT8=1 ... FLOAT64=8) as numpy types.
-_POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 _INTEGER_TYPES = (1, 2, 3, 4, 5, 6)
 # Per-point time fields of common drivers, in order of preference (cloud_point_times says how each is read).
 TIME_FIELDS = ("t", "time", "timestamp")
@@ -104,9 +104,9 @@ def cloud_fields(msg, names: tuple[str, ...]) -> dict[str, np.ndarray]:
     formats = []
     for name in names:
         f = fields[name]
-        if f.datatype not in _POINTFIELD_TYPES or f.count != 1:
+        if f.datatype not in POINTFIELD_TYPES or f.count != 1:
             raise ValueError(f"field {name} has datatype {f.datatype} and count {f.count}; expected one number")
-        formats.append(order + _POINTFIELD_TYPES[f.datatype])
+        formats.append(order + POINTFIELD_TYPES[f.datatype])
     point_dtype = np.dtype({"names": list(names), "formats": formats,
                             "offsets": [fields[n].offset for n in names], "itemsize": int(msg.point_step)})
     height, width = int(msg.height), int(msg.width)
@@ -192,14 +192,17 @@ class ImportResult:
     note: str = ""
 
 
-def _topics(reader) -> str:
+def list_topics(reader) -> str:
+    """A bag's topics with their types, for messages: "/a (sensor_msgs/msg/PointCloud2), /b (...)"."""
     return ", ".join(f"{c.topic} ({c.msgtype})" for c in sorted(reader.connections, key=lambda c: c.topic)) or "none"
 
 
-def _connections(reader, topic: str, types: tuple[str, ...], bag: str, what: str):
+def topic_connections(reader, topic: str, types: tuple[str, ...], bag: str, what: str):
+    """The reader's connections of `topic`; DataError naming the bag when it has none (listing its topics) or when
+    one carries a type not in `types` (`what` names the kind of topic in the message)."""
     found = [c for c in reader.connections if c.topic == topic]
     if not found:
-        raise DataError(f"{bag}: no {what} topic '{topic}' in the bag; it has: {_topics(reader)}")
+        raise DataError(f"{bag}: no {what} topic '{topic}' in the bag; it has: {list_topics(reader)}")
     bad = [c.msgtype for c in found if c.msgtype not in types]
     if bad:
         raise DataError(f"{bag}: topic '{topic}' carries {bad[0]}, not a {what} ({' or '.join(types)})")
@@ -249,7 +252,7 @@ def import_bag(
     except AnyReaderError as exc:
         raise DataError(f"{bag}: cannot read the bag ({exc})") from exc
     try:
-        cloud_conns = _connections(reader, cloud_topic, CLOUD_TYPES, bag, "cloud")
+        cloud_conns = topic_connections(reader, cloud_topic, CLOUD_TYPES, bag, "cloud")
         if not odometry_topic or (odometry_topic == DEFAULT_ODOMETRY_TOPIC
                                   and not any(c.topic == odometry_topic for c in reader.connections)):
             if keyframe_distance_m > 0 or keyframe_angle_deg > 0:
@@ -261,7 +264,7 @@ def import_bag(
             result = ImportResult(bag=[str(p) for p in paths], cloud_topic=cloud_topic, odometry_topic="", frame="",
                                   odometry_frame="", tolerance_s=float(tolerance_s), time_offset_s=float(time_offset_s))
             return _import_sweeps(reader, cloud_conns, out, result, stride, progress)
-        pose_conns = _connections(reader, odometry_topic, POSE_TYPES, bag, "odometry")
+        pose_conns = topic_connections(reader, odometry_topic, POSE_TYPES, bag, "odometry")
 
         # Pass 1: every odometry pose, sorted by header stamp.
         stamps, poses, odometry_frame = [], [], ""

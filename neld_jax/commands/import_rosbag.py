@@ -9,8 +9,13 @@ generic layout that neld-train reads.
     neld-import-rosbag --bag=rec.bag --out=/data/rec --cloud_topic=/os_cloud_node/points \\
         --odometry_topic=/odom --stride=2 --time_offset_s=0.1
 
+    # raw driver sweeps, no odometry: scans named by stamp with their per-point times; training runs KISS-ICP
+    neld-import-rosbag --bag=rec.bag --out=/data/rec --cloud_topic=/os_cloud_node/points --odometry_topic=''
+
 Writes OUT/scans/NNNNNN.pcd (the clouds' own frame), OUT/poses.txt (TUM) and OUT/import.json (topics, frame,
-counts); see neld_jax/data/rosbag_import.py for the matching rule and the time conventions.
+counts); without odometry (--odometry_topic='' or no /Odometry in the bag) OUT/scans/<stamp>.pcd and
+OUT/point_times/<stamp>.npy and no poses.txt. See neld_jax/data/rosbag_import.py for the matching rule and the
+time conventions.
 """
 
 from absl import flags
@@ -23,7 +28,8 @@ BAG = flags.DEFINE_multi_string("bag", None, "ROS1 .bag file or ROS2 bag folder 
 OUT = flags.DEFINE_string("out", None, "Folder to write scans/, poses.txt and import.json to.", required=True)
 CLOUD = flags.DEFINE_string("cloud_topic", ri.DEFAULT_CLOUD_TOPIC, "sensor_msgs/PointCloud2 topic.")
 ODOM = flags.DEFINE_string("odometry_topic", ri.DEFAULT_ODOMETRY_TOPIC,
-                           "nav_msgs/Odometry or geometry_msgs/PoseStamped topic (pose of the clouds' frame).")
+                           "nav_msgs/Odometry or geometry_msgs/PoseStamped topic (pose of the clouds' frame); "
+                           "'' for none (raw sweeps; training makes the poses with KISS-ICP).")
 TOL = flags.DEFINE_float("tolerance_s", ri.DEFAULT_TOLERANCE_S, "Largest cloud-to-odometry stamp gap (seconds).")
 OFFSET = flags.DEFINE_float("time_offset_s", 0.0, "Added to every cloud stamp before matching (seconds).")
 DROP = flags.DEFINE_bool("drop_unmatched", False, "Drop clouds without odometry (counted) instead of failing.")
@@ -36,9 +42,13 @@ def import_bag() -> int:
     result = ri.import_bag(BAG.value, OUT.value, cloud_topic=CLOUD.value, odometry_topic=ODOM.value,
                            tolerance_s=TOL.value, time_offset_s=OFFSET.value, drop_unmatched=DROP.value,
                            stride=STRIDE.value, keyframe_distance_m=DIST.value, keyframe_angle_deg=ANGLE.value)
-    print(f"wrote {result.scans_written} scans of {result.clouds_read} clouds to {OUT.value} "
-          f"({result.dropped_unmatched} without odometry dropped, {result.skipped_by_keyframe_rule} skipped by "
-          f"--stride/--keyframe_*)")
+    if not result.odometry_topic:
+        print(f"wrote {result.scans_written} raw sweeps of {result.clouds_read} clouds to {OUT.value} "
+              f"({result.skipped_by_keyframe_rule} skipped by --stride), no poses")
+    else:
+        print(f"wrote {result.scans_written} scans of {result.clouds_read} clouds to {OUT.value} "
+              f"({result.dropped_unmatched} without odometry dropped, {result.skipped_by_keyframe_rule} skipped by "
+              f"--stride/--keyframe_*)")
     print(result.note)
     return 0
 

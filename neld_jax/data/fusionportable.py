@@ -1,5 +1,6 @@
-"""FusionPortable (fusionportable.github.io): a sequence as the dataset's devkit exports a FAST-LIO2 run, with the
-download's ground truth; or scans named by timestamp beside a pose file (load_fusionportable)."""
+"""FusionPortable (fusionportable.github.io): a sequence as the dataset's devkit exports a FAST-LIO2 run, or its bag
+as downloaded (raw Ouster sweeps, no poses), with the download's ground truth; or scans named by timestamp beside a
+pose file (load_fusionportable)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neld_jax.data import ground_truth
+from neld_jax.data import ground_truth, raw_bags
 from neld_jax.data.layout import (
     check_root,
     config_root,
@@ -30,6 +31,11 @@ GT_FILES = ("gt_poses.txt", "traj/gt_poses.txt", "ground_truth.txt", "traj/groun
 DEVKIT_SCANS = (("algorithm_result/ouster00_undistort/points", "body_imu"),
                 ("raw_data/ouster00/points", "ouster00"))
 DEVKIT_ODOMETRY = ("algorithm_result/odometry/odometry.txt", "odometry.txt")
+# The Ouster's clouds in the downloaded bag <sequence>.bag: topic and frame from the devkit's topic table for the
+# handheld sequences (fusionportable_dataset_tools, cfg/dataset/cfg_handheld.py, 'ouster_points'). The second topic
+# is the frame's own name, read when a bag has it instead (not seen in the devkit).
+LIDAR_TOPICS = ("/os_cloud_node/points", "/ouster00/points")
+LIDAR_FRAME = "ouster00"
 
 
 def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
@@ -45,6 +51,10 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
                                                                                header stamps: END of the scan
         ROOT/algorithm_result/odometry/odometry.txt                            FAST-LIO2 /Odometry, TUM, same stamps
         (or ROOT/raw_data/ouster00/points/... raw Ouster clouds, frame ouster00, with ROOT/odometry.txt)
+
+    or, without an export, the download's bag itself (load_fusionportable_bag): ROOT/<sequence>.bag (else the
+    ROOT/*.bag), the Ouster's raw sweeps on LIDAR_TOPICS (frame ouster00) with per-point times and no poses
+    (load_sequence makes them);
 
     and the dataset's ground truth, found beside or up to three folders above ROOT (the download's layout,
     fusionportable.github.io/dataset/fusionportable, "Data Organization"):
@@ -71,8 +81,13 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
     found = next(((root / folder, frame) for folder, frame in DEVKIT_SCANS if (root / folder / "data").is_dir()),
                  None)
     if found is None:
+        bags = raw_bags.bags_in(root, f"{root.name}.bag")
+        if bags:
+            return load_fusionportable_bag(root, bags, tol, gt_poses_file, gt_map_file, gt_from_scan, scan_frame,
+                                           gt_time_offset_s)
         looked = ", ".join(f"{folder}/data/" for folder, _ in DEVKIT_SCANS)
-        raise DataError(f"{root}: no FusionPortable scans (looked for scans/ and the devkit's {looked})")
+        raise DataError(f"{root}: no FusionPortable scans (looked for scans/, the devkit's {looked} and the "
+                        f"download's {root.name}.bag or any *.bag)")
     points_folder, frame = found
     files = sorted_by_name(list_scans(points_folder / "data"))
     scan_times = read_times(points_folder / "timestamps.txt")
@@ -86,6 +101,24 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
     gt_map_file = gt_map_file or ground_truth.first_upwards(root, f"groundtruth/map/{name}/merged_scan.pcd")
     return timestamped_sequence(root, files, scan_times, DEVKIT_ODOMETRY, (), tol, gt_poses_file, gt_map_file,
                                 gt_from_scan, gt_time_offset_s)
+
+
+def load_fusionportable_bag(root: Path, bags: list[Path], tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+                            gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
+                            gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
+                            gt_time_offset_s: float = 0.0) -> Sequence:
+    """The download's bag(s) as raw sweeps (raw_bags): the first of LIDAR_TOPICS the bag has, poses None,
+    per-point times, files "<sequence>.bag:<topic>#000123". Ground truth as for the devkit's raw ouster00 clouds:
+    groundtruth/traj/<sequence>.txt (in or above ROOT) matched to the scan stamps within tol, moved into the scan
+    frame by gt_from_scan (None: the published extrinsic of scan_frame, default ouster00)."""
+    topic = raw_bags.pick_topic(bags, LIDAR_TOPICS)
+    sweeps = raw_bags.read_lidar_bag(bags, topic)
+    if gt_from_scan is None:
+        gt_from_scan = ground_truth.published_offset("fusionportable", scan_frame or LIDAR_FRAME)
+    name = root.name
+    gt_poses_file = gt_poses_file or ground_truth.first_upwards(root, f"groundtruth/traj/{name}.txt")
+    gt_map_file = gt_map_file or ground_truth.first_upwards(root, f"groundtruth/map/{name}/merged_scan.pcd")
+    return raw_bags.sweeps_sequence(root, sweeps, gt_poses_file, gt_from_scan, tol, gt_time_offset_s, gt_map_file)
 
 
 def _timestamps_from_names(files: list[Path], folder: Path, pattern: str) -> np.ndarray:

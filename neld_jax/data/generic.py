@@ -5,11 +5,16 @@ write.
     ROOT/poses.txt                   initial poses, TUM
     ROOT/gt_poses.txt                optional ground-truth poses, TUM
     ROOT/gt_map.pcd | gt_map.ply     optional ground-truth map, world frame
+    ROOT/point_times/<scan name>.npy optional, [N] float64 seconds after the scan's stamp per point (raw sweeps,
+                                     bin/import_rosbag.py without odometry): read when every scan has one
 """
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import os
+from pathlib import Path
 
 import numpy as np
 
@@ -27,6 +32,10 @@ from neld_jax.data.layout import (
 from neld_jax.data.poses import read_tum
 from neld_jax.data.sequence import Sequence
 from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S
+
+logger = logging.getLogger(__name__)
+
+POINT_TIMES_FOLDER = "point_times"  # as rosbag_import writes it
 
 
 def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
@@ -62,7 +71,22 @@ def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERAN
         gt_poses = align_poses(gt_all, gt_times, gt_file, files, timestamps if gt_by_time else None,
                                tol=tol, root=root).poses
 
-    return build_sequence(root, files, aligned.poses, timestamps, gt_poses, pose_file)
+    return with_point_times(build_sequence(root, files, aligned.poses, timestamps, gt_poses, pose_file), root)
+
+
+def with_point_times(seq: Sequence, root: Path) -> Sequence:
+    """seq with point_times from ROOT/point_times/<scan stem>.npy when every scan has that file (else seq as it
+    is, with a warning when only some have one). A times file whose length is not its scan's point count is a
+    DataError naming the scan (Sequence)."""
+    if not (root / POINT_TIMES_FOLDER).is_dir() or not seq.files:
+        return seq
+    paths = [root / POINT_TIMES_FOLDER / f"{Path(f).stem}.npy" for f in seq.files]
+    present = [p.is_file() for p in paths]
+    if not all(present):
+        logger.warning("%s: %d of %d scans have no %s/<scan>.npy (first: %s); per-point times are not used", root,
+                       present.count(False), len(paths), POINT_TIMES_FOLDER, seq.files[present.index(False)])
+        return seq
+    return dataclasses.replace(seq, point_times=[np.load(p, allow_pickle=False) for p in paths])
 
 
 def load(data_cfg) -> Sequence:

@@ -1,6 +1,6 @@
 """Newer College (ori-drs.github.io/newer-college-dataset): the 2021 release's clouds imported from its rosbags with
-a FAST-LIO2 run, or the 2020 release's cloud_<sec>_<nsec>.pcd as extracted, each with its ground truth
-(load_newer_college)."""
+a FAST-LIO2 run or its rosbags as downloaded (raw Ouster sweeps, no poses), or the 2020 release's
+cloud_<sec>_<nsec>.pcd as extracted, each with its ground truth (load_newer_college)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neld_jax.data import ground_truth
+from neld_jax.data import ground_truth, raw_bags
 from neld_jax.data.layout import (
     align_poses,
     build_sequence,
@@ -34,6 +34,9 @@ GT_FILES = ("registered_poses.csv", "ground_truth/registered_poses.csv")
 # 2021 ground truth as downloaded (gt-nc-quad-easy.csv ...; gt_state_easy.csv ... for the maths sequences) and as
 # evalio's downloader names it (ground_truth.csv): github.com/contagon/evalio, newer_college_2021.py.
 GT_2021_PATTERNS = ("gt-nc-*.csv", "gt_state_*.csv", "ground_truth.csv")
+# The 2021 bags' Ouster clouds, frame os_sensor (the topic FAST-LIO2's ouster64.yaml reads: docs/datasets.md).
+LIDAR_TOPIC = "/os_cloud_node/points"
+LIDAR_FRAME = "os_sensor"
 _CLOUD_NAME = re.compile(r"^cloud_(\d+)_(\d+)$")
 
 
@@ -55,6 +58,12 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
         ROOT/scans/000000.pcd ...                 clouds (bin/import_rosbag.py), sensor frame
         ROOT/poses.txt                            initial poses, TUM, one line per scan (scans match by order)
         ROOT/gt-nc-quad-easy.csv | gt_state_easy.csv   ground truth, sec,nsec,x,y,z,qx,qy,qz,qw, BASE frame
+
+    or the 2021 bags as downloaded (load_newer_college_bags), when ROOT has neither of the folders below:
+
+        ROOT/2021-07-01-10-37-38-quad-easy.bag ...   every ROOT/*.bag, parts of one recording read in stamp order;
+                                                     LIDAR_TOPIC's raw sweeps, per-point times, no poses
+        ROOT/gt-nc-quad-easy.csv                     ground truth as above
 
     2020 (stereo-cam, OS1-64) as extracted:
 
@@ -89,7 +98,12 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
 
     scan_folder = next((root / f for f in SCAN_FOLDERS if (root / f).is_dir()), None)
     if scan_folder is None:
-        raise DataError(f"{root}: no scan folder (looked for scans/ with poses.txt, {', '.join(SCAN_FOLDERS)})")
+        bags = raw_bags.bags_in(root)
+        if bags:
+            return load_newer_college_bags(root, bags, tol, gt_poses_file, gt_map_file, gt_from_scan, scan_frame,
+                                           gt_time_offset_s)
+        raise DataError(f"{root}: no scan folder (looked for scans/ with poses.txt, {', '.join(SCAN_FOLDERS)}) "
+                        "and no *.bag")
     files = list_scans(scan_folder)
     times = []
     for f in files:
@@ -105,6 +119,21 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
         gt_from_scan = ground_truth.published_offset(newer_college_release(gt_file), scan_frame)
     return timestamped_sequence(root, files, scan_times, POSE_FILES, GT_FILES, tol, gt_file, gt_map_file,
                                 gt_from_scan, gt_time_offset_s)
+
+
+def load_newer_college_bags(root: Path, bags: list[Path], tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+                            gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
+                            gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
+                            gt_time_offset_s: float = 0.0) -> Sequence:
+    """The 2021 bag(s) as downloaded, as raw sweeps (raw_bags): LIDAR_TOPIC, poses None, per-point times, files
+    "<bag>:/os_cloud_node/points#000123". Ground truth (gt_poses_file, else ROOT/gt-nc-*.csv, gt_state_*.csv)
+    matched to the scan stamps within tol and moved into the scan frame by gt_from_scan (None: the published
+    offset for scan_frame, default os_sensor, the raw clouds' frame)."""
+    sweeps = raw_bags.read_lidar_bag(bags, LIDAR_TOPIC)
+    gt_file = gt_poses_file or next((p for pattern in GT_2021_PATTERNS for p in sorted(root.glob(pattern))), None)
+    if gt_file is not None and gt_from_scan is None:
+        gt_from_scan = ground_truth.published_offset(newer_college_release(gt_file), scan_frame or LIDAR_FRAME)
+    return raw_bags.sweeps_sequence(root, sweeps, gt_file, gt_from_scan, tol, gt_time_offset_s, gt_map_file)
 
 
 def load(data_cfg) -> Sequence:

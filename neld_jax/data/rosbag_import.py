@@ -4,6 +4,18 @@
     OUT/poses.txt              TUM, one line per scan: the odometry pose matched to that scan, at the scan's stamp
     OUT/import.json            what was read: bag, topics, the clouds' frame, tolerance, counts (kept, dropped)
 
+Without odometry (odometry_topic='', or the default FAST-LIO2 topic absent from the bag), the clouds are raw
+sweeps: no poses.txt is written (training makes the poses with KISS-ICP) and the layout keeps what the poses would
+have carried, plus each point's time within its sweep:
+
+    OUT/scans/<stamp>.pcd        named by the cloud's header stamp (%.9f seconds), the only place the stamp is kept
+    OUT/point_times/<stamp>.npy  [N] float64 seconds after the stamp, in the order of the points in the .pcd (from
+                                 the cloud's t / time / timestamp field; none written for clouds without one)
+
+The times sit in their own folder because scans/ takes any .npy as a scan; a file per scan keeps memory flat
+while importing and pairs with its scan by name (generic.load_generic reads them when every scan has one). The
+points are rounded to float32 and filtered again before writing, so the .pcd reads back exactly these points.
+
 Reads ROS1 .bag files and ROS2 bag folders with `rosbags.highlevel.AnyReader` (the `rosbags` package; no ROS
 installation). The layout is the one `generic.load_generic` reads (docs/design.md, "Data on disk").
 
@@ -45,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from neld_jax.data.poses import make_poses, write_tum
-from neld_jax.data.scans import drop_invalid_points, write_scan
+from neld_jax.data.scans import drop_invalid_points, valid_points, write_scan
 from neld_jax.data.timing import nearest_times
 from neld_jax.errors import DataError
 from neld_jax.geometry import moved_enough
@@ -58,10 +70,14 @@ DEFAULT_TOLERANCE_S = 0.01
 CLOUD_TYPES = ("sensor_msgs/msg/PointCloud2",)
 POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped")
 METADATA_FILE = "import.json"
+POINT_TIMES_FOLDER = "point_times"
 _LISTED = 5
 
 # sensor_msgs/PointField datatypes (INT8=1 ... FLOAT64=8) as numpy types.
-_POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+_INTEGER_TYPES = (1, 2, 3, 4, 5, 6)
+# Per-point time fields of common drivers, in order of preference (cloud_point_times says how each is read).
+TIME_FIELDS = ("t", "time", "timestamp")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -74,34 +90,65 @@ def stamp_seconds(header) -> float:
     return int(header.stamp.sec) + int(header.stamp.nanosec) * 1e-9
 
 
-def cloud_xyz(msg) -> np.ndarray:
-    """A sensor_msgs/PointCloud2 -> its x, y, z as [height * width, 3] float64 (every point, none dropped).
+def cloud_fields(msg, names: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """A sensor_msgs/PointCloud2's scalar fields `names` -> {name: [height * width] array in the field's own
+    numpy type} (every point, none dropped).
 
     Decoded by each field's offset and datatype within point_step, rows of row_step bytes (padding at the row
-    end skipped), byte order from is_bigendian. Raises ValueError when x, y or z is missing or not scalar."""
+    end skipped), byte order from is_bigendian. Raises ValueError when a field is missing or not one number."""
     fields = {f.name: f for f in msg.fields}
-    missing = [name for name in "xyz" if name not in fields]
+    missing = [name for name in names if name not in fields]
     if missing:
         raise ValueError(f"the cloud has no field {', '.join(missing)} (fields: {', '.join(fields) or 'none'})")
     order = ">" if msg.is_bigendian else "<"
     formats = []
-    for name in "xyz":
+    for name in names:
         f = fields[name]
-        if f.datatype not in _POINTFIELD_TYPES or f.count != 1:
+        if f.datatype not in POINTFIELD_TYPES or f.count != 1:
             raise ValueError(f"field {name} has datatype {f.datatype} and count {f.count}; expected one number")
-        formats.append(order + _POINTFIELD_TYPES[f.datatype])
-    point_dtype = np.dtype({"names": list("xyz"), "formats": formats,
-                            "offsets": [fields[n].offset for n in "xyz"], "itemsize": int(msg.point_step)})
+        formats.append(order + POINTFIELD_TYPES[f.datatype])
+    point_dtype = np.dtype({"names": list(names), "formats": formats,
+                            "offsets": [fields[n].offset for n in names], "itemsize": int(msg.point_step)})
     height, width = int(msg.height), int(msg.width)
     if height * width == 0:
-        return np.zeros((0, 3))
+        return {name: np.zeros(0, dtype=point_dtype[name].newbyteorder("=")) for name in names}
     raw = np.frombuffer(memoryview(msg.data), dtype=np.uint8)
     row_bytes = width * int(msg.point_step)
     if raw.size < (height - 1) * int(msg.row_step) + row_bytes:
         raise ValueError(f"the cloud's data holds {raw.size} bytes, fewer than its {height} x {width} points need")
     rows = np.lib.stride_tricks.as_strided(raw, shape=(height, row_bytes), strides=(int(msg.row_step), 1))
     points = np.ascontiguousarray(rows).reshape(-1).view(point_dtype)
-    return np.stack([points[n].astype(np.float64) for n in "xyz"], axis=1)
+    return {name: points[name].astype(point_dtype[name].newbyteorder("=")) for name in names}
+
+
+def cloud_xyz(msg) -> np.ndarray:
+    """A sensor_msgs/PointCloud2 -> its x, y, z as [height * width, 3] float64 (every point, none dropped).
+
+    Decoded as cloud_fields does. Raises ValueError when x, y or z is missing or not scalar."""
+    xyz = cloud_fields(msg, ("x", "y", "z"))
+    return np.stack([xyz[n].astype(np.float64) for n in "xyz"], axis=1)
+
+
+def time_field_of(msg) -> str:
+    """The first of TIME_FIELDS that the cloud has, '' when none."""
+    names = {f.name for f in msg.fields}
+    return next((name for name in TIME_FIELDS if name in names), "")
+
+
+def cloud_point_times(msg, stamp: float, name: str) -> np.ndarray:
+    """The per-point times [height * width] float64 of field `name` (one of TIME_FIELDS), in seconds after
+    `stamp` (the header stamp, seconds):
+        t          Ouster driver: uint32 nanoseconds since the start of the sweep (a float `t`: seconds)
+        time       Velodyne / Hesai drivers: float32 seconds relative to the header stamp
+        timestamp  float64 absolute seconds: the stamp is subtracted
+    Raises ValueError as cloud_fields does."""
+    values = cloud_fields(msg, (name,))[name]
+    datatype = next(f.datatype for f in msg.fields if f.name == name)
+    if name == "timestamp":
+        return values.astype(np.float64) - stamp
+    if name == "t" and datatype in _INTEGER_TYPES:
+        return values.astype(np.float64) * 1e-9
+    return values.astype(np.float64)
 
 
 def pose_matrix(msg, msgtype: str) -> np.ndarray:
@@ -141,17 +188,21 @@ class ImportResult:
     skipped_by_keyframe_rule: int = 0
     points_written: int = 0
     points_skipped: dict = field(default_factory=lambda: {"non-finite": 0, "zero": 0})
+    point_times_written: int = 0  # scans with OUT/point_times/<stamp>.npy (raw sweeps, no odometry)
     note: str = ""
 
 
-def _topics(reader) -> str:
+def list_topics(reader) -> str:
+    """A bag's topics with their types, for messages: "/a (sensor_msgs/msg/PointCloud2), /b (...)"."""
     return ", ".join(f"{c.topic} ({c.msgtype})" for c in sorted(reader.connections, key=lambda c: c.topic)) or "none"
 
 
-def _connections(reader, topic: str, types: tuple[str, ...], bag: str, what: str):
+def topic_connections(reader, topic: str, types: tuple[str, ...], bag: str, what: str):
+    """The reader's connections of `topic`; DataError naming the bag when it has none (listing its topics) or when
+    one carries a type not in `types` (`what` names the kind of topic in the message)."""
     found = [c for c in reader.connections if c.topic == topic]
     if not found:
-        raise DataError(f"{bag}: no {what} topic '{topic}' in the bag; it has: {_topics(reader)}")
+        raise DataError(f"{bag}: no {what} topic '{topic}' in the bag; it has: {list_topics(reader)}")
     bad = [c.msgtype for c in found if c.msgtype not in types]
     if bad:
         raise DataError(f"{bag}: topic '{topic}' carries {bad[0]}, not a {what} ({' or '.join(types)})")
@@ -176,7 +227,9 @@ def import_bag(
     bag_paths: a ROS1 .bag file, a ROS2 bag folder, or a list of them read as one recording. Raises DataError
     naming the bag for a missing topic (listing the topics the bag has), a topic of the wrong type, a cloud
     without x/y/z, or clouds without an odometry stamp within tolerance_s (unless drop_unmatched), and when
-    out_dir already holds scans (a second import would mix two recordings)."""
+    out_dir already holds scans (a second import would mix two recordings). odometry_topic '' (or the default
+    topic absent from the bag): the raw-sweep import, no poses (module docstring); a named odometry topic that
+    is missing stays an error."""
     from rosbags.highlevel import AnyReader, AnyReaderError
     from rosbags.typesys import Stores, get_typestore
     from tqdm import tqdm
@@ -199,8 +252,19 @@ def import_bag(
     except AnyReaderError as exc:
         raise DataError(f"{bag}: cannot read the bag ({exc})") from exc
     try:
-        cloud_conns = _connections(reader, cloud_topic, CLOUD_TYPES, bag, "cloud")
-        pose_conns = _connections(reader, odometry_topic, POSE_TYPES, bag, "odometry")
+        cloud_conns = topic_connections(reader, cloud_topic, CLOUD_TYPES, bag, "cloud")
+        if not odometry_topic or (odometry_topic == DEFAULT_ODOMETRY_TOPIC
+                                  and not any(c.topic == odometry_topic for c in reader.connections)):
+            if keyframe_distance_m > 0 or keyframe_angle_deg > 0:
+                raise DataError(f"{bag}: no odometry topic, so --keyframe_distance_m / --keyframe_angle_deg have no "
+                                "poses to measure; use --stride, or select keyframes when training")
+            logger.warning("%s: no odometry (%s): importing %s as raw sweeps without poses; training makes the "
+                           "poses from the scans with KISS-ICP", bag,
+                           f"no topic {odometry_topic}" if odometry_topic else "--odometry_topic=''", cloud_topic)
+            result = ImportResult(bag=[str(p) for p in paths], cloud_topic=cloud_topic, odometry_topic="", frame="",
+                                  odometry_frame="", tolerance_s=float(tolerance_s), time_offset_s=float(time_offset_s))
+            return _import_sweeps(reader, cloud_conns, out, result, stride, progress)
+        pose_conns = topic_connections(reader, odometry_topic, POSE_TYPES, bag, "odometry")
 
         # Pass 1: every odometry pose, sorted by header stamp.
         stamps, poses, odometry_frame = [], [], ""
@@ -284,6 +348,67 @@ def import_bag(
         logger.warning("%s: %s is in '%s', the odometry's world frame: the scans are registered already "
                        "(data.scans_in_world_frame=True moves them into the sensor frame for training)",
                        bag, cloud_topic, result.frame)
+    (out / METADATA_FILE).write_text(json.dumps(asdict(result), indent=2) + "\n")
+    logger.info("wrote %d scans (%d points) to %s; %s", result.scans_written, result.points_written, out, result.note)
+    return result
+
+
+def _import_sweeps(reader, cloud_conns, out: Path, result: ImportResult, stride: int, progress: bool) -> ImportResult:
+    """The raw-sweep import (module docstring): every stride-th cloud to OUT/scans/<stamp>.pcd with its point
+    times to OUT/point_times/<stamp>.npy; no poses.txt. Returns result filled in (also written to import.json)."""
+    from tqdm import tqdm
+
+    bag = ", ".join(result.bag)
+    total = sum(c.msgcount for c in cloud_conns)
+    no_time, written = "", set()
+    for conn, _, raw in tqdm(reader.messages(connections=cloud_conns), total=total, desc="clouds", unit="msg",
+                             disable=not progress):
+        index = result.clouds_read
+        result.clouds_read += 1
+        if index % stride:
+            result.skipped_by_keyframe_rule += 1
+            continue
+        msg = reader.deserialize(raw, conn.msgtype)
+        stamp = stamp_seconds(msg.header)
+        t = stamp + result.time_offset_s
+        result.frame = result.frame or str(msg.header.frame_id)
+        time_name = time_field_of(msg)
+        try:
+            # rounded to float32 as the .pcd stores them, then filtered: the file reads back exactly these points
+            points = cloud_xyz(msg).astype(np.float32).astype(np.float64)
+            times = cloud_point_times(msg, stamp, time_name) if time_name else None
+        except ValueError as exc:
+            raise DataError(f"{bag}: {result.cloud_topic} message {index} (t={t:.6f}): {exc}") from None
+        keep, dropped = valid_points(points)
+        result.points_skipped["non-finite"] += dropped["non-finite"]
+        result.points_skipped["zero"] += dropped["zero"]
+        if not keep.any():
+            logger.warning("%s: %s message %d (t=%.6f) has no valid point; skipped", bag, result.cloud_topic, index, t)
+            continue
+        name = f"{t:.9f}"
+        if name in written:
+            logger.warning("%s: %s message %d has the stamp t=%s of an earlier cloud; skipped", bag,
+                           result.cloud_topic, index, name)
+            continue
+        written.add(name)
+        write_scan(out / "scans" / f"{name}.pcd", points[keep])
+        result.points_written += int(keep.sum())
+        result.scans_written += 1
+        if times is None:
+            no_time = no_time or f"message {index} has fields {', '.join(f.name for f in msg.fields)}"
+            continue
+        (out / POINT_TIMES_FOLDER).mkdir(parents=True, exist_ok=True)
+        np.save(out / POINT_TIMES_FOLDER / f"{name}.npy", times[keep])
+        result.point_times_written += 1
+    if not result.scans_written:
+        raise DataError(f"{bag}: no cloud on {result.cloud_topic} was kept ({result.clouds_read} read)")
+    if no_time:
+        logger.warning("%s: some clouds on %s carry no per-point time (none of %s; %s): the scans will be taken as "
+                       "rigid", bag, result.cloud_topic, ", ".join(TIME_FIELDS), no_time)
+    result.note = (f"scans/ are raw sweeps in frame '{result.frame}' (the clouds' header.frame_id), named by their "
+                   f"stamp{'' if not result.time_offset_s else f' + {result.time_offset_s} s'}; "
+                   f"{result.point_times_written} have their point times in {POINT_TIMES_FOLDER}/; no poses.txt: "
+                   "training makes the poses with KISS-ICP")
     (out / METADATA_FILE).write_text(json.dumps(asdict(result), indent=2) + "\n")
     logger.info("wrote %d scans (%d points) to %s; %s", result.scans_written, result.points_written, out, result.note)
     return result

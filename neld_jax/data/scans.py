@@ -136,15 +136,23 @@ def _read_scan(path: Path) -> tuple[np.ndarray, dict[str, int]]:
     return points, dropped
 
 
-def drop_invalid_points(points: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
-    """points: [N, 3] -> (points without NaN/inf rows and without exact (0, 0, 0) rows [N', 3], counts).
+def valid_points(points: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
+    """points: [N, 3] -> (keep [N] bool: finite and not exactly (0, 0, 0), counts as drop_invalid_points gives).
 
-    counts: {'read': N, 'non-finite': ..., 'zero': ..., 'total': N - N'}."""
+    For callers that must drop something else with the points (e.g. per-point times)."""
     finite = np.isfinite(points).all(axis=1)
     zero = finite & ~points.any(axis=1)  # exactly (0, 0, 0): the "no return" encoding
     keep = finite & ~zero
     counts = {"read": int(points.shape[0]), "non-finite": int((~finite).sum()), "zero": int(zero.sum())}
     counts["total"] = counts["non-finite"] + counts["zero"]
+    return keep, counts
+
+
+def drop_invalid_points(points: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
+    """points: [N, 3] -> (points without NaN/inf rows and without exact (0, 0, 0) rows [N', 3], counts).
+
+    counts: {'read': N, 'non-finite': ..., 'zero': ..., 'total': N - N'}."""
+    keep, counts = valid_points(points)
     return (points if counts["total"] == 0 else points[keep]), counts
 
 

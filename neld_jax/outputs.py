@@ -55,8 +55,9 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, loaded, keyfr
                   render) -> np.ndarray:
     """poses_initial / poses_optimized (TUM .txt and KITTI .kitti, one line per input scan: the scans between
     keyframes take their keyframes' interpolated correction), poses_baseline when the baseline ran, poses_gt where
-    ground truth exists; map_raw.ply (the keyframes registered with the optimised poses), map_raw_initial.ply,
-    map_rendered.ply, map_gt.ply. Returns the poses of every input scan [S, 4, 4]."""
+    ground truth exists, poses_odometry when the input poses were made from the scans (KISS-ICP; the same poses as
+    poses_initial, under the name that says where they came from); map_raw.ply (the keyframes registered with the
+    optimised poses), map_raw_initial.ply, map_rendered.ply, map_gt.ply. Returns the poses of every input scan [S, 4, 4]."""
     index = keyframes.loaded_index
     T_all = propagate_corrections(loaded.poses, index, refined.poses, loaded.timestamps)
     write_poses(out_dir, "poses_initial", loaded.timestamps, loaded.poses)
@@ -66,6 +67,8 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, loaded, keyfr
                     propagate_corrections(loaded.poses, index, start.baseline_poses, loaded.timestamps))
     if loaded.gt_poses is not None:
         write_poses(out_dir, "poses_gt", loaded.timestamps, loaded.gt_poses)
+    if loaded.poses_from == "kiss_icp":
+        write_poses(out_dir, "poses_odometry", loaded.timestamps, loaded.poses)
     voxel = float(config.mapping.voxel_size_m)
     write_raw_map(os.path.join(out_dir, "map_raw.ply"), keyframes.scans, refined.poses, voxel_size=voxel)
     write_raw_map(os.path.join(out_dir, "map_raw_initial.ply"), keyframes.scans, keyframes.poses, voxel_size=voxel)

@@ -345,3 +345,39 @@ def test_real_targets_read_the_targets_off_an_entry():
     table = targets.format_targets([entry, {"sequence": "big", "error": "DataError: too wide"}])
     assert "seq (recorded): within_minutes NO, every_scan_a_pose NO" in table
     assert "big: failed: DataError: too wide" in table.splitlines()[-1]
+
+
+def test_peers_compares_the_four_methods_on_the_same_sweeps(tmp_path):
+    # benchmarks/peers.py on 30 raw 10 Hz sweeps with a tiny model: a row per method with its ATE, crispness and wall
+    # time, NeLD-BA's margin to each peer, and the targets. KISS-SLAM is an optional extra (neld-jax[peers]): where it
+    # is missing its row says so and the others still compare.
+    out = tmp_path / "peers.json"
+    tiny = ["data.keyframe_interval_s=0.5", "data.max_rays_per_scan=256", "train.steps=2", "train.batch_rays=32",
+            "model.width=16", "model.depth=2", "model.skip_layers=(1,)", "mapping.enabled=False", "viz.record=False",
+            "eval.crispness_queries=2000", "eval.crispness_draws=3"]
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "peers.py"), "--sequences=synthetic10hz:0", "--num_scans=30",
+         "--gt_map_points=2000", f"--work={tmp_path / 'work'}", f"--out={out}", *[f"--set={s}" for s in tiny]],
+        cwd=ROOT, env=dict(os.environ, JAX_PLATFORMS="cpu"), capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    (entry,) = json.loads(out.read_text())["sequences"]
+    assert "error" not in entry, entry.get("error")
+    assert entry["input_scans"] == 30 and entry["keyframes"] == 6
+    rows = entry["methods"]
+    assert set(rows) == {"kiss_icp", "kiss_slam", "baseline", "neld_ba"}
+    slam_installed = importlib.util.find_spec("kiss_slam") is not None
+    measured = ["kiss_icp", "baseline", "neld_ba"] + (["kiss_slam"] if slam_installed else [])
+    if not slam_installed:
+        assert rows["kiss_slam"]["status"] == "not installed (pip install neld-jax[peers])"
+    for name in measured:
+        row = rows[name]
+        assert row["ate_poses"] == 30 and 0 <= row["ate_m"] < 1.0 and row["ate_rot_deg"] >= 0, (name, row)
+        assert math.isfinite(row["entropy"]) and row["thickness_cm"] > 0 and row["wall_s"] >= 0, (name, row)
+        if name != "neld_ba":
+            assert len(row["neld_ba_margin_per_draw"]) == 3
+            assert row["neld_ba_verdict"] in ("every draw", "a tie", "blurrier")
+    assert rows["neld_ba"]["wall_s"] >= rows["kiss_icp"]["wall_s"]  # the whole run holds its odometry
+    assert set(entry["targets"]) == {"ate_below_kiss_icp", "ate_below_kiss_slam", "crisper_than_kiss_icp",
+                                     "crisper_than_kiss_slam", "within_minutes"}
+    assert entry["targets"]["within_minutes"] is True
+    assert "kiss_icp" in result.stdout and "targets" in result.stdout and "iteration=" not in result.stdout

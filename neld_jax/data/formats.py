@@ -15,13 +15,18 @@ warning naming what was looked for when no ground truth is found.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
 
-from neld_jax.data import frames, fusionportable, generic, ground_truth, hba, lio_keyframes, newer_college, synthetic
+from neld_jax.data import (frames, fusionportable, generic, ground_truth, hba, lio_keyframes, newer_college, odometry,
+                           synthetic)
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import ConfigError
 
 logger = logging.getLogger(__name__)
+
+KISS_ICP = "kiss_icp"  # data.initial_poses: make them from the scans (odometry.py)
 
 FORMATS = {
     "generic": generic.load,
@@ -57,10 +62,24 @@ def load_sequence(data_cfg) -> Sequence:
     fmt = str(data_cfg.format).lower()
     if fmt not in FORMATS:
         raise ConfigError(f"data.format: unknown format '{data_cfg.format}' (expected one of {', '.join(FORMATS)})")
+    make_poses = str(data_cfg.get("initial_poses", "")) == KISS_ICP
+    if make_poses:  # the layout reads its scans as usual; its own poses file, if any, is not the start
+        data_cfg = copy.deepcopy(data_cfg)
+        data_cfg.initial_poses = ""
     seq = FORMATS[fmt](data_cfg)
+    root = data_cfg.get("root", None)
+    if seq.poses is None or make_poses:  # the scans are all there is: odometry from them, in the sensor frame
+        if data_cfg.get("scans_in_world_frame", False) or data_cfg.get("invert_poses", False):
+            raise ConfigError(f"{root}: data.scans_in_world_frame / data.invert_poses need the layout's own poses, "
+                              f"not data.initial_poses={KISS_ICP} or none")
+        seq = odometry.with_kiss_icp_poses(seq, data_cfg.min_range_m, data_cfg.max_range_m)
+        return seq if fmt == "synthetic" else _report_missing_ground_truth(seq, data_cfg, fmt, root)
     if fmt == "synthetic":  # generated in the sensor frame with exact ground truth: nothing to convert or report
         return seq
-    root = data_cfg.get("root", None)
+    if seq.point_times is not None:
+        logger.info("%s: the scans carry per-point times; the given poses are used as they are, without deskewing "
+                    "(data.initial_poses=%s deskews them with KISS-ICP's odometry)", root, KISS_ICP)
+        seq = dataclasses.replace(seq, point_times=None)
     # Poses sensor -> world and scans in the sensor frame: converted when the config says so, else checked (and
     # refused with a line naming the option when they look the other way).
     invert = bool(data_cfg.get("invert_poses", False))
@@ -68,7 +87,11 @@ def load_sequence(data_cfg) -> Sequence:
     seq = frames.in_sensor_frame(seq, str(root), bool(data_cfg.get("scans_in_world_frame", False)))
     if not invert:
         frames.check_pose_direction(seq, str(root))
+    return _report_missing_ground_truth(seq, data_cfg, fmt, root)
 
+
+def _report_missing_ground_truth(seq: Sequence, data_cfg, fmt: str, root) -> Sequence:
+    """seq, after a warning for each kind of ground truth it lacks (what was looked for, what is skipped)."""
     if seq.gt_poses is None:
         gt_poses_file = ground_truth.explicit_path(data_cfg, "gt_poses_path")
         looked = f"data.gt_poses_path {gt_poses_file}" if gt_poses_file else GT_SEARCHED[fmt][0]

@@ -2,7 +2,7 @@
 write.
 
     ROOT/scans/*.{pcd,ply,bin,npy}   one scan per file, sensor frame, sorted by name
-    ROOT/poses.txt                   initial poses, TUM
+    ROOT/poses.txt                   initial poses, TUM (without it: made from the scans, data/odometry.py)
     ROOT/gt_poses.txt                optional ground-truth poses, TUM
     ROOT/gt_map.pcd | gt_map.ply     optional ground-truth map, world frame
     ROOT/point_times/<scan name>.npy optional, [N] float64 seconds after the scan's stamp per point (raw sweeps,
@@ -55,6 +55,8 @@ def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERAN
     names_are_times = all(t is not None for t in name_times)
 
     pose_file = root / "poses.txt"
+    if not pose_file.is_file():
+        return with_point_times(_without_poses(root, files, name_times if names_are_times else None, tol), root)
     pose_times, poses = read_tum(pose_file)
     by_time = names_are_times and poses.shape[0] != len(files)
     scan_times = np.asarray(name_times, dtype=np.float64) if by_time else None
@@ -72,6 +74,21 @@ def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERAN
                                tol=tol, root=root).poses
 
     return with_point_times(build_sequence(root, files, aligned.poses, timestamps, gt_poses, pose_file), root)
+
+
+def _without_poses(root: Path, files: list[Path], name_times: list[float] | None, tol: float) -> Sequence:
+    """The scans in name order without initial poses (load_sequence makes them from the scans), stamped by their
+    names when those are times; ground truth by order, or by time when the counts differ."""
+    logger.info("%s: no poses.txt: the initial poses will be made from the %d scans", root, len(files))
+    timestamps = None if name_times is None else np.asarray(name_times, dtype=np.float64)
+    gt_poses = None
+    gt_file = root / "gt_poses.txt"
+    if gt_file.is_file():
+        gt_times, gt_all = read_tum(gt_file)
+        by_time = timestamps is not None and gt_all.shape[0] != len(files)
+        gt_poses = align_poses(gt_all, gt_times, gt_file, files, timestamps if by_time else None, tol=tol,
+                               root=root).poses
+    return build_sequence(root, files, None, timestamps, gt_poses, "no poses")
 
 
 def with_point_times(seq: Sequence, root: Path) -> Sequence:

@@ -349,12 +349,12 @@ def _read_gt_map(root: Path) -> np.ndarray | None:
     return None if path is None else read_scan(path)
 
 
-def build_sequence(root: Path, files: list[Path], poses: np.ndarray, timestamps: np.ndarray | None,
-                   gt_poses: np.ndarray | None, pose_file: Path, gt_map_file: Path | None = None) -> Sequence:
+def build_sequence(root: Path, files: list[Path], poses: np.ndarray | None, timestamps: np.ndarray | None,
+                   gt_poses: np.ndarray | None, pose_file: Path | str, gt_map_file: Path | None = None) -> Sequence:
     """Read the scans and the GT map (gt_map_file, else ROOT/gt_map.pcd|ply if present), build the Sequence
     (files relative to root), check for pose jumps.
 
-    files: [S] scan paths; poses: [S, 4, 4]; timestamps: [S] seconds or None; gt_poses: [S, 4, 4] or None;
+    files: [S] scan paths; poses: [S, 4, 4] or None (none in the layout); timestamps: [S] seconds or None; gt_poses: [S, 4, 4] or None;
     pose_file names the pose source in the pose-jump warning."""
     seq = Sequence(
         scans=read_scans(files),
@@ -366,7 +366,8 @@ def build_sequence(root: Path, files: list[Path], poses: np.ndarray, timestamps:
         source=str(root),
         files=[_relative(f, root) for f in files],
     )
-    check_pose_jumps(seq.poses, [seq.scan_label(i) for i in range(seq.num_scans)], what=str(pose_file))
+    if poses is not None:
+        check_pose_jumps(seq.poses, [seq.scan_label(i) for i in range(seq.num_scans)], what=str(pose_file))
     return seq
 
 

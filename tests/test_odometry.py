@@ -1,0 +1,170 @@
+"""Scans without poses (neld_jax.data.odometry): KISS-ICP makes the initial poses from raw 10 Hz sweeps, deskewed
+by their points' own times and put on the sweeps' stamps; a lost track is one clear error line naming the scan; a
+run from scans alone writes the odometry as poses_odometry.txt; the downloads' bags run through the command."""
+
+import dataclasses
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from neld_jax import metrics, run
+from neld_jax.data import odometry
+from neld_jax.data.formats import load_sequence
+from neld_jax.data.poses import read_tum
+from neld_jax.data.raw_bag_downloads import write_fusionportable_download, write_newer_college_download
+from neld_jax.data.synthetic import loop_poses, make_sequence, write_generic
+from neld_jax.errors import DataError
+
+from conftest import make_tiny_config
+
+REPO = Path(__file__).resolve().parents[1]
+# 40 raw sweeps at 10 Hz, 2.1 m/s round a 10 m loop (0.2 m a sweep), 32 beams x 512 columns, 40 m range
+SWEEPS = {"num_scans": 300, "trajectory_radius_m": 10.0, "max_range_m": 40.0, "gt_map_points": 0}
+NUM_SWEEPS, RATE_HZ = 40, 10.0
+
+
+def _sweeps(seed: int = 0):
+    seq = make_sequence({**SWEEPS, "seed": seed}, rate_hz=RATE_HZ)  # the first 40 of a 300-sweep loop
+    keep = slice(0, NUM_SWEEPS)
+    return dataclasses.replace(seq, scans=seq.scans[:NUM_SWEEPS], point_times=seq.point_times[:NUM_SWEEPS],
+                               timestamps=seq.timestamps[keep], gt_poses=seq.gt_poses[keep])
+
+
+@pytest.fixture(scope="module")
+def sweeps():
+    return _sweeps()
+
+
+@pytest.fixture(scope="module")
+def folder_of_sweeps(sweeps, tmp_path_factory):
+    root = tmp_path_factory.mktemp("sweeps")
+    write_generic(sweeps, root)  # scans named by stamp, point_times/, gt_poses.txt, no poses.txt
+    return root
+
+
+def _data(root, **overrides):
+    data = make_tiny_config().data
+    data.format, data.root, data.max_range_m = "generic", str(root), 40.0
+    data.update(overrides)
+    return data
+
+
+def test_synthetic_sweeps_carry_the_motion_and_their_times(sweeps):
+    assert sweeps.poses is None and len(sweeps.point_times) == NUM_SWEEPS
+    times = sweeps.point_times[5]
+    assert times.min() == 0.0 and 0.099 < times.max() < 0.1  # one turn of 512 columns in 0.1 s
+    np.testing.assert_allclose(np.diff(sweeps.timestamps), 1.0 / RATE_HZ)
+    steps = np.linalg.norm(np.diff(sweeps.gt_poses[:, :3, 3], axis=0), axis=1)
+    assert np.all((steps > 0.15) & (steps < 0.3))  # ~0.2 m while each sweep is cast: motion worth deskewing
+
+
+def test_a_folder_without_poses_gets_deskewed_kiss_icp_odometry(sweeps, folder_of_sweeps):
+    loaded = load_sequence(_data(folder_of_sweeps))
+    assert loaded.poses_from == "kiss_icp" and loaded.num_scans == NUM_SWEEPS and loaded.point_times is None
+    np.testing.assert_allclose(loaded.timestamps, sweeps.timestamps, atol=1e-6)
+    np.testing.assert_allclose(loaded.poses[0], np.eye(4), atol=1e-9)  # the odometry starts at the identity
+    error = metrics.ate(loaded.poses, loaded.gt_poses)["translation_rmse_m"]
+    assert error < 0.1, error  # measured 6.7 cm over these 8 m (KISS-ICP on rigid sweeps of this scene: 5.6 cm)
+    # Deskewed into the frame at the stamp: under the true pose, sweep 20 lands on the true surfaces, within a few
+    # cm of the same points moved by the true per-column motion; the raw sweep misses by ~10 cm.
+    i = 20
+    times = sweeps.point_times[i]
+    columns = loop_poses((i + times * RATE_HZ) / SWEEPS["num_scans"], SWEEPS["trajectory_radius_m"], 0)
+    truth_world = np.einsum("nij,nj->ni", columns[:, :3, :3], sweeps.scans[i]) + columns[:, :3, 3]
+    from scipy.spatial import cKDTree
+
+    def median_miss(points):
+        world = points @ sweeps.gt_poses[i][:3, :3].T + sweeps.gt_poses[i][:3, 3]
+        return float(np.median(cKDTree(truth_world).query(world)[0]))
+
+    assert median_miss(loaded.scans[i]) < 0.03 < 0.06 < median_miss(sweeps.scans[i])
+
+
+def test_rigid_scans_and_a_layout_with_poses_can_ask_for_odometry(sweeps, tmp_path):
+    rigid = dataclasses.replace(sweeps, point_times=None, poses=sweeps.gt_poses)
+    write_generic(rigid, tmp_path)  # poses.txt present; data.initial_poses=kiss_icp replaces them
+    loaded = load_sequence(_data(tmp_path, initial_poses="kiss_icp"))
+    assert loaded.poses_from == "kiss_icp"
+    assert not np.allclose(loaded.poses[1:], sweeps.gt_poses[1:], atol=1e-3)  # not the file's poses
+    assert metrics.ate(loaded.poses, loaded.gt_poses)["translation_rmse_m"] < 0.1  # the motion stays in them
+
+
+def test_odometry_that_loses_track_names_the_scan(sweeps, tmp_path):
+    # Twenty sweeps of one courtyard, then twenty of another: the 21st sweep jumps.
+    other = _sweeps(seed=7)
+    jumped = dataclasses.replace(sweeps, scans=sweeps.scans[:20] + other.scans[20:],
+                                 point_times=sweeps.point_times[:20] + other.point_times[20:], gt_poses=None)
+    write_generic(jumped, tmp_path)
+    with pytest.raises(DataError, match=r"^scans/2\.000000000\.pcd \(t=2\.000000\): KISS-ICP lost track here"):
+        load_sequence(_data(tmp_path))
+
+
+def test_a_gap_in_the_stamps_is_named(caplog):
+    stamps = np.r_[np.arange(10) * 0.1, 2.0 + np.arange(5) * 0.1]
+    with caplog.at_level(logging.WARNING, logger="neld_jax.data.odometry"):
+        gaps = odometry.warn_about_gaps(stamps, [f"s{i}" for i in range(len(stamps))])
+    assert gaps.tolist() == [10] and "s10: 1.10 s after the previous scan" in caplog.text
+
+
+def test_interpolated_poses_follow_a_screw_motion():
+    from scipy.spatial.transform import Rotation
+
+    def screw(t):  # constant turn rate and velocity in the body frame
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.from_rotvec(np.array([0.1, -0.2, 0.5]) * t).as_matrix()
+        pose[:3, 3] = np.array([2.0, 0.5, 0.1]) * t
+        return pose
+
+    times = np.array([0.0, 0.1, 0.2, 0.3])
+    poses = np.stack([screw(t) for t in times])
+    query = np.array([-0.05, 0.05, 0.25, 0.33])
+    got = odometry.interpolate_poses(times, poses, query)
+    for pose, t in zip(got, query):  # rotations exactly (one axis); positions on the chord of a straight line
+        np.testing.assert_allclose(pose, screw(t), atol=1e-9)
+
+
+def test_a_run_from_scans_alone_writes_the_odometry(folder_of_sweeps, tmp_path):
+    config = make_tiny_config(str(tmp_path / "run"), steps=2)
+    config.data = _data(folder_of_sweeps, max_scans=4, keyframe_interval_s=1.0)
+    config.mapping.enabled = False
+    config.viz.record = False
+    run.run(config, progress=False)
+    _, odometry_poses = read_tum(tmp_path / "run" / "poses_odometry.txt")
+    _, initial = read_tum(tmp_path / "run" / "poses_initial.txt")
+    assert len(odometry_poses) == NUM_SWEEPS and len(read_tum(tmp_path / "run" / "poses_optimized.txt")[1]) == 40
+    np.testing.assert_allclose(odometry_poses, initial, atol=1e-6)  # the odometry is the run's input
+
+
+def test_a_fusionportable_download_runs_through_the_command(sweeps, tmp_path):
+    """The dataset's bag of raw sweeps and its ground truth, in its own layout, through bin/train.py."""
+    root = write_fusionportable_download(tmp_path / "download", "20220216_garden_day", sweeps.timestamps + 1.6e9,
+                                         sweeps.scans, sweeps.point_times, sweeps.gt_poses)
+    out = tmp_path / "run"
+    done = subprocess.run(
+        [sys.executable, str(REPO / "bin" / "train.py"), f"--config={REPO / 'configs' / 'fusionportable.py'}:cpu",
+         f"--config.data.root={root}", f"--config.output_dir={out}", "--config.data.max_range_m=40",
+         "--config.data.keyframe_interval_s=1", "--config.data.max_rays_per_scan=256", "--config.train.steps=2",
+         "--config.train.batch_rays=32", "--config.model.width=16", "--config.model.depth=2",
+         "--config.model.skip_layers=(1,)", "--config.start.poses=input", "--config.mapping.enabled=False",
+         "--config.viz.record=False"],
+        capture_output=True, text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"), timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "making the initial poses from the 40 scans with KISS-ICP" in done.stderr
+    _, odometry_poses = read_tum(out / "poses_odometry.txt")
+    _, gt = read_tum(out / "poses_gt.txt")
+    assert len(odometry_poses) == len(gt) == NUM_SWEEPS
+    assert metrics.ate(odometry_poses, gt)["translation_rmse_m"] < 0.1
+
+
+def test_a_newer_college_download_in_two_bags_loads_as_raw_sweeps(sweeps, tmp_path):
+    root = write_newer_college_download(tmp_path, "quad-easy", sweeps.timestamps + 1.6e9, sweeps.scans,
+                                        sweeps.point_times, sweeps.gt_poses, parts=2)
+    data = _data(root, format="newer_college")
+    loaded = load_sequence(data)
+    assert loaded.poses_from == "kiss_icp" and loaded.num_scans == NUM_SWEEPS
+    assert metrics.ate(loaded.poses, loaded.gt_poses)["translation_rmse_m"] < 0.1

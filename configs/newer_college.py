@@ -1,5 +1,10 @@
-"""Newer College: the 2021 release (quad/maths, easy to hard; OS0-128 rosbags) after neld-import-rosbag, or the 2020
-release's cloud_<sec>_<nsec>.pcd:
+"""Newer College: the 2021 release (quad/maths, easy to hard; OS0-128 rosbags) as downloaded or after
+neld-import-rosbag, or the 2020 release's cloud_<sec>_<nsec>.pcd:
+
+    python bin/train.py --config=configs/newer_college.py --config.data.root=/data/quad_easy   # *.bag + gt-nc-*.csv
+
+The bags as downloaded: the Ouster's raw sweeps, made into poses by KISS-ICP (docs/datasets.md, "Scans without
+poses"). A FAST-LIO2 run, the better start where present:
 
     python bin/import_rosbag.py --bag=fastlio_quad_easy.bag --out=/data/quad_easy   # FAST-LIO2's clouds + odometry
     cp gt-nc-quad-easy.csv /data/quad_easy/

@@ -5,7 +5,12 @@ layout (docs/design.md), with ground truth.
     neld-train --config=configs/generic.py:cpu --config.data.root=/tmp/courtyard
 
 The sequence is config.data.synthetic (seed, scans, beams, drift ...); override any of it on the command line,
-e.g. --config.data.synthetic.seed=3 --config.data.synthetic.drift_trans_m=0.1.
+e.g. --config.data.synthetic.seed=3 --config.data.synthetic.drift_trans_m=0.1. --rate_hz writes a LiDAR's raw
+sweeps at that rate instead (the motion within each sweep, per-point times, no poses: the run makes them with
+KISS-ICP), as a recording holds them:
+
+    neld-make-synthetic --config=configs/demo.py --root=/tmp/sweeps --rate_hz=10 --config.data.synthetic.num_scans=300 \
+        --config.data.synthetic.trajectory_radius_m=10 --config.data.synthetic.max_range_m=40
 """
 
 from absl import flags
@@ -14,14 +19,17 @@ from neld_jax.cli import main_with_config
 
 ROOT = flags.DEFINE_string("root", None, "Folder to write the sequence to (scans/, poses.txt, gt_poses.txt, gt_map.pcd).")
 flags.mark_flag_as_required("root")
+RATE_HZ = flags.DEFINE_float("rate_hz", 0.0, "Raw sweeps at this rate (0: one rigid scan every 3 s, with drifted "
+                             "initial poses).")
 
 
 def job(config) -> None:
     from neld_jax.data.synthetic import make_sequence, write_generic
 
-    seq = make_sequence(config.data.synthetic)
+    seq = make_sequence(config.data.synthetic, rate_hz=RATE_HZ.value)
     write_generic(seq, ROOT.value)
-    print(f"wrote {seq.num_scans} scans with ground truth to {ROOT.value}")
+    kind = f"raw {RATE_HZ.value:g} Hz sweeps (no poses)" if RATE_HZ.value > 0 else "scans"
+    print(f"wrote {seq.num_scans} {kind} with ground truth to {ROOT.value}")
 
 
 def main() -> None:

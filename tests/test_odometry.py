@@ -11,16 +11,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import make_tiny_config
 
 from neld_jax import metrics, run
 from neld_jax.data import odometry
 from neld_jax.data.formats import load_sequence
 from neld_jax.data.poses import read_tum
-from neld_jax.data.raw_bag_downloads import write_fusionportable_download, write_newer_college_download
+from neld_jax.data.raw_bag_downloads import (
+    write_fusionportable_download,
+    write_newer_college_download,
+)
 from neld_jax.data.synthetic import loop_poses, make_sequence, write_generic
 from neld_jax.errors import DataError
-
-from conftest import make_tiny_config
 
 REPO = Path(__file__).resolve().parents[1]
 # 40 raw sweeps at 10 Hz, 2.1 m/s round a 10 m loop (0.2 m a sweep), 32 beams x 512 columns, 40 m range
@@ -82,7 +84,7 @@ def test_a_folder_without_poses_gets_deskewed_kiss_icp_odometry(sweeps, folder_o
         world = points @ sweeps.gt_poses[i][:3, :3].T + sweeps.gt_poses[i][:3, 3]
         return float(np.median(cKDTree(truth_world).query(world)[0]))
 
-    assert median_miss(loaded.scans[i]) < 0.03 < 0.06 < median_miss(sweeps.scans[i])
+    assert median_miss(loaded.scans[i]) < 0.03 and median_miss(sweeps.scans[i]) > 0.06
 
 
 def test_rigid_scans_and_a_layout_with_poses_can_ask_for_odometry(sweeps, tmp_path):
@@ -152,7 +154,7 @@ def test_a_fusionportable_download_runs_through_the_command(sweeps, tmp_path):
          "--config.train.batch_rays=32", "--config.model.width=16", "--config.model.depth=2",
          "--config.model.skip_layers=(1,)", "--config.start.poses=input", "--config.mapping.enabled=False",
          "--config.viz.record=False"],
-        capture_output=True, text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"), timeout=600)
+        check=False, capture_output=True, text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"), timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "making the initial poses from the 40 scans with KISS-ICP" in done.stderr
     _, odometry_poses = read_tum(out / "poses_odometry.txt")

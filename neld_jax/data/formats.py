@@ -19,8 +19,17 @@ import copy
 import dataclasses
 import logging
 
-from neld_jax.data import (frames, fusionportable, generic, ground_truth, hba, lio_keyframes, newer_college, odometry,
-                           synthetic)
+from neld_jax.data import (
+    frames,
+    fusionportable,
+    generic,
+    ground_truth,
+    hba,
+    lio_keyframes,
+    newer_college,
+    odometry,
+    synthetic,
+)
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import ConfigError
 

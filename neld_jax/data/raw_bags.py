@@ -7,8 +7,8 @@ own (sensor) frame, with each point's time within the sweep; no poses (load_sequ
 
 Per-point time comes from the cloud's own field table (rosbag_import.cloud_point_times: Ouster `t`, uint32 ns
 since the sweep's start; Velodyne/Hesai `time`, float32 seconds relative; `timestamp`, float64 absolute seconds)
-and is stored as seconds after the message's header stamp. A topic whose clouds have none of these gives point_times None for the whole sequence (logged once): the scans
-are then taken as rigid.
+and is stored as seconds after the message's header stamp. A topic whose clouds have none of these gives point_times
+None for the whole sequence (logged once): the scans are then taken as rigid.
 
 Points with NaN/inf coordinates or exactly at (0, 0, 0) (no return: organised Ouster clouds hold many) are dropped
 with their times and counted (scans.valid_points). A cloud left with no point is skipped and counted. Messages are
@@ -44,6 +44,7 @@ from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
 
 logger = logging.getLogger(__name__)
+
 
 @dataclass
 class RawSweeps:

@@ -211,10 +211,10 @@ def test_load_generic_missing_scans_folder(tmp_path):
         load_generic(tmp_path)
 
 
-def test_load_generic_missing_pose_file(tmp_path):
+def test_load_generic_without_pose_file_leaves_the_poses_to_the_odometry(tmp_path):
     write_scan(tmp_path / "scans" / "000000.npy", make_scans(1)[0])
-    with pytest.raises(DataError, match=r"poses\.txt.*does not exist"):
-        load_generic(tmp_path)
+    seq = load_generic(tmp_path)  # load_sequence makes them with KISS-ICP (tests/test_odometry.py)
+    assert seq.poses is None and seq.num_scans == 1 and seq.timestamps is None
 
 
 def test_load_generic_empty_scan_folder(tmp_path):

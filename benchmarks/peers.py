@@ -1,0 +1,390 @@
+#!/usr/bin/env python
+"""NeLD-BA against its peers on the same raw sweeps: KISS-ICP (the run's input), KISS-SLAM (KISS-ICP with a local-map
+pose graph and loop closures), the classical baseline and NeLD-BA, in one table.
+
+    pip install -e .[peers]      # kiss-slam; without it its row says "not installed" and the rest still runs
+    python benchmarks/peers.py --sequences=synthetic10hz:0,synthetic10hz:1:20 --set=data.keyframe_interval_s=1.0 \\
+        --work=outputs/peers --out=benchmarks/results/peers_cpu.json
+    python benchmarks/peers.py --sequences= --roots=/data/seq1,/data/seq2 --config=configs/generic.py:cpu
+
+Per sequence: one NeLD-BA run (neld_jax.run.run with --config and --set, fresh output folder), whose KISS-ICP
+odometry (data.initial_poses=kiss_icp) is the input of every method; KISS-SLAM run on the same raw sweeps with its own
+defaults for the run's range (KISS-ICP's voxel of a hundredth of data.max_range_m, deskewing by the points' times;
+its poses, at each sweep's last point's instant as KISS-ICP gives them, interpolated to the sweeps' stamps as
+neld_jax.data.odometry does for KISS-ICP); the classical baseline from the run's poses_baseline.txt (start.poses
+"crisper" runs it), or run here from the keyframes' KISS-ICP poses where the run did not. Each method gives one pose per
+input sweep (TUM, at the sweeps' stamps). Columns:
+- ATE: translation RMSE [m] and rotation RMSE [deg] against the ground truth over every sweep, SE(3)-aligned (as
+  neld-evaluate), where the sequence has ground truth;
+- the raw map's crispness: mean map entropy and plane thickness of the run's keyframes (their KISS-ICP-deskewed
+  scans) registered with each trajectory at the keyframes, on the same query points for every method
+  (neld_jax.judge, as neld-crispness), and NeLD-BA's margin to each peer over eval.crispness_draws draws of the query
+  points: "every draw" (crisper on each), "a tie" (the draws disagree in sign) or "blurrier" (blurrier on each);
+- wall time [s]: KISS-ICP's odometry, KISS-SLAM's whole run, the baseline's registration, and NeLD-BA's whole run end
+  to end (loading with the odometry, the baseline, training, rendering, judging).
+Targets, printed at the end: NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's, its raw map crisper than both on every
+draw, and the whole run within --minutes_limit minutes.
+
+Sequences: `synthetic10hz:SEED[:RADIUS_M]` generates raw 10 Hz sweeps with per-point times and ground truth
+(neld_jax.data.synthetic.make_sequence, rate_hz=10; --loop_scans sweeps round one loop of RADIUS_M (10 m: 63 m at
+2.1 m/s; 20 m: 126 m at 4.2 m/s, longer than KISS-SLAM's 100 m local maps, so it can close the loop) at 40 m range,
+the first --num_scans of them kept) into WORK/<name>/data in the generic layout without poses; `--roots` are
+folders of raw full-rate sweeps as --config reads them (configs/generic.py, or a dataset's config for its layout as
+downloaded), named by their folder. A sequence that fails records its one-line error, and the others still run.
+"""
+
+import contextlib
+import json
+import logging
+import os
+import shutil
+import sys
+import time
+import traceback
+
+from absl import app, flags
+
+from neld_jax.hugepages import reexec_with_huge_page_malloc
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+SEQUENCES = flags.DEFINE_list("sequences", ["synthetic10hz:0"], "Synthetic raw-sweep sequences, "
+                              "synthetic10hz:SEED[:RADIUS_M] (the loop's radius, default 10 m: a 63 m loop).")
+ROOTS = flags.DEFINE_list("roots", [], "Folders of real raw full-rate sweeps (the layout --config reads).")
+NUM_SCANS = flags.DEFINE_integer("num_scans", 300, "Synthetic: sweeps kept (the first of the loop's).")
+LOOP_SCANS = flags.DEFINE_integer("loop_scans", 300, "Synthetic: sweeps round the whole loop (300: 2.1 m/s).")
+GT_MAP_POINTS = flags.DEFINE_integer("gt_map_points", 50_000, "Synthetic: points of the ground-truth map.")
+WORK = flags.DEFINE_string("work", "outputs/peers", "The sequences and the runs go below this.")
+OUT = flags.DEFINE_string("out", "outputs/peers/peers.json", "JSON file with one entry per sequence.")
+CONFIG = flags.DEFINE_string("config", "configs/generic.py:cpu", "The run's config, PATH[:BUDGET].")
+OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. train.steps=2000.")
+MAX_RANGE = flags.DEFINE_float("max_range_m", 0.0, "data.max_range_m of real roots (0: the config's); synthetic "
+                               "sequences use their generated range (40 m). --set wins over both.")
+SLAM_SPLITTING = flags.DEFINE_float("slam_splitting_m", 0.0, "KISS-SLAM's local_mapper.splitting_distance [m] "
+                                    "(0: its own default, 100 m).")
+MINUTES_LIMIT = flags.DEFINE_float("minutes_limit", 10.0, "The target for NeLD-BA's whole run [min].")
+
+SYNTHETIC = {"trajectory_radius_m": 10.0, "max_range_m": 40.0}  # a 63 m loop by default; KISS-ICP's voxel 0.4 m
+RATE_HZ = 10.0
+METHODS = ("kiss_icp", "kiss_slam", "baseline", "neld_ba")
+NOT_INSTALLED = "not installed (pip install neld-jax[peers])"
+
+
+def make_synthetic(seed: int, radius_m: float, root: str) -> None:
+    """The first NUM_SCANS of LOOP_SCANS raw 10 Hz sweeps round the loop of radius_m, in the generic layout (no
+    poses.txt); kept when root already holds the same sequence."""
+    import dataclasses
+
+    from neld_jax.data.synthetic import make_sequence, write_generic
+
+    spec = {**SYNTHETIC, "trajectory_radius_m": radius_m, "num_scans": LOOP_SCANS.value, "gt_map_points": GT_MAP_POINTS.value, "seed": seed,
+            "kept": NUM_SCANS.value, "rate_hz": RATE_HZ}
+    marker = os.path.join(root, "peers_sequence.json")
+    if os.path.exists(marker):
+        with open(marker) as f:
+            if json.load(f) == spec:
+                return
+    shutil.rmtree(root, ignore_errors=True)
+    seq = make_sequence({k: v for k, v in spec.items() if k not in ("kept", "rate_hz")}, rate_hz=RATE_HZ)
+    n = min(NUM_SCANS.value, seq.num_scans)
+    seq = dataclasses.replace(seq, scans=seq.scans[:n], point_times=seq.point_times[:n],
+                              timestamps=seq.timestamps[:n], gt_poses=seq.gt_poses[:n])
+    write_generic(seq, root)
+    with open(marker, "w") as f:
+        json.dump(spec, f)
+
+
+def run_config(root: str, out_dir: str, synthetic: bool):
+    """--config for one sequence: the scans' own KISS-ICP odometry as the input, the range, --set last."""
+    from neld_jax.config import apply_overrides, from_file
+
+    path = CONFIG.value if os.path.isabs(CONFIG.value) else os.path.join(REPO, CONFIG.value)
+    c = from_file(path)
+    c.data.root = root
+    c.output_dir = out_dir
+    c.data.initial_poses = "kiss_icp"
+    if synthetic:
+        c.data.max_range_m = SYNTHETIC["max_range_m"]
+    elif MAX_RANGE.value > 0:
+        c.data.max_range_m = MAX_RANGE.value
+    return apply_overrides(c, OVERRIDES.value)
+
+
+@contextlib.contextmanager
+def watching_the_run(seen: dict):
+    """Within: neld_jax.run's load_keyframes and the odometry it calls are wrapped, so that `seen` gets the loaded
+    sequence and keyframes ("loaded", "keyframes"), the raw sweeps KISS-ICP read ("raw": the layout's Sequence) and
+    KISS-ICP's wall time ("odometry_s"), without loading or registering the scans twice."""
+    from neld_jax import run as run_module
+    from neld_jax.data import odometry
+
+    real_load, real_odometry = run_module.load_keyframes, odometry.with_kiss_icp_poses
+
+    def load_keyframes(*args, **kwargs):
+        seen["loaded"], seen["keyframes"] = out = real_load(*args, **kwargs)
+        return out
+
+    def with_kiss_icp_poses(seq, *args, **kwargs):
+        seen["raw"] = seq
+        t0 = time.perf_counter()
+        out = real_odometry(seq, *args, **kwargs)
+        seen["odometry_s"] = time.perf_counter() - t0
+        return out
+
+    run_module.load_keyframes, odometry.with_kiss_icp_poses = load_keyframes, with_kiss_icp_poses
+    try:
+        yield seen
+    finally:
+        run_module.load_keyframes, odometry.with_kiss_icp_poses = real_load, real_odometry
+
+
+@contextlib.contextmanager
+def stdout_to_stderr():
+    """KISS-SLAM's pose-graph optimiser (g2o) prints every iteration to the process's stdout: send it to stderr."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def kiss_slam_poses(raw, min_range_m: float, max_range_m: float, splitting_m: float = 0.0):
+    """KISS-SLAM (its KissSLAM class, as its own pipeline drives it) over the raw sweeps of Sequence `raw` (time
+    order), deskewing by raw.point_times where there are. Returns (poses [S, 4, 4] sensor -> world at the sweeps'
+    stamps, scan 0 at the identity; seconds; {"local_maps", "closures"}). ImportError without kiss-slam."""
+    import numpy as np
+    from kiss_slam.config import KissSLAMConfig
+    from kiss_slam.slam import KissSLAM
+
+    from neld_jax.data.odometry import VOXELS_PER_RANGE, interpolate_poses
+
+    config = KissSLAMConfig()  # its defaults; the range-derived voxel as its load_config derives it
+    config.odometry.preprocessing.min_range = float(min_range_m)
+    config.odometry.preprocessing.max_range = float(max_range_m)
+    config.odometry.preprocessing.deskew = raw.point_times is not None
+    config.odometry.mapping.voxel_size = VOXELS_PER_RANGE * float(max_range_m)
+    config.occupancy_mapper.max_range = float(max_range_m)
+    if splitting_m > 0:
+        config.local_mapper.splitting_distance = float(splitting_m)
+    t0 = time.perf_counter()
+    with stdout_to_stderr():
+        slam = KissSLAM(config)
+        for i, scan in enumerate(raw.scans):
+            times = np.zeros(0) if raw.point_times is None else np.asarray(raw.point_times[i], np.float64)
+            slam.process_scan(np.asarray(scan, np.float64), times)
+        # what kiss_slam.pipeline.SlamPipeline._run_pipeline does after the last scan
+        slam.generate_new_node()
+        slam.local_map_graph.erase_last_local_map()
+        poses, _ = slam.fine_grained_optimization()
+    seconds = time.perf_counter() - t0
+    poses = np.array(poses, np.float64)
+    if len(poses) != raw.num_scans:
+        raise RuntimeError(f"KISS-SLAM gave {len(poses)} poses for {raw.num_scans} sweeps")
+    if raw.point_times is not None and raw.timestamps is not None and raw.num_scans >= 2:
+        # deskewed, KISS-ICP's pose is the sensor's at the sweep's last point: move it to the stamp
+        offsets = np.array([float(np.max(t)) if len(t) else 0.0 for t in raw.point_times])
+        poses = interpolate_poses(raw.timestamps + offsets, poses, raw.timestamps)
+    poses = np.linalg.inv(poses[0]) @ poses
+    info = {"local_maps": len(list(slam.local_map_graph.local_maps())), "closures": len(slam.closures)}
+    return poses, seconds, info
+
+
+def run_baseline_here(config, loaded, keyframes, path_dir: str):
+    """The classical baseline from the keyframes' poses (as neld-baseline), its poses of every input sweep written to
+    path_dir/poses_baseline.txt. Returns its registration seconds."""
+    from neld_jax.baseline import BaselineSettings, register_sequence
+    from neld_jax.export import write_poses
+    from neld_jax.trajectory import propagate_corrections
+
+    t0 = time.perf_counter()
+    poses = register_sequence(keyframes.scans, keyframes.poses, BaselineSettings.from_config(config), report={},
+                              progress=False)
+    seconds = time.perf_counter() - t0
+    write_poses(path_dir, "poses_baseline", loaded.timestamps,
+                propagate_corrections(loaded.poses, keyframes.loaded_index, poses, loaded.timestamps))
+    return seconds
+
+
+def margin_verdict(margin):
+    """A crispness_margins entry -> "every draw" (NeLD-BA crisper on each draw), "a tie", "blurrier", or None."""
+    if not margin:
+        return None
+    if not margin["all_draws_agree"]:
+        return "a tie"
+    return "every draw" if margin["mean"] < 0 else "blurrier"
+
+
+def run_sequence(name: str, root: str, synthetic: bool) -> dict:
+    from neld_jax import judge
+    from neld_jax.data.poses import read_tum
+    from neld_jax.evaluate import match_poses, trajectory_at_keyframes
+    from neld_jax.export import write_poses
+    from neld_jax.metrics import ate
+    from neld_jax.run import run
+
+    out = os.path.join(WORK.value, name)
+    run_dir = os.path.join(out, "neld_ba")
+    shutil.rmtree(run_dir, ignore_errors=True)  # a fresh run, not a resumed one
+    config = run_config(root, run_dir, synthetic)
+    seen = {}
+    t0 = time.perf_counter()
+    with watching_the_run(seen):
+        summary = run(config, progress=False)
+    neld_s = time.perf_counter() - t0
+    r = summary["run"]
+    loaded, keyframes = seen["loaded"], seen["keyframes"]
+    entry = {"sequence": name, "root": root, "input_scans": loaded.num_scans, "keyframes": keyframes.num_scans,
+             "steps": r["steps"], "started_from": r.get("started_from"), "methods": {}}
+    rows = {m: {"method": m} for m in METHODS}
+    files = {"kiss_icp": os.path.join(run_dir, "poses_odometry.txt"), "neld_ba": os.path.join(run_dir,
+                                                                                                "poses_optimized.txt")}
+    if not os.path.exists(files["kiss_icp"]):  # the input came from the layout's own poses after all
+        files["kiss_icp"] = os.path.join(run_dir, "poses_initial.txt")
+        rows["kiss_icp"]["note"] = "the layout's poses, not KISS-ICP's"
+    rows["kiss_icp"]["wall_s"] = None if "odometry_s" not in seen else round(seen["odometry_s"], 1)
+    rows["neld_ba"]["wall_s"] = round(neld_s, 1)
+
+    try:
+        poses, seconds, info = kiss_slam_poses(seen["raw"], float(config.data.min_range_m),
+                                               float(config.data.max_range_m), SLAM_SPLITTING.value)
+        slam_dir = os.path.join(out, "kiss_slam")
+        files["kiss_slam"] = str(write_poses(slam_dir, "poses_kiss_slam", seen["raw"].timestamps, poses)[0])
+        rows["kiss_slam"].update(wall_s=round(seconds, 1), **info)
+    except ImportError:
+        rows["kiss_slam"]["status"] = NOT_INSTALLED
+    except Exception as e:  # its row says why; the others still compare
+        rows["kiss_slam"]["status"] = f"failed: {type(e).__name__}: {e}"
+        logging.error("KISS-SLAM failed on %s:\n%s", name, traceback.format_exc())
+
+    files["baseline"] = os.path.join(run_dir, "poses_baseline.txt")
+    if os.path.exists(files["baseline"]):
+        rows["baseline"]["wall_s"] = r.get("baseline_seconds")
+    else:  # the run started from its input without the baseline: run it here from the same keyframes
+        baseline_dir = os.path.join(out, "baseline")
+        rows["baseline"]["wall_s"] = round(run_baseline_here(config, loaded, keyframes, baseline_dir), 1)
+        files["baseline"] = os.path.join(baseline_dir, "poses_baseline.txt")
+        rows["baseline"]["note"] = "run by the benchmark (the run did not)"
+
+    # ATE over every sweep against the ground truth, matched by stamp as neld-evaluate matches them
+    methods = [m for m in METHODS if m in files]
+    if loaded.gt_poses is not None:
+        for m in methods:
+            stamps, poses = read_tum(files[m])
+            est, gt, _ = match_poses(stamps, loaded.timestamps, len(poses), len(loaded.gt_poses), files[m], 0.01)
+            a = ate(poses[est], loaded.gt_poses[gt])
+            rows[m].update(ate_m=round(a["translation_rmse_m"], 4), ate_rot_deg=round(a["rotation_rmse_deg"], 3),
+                           ate_poses=len(est))
+    # The keyframes' raw map under each trajectory, on the same query draws
+    at_keyframes = {m: trajectory_at_keyframes(files[m], loaded, keyframes, tol=float(config.data.timestamp_tol_s))
+                    for m in methods}
+    crisp, _ = judge.map_crispness(keyframes, at_keyframes, config.eval)
+    margins = judge.crispness_margins(keyframes, at_keyframes, config.eval, against="neld_ba", first_draw=crisp)
+    for m in methods:
+        s = crisp[m]
+        rows[m].update(entropy=None if s["mean_map_entropy"] is None else round(s["mean_map_entropy"], 4),
+                       thickness_cm=None if s["mean_plane_thickness_m"] is None
+                       else round(100 * s["mean_plane_thickness_m"], 3))
+        if m in margins:
+            rows[m].update(neld_ba_margin=margins[m]["mean"], neld_ba_margin_per_draw=margins[m]["per_draw"],
+                           neld_ba_verdict=margin_verdict(margins[m]))
+        rows[m]["poses"] = files[m]
+    entry["methods"] = rows
+    entry["targets"] = target_verdicts(entry, MINUTES_LIMIT.value)
+    return entry
+
+
+def target_verdicts(entry: dict, minutes_limit: float = 10.0) -> dict:
+    """NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's, its raw map crisper than both on every draw (the verdict:
+    "every draw", "a tie", "blurrier"), its whole run within minutes_limit; None where a figure is missing."""
+    rows = entry["methods"]
+    neld = rows["neld_ba"]
+
+    def below(peer):
+        a, b = neld.get("ate_m"), rows[peer].get("ate_m")
+        return None if a is None or b is None else a < b
+
+    return {"ate_below_kiss_icp": below("kiss_icp"), "ate_below_kiss_slam": below("kiss_slam"),
+            "crisper_than_kiss_icp": rows["kiss_icp"].get("neld_ba_verdict"),
+            "crisper_than_kiss_slam": rows["kiss_slam"].get("neld_ba_verdict"),
+            "within_minutes": None if neld.get("wall_s") is None else neld["wall_s"] <= 60 * minutes_limit}
+
+
+def format_table(entry: dict) -> str:
+    """The sequence's rows: method, ATE, crispness, NeLD-BA's margin, wall time (or why a row is empty)."""
+    def cell(value, fmt):
+        return "-" if value is None else format(value, fmt)
+
+    lines = [f"{entry['sequence']}: {entry['input_scans']} sweeps, {entry['keyframes']} keyframes",
+             (f"{'method':<10} {'ATE m':>8} {'ATE deg':>8} {'entropy':>8} {'thick cm':>8} {'NeLD-BA margin':>22} "
+              f"{'wall s':>7}")]
+    for m in METHODS:
+        row = entry["methods"][m]
+        if "status" in row:
+            lines.append(f"{m:<10} {row['status']}")
+            continue
+        margin = ("" if "neld_ba_margin" not in row
+                  else f"{row['neld_ba_margin']:+.4f} {row['neld_ba_verdict']}")
+        lines.append(f"{m:<10} {cell(row.get('ate_m'), '8.4f')} {cell(row.get('ate_rot_deg'), '8.3f')} "
+                     f"{cell(row.get('entropy'), '8.4f')} {cell(row.get('thickness_cm'), '8.3f')} {margin:>22} "
+                     f"{cell(row.get('wall_s'), '7.1f')}")
+    return "\n".join(lines)
+
+
+def format_targets(results: list[dict]) -> str:
+    lines = []
+    for entry in results:
+        if "error" in entry:
+            lines.append(f"{entry['sequence']}: failed: {entry['error']}")
+            continue
+        cells = ", ".join(f"{k} {'yes' if v is True else 'NO' if v is False else v}"
+                          for k, v in entry["targets"].items())
+        lines.append(f"{entry['sequence']}: {cells}")
+    return "\n".join(lines)
+
+
+def sequences() -> list[tuple[str, str, tuple | None]]:
+    """(name, root, (seed, loop radius) of a synthetic sequence or None) of every --sequences and --roots item."""
+    out = []
+    for item in SEQUENCES.value:
+        kind, seed, radius = (item.split(":") + [""])[:3]
+        if kind != "synthetic10hz" or not seed.isdigit() or not (radius == "" or radius.replace(".", "", 1).isdigit()):
+            raise app.UsageError(f"--sequences item {item!r}: expected synthetic10hz:SEED[:RADIUS_M]")
+        radius_m = float(radius or SYNTHETIC["trajectory_radius_m"])
+        name = f"synthetic10hz_{seed}_r{radius_m:g}_{NUM_SCANS.value}"
+        out.append((name, os.path.join(WORK.value, name, "data"), (int(seed), radius_m)))
+    for root in ROOTS.value:
+        out.append((os.path.basename(os.path.normpath(root)), root, None))
+    return out
+
+
+def main(argv):
+    del argv
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    todo = sequences()
+    results = []
+    for name, root, synthetic in todo:
+        try:
+            if synthetic:
+                make_synthetic(*synthetic, root)
+            entry = run_sequence(name, root, synthetic is not None)
+            print(format_table(entry), flush=True)
+        except Exception as e:  # one line per failed sequence; the others still run
+            entry = {"sequence": name, "error": f"{type(e).__name__}: {e}"}
+            logging.error("%s failed:\n%s", name, traceback.format_exc())
+        results.append(entry)
+        os.makedirs(os.path.dirname(os.path.abspath(OUT.value)), exist_ok=True)
+        with open(OUT.value, "w") as f:
+            json.dump({"config": CONFIG.value, "overrides": OVERRIDES.value, "num_scans": NUM_SCANS.value,
+                       "slam_splitting_m": SLAM_SPLITTING.value or None, "sequences": results}, f, indent=1)
+    print(f"targets (NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's, its raw map crisper than both on every draw, "
+          f"the whole run within {MINUTES_LIMIT.value:g} minutes):\n" + format_targets(results), flush=True)
+    print(f"written to {OUT.value}", flush=True)
+
+
+if __name__ == "__main__":
+    reexec_with_huge_page_malloc()
+    app.run(main)

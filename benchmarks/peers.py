@@ -44,6 +44,7 @@ import traceback
 
 from absl import app, flags
 
+import real_targets  # this folder's benchmarks/real_targets.py: the targets' table
 from neld_jax.hugepages import reexec_with_huge_page_malloc
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -293,7 +294,7 @@ def run_sequence(name: str, root: str, synthetic: bool) -> dict:
                            neld_ba_verdict=margin_verdict(margins[m]))
         rows[m]["poses"] = files[m]
     entry["methods"] = rows
-    entry["targets"] = target_verdicts(entry, MINUTES_LIMIT.value)
+    entry["targets"] = {"peers": target_verdicts(entry, MINUTES_LIMIT.value)}
     return entry
 
 
@@ -334,18 +335,6 @@ def format_table(entry: dict) -> str:
     return "\n".join(lines)
 
 
-def format_targets(results: list[dict]) -> str:
-    lines = []
-    for entry in results:
-        if "error" in entry:
-            lines.append(f"{entry['sequence']}: failed: {entry['error']}")
-            continue
-        cells = ", ".join(f"{k} {'yes' if v is True else 'NO' if v is False else v}"
-                          for k, v in entry["targets"].items())
-        lines.append(f"{entry['sequence']}: {cells}")
-    return "\n".join(lines)
-
-
 def sequences() -> list[tuple[str, str, tuple | None]]:
     """(name, root, (seed, loop radius) of a synthetic sequence or None) of every --sequences and --roots item."""
     out = []
@@ -381,7 +370,8 @@ def main(argv):
             json.dump({"config": CONFIG.value, "overrides": OVERRIDES.value, "num_scans": NUM_SCANS.value,
                        "slam_splitting_m": SLAM_SPLITTING.value or None, "sequences": results}, f, indent=1)
     print(f"targets (NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's, its raw map crisper than both on every draw, "
-          f"the whole run within {MINUTES_LIMIT.value:g} minutes):\n" + format_targets(results), flush=True)
+          f"the whole run within {MINUTES_LIMIT.value:g} minutes):\n" + real_targets.format_targets(results),
+          flush=True)
     print(f"written to {OUT.value}", flush=True)
 
 

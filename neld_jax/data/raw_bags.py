@@ -35,6 +35,7 @@ from neld_jax.data.rosbag_import import (
     cloud_point_times,
     cloud_xyz,
     list_topics,
+    open_bag_reader,
     stamp_seconds,
     time_field_of,
     topic_connections,
@@ -81,23 +82,6 @@ def _paths(bag) -> list[Path]:
     return [Path(p) for p in (bag if isinstance(bag, (list, tuple)) else [bag])]
 
 
-def _open_reader(paths: list[Path]):
-    """An opened rosbags AnyReader over paths; DataError naming a bag that is missing or unreadable."""
-    from rosbags.highlevel import AnyReader, AnyReaderError
-    from rosbags.typesys import Stores, get_typestore
-
-    for p in paths:
-        if not p.exists():
-            raise DataError(f"{p}: bag does not exist")
-    # ROS1 bags carry their message definitions; the Noetic store is only the fallback AnyReader asks for.
-    reader = AnyReader(paths, default_typestore=get_typestore(Stores.ROS1_NOETIC))
-    try:
-        reader.open()
-    except AnyReaderError as exc:
-        raise DataError(f"{', '.join(str(p) for p in paths)}: cannot read the bag ({exc})") from exc
-    return reader
-
-
 def read_lidar_bag(bag: str | os.PathLike | list, topic: str) -> RawSweeps:
     """Every cloud of `topic` in `bag` (a ROS1 .bag, a ROS2 bag folder, or a list of the parts of one recording)
     as raw sweeps (module docstring). Raises DataError, one line naming the bag: a bag that does not exist or
@@ -105,7 +89,7 @@ def read_lidar_bag(bag: str | os.PathLike | list, topic: str) -> RawSweeps:
     x/y/z (naming the message), no cloud with a valid point."""
     paths = _paths(bag)
     label = ", ".join(str(p) for p in paths)
-    reader = _open_reader(paths)
+    reader = open_bag_reader(paths)
     stamps, scans, times, labels = [], [], [], []
     sweeps = RawSweeps(bag=[str(p) for p in paths], topic=topic, timestamps=np.zeros(0), scans=[], point_times=None,
                        labels=[])
@@ -176,7 +160,7 @@ def pick_topic(bag: str | os.PathLike | list, candidates: tuple[str, ...]) -> st
     """The first of `candidates` (topics, in order of preference) that the bag has; DataError naming the bag, the
     candidates and the topics it has when none."""
     paths = _paths(bag)
-    reader = _open_reader(paths)
+    reader = open_bag_reader(paths)
     try:
         present = {c.topic for c in reader.connections}
         found = next((topic for topic in candidates if topic in present), None)

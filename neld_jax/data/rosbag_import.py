@@ -209,6 +209,24 @@ def topic_connections(reader, topic: str, types: tuple[str, ...], bag: str, what
     return found
 
 
+def open_bag_reader(paths: list[Path]):
+    """An opened rosbags AnyReader over paths (the parts of one recording); DataError naming a bag that is missing or
+    cannot be read."""
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.typesys import Stores, get_typestore
+
+    for p in paths:
+        if not p.exists():
+            raise DataError(f"{p}: bag does not exist")
+    # ROS1 bags carry their message definitions; the Noetic store is only the fallback AnyReader asks for.
+    reader = AnyReader(paths, default_typestore=get_typestore(Stores.ROS1_NOETIC))
+    try:
+        reader.open()
+    except AnyReaderError as exc:
+        raise DataError(f"{', '.join(str(p) for p in paths)}: cannot read the bag ({exc})") from exc
+    return reader
+
+
 def import_bag(
     bag_paths: str | os.PathLike | list,
     out_dir: str | os.PathLike,
@@ -230,27 +248,17 @@ def import_bag(
     out_dir already holds scans (a second import would mix two recordings). odometry_topic '' (or the default
     topic absent from the bag): the raw-sweep import, no poses (module docstring); a named odometry topic that
     is missing stays an error."""
-    from rosbags.highlevel import AnyReader, AnyReaderError
-    from rosbags.typesys import Stores, get_typestore
     from tqdm import tqdm
 
     paths = [Path(p) for p in (bag_paths if isinstance(bag_paths, (list, tuple)) else [bag_paths])]
     bag = ", ".join(str(p) for p in paths)
-    for p in paths:
-        if not p.exists():
-            raise DataError(f"{p}: bag does not exist")
     if stride < 1:
         raise DataError(f"stride must be at least 1, got {stride}")
     out = Path(out_dir)
     if (out / "scans").is_dir() and any((out / "scans").iterdir()):
         raise DataError(f"{out / 'scans'}: already holds scans; import into an empty folder")
 
-    # ROS1 bags carry their message definitions; the Noetic store is only the fallback AnyReader asks for.
-    reader = AnyReader(paths, default_typestore=get_typestore(Stores.ROS1_NOETIC))
-    try:
-        reader.open()
-    except AnyReaderError as exc:
-        raise DataError(f"{bag}: cannot read the bag ({exc})") from exc
+    reader = open_bag_reader(paths)
     try:
         cloud_conns = topic_connections(reader, cloud_topic, CLOUD_TYPES, bag, "cloud")
         if not odometry_topic or (odometry_topic == DEFAULT_ODOMETRY_TOPIC

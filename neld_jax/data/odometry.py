@@ -119,12 +119,15 @@ def with_kiss_icp_poses(seq: Sequence, min_range_m: float, max_range_m: float, p
             raise DataError(f"{seq.source or seq.name}: the scans' stamps must increase for odometry (first out of "
                             f"order: {labels[int(np.argmax(np.diff(seq.timestamps) <= 0)) + 1]})")
         warn_about_gaps(seq.timestamps, labels)
-    point_times = seq.point_times if seq.timestamps is not None else None
+    point_times = seq.point_times
     logger.info("%s: making the initial poses from the %d scans with KISS-ICP (%s)", seq.source or seq.name,
                 seq.num_scans, "deskewing by the points' own times" if point_times is not None else "rigid scans")
+    if point_times is not None and seq.timestamps is None:
+        logger.warning("%s: the scans have per-point times but no stamps: each pose and deskewed scan is the "
+                       "sensor's at its sweep's last point", seq.source or seq.name)
     started = time.perf_counter()
     poses, sweeps, offsets = kiss_icp_odometry(seq.scans, point_times, labels, min_range_m, max_range_m, progress)
-    if point_times is not None and seq.num_scans >= 2:  # from the sweeps' last instants to their stamps
+    if point_times is not None and seq.timestamps is not None and seq.num_scans >= 2:  # last instants -> stamps
         at_stamps = interpolate_poses(seq.timestamps + offsets, poses, seq.timestamps)
         moved = np.linalg.inv(at_stamps) @ poses
         sweeps = [sweep @ m[:3, :3].T + m[:3, 3] for sweep, m in zip(sweeps, moved)]

@@ -67,8 +67,8 @@ def kiss_icp_odometry(scans: list[np.ndarray], point_times: list[np.ndarray] | N
             if overlap < MIN_OVERLAP:
                 raise DataError(
                     f"{labels[i]}: KISS-ICP lost track here: {overlap:.0%} of its points lie within {voxel:.2f} m of "
-                    f"{labels[i - 1]}'s after registration (a jump or a dropped stretch); give the sequence poses, "
-                    "or run the part before it (data.max_scans) and the part after it (data.first_scan) apart")
+                    f"{labels[i - 1]}'s after registration (a jump or a dropped stretch); give the sequence its poses "
+                    "(poses.txt, an odometry topic) or split its scans here and run the parts apart")
         if len(source_world):
             previous = cKDTree(source_world)
         poses.append(pose)

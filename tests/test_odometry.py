@@ -170,3 +170,13 @@ def test_a_newer_college_download_in_two_bags_loads_as_raw_sweeps(sweeps, tmp_pa
     loaded = load_sequence(data)
     assert loaded.poses_from == "kiss_icp" and loaded.num_scans == NUM_SWEEPS
     assert metrics.ate(loaded.poses, loaded.gt_poses)["translation_rmse_m"] < 0.1
+
+
+def test_lost_track_is_relative_to_the_sensors_own_overlap():
+    spinning = np.full(20, 0.85)  # synthetic 10 Hz sweeps from one to the next
+    livox_like = np.full(20, 0.61)  # FAST-LIO2 keyframes of a real handheld recording, in the median
+    assert odometry.lost_track(spinning, 0.20)  # a jump into another courtyard
+    assert odometry.lost_track(spinning, 0.23)  # a 2 s gap
+    assert not odometry.lost_track(spinning, 0.71)  # a 1 s gap: registered (warned about by its stamps)
+    assert not odometry.lost_track(livox_like, 0.49)  # a tracked real step an absolute 0.5 would have stopped
+    assert not odometry.lost_track(spinning[:3], 0.1)  # too few sweeps yet to know the sensor's overlap

@@ -7,7 +7,11 @@ Time. Where the points carry their own times (raw sweeps), KISS-ICP deskews each
 and gives the sensor's pose at that instant (measured on synthetic sweeps: its deskewed points lie 2 cm from the
 truth in the frame at the sweep's end, 23 cm in the frame at its start). The sequence's stamps and ground truth
 refer to the sweeps' stamps (an Ouster stamps a sweep at its start), so the poses are interpolated from those
-end instants to the stamps, and each deskewed sweep is moved into the frame at its stamp.
+end instants to the stamps. The sweeps are then deskewed again, each point along the finished trajectory
+(deskewed_along): KISS-ICP deskews a sweep before registering it, by the motion of the sweep before; the trajectory
+knows the motion during the sweep itself. Measured on 300 synthetic 10 Hz sweeps, keyframes one a second: the
+keyframes' raw map under the true poses -3.73 nats deskewed by KISS-ICP, -4.24 along the trajectory (-5.09 with the
+true motion, -3.74 not deskewed), and the classical baseline from them 2.6 cm -> 1.6 cm ATE (0.09 cm, 6.9 cm).
 
 Losing track. A jump or a dropped stretch does not stop KISS-ICP: it registers the next sweep wherever its
 constant-velocity guess and ICP lead, and the map bends. After each registration, the share of the sweep's
@@ -118,6 +122,21 @@ def interpolate_poses(times: np.ndarray, poses: np.ndarray, query: np.ndarray) -
     return out
 
 
+def deskewed_along(trajectory_times: np.ndarray, trajectory: np.ndarray, stamp: float, points: np.ndarray,
+                   point_times: np.ndarray, min_range_m: float, max_range_m: float) -> np.ndarray:
+    """A raw sweep's points [N, 3] (each in the sensor frame at stamp + its point_times [N] seconds) within the
+    ranges, moved into the sensor frame at `stamp` along the trajectory [S, 4, 4] at trajectory_times [S]
+    (interpolate_poses): [M, 3]. Each point moves by the motion the trajectory has between the stamp and its own
+    instant, not by a constant velocity guessed from the sweep before (module docstring)."""
+    distance = np.linalg.norm(points, axis=1)
+    keep = (distance >= min_range_m) & (distance <= max_range_m)
+    instants, which = np.unique(point_times[keep], return_inverse=True)  # a spinning LiDAR's columns share times
+    at = interpolate_poses(trajectory_times, trajectory, np.r_[stamp, stamp + instants])
+    relative = np.linalg.inv(at[0]) @ at[1:]  # [U, 4, 4]: the sensor at each instant in the frame at the stamp
+    rotation, translation = relative[which, :3, :3], relative[which, :3, 3]
+    return np.einsum("nij,nj->ni", rotation, points[keep]) + translation
+
+
 def warn_about_gaps(timestamps: np.ndarray, labels: list[str]) -> np.ndarray:
     """Warn (naming the scan) where consecutive stamps [S] lie GAP_WARNING_PERIODS median periods apart or more;
     returns the indices [G] of the scans after a gap."""
@@ -152,9 +171,10 @@ def with_kiss_icp_poses(seq: Sequence, min_range_m: float, max_range_m: float, p
     started = time.perf_counter()
     poses, sweeps, offsets = kiss_icp_odometry(seq.scans, point_times, labels, min_range_m, max_range_m, progress)
     if point_times is not None and seq.timestamps is not None and seq.num_scans >= 2:  # last instants -> stamps
-        at_stamps = interpolate_poses(seq.timestamps + offsets, poses, seq.timestamps)
-        moved = np.linalg.inv(at_stamps) @ poses
-        sweeps = [sweep @ m[:3, :3].T + m[:3, 3] for sweep, m in zip(sweeps, moved)]
+        trajectory_times = seq.timestamps + offsets
+        at_stamps = interpolate_poses(trajectory_times, poses, seq.timestamps)
+        sweeps = [deskewed_along(trajectory_times, poses, stamp, scan, times, min_range_m, max_range_m)
+                  for stamp, scan, times in zip(seq.timestamps, seq.scans, point_times)]
         poses = np.linalg.inv(at_stamps[0]) @ at_stamps  # scan 0 at the identity, as KISS-ICP starts
     logger.info("KISS-ICP odometry: %d scans in %.1f s (ranges %.1f-%.1f m, voxel %.2f m)", seq.num_scans,
                 time.perf_counter() - started, min_range_m, max_range_m, VOXELS_PER_RANGE * max_range_m)

@@ -10,7 +10,7 @@ refer to the sweeps' stamps (an Ouster stamps a sweep at its start), so the pose
 end instants to the stamps. The sweeps are then deskewed again, each point along the finished trajectory
 (deskewed_along): KISS-ICP deskews a sweep before registering it, by the motion of the sweep before; the trajectory
 knows the motion during the sweep itself. Measured on 300 synthetic 10 Hz sweeps, keyframes one a second: the
-keyframes' raw map under the true poses -3.73 nats deskewed by KISS-ICP, -4.24 along the trajectory (-5.09 with the
+keyframes' raw map under the true poses -3.73 nats deskewed by KISS-ICP, -4.23 along the trajectory (-5.09 with the
 true motion, -3.74 not deskewed), and the classical baseline from them 2.6 cm -> 1.6 cm ATE (0.09 cm, 6.9 cm).
 
 Losing track. A jump or a dropped stretch does not stop KISS-ICP: it registers the next sweep wherever its
@@ -25,9 +25,8 @@ voxel 0.4 m) 0.61-0.69 in the median, and no tracked step below 0.71 of its medi
 0.5 would have stopped HKU_2 at a tracked step (0.49). What the share cannot see: ICP that slides along the scene
 and keeps the overlap (on those keyframes, which are not KISS-ICP's input, it went 0.5-2 m wrong on single steps
 with overlaps like the tracked steps'; the rule fired at that step on the main building, 60-200 keyframes later on
-the other three). A gap of GAP_WARNING_PERIODS sweep periods or
-more in the stamps is warned about, naming the scan: after a 1 s gap the synthetic overlap stays at 0.71 but the
-trajectory's error doubled.
+the other three). A gap of GAP_WARNING_PERIODS sweep periods or more in the stamps is warned about, naming the
+scan: after a 1 s gap the synthetic overlap stays at 0.71 but the trajectory's error doubled.
 """
 
 from __future__ import annotations

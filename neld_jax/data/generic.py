@@ -35,7 +35,7 @@ from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S
 
 logger = logging.getLogger(__name__)
 
-POINT_TIMES_FOLDER = "point_times"  # as rosbag_import writes it
+POINT_TIMES_FOLDER = "point_times"  # raw sweeps' per-point times beside scans/ (which takes any .npy as a scan)
 
 
 def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
@@ -47,7 +47,8 @@ def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERAN
     zero-padded frame numbers such as 000012.pcd are not) are they matched by timestamp, nearest within
     `tol` seconds. Ground-truth poses follow the same rule (a different count is matched against the scan
     timestamps). drop_unmatched_tail: see layout.align_poses (a few trailing scans without a pose are dropped
-    with a warning instead of an error)."""
+    with a warning instead of an error). Without poses.txt: the scans in name order, stamped by their names when
+    those are times, poses None (load_sequence makes them)."""
     root = check_root(root)
     scan_folder = root / "scans"
     files = sorted_by_name(list_scans(scan_folder))
@@ -55,40 +56,34 @@ def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERAN
     names_are_times = all(t is not None for t in name_times)
 
     pose_file = root / "poses.txt"
-    if not pose_file.is_file():
-        return with_point_times(_without_poses(root, files, name_times if names_are_times else None, tol), root)
+    if not pose_file.is_file():  # load_sequence makes the poses from the scans
+        logger.info("%s: no poses.txt: the initial poses will be made from the %d scans", root, len(files))
+        timestamps = np.asarray(name_times, dtype=np.float64) if names_are_times else None
+        seq = build_sequence(root, files, None, timestamps, _ground_truth(root, files, timestamps, False, tol),
+                             "no poses")
+        return with_point_times(seq, root)
     pose_times, poses = read_tum(pose_file)
     by_time = names_are_times and poses.shape[0] != len(files)
     scan_times = np.asarray(name_times, dtype=np.float64) if by_time else None
     aligned = align_poses(poses, pose_times, pose_file, files, scan_times, tol=tol,
                           drop_unmatched_tail=drop_unmatched_tail, root=root)
     files = [files[i] for i in aligned.scan_indices]
-    timestamps = aligned.timestamps
+    gt_poses = _ground_truth(root, files, aligned.timestamps, by_time, tol)
+    seq = build_sequence(root, files, aligned.poses, aligned.timestamps, gt_poses, pose_file)
+    return with_point_times(seq, root)
 
-    gt_poses = None
+
+def _ground_truth(root: Path, files: list[Path], timestamps: np.ndarray | None, by_time: bool,
+                  tol: float) -> np.ndarray | None:
+    """ROOT/gt_poses.txt matched to the scans files [S] ([S, 4, 4]), None without the file: by time (timestamps [S])
+    when the poses were matched by time or the counts differ, else by order."""
     gt_file = root / "gt_poses.txt"
-    if gt_file.is_file():
-        gt_times, gt_all = read_tum(gt_file)
-        gt_by_time = by_time or (gt_all.shape[0] != len(files))
-        gt_poses = align_poses(gt_all, gt_times, gt_file, files, timestamps if gt_by_time else None,
-                               tol=tol, root=root).poses
-
-    return with_point_times(build_sequence(root, files, aligned.poses, timestamps, gt_poses, pose_file), root)
-
-
-def _without_poses(root: Path, files: list[Path], name_times: list[float] | None, tol: float) -> Sequence:
-    """The scans in name order without initial poses (load_sequence makes them from the scans), stamped by their
-    names when those are times; ground truth by order, or by time when the counts differ."""
-    logger.info("%s: no poses.txt: the initial poses will be made from the %d scans", root, len(files))
-    timestamps = None if name_times is None else np.asarray(name_times, dtype=np.float64)
-    gt_poses = None
-    gt_file = root / "gt_poses.txt"
-    if gt_file.is_file():
-        gt_times, gt_all = read_tum(gt_file)
-        by_time = timestamps is not None and gt_all.shape[0] != len(files)
-        gt_poses = align_poses(gt_all, gt_times, gt_file, files, timestamps if by_time else None, tol=tol,
-                               root=root).poses
-    return build_sequence(root, files, None, timestamps, gt_poses, "no poses")
+    if not gt_file.is_file():
+        return None
+    gt_times, gt_all = read_tum(gt_file)
+    gt_by_time = by_time or gt_all.shape[0] != len(files)
+    return align_poses(gt_all, gt_times, gt_file, files, timestamps if gt_by_time else None, tol=tol,
+                       root=root).poses
 
 
 def with_point_times(seq: Sequence, root: Path) -> Sequence:

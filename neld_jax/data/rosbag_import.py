@@ -56,6 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
+from neld_jax.data.generic import POINT_TIMES_FOLDER
 from neld_jax.data.poses import make_poses, write_tum
 from neld_jax.data.scans import drop_invalid_points, valid_points, write_scan
 from neld_jax.data.timing import nearest_times
@@ -70,7 +71,6 @@ DEFAULT_TOLERANCE_S = 0.01
 CLOUD_TYPES = ("sensor_msgs/msg/PointCloud2",)
 POSE_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped")
 METADATA_FILE = "import.json"
-POINT_TIMES_FOLDER = "point_times"
 _LISTED = 5
 
 # sensor_msgs/PointField datatypes (INT8=1 ... FLOAT64=8) as numpy types.

@@ -653,7 +653,7 @@ def write_generic(seq: Sequence, root) -> None:
     sweeps (point_times set) are named by their stamps (<seconds>.pcd) with point_times/<stamp>.npy beside, as
     bin/import_rosbag.py writes a bag without odometry; without poses (None) no poses.txt is written."""
     from neld_jax.data.poses import write_tum
-    from neld_jax.data.rosbag_import import POINT_TIMES_FOLDER
+    from neld_jax.data.generic import POINT_TIMES_FOLDER
     from neld_jax.data.scans import write_scan
 
     root = Path(root)

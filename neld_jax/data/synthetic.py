@@ -652,8 +652,8 @@ def write_generic(seq: Sequence, root) -> None:
     Scans are written as binary PCD (float32 coordinates). Without timestamps, 0, 1, 2, ... are written. Raw
     sweeps (point_times set) are named by their stamps (<seconds>.pcd) with point_times/<stamp>.npy beside, as
     bin/import_rosbag.py writes a bag without odometry; without poses (None) no poses.txt is written."""
-    from neld_jax.data.poses import write_tum
     from neld_jax.data.generic import POINT_TIMES_FOLDER
+    from neld_jax.data.poses import write_tum
     from neld_jax.data.scans import write_scan
 
     root = Path(root)

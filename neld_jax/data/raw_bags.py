@@ -14,7 +14,7 @@ Points with NaN/inf coordinates or exactly at (0, 0, 0) (no return: organised Ou
 with their times and counted (scans.valid_points). A cloud left with no point is skipped and counted. Messages are
 ordered by header stamp, so the parts of a split recording can be given in any order.
 
-The PointCloud2 decoding is rosbag_import's (cloud_xyz, cloud_point_times); `rosbags` is imported inside the functions,
+The PointCloud2 decoding is rosbag_import's (cloud_sweep); `rosbags` is imported inside the functions,
 so the data layer imports without it.
 """
 
@@ -32,8 +32,8 @@ from neld_jax.data.rosbag_import import (
     CLOUD_TYPES,
     POINTFIELD_TYPES,
     TIME_FIELDS,
-    cloud_point_times,
-    cloud_xyz,
+    as_bag_paths,
+    cloud_sweep,
     list_topics,
     open_bag_reader,
     stamp_seconds,
@@ -78,16 +78,12 @@ class RawSweeps:
 # --------------------------------------------------------------------------------------------------
 
 
-def _paths(bag) -> list[Path]:
-    return [Path(p) for p in (bag if isinstance(bag, (list, tuple)) else [bag])]
-
-
 def read_lidar_bag(bag: str | os.PathLike | list, topic: str) -> RawSweeps:
     """Every cloud of `topic` in `bag` (a ROS1 .bag, a ROS2 bag folder, or a list of the parts of one recording)
     as raw sweeps (module docstring). Raises DataError, one line naming the bag: a bag that does not exist or
     cannot be read, a missing topic (listing the bag's topics), a topic that is not PointCloud2, a cloud without
     x/y/z (naming the message), no cloud with a valid point."""
-    paths = _paths(bag)
+    paths = as_bag_paths(bag)
     label = ", ".join(str(p) for p in paths)
     reader = open_bag_reader(paths)
     stamps, scans, times, labels = [], [], [], []
@@ -106,15 +102,13 @@ def read_lidar_bag(bag: str | os.PathLike | list, topic: str) -> RawSweeps:
             name = f"{owner}:{topic}#{index:06d}"
             sweeps.clouds_read += 1
             sweeps.frame_id = sweeps.frame_id or str(msg.header.frame_id)
-            time_name = time_field_of(msg)
             try:
-                points = cloud_xyz(msg)
-                point_times = cloud_point_times(msg, stamp, time_name) if time_name else None
+                points, point_times = cloud_sweep(msg, stamp)
             except ValueError as exc:
                 raise DataError(f"{label}: {name} (t={stamp:.6f}): {exc}") from None
             if point_times is None and not no_time_fields:
                 no_time_fields = f"{name} has fields {', '.join(f.name for f in msg.fields)}"
-            sweeps.time_field = sweeps.time_field or time_name
+            sweeps.time_field = sweeps.time_field or time_field_of(msg)
             keep, counts = valid_points(points)
             sweeps.dropped["non-finite"] += counts["non-finite"]
             sweeps.dropped["zero"] += counts["zero"]
@@ -159,7 +153,7 @@ def bags_in(root: Path, preferred: str = "") -> list[Path]:
 def pick_topic(bag: str | os.PathLike | list, candidates: tuple[str, ...]) -> str:
     """The first of `candidates` (topics, in order of preference) that the bag has; DataError naming the bag, the
     candidates and the topics it has when none."""
-    paths = _paths(bag)
+    paths = as_bag_paths(bag)
     reader = open_bag_reader(paths)
     try:
         present = {c.topic for c in reader.connections}

@@ -151,6 +151,18 @@ def cloud_point_times(msg, stamp: float, name: str) -> np.ndarray:
     return values.astype(np.float64)
 
 
+def cloud_sweep(msg, stamp: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """A PointCloud2 as a raw sweep: x, y, z [N, 3] float64 and each point's time [N] in seconds after `stamp` from
+    the first of TIME_FIELDS it has (None without one). Every point, none dropped; ValueError as cloud_fields."""
+    time_name = time_field_of(msg)
+    return cloud_xyz(msg), (cloud_point_times(msg, stamp, time_name) if time_name else None)
+
+
+def as_bag_paths(bag: str | os.PathLike | list) -> list[Path]:
+    """A bag, or the list of the parts of one recording, as paths."""
+    return [Path(p) for p in (bag if isinstance(bag, (list, tuple)) else [bag])]
+
+
 def pose_matrix(msg, msgtype: str) -> np.ndarray:
     """nav_msgs/Odometry or geometry_msgs/PoseStamped -> its pose as a 4x4 (child frame -> header frame)."""
     pose = msg.pose.pose if msgtype == "nav_msgs/msg/Odometry" else msg.pose
@@ -250,7 +262,7 @@ def import_bag(
     is missing stays an error."""
     from tqdm import tqdm
 
-    paths = [Path(p) for p in (bag_paths if isinstance(bag_paths, (list, tuple)) else [bag_paths])]
+    paths = as_bag_paths(bag_paths)
     bag = ", ".join(str(p) for p in paths)
     if stride < 1:
         raise DataError(f"stride must be at least 1, got {stride}")
@@ -356,9 +368,7 @@ def import_bag(
         logger.warning("%s: %s is in '%s', the odometry's world frame: the scans are registered already "
                        "(data.scans_in_world_frame=True moves them into the sensor frame for training)",
                        bag, cloud_topic, result.frame)
-    (out / METADATA_FILE).write_text(json.dumps(asdict(result), indent=2) + "\n")
-    logger.info("wrote %d scans (%d points) to %s; %s", result.scans_written, result.points_written, out, result.note)
-    return result
+    return _recorded(out, result)
 
 
 def _import_sweeps(reader, cloud_conns, out: Path, result: ImportResult, stride: int, progress: bool) -> ImportResult:
@@ -380,13 +390,12 @@ def _import_sweeps(reader, cloud_conns, out: Path, result: ImportResult, stride:
         stamp = stamp_seconds(msg.header)
         t = stamp + result.time_offset_s
         result.frame = result.frame or str(msg.header.frame_id)
-        time_name = time_field_of(msg)
         try:
-            # rounded to float32 as the .pcd stores them, then filtered: the file reads back exactly these points
-            points = cloud_xyz(msg).astype(np.float32).astype(np.float64)
-            times = cloud_point_times(msg, stamp, time_name) if time_name else None
+            points, times = cloud_sweep(msg, stamp)
         except ValueError as exc:
             raise DataError(f"{bag}: {result.cloud_topic} message {index} (t={t:.6f}): {exc}") from None
+        # rounded to float32 as the .pcd stores them, then filtered: the file reads back exactly these points
+        points = points.astype(np.float32).astype(np.float64)
         keep, dropped = valid_points(points)
         result.points_skipped["non-finite"] += dropped["non-finite"]
         result.points_skipped["zero"] += dropped["zero"]
@@ -417,6 +426,11 @@ def _import_sweeps(reader, cloud_conns, out: Path, result: ImportResult, stride:
                    f"stamp{'' if not result.time_offset_s else f' + {result.time_offset_s} s'}; "
                    f"{result.point_times_written} have their point times in {POINT_TIMES_FOLDER}/; no poses.txt: "
                    "training makes the poses with KISS-ICP")
+    return _recorded(out, result)
+
+
+def _recorded(out: Path, result: ImportResult) -> ImportResult:
+    """result, after writing it to OUT/import.json and logging what was written."""
     (out / METADATA_FILE).write_text(json.dumps(asdict(result), indent=2) + "\n")
     logger.info("wrote %d scans (%d points) to %s; %s", result.scans_written, result.points_written, out, result.note)
     return result

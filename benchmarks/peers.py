@@ -42,9 +42,9 @@ import sys
 import time
 import traceback
 
+import real_targets  # this folder's benchmarks/real_targets.py: the targets' table
 from absl import app, flags
 
-import real_targets  # this folder's benchmarks/real_targets.py: the targets' table
 from neld_jax.hugepages import reexec_with_huge_page_malloc
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -161,7 +161,11 @@ def kiss_slam_poses(raw, min_range_m: float, max_range_m: float, splitting_m: fl
     from kiss_slam.config import KissSLAMConfig
     from kiss_slam.slam import KissSLAM
 
-    from neld_jax.data.odometry import VOXELS_PER_RANGE, interpolate_poses
+    from neld_jax.data.odometry import (
+        VOXELS_PER_RANGE,
+        last_point_offsets,
+        poses_at_stamps,
+    )
 
     config = KissSLAMConfig()  # its defaults; the range-derived voxel as its load_config derives it
     config.odometry.preprocessing.min_range = float(min_range_m)
@@ -187,8 +191,7 @@ def kiss_slam_poses(raw, min_range_m: float, max_range_m: float, splitting_m: fl
         raise RuntimeError(f"KISS-SLAM gave {len(poses)} poses for {raw.num_scans} sweeps")
     if raw.point_times is not None and raw.timestamps is not None and raw.num_scans >= 2:
         # deskewed, KISS-ICP's pose is the sensor's at the sweep's last point: move it to the stamp
-        offsets = np.array([float(np.max(t)) if len(t) else 0.0 for t in raw.point_times])
-        poses = interpolate_poses(raw.timestamps + offsets, poses, raw.timestamps)
+        poses = poses_at_stamps(raw.timestamps, last_point_offsets(raw.point_times), poses)
     poses = np.linalg.inv(poses[0]) @ poses
     info = {"local_maps": len(list(slam.local_map_graph.local_maps())), "closures": len(slam.closures)}
     return poses, seconds, info

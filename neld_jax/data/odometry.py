@@ -50,14 +50,15 @@ VOXELS_PER_RANGE = 1.0 / 100.0  # KISS-ICP's own voxel: a hundredth of the maxim
 
 
 def kiss_icp_odometry(scans: list[np.ndarray], point_times: list[np.ndarray] | None, labels: list[str],
-                      min_range_m: float, max_range_m: float,
-                      progress: bool = False) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+                      min_range_m: float, max_range_m: float, keep_sweeps: bool = True,
+                      progress: bool = False) -> tuple[np.ndarray, list[np.ndarray] | None, np.ndarray]:
     """KISS-ICP over scans [S] x [N_i, 3] (sensor frame, time order), deskewing where point_times [S] x [N_i]
     (seconds after each scan's stamp) are given. labels [S] name the scans in a lost-track error.
 
     Returns (poses [S, 4, 4] sensor -> world at each sweep's reference instant (scan 0's at the identity),
-    the sweeps [S] x [M_i, 3] deskewed into the frame at that instant and cropped to the ranges,
-    offsets [S] seconds from each stamp to that instant: the last point's time, 0 without point times)."""
+    the sweeps [S] x [M_i, 3] deskewed into the frame at that instant and cropped to the ranges (None unless
+    keep_sweeps: a caller that deskews again need not hold a second copy of every sweep), offsets [S] seconds from
+    each stamp to that instant: the last point's time, 0 without point times)."""
     from kiss_icp.config import KISSConfig
     from kiss_icp.kiss_icp import KissICP
     from scipy.spatial import cKDTree
@@ -87,10 +88,10 @@ def kiss_icp_odometry(scans: list[np.ndarray], point_times: list[np.ndarray] | N
         if len(source_world):
             previous = cKDTree(source_world)
         poses.append(pose)
-        sweeps.append(np.asarray(sweep, np.float64))
-    offsets = np.zeros(len(scans)) if point_times is None else np.array(
-        [float(np.max(t)) if len(t) else 0.0 for t in point_times])
-    return np.stack(poses), sweeps, offsets
+        if keep_sweeps:
+            sweeps.append(np.asarray(sweep, np.float64))
+    offsets = np.zeros(len(scans)) if point_times is None else last_point_offsets(point_times)
+    return np.stack(poses), (sweeps if keep_sweeps else None), offsets
 
 
 def recent_overlap(overlaps: np.ndarray) -> float:
@@ -103,6 +104,19 @@ def lost_track(overlaps: np.ndarray, overlap: float) -> bool:
     sweeps before it overlapped theirs by overlaps [K] (module docstring): below LOST_OVERLAP_RATIO x their recent
     median, once MIN_OVERLAP_HISTORY of them are known."""
     return len(overlaps) >= MIN_OVERLAP_HISTORY and overlap < LOST_OVERLAP_RATIO * recent_overlap(overlaps)
+
+
+def last_point_offsets(point_times: list[np.ndarray]) -> np.ndarray:
+    """[S] seconds from each sweep's stamp to its last point (per-point times [S] x [N_i]; 0 for an empty sweep):
+    the instant KISS-ICP's pose of a deskewed sweep refers to."""
+    return np.array([float(np.max(t)) if len(t) else 0.0 for t in point_times])
+
+
+def poses_at_stamps(timestamps: np.ndarray, offsets: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Poses [S, 4, 4] at the stamps [S] from poses [S, 4, 4] at stamps + offsets [S] (interpolate_poses), scan 0
+    at the identity as KISS-ICP starts."""
+    at_stamps = interpolate_poses(timestamps + offsets, poses, timestamps)
+    return np.linalg.inv(at_stamps[0]) @ at_stamps
 
 
 def interpolate_poses(times: np.ndarray, poses: np.ndarray, query: np.ndarray) -> np.ndarray:
@@ -168,13 +182,13 @@ def with_kiss_icp_poses(seq: Sequence, min_range_m: float, max_range_m: float, p
         logger.warning("%s: the scans have per-point times but no stamps: each pose and deskewed scan is the "
                        "sensor's at its sweep's last point", seq.source or seq.name)
     started = time.perf_counter()
-    poses, sweeps, offsets = kiss_icp_odometry(seq.scans, point_times, labels, min_range_m, max_range_m, progress)
-    if point_times is not None and seq.timestamps is not None and seq.num_scans >= 2:  # last instants -> stamps
-        trajectory_times = seq.timestamps + offsets
-        at_stamps = interpolate_poses(trajectory_times, poses, seq.timestamps)
-        sweeps = [deskewed_along(trajectory_times, poses, stamp, scan, times, min_range_m, max_range_m)
+    along_trajectory = point_times is not None and seq.timestamps is not None and seq.num_scans >= 2
+    poses, sweeps, offsets = kiss_icp_odometry(seq.scans, point_times, labels, min_range_m, max_range_m,
+                                               keep_sweeps=not along_trajectory, progress=progress)
+    if along_trajectory:  # from the sweeps' last instants to their stamps, deskewed along the trajectory
+        sweeps = [deskewed_along(seq.timestamps + offsets, poses, stamp, scan, times, min_range_m, max_range_m)
                   for stamp, scan, times in zip(seq.timestamps, seq.scans, point_times)]
-        poses = np.linalg.inv(at_stamps[0]) @ at_stamps  # scan 0 at the identity, as KISS-ICP starts
+        poses = poses_at_stamps(seq.timestamps, offsets, poses)
     logger.info("KISS-ICP odometry: %d scans in %.1f s (ranges %.1f-%.1f m, voxel %.2f m)", seq.num_scans,
                 time.perf_counter() - started, min_range_m, max_range_m, VOXELS_PER_RANGE * max_range_m)
     return dataclasses.replace(seq, scans=sweeps, poses=poses, point_times=None, poses_from="kiss_icp")

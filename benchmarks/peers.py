@@ -213,15 +213,6 @@ def run_baseline_here(config, loaded, keyframes, path_dir: str):
     return seconds
 
 
-def margin_verdict(margin):
-    """A crispness_margins entry -> "every draw" (NeLD-BA crisper on each draw), "a tie", "blurrier", or None."""
-    if not margin:
-        return None
-    if not margin["all_draws_agree"]:
-        return "a tie"
-    return "every draw" if margin["mean"] < 0 else "blurrier"
-
-
 def run_sequence(name: str, root: str, synthetic: bool) -> dict:
     from neld_jax import judge
     from neld_jax.data.poses import read_tum
@@ -294,7 +285,7 @@ def run_sequence(name: str, root: str, synthetic: bool) -> dict:
                        else round(100 * s["mean_plane_thickness_m"], 3))
         if m in margins:
             rows[m].update(neld_ba_margin=margins[m]["mean"], neld_ba_margin_per_draw=margins[m]["per_draw"],
-                           neld_ba_verdict=margin_verdict(margins[m]))
+                           neld_ba_verdict=real_targets.margin_verdict(margins[m]))
         rows[m]["poses"] = files[m]
     entry["methods"] = rows
     entry["targets"] = {"peers": target_verdicts(entry, MINUTES_LIMIT.value)}

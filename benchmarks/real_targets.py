@@ -9,7 +9,7 @@ the baseline's. A margin's verdict is the run's own (run.crispness_margin over e
 from __future__ import annotations
 
 
-def _margin_verdict(margin: dict | None):
+def margin_verdict(margin: dict | None):
     """run.crispness_margin's entry for one other method -> "every draw" (NeLD-BA crisper on each query draw),
     "a tie" (the draws disagree in sign), "blurrier" (blurrier on each), or None without draws."""
     if not margin:
@@ -39,7 +39,7 @@ def target_verdicts(entry: dict, start: str, minutes_limit: float = 10.0) -> dic
             "every_scan_a_pose": (None if recorded.get("pose_lines") is None
                                   else recorded["pose_lines"] == recorded["scans"]),
             "crisper_than_odometry": below(entropy(crisp, "optimized"), entropy(crisp, "initial"), strictly=True),
-            "crisper_than_baseline": _margin_verdict((recorded.get("crispness_margin") or {}).get("baseline")),
+            "crisper_than_baseline": margin_verdict((recorded.get("crispness_margin") or {}).get("baseline")),
         }
     drift = entry.get("drift")
     if drift is not None:
@@ -53,7 +53,7 @@ def target_verdicts(entry: dict, start: str, minutes_limit: float = 10.0) -> dic
             "as_crisp_as_odometry": below(entropy(drift["crispness"], "optimized"),
                                           None if recorded is None else entropy(recorded["crispness"], "initial")),
             "ate_at_or_below_baseline": below(ate.get("optimized"), ate.get("baseline")),
-            "crisper_than_baseline": _margin_verdict((drift.get("crispness_margin") or {}).get("baseline")),
+            "crisper_than_baseline": margin_verdict((drift.get("crispness_margin") or {}).get("baseline")),
         }
     return out
 

@@ -4,6 +4,8 @@
     python bin/train.py --config=configs/demo.py:paper   # the paper's model and schedule on the same data
     python bin/train.py --config=configs/demo.py:gpu     # the gpu budget (the default where a GPU is JAX's backend)
 
+No budget named: cpu, or gpu where JAX's default backend is a GPU.
+
 Prints the pose and map error before and after the bundle adjustment.
 """
 

@@ -7,8 +7,8 @@ As downloaded, ROOT/<sequence>.bag: the Ouster's raw sweeps, made into poses by 
 without poses"). The devkit's export, the better start where present: ROOT/algorithm_result/ouster00_undistort/points/{data/000000.pcd, timestamps.txt}, ROOT/algorithm_result/odometry/
 odometry.txt; ground truth groundtruth/traj/<sequence>.txt and groundtruth/map/<sequence>/merged_scan.pcd are found
 beside or above ROOT (or set data.gt_poses_path / data.gt_map_path), moved into the scans' frame with the dataset's
-published extrinsic (data.gt_from_scan overrides it). No budget named: gpu where JAX's default backend is a GPU,
-else paper; :cpu sizes it for 2 CPU cores.
+published extrinsic (data.gt_from_scan overrides it). No budget named: cpu (within 10 minutes on 2 CPU
+cores), or gpu where JAX's default backend is a GPU; :paper is the paper's schedule.
 """
 
 from neld_jax import config

@@ -1,9 +1,10 @@
 """A sequence in the generic layout (docs/design.md): ROOT/scans/*, ROOT/poses.txt (TUM), optional ground truth;
 what neld-import-rosbag and neld-perturb write.
 
-    python bin/train.py --config=configs/generic.py:cpu --config.data.root=/data/seq --config.output_dir=runs/seq
+    python bin/train.py --config=configs/generic.py --config.data.root=/data/seq --config.output_dir=runs/seq
 
-No budget named: gpu where JAX's default backend is a GPU, else paper (neld_jax.config).
+No budget named: cpu (within 10 minutes on 2 CPU cores), or gpu where JAX's default backend is a GPU; :paper is the
+paper's schedule (neld_jax.config).
 """
 
 from neld_jax import config

@@ -12,7 +12,8 @@ poses"). A FAST-LIO2 run, the better start where present:
 
 The ground truth (base frame in 2021) is moved into the scans' frame with the published extrinsic
 (data.scan_frame=os_imu for a FAST-LIO2 run with the Ouster IMU extrinsic, data.gt_from_scan for any other).
-No budget named: gpu where JAX's default backend is a GPU, else paper.
+No budget named: cpu (within 10 minutes on 2 CPU cores), or gpu where JAX's default backend is a GPU; :paper is the
+paper's schedule.
 """
 
 from neld_jax import config

@@ -30,7 +30,7 @@ import numpy as np
 from neld_jax import judge, metrics
 from neld_jax.baseline import BaselineSettings, register_sequence
 from neld_jax.errors import ConfigError
-from neld_jax.train import PoseSteps
+from neld_jax.train import PoseSteps, fixed_rows
 
 logger = logging.getLogger(__name__)
 
@@ -107,6 +107,7 @@ def choose_start(config: ml_collections.ConfigDict, keyframes, deadline: float |
     how = str(config.start.poses).lower()
     if how not in CHOICES:
         raise ConfigError(f"start.poses: unknown value {config.start.poses!r} ({' | '.join(CHOICES)})")
+    fixed_rows(config, keyframes.num_scans)  # train.fixed_scans names keyframes: checked before the baseline runs
     if how == "input":
         return Start(keyframes.poses, "input", PoseSteps.from_config(config))
     t0 = time.perf_counter()

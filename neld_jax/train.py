@@ -37,6 +37,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from neld_jax import losses
+from neld_jax.errors import ConfigError
 from neld_jax.field import DensityField, field_from_config
 from neld_jax.model import (SamplerSettings, body_corrections, corrected_poses, in_units, render_rays,
                             world_rays)
@@ -280,11 +281,12 @@ def pose_transform(schedules: Schedules, pose_steps: PoseSteps, fixed: np.ndarra
 
 
 def fixed_rows(config: ml_collections.ConfigDict, num_scans: int) -> np.ndarray:
-    """[S] bool: the rows of train.fixed_scans."""
+    """[S] bool: the rows of train.fixed_scans; a ConfigError naming the field for a scan not among the S."""
     fixed = np.zeros(num_scans, bool)
     for s in config.train.fixed_scans:
         if not -num_scans <= int(s) < num_scans:
-            raise ValueError(f"train.fixed_scans names scan {s}, but the sequence has {num_scans} keyframes")
+            raise ConfigError(f"train.fixed_scans = {tuple(config.train.fixed_scans)!r}: scan {s} is not one of the "
+                              f"{num_scans} keyframes")
         fixed[int(s)] = True
     return fixed
 

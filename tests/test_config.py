@@ -109,16 +109,35 @@ def test_the_recipe_follows_the_data_not_the_layout():
     assert _parse("lio_keyframes.py:paper").start.poses == "input"  # the paper budget is the paper's
 
 
-def test_no_budget_named_is_gpu_on_a_gpu_and_unchanged_on_a_cpu(monkeypatch):
+def test_no_budget_named_is_cpu_on_a_cpu_and_gpu_on_a_gpu(monkeypatch):
+    # Every config in configs/ without an argument: the cpu budget on a CPU, whose clock ends the run within 10
+    # minutes; the gpu budget where JAX's default backend is a GPU.
     import jax
 
+    names = sorted(name for name in os.listdir(os.path.join(REPO, "configs")) if name.endswith(".py"))
+    assert set(RECORDED_LAYOUTS) | {"demo.py"} <= set(names)
     assert jax.default_backend() == "cpu"
-    assert _parse("generic.py").budget == "paper" and _parse("newer_college.py").budget == "paper"
-    assert _parse("demo.py").budget == "cpu"
+    for name in names:
+        c = _parse(name)
+        assert c.budget == "cpu" and 0 < c.max_minutes <= 10 and c.train.steps == 1500, name
+        assert c.to_dict() == _parse(f"{name}:cpu").to_dict(), name
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    for name in ("demo.py",) + RECORDED_LAYOUTS:
+    for name in names:
         assert _parse(name).budget == "gpu", name
-    assert config_module.default_budget("cpu") == "gpu"
+    assert config_module.default_budget() == "gpu"
+
+
+def test_a_long_run_without_a_time_limit_on_a_cpu_is_warned_about():
+    # The paper's schedule on 2 cores: 160k steps at the measured 11.8 s a paper-size step, about 22 days.
+    paper = config_module.recording("paper")
+    assert config_module.cpu_training_hours(paper, cores=2) == pytest.approx(160_000 * 11.8 / 3600)
+    warning = config_module.slow_run_warning(paper, "cpu", cores=2)
+    assert "160000 steps" in warning and "about 22 days" in warning and "2 cores" in warning
+    assert "\n" not in warning
+    assert config_module.slow_run_warning(paper, "gpu", cores=2) == ""
+    assert config_module.slow_run_warning(config_module.recording("cpu"), "cpu", cores=2) == ""  # max_minutes
+    paper.max_minutes = 30.0  # a time limit compresses the schedule: nothing to warn about
+    assert config_module.slow_run_warning(paper, "cpu", cores=2) == ""
 
 
 def test_budget_name_is_not_hashed_and_an_unknown_budget_is_an_error():
@@ -151,3 +170,83 @@ def test_overrides_parse_literals_and_bare_strings():
 def test_bad_overrides_name_the_field(item, message):
     with pytest.raises(ConfigError, match=message):
         apply_overrides(defaults(), [item])
+
+
+def _valid(name: str = "generic.py:cpu"):
+    c = _parse(name)
+    c.unlock()
+    c.data.root = "/data/seq" if c.data.format != "synthetic" else ""
+    return c
+
+
+def test_every_field_has_a_rule_and_every_shipped_config_passes():
+    assert set(config_module.leaves(defaults())) == set(config_module.RULES)
+    for path, _, _ in config_module.RELATIONS:
+        assert path in config_module.RULES, path
+    for name in ("demo.py",) + RECORDED_LAYOUTS:
+        for budget in ("cpu", "gpu", "paper"):
+            config_module.validate(_valid(f"{name}:{budget}"))
+
+
+def test_the_rules_choices_are_those_of_the_readers():
+    from neld_jax import field, start
+    from neld_jax.data import formats, ground_truth, synthetic
+
+    assert config_module.FORMATS == tuple(formats.FORMATS) and config_module.KISS_ICP == formats.KISS_ICP
+    assert config_module.START_POSES == start.CHOICES
+    assert config_module.RULES["model.matmul_dtype"].choices == field.MATMUL_DTYPES
+    published = {}
+    for (release, frame) in ground_truth.PUBLISHED_GT_FROM_SCAN:
+        published.setdefault(release.replace("_2021", "").replace("_2020", ""), []).append(frame)
+    assert {k: tuple(dict.fromkeys(v)) for k, v in published.items()} == config_module.SCAN_FRAMES
+    assert config_module.RULES["data.synthetic.max_range_m"].low == synthetic.MIN_RANGE_M
+    assert synthetic.PATH_WOBBLE == 0.08  # config._loop_fits
+
+
+@pytest.mark.parametrize("field, value, expected", [
+    ("sampling.hierarchical", "nerff", "expected one of before | nerf | none"),
+    ("submaps.enabled", "maybe", "expected one of auto | on | off"),
+    ("train.fixed_scans", (0, 1.5), "expected a tuple of integers"),
+    ("train.steps", 0, "expected an integer >= 1"),
+    ("train.c2f_end_fraction", 1.5, "expected a number >= 0 and <= 1"),
+    ("model.matmul_dtype", "float16", "expected one of float32 | bfloat16"),
+    ("data.format", "kitti360", "expected one of generic | fusionportable"),
+    ("data.gt_from_scan", (1.0, 2.0), "expected () or a tuple of 7 numbers"),
+    ("start.pose_lr_from_baseline", (1e-5,), "expected () or a tuple of 2 numbers >= 0"),
+    ("submaps.field_lr_from_steps", (6000, 0), "expected () or a tuple of 2 numbers > 0"),
+    ("max_minutes", -1.0, "expected a number >= 0"),
+    ("model.surrogate_gradient", 1, "expected True or False"),
+    # what fields accept together
+    ("data.max_range_m", 0.4, "expected more than data.min_range_m"),
+    ("sampling.fine_stages", (16, 8), "expected as many stages as sampling.coarse_stages"),
+    ("model.skip_layers", (4,), "expected hidden layers below model.depth"),
+    ("data.scan_frame", "os_imu", "expected '' or a published frame of data.format"),
+    ("data.initial_poses", "odom.txt", "a pose file's name only with data.format=lio_keyframes"),
+    ("data.gt_from_scan", (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0), "with a unit quaternion"),
+])
+def test_a_bad_value_is_one_line_naming_the_field_its_value_and_what_it_accepts(field, value, expected):
+    c = _valid("fusionportable.py:cpu")
+    *parents, leaf = field.split(".")
+    node = c
+    for part in parents:
+        node = node[part]
+    node.__dict__["_fields"][leaf] = value  # as a config file may set it, past the type check of ConfigDict
+    with pytest.raises(ConfigError) as raised:
+        config_module.validate(c)
+    message = str(raised.value)
+    assert message.startswith(f"{field} = {value!r}: ") and expected in message and "\n" not in message
+
+
+def test_a_field_the_defaults_lack_and_a_nerf_sampler_with_too_few_samples_are_errors():
+    c = _valid()
+    c.train.stepz = 3  # a config file's typo
+    with pytest.raises(ConfigError, match=r"^train.stepz = 3: the config has no such field"):
+        config_module.validate(c)
+    c = _valid()
+    c.sampling.hierarchical = "nerf"
+    c.sampling.coarse_stages, c.sampling.fine_stages = (2,), (16,)
+    with pytest.raises(ConfigError, match=r"^sampling.coarse_stages = \(2,\): expected at least 3 samples"):
+        config_module.validate(c)
+    c = _parse("generic.py:cpu")
+    with pytest.raises(ConfigError, match=r"^data.root = '': expected a folder"):
+        config_module.validate(c)

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from neld_jax import train
 from neld_jax.config import defaults, with_budget
+from neld_jax.errors import ConfigError
 from neld_jax.model import world_poses
 
 from conftest import fake_training_clock, make_tiny_config, similarity_scale, sphere_plan
@@ -122,7 +123,7 @@ def test_schedules_follow_the_paper_at_full_size():
 def test_fixed_scan_out_of_range_is_an_error():
     config = make_tiny_config()
     config.train.fixed_scans = (5,)
-    with pytest.raises(ValueError, match="fixed_scans names scan 5"):
+    with pytest.raises(ConfigError, match=r"train.fixed_scans = \(5,\): scan 5 is not one of the 3 keyframes"):
         train.fixed_rows(config, 3)
 
 

@@ -1,24 +1,30 @@
 """neld-train (bin/train.py): neural LiDAR bundle adjustment of one sequence.
 
     neld-train --config=configs/demo.py                      # synthetic demo, no dataset needed
-    neld-train --config=configs/generic.py:cpu --config.data.root=DIR --config.output_dir=OUT
-    neld-train --config=configs/lio_keyframes.py:cpu --config.data.root=/data/HKU_1_bag
+    neld-train --config=configs/generic.py --config.data.root=DIR --config.output_dir=OUT
+    neld-train --config=configs/lio_keyframes.py:paper --config.data.root=/data/HKU_1_bag   # the paper's schedule
+
+No budget named: cpu (within 10 minutes on 2 cores), or gpu where JAX's default backend is a GPU (neld_jax.config).
 
 A rerun with the same output_dir resumes from its latest checkpoint. Several hosts: NELD_JAX_COORDINATOR=host:port
 with NELD_JAX_NUM_PROCESSES and NELD_JAX_PROCESS_ID join this process to the others before jax starts, so that the
 submaps' mesh spans every host's devices.
 """
 
+import logging
 import os
 
 from neld_jax.cli import main_with_config
 
 
 def job(config) -> None:
+    from neld_jax.config import slow_run_warning
     from neld_jax.evaluate import format_table
     from neld_jax.judge import format_crispness_table
     from neld_jax.run import run
 
+    if slow := slow_run_warning(config):  # e.g. :paper on a CPU: weeks
+        logging.getLogger(__name__).warning(slow)
     summary = run(config)
     r = summary["run"]
     print(f"{r['steps']} steps in {r['train_seconds']:.0f} s on {r['num_scans']} keyframes of {r['num_input_scans']} "

@@ -367,6 +367,10 @@ RELATIONS = (
      c.data.format.lower() == "synthetic"),
     ("data.initial_poses", f"'' or {KISS_ICP} (a pose file's name only with data.format=lio_keyframes)",
      lambda c: c.data.initial_poses in ("", KISS_ICP) or c.data.format.lower() == "lio_keyframes"),
+    ("data.scans_in_world_frame", f"False with data.initial_poses={KISS_ICP} (it needs the layout's own poses)",
+     lambda c: not c.data.scans_in_world_frame or c.data.initial_poses != KISS_ICP),
+    ("data.invert_poses", f"False with data.initial_poses={KISS_ICP} (it needs the layout's own poses)",
+     lambda c: not c.data.invert_poses or c.data.initial_poses != KISS_ICP),
     ("data.scan_frame", "'' or a published frame of data.format (fusionportable: body_imu | ouster00; newer_college: "
      "os_sensor | os_imu)", lambda c: c.data.scan_frame in ("",) + SCAN_FRAMES.get(c.data.format.lower(), ())),
     ("data.gt_from_scan", "() or (tx, ty, tz, qx, qy, qz, qw) with a unit quaternion",

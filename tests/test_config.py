@@ -237,7 +237,7 @@ def test_a_bad_value_is_one_line_naming_the_field_its_value_and_what_it_accepts(
     assert message.startswith(f"{field} = {value!r}: ") and expected in message and "\n" not in message
 
 
-def test_a_field_the_defaults_lack_and_a_nerf_sampler_with_too_few_samples_are_errors():
+def test_a_field_the_defaults_lack_and_fields_that_do_not_go_together_are_errors():
     c = _valid()
     c.train.stepz = 3  # a config file's typo
     with pytest.raises(ConfigError, match=r"^train.stepz = 3: the config has no such field"):
@@ -249,4 +249,8 @@ def test_a_field_the_defaults_lack_and_a_nerf_sampler_with_too_few_samples_are_e
         config_module.validate(c)
     c = _parse("generic.py:cpu")
     with pytest.raises(ConfigError, match=r"^data.root = '': expected a folder"):
+        config_module.validate(c)
+    c = _valid()
+    c.data.initial_poses, c.data.invert_poses = "kiss_icp", True
+    with pytest.raises(ConfigError, match=r"^data.invert_poses = True: expected False with data.initial_poses=kiss_icp"):
         config_module.validate(c)

@@ -179,7 +179,7 @@ def test_train_on_the_layout_writes_every_input_scan_and_quality(tmp_path):
     assert perturbed.returncode == 0, perturbed.stderr[-2000:]
     assert "wrote 6 scans" in perturbed.stdout
     out = tmp_path / "out"
-    args = ["--config=configs/generic.py", f"--config.data.root={tmp_path / 'drift'}", f"--config.output_dir={out}",
+    args = ["--config=configs/generic.py:paper", f"--config.data.root={tmp_path / 'drift'}", f"--config.output_dir={out}",
             "--config.data.keyframe_interval_s=2.0", "--config.model.width=16", "--config.model.depth=2",
             "--config.model.skip_layers=(1,)", "--config.model.pos_freqs=6", "--config.model.dir_freqs=2",
             "--config.sampling.coarse_stages=(8,)", "--config.sampling.fine_stages=(4,)",

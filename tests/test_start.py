@@ -72,6 +72,9 @@ def test_the_input_start_runs_no_baseline_and_an_unknown_start_is_an_error(monke
     config.start.poses = "maybe"
     with pytest.raises(ConfigError, match="start.poses"):
         start.choose_start(config, seq)
+    config.start.poses, config.train.fixed_scans = "baseline", (seq.num_scans,)  # a keyframe the sequence lacks
+    with pytest.raises(ConfigError, match=rf"train.fixed_scans = \({seq.num_scans},\): scan"):
+        start.choose_start(config, seq)  # before the baseline runs
 
 
 def test_the_crisper_start_is_the_one_with_the_crisper_map(monkeypatch):

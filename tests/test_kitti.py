@@ -103,7 +103,7 @@ def test_a_broken_download_is_one_line_naming_the_file(scans, tmp_path):
 
     with open(root / "velodyne" / "000001.bin", "ab") as f:
         f.write(b"\0" * 5)
-    with pytest.raises(DataError, match=r"000001.bin: \d+ bytes is not a multiple of 16"):
+    with pytest.raises(DataError, match=r"000001.bin: KITTI .bin size \d+ bytes is not a multiple of 16"):
         load_kitti(root)
 
     with pytest.raises(DataError, match=r"no velodyne/ folder"):

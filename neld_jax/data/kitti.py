@@ -43,7 +43,6 @@ from neld_jax.errors import DataError
 logger = logging.getLogger(__name__)
 
 VERTICAL_ANGLE_OFFSET_DEG = 0.205  # the HDL-64E's elevations in KITTI are this much too low (KISS-ICP's correction)
-RECORD_BYTES = 16  # float32 x, y, z, reflectance
 CALIB_TR = "Tr"  # velodyne -> camera 0, row-major 3x4
 
 
@@ -98,18 +97,13 @@ def camera_to_lidar(camera_poses: np.ndarray, velodyne_to_camera: np.ndarray) ->
 
 
 def _scan_files(root: Path) -> list[Path]:
-    """The velodyne/*.bin files in name order; DataError for a missing folder or a size that is not whole records."""
+    """The velodyne/ scans in name order (a .bin that is not whole 16-byte records is a DataError when read:
+    scans.read_scan); DataError for a missing folder."""
     velodyne = root / "velodyne"
     if not velodyne.is_dir():
         raise DataError(f"{root}: no velodyne/ folder (KITTI odometry: ROOT = sequences/NN with velodyne/NNNNNN.bin, "
                         "times.txt, calib.txt)")
-    files = sorted_by_name(list_scans(velodyne))
-    for f in files:
-        size = f.stat().st_size
-        if f.suffix.lower() == ".bin" and size % RECORD_BYTES:
-            raise DataError(f"{f}: {size} bytes is not a multiple of {RECORD_BYTES} (float32 x, y, z, reflectance "
-                            "per point): a truncated or foreign file")
-    return files
+    return sorted_by_name(list_scans(velodyne))
 
 
 def _ground_truth_file(root: Path) -> Path | None:

@@ -19,6 +19,7 @@ intrinsic calibration error that KISS-ICP corrects in its KITTI loader (the same
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from pathlib import Path
@@ -133,8 +134,7 @@ def load_kitti(root: str | os.PathLike, gt_map_file: Path | None = None) -> Sequ
         gt_poses = camera_to_lidar(camera_poses, velodyne_to_camera)
         logger.info("%s: ground truth from %s, moved into the LiDAR frame with calib.txt's Tr", root, gt_file)
     seq = build_sequence(root, files, None, times, gt_poses, "no poses", gt_map_file)
-    seq.scans = [corrected_elevations(scan) for scan in seq.scans]
-    return seq
+    return dataclasses.replace(seq, scans=[corrected_elevations(scan) for scan in seq.scans])
 
 
 def load(data_cfg) -> Sequence:

@@ -50,10 +50,11 @@ class SweepConvention:
 
     def describe(self) -> str:
         """The convention in words, for the log."""
-        where = {0.0: "in front of", 0.5: "left of", 1.0: "behind", -0.5: "right of"}.get(
+        where = {0.0: "in front of", 0.5: "left of", 1.0: "behind", -1.0: "behind", -0.5: "right of"}.get(
             round(float(np.angle(np.exp(1j * self.start_azimuth_rad))) / np.pi, 3),
             f"at azimuth {np.degrees(self.start_azimuth_rad):.0f} deg from")
-        return f"starting {where} the sensor, turning {'clockwise' if self.clockwise else 'anticlockwise'} seen from above"
+        turning = "clockwise" if self.clockwise else "anticlockwise"
+        return f"starting {where} the sensor, turning {turning} seen from above"
 
 
 VELODYNE = SweepConvention(start_azimuth_rad=np.pi, clockwise=True)

@@ -5,11 +5,12 @@ A spinning LiDAR measures a point when its head faces the point's azimuth, so th
 start is the fraction of a turn from the start azimuth, in the direction the head turns, times the sweep's period.
 The times are seconds after the scan's stamp, taken as the sweep's start (as an Ouster stamps a sweep), in [0, T).
 
-The convention (SweepConvention): Velodyne heads (KITTI's HDL-64E among them) turn clockwise seen from above, and
-their sweeps start and end behind the sensor (azimuth pi in a frame with x forward): KISS-ICP's own KITTI raw loader
-(kiss_icp/datasets/kitti_raw.py) stamps the points so, and on the city drive of raw 64-beam sweeps this convention
-gave the crispest consecutive sweeps of the ones tried (docs/datasets.md, "Sweeps without point times"). The
-synthetic generator's sensor turns the other way from the front (SweepConvention(0.0, clockwise=False)).
+The convention (SweepConvention): the sweep starts and ends behind the sensor (azimuth pi in a frame with x
+forward) and the head turns clockwise seen from above, as Velodyne heads spin and as KISS-ICP's own KITTI raw loader
+(kiss_icp/datasets/kitti_raw.py) stamps the points. KITTI's raw readme says its HDL-64E turns counter-clockwise, and
+a raw 64-beam city drive stores each ring anticlockwise from the front; deskewing that drive by either convention
+left consecutive sweeps no crisper than not deskewing (docs/datasets.md, "Sweeps without point times"), so the data
+did not decide. The synthetic generator's sensor turns anticlockwise from the front (SweepConvention(0.0, False)).
 
 What it cannot know: a head whose lasers fire at azimuth offsets of their own (the HDL-64E's reach several degrees)
 gives points measured together azimuths a little apart (a few ms at 10 Hz), and a point within that offset of the

@@ -14,7 +14,7 @@ from neld_jax.errors import ConfigError
 from neld_jax.outputs import config_hash
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-RECORDED_LAYOUTS = ("generic.py", "fusionportable.py", "newer_college.py", "lio_keyframes.py", "hba.py")
+RECORDED_LAYOUTS = ("generic.py", "fusionportable.py", "newer_college.py", "lio_keyframes.py", "hba.py", "kitti.py")
 # What a layout's config may set: how to read it, where to write, how its ground truth is aligned
 READING_FIELDS = {"data.format", "data.keyframe_interval_s", "output_dir", "eval.map_icp_m"}
 

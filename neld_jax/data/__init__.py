@@ -5,9 +5,9 @@ imports any other neld_jax module):
 - `sequence`: the in-memory `Sequence` every loader returns, pose-jump checks;
 - `timing`: timestamp files, nearest-time lookup, matching scans to poses by time;
 - `formats`: the registry of formats and `load_sequence(config.data)`; one module per format: `generic`,
-  `fusionportable`, `newer_college`, `lio_keyframes`, `hba`, `synthetic` (also the generator's defaults);
+  `fusionportable`, `newer_college`, `lio_keyframes`, `hba`, `kitti`, `synthetic` (also the generator's defaults);
   `layout`: what the folder formats share; `ground_truth`: explicit paths and published frame offsets;
-  `frames`: scans and poses in the expected frames;
+  `frames`: scans and poses in the expected frames; `sweep_times`: per-point times of raw sweeps from azimuths;
 - `preprocess`: keyframes, range crop, voxel grid, and `load_keyframes(config.data)`, what a run reads; `normalize`: the [-1, 1]^3 cube; `rays`: training rays;
 - `pseudo_gt`: drifted copies of real sequences; `rosbag_import`: rosbags into the generic layout.
 

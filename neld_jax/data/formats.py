@@ -7,10 +7,13 @@ Each format is one module with a `load(data_cfg) -> Sequence` (config.data.forma
     newer_college   newer_college.py   2021 (imported clouds + gt CSV) or 2020 (cloud_<sec>_<nsec>.pcd)
     lio_keyframes   lio_keyframes.py   Scans/ + KITTI poses + times.txt, as LiDAR-inertial front-ends save them
     hba             hba.py             HBA's input: pcd/<i>.pcd + pose.json
+    kitti           kitti.py           KITTI odometry: sequences/NN/velodyne/*.bin + times.txt + calib.txt, poses/NN.txt
     synthetic       synthetic.py       a seeded synthetic sequence with exact ground truth (no files)
 
 load_sequence adds what every folder format gets: the scan and pose frames converted or checked (frames.py), and a
-warning naming what was looked for when no ground truth is found.
+warning naming what was looked for when no ground truth is found. Scans without poses get KISS-ICP's (odometry.py);
+those of a layout of raw sweeps (RAW_SWEEP_FORMATS) that carry no per-point times get times from their azimuths
+first (sweep_times.py), so that KISS-ICP and the trajectory deskew them.
 """
 
 from __future__ import annotations
@@ -25,9 +28,11 @@ from neld_jax.data import (
     generic,
     ground_truth,
     hba,
+    kitti,
     lio_keyframes,
     newer_college,
     odometry,
+    sweep_times,
     synthetic,
 )
 from neld_jax.data.sequence import Sequence
@@ -43,8 +48,12 @@ FORMATS = {
     "newer_college": newer_college.load,
     "lio_keyframes": lio_keyframes.load,
     "hba": hba.load,
+    "kitti": kitti.load,
     "synthetic": synthetic.load,
 }
+# Layouts whose scans may be raw sweeps with no time field: the generic folder (a driver's PCD export). KITTI's
+# odometry scans are compensated for the motion already (kitti.py); keyframe layouts hold deskewed scans.
+RAW_SWEEP_FORMATS = ("generic",)
 
 # Where each folder format looks for ground truth by itself (for the "evaluation is skipped" warning).
 GT_SEARCHED = {
@@ -54,6 +63,7 @@ GT_SEARCHED = {
     "newer_college": ("ROOT/gt-nc-*.csv, gt_state_*.csv or registered_poses.csv", "ROOT/gt_map.pcd|ply"),
     "lio_keyframes": ("nothing (the layout has no ground truth)", "ROOT/gt_map.pcd|ply"),
     "hba": ("nothing (the layout has no ground truth)", "ROOT/gt_map.pcd|ply"),
+    "kitti": ("../../poses/<NN>.txt or ROOT/poses.txt (KITTI 3x4, camera 0)", "ROOT/gt_map.pcd|ply"),
 }
 
 
@@ -81,6 +91,8 @@ def load_sequence(data_cfg) -> Sequence:
         if data_cfg.get("scans_in_world_frame", False) or data_cfg.get("invert_poses", False):
             raise ConfigError(f"{root}: data.scans_in_world_frame / data.invert_poses need the layout's own poses, "
                               f"not data.initial_poses={KISS_ICP} or none")
+        if fmt in RAW_SWEEP_FORMATS:
+            seq = sweep_times.with_azimuth_times(seq)
         seq = odometry.with_kiss_icp_poses(seq, data_cfg.min_range_m, data_cfg.max_range_m)
         return seq if fmt == "synthetic" else _report_missing_ground_truth(seq, data_cfg, fmt, root)
     if fmt == "synthetic":  # generated in the sensor frame with exact ground truth: nothing to convert or report

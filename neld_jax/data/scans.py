@@ -77,12 +77,10 @@ def _read_open3d(path: Path, ext: str) -> np.ndarray:
 
 
 def _read_kitti_bin(path: Path) -> np.ndarray:
-    raw = np.fromfile(path, dtype=np.float32)
-    if raw.size % 4 != 0:
-        raise DataError(
-            f"{path}: KITTI .bin size {raw.size * 4} bytes is not a multiple of 16 (float32 x, y, z, intensity)"
-        )
-    return raw.reshape(-1, 4)[:, :3].astype(np.float64)
+    size = path.stat().st_size  # the file's, not what fromfile reads: it drops a trailing partial float unsaid
+    if size % 16 != 0:
+        raise DataError(f"{path}: KITTI .bin size {size} bytes is not a multiple of 16 (float32 x, y, z, intensity)")
+    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)[:, :3].astype(np.float64)
 
 
 def _read_npy(path: Path) -> np.ndarray:

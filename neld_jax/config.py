@@ -164,7 +164,7 @@ def defaults() -> ml_collections.ConfigDict:
 # that they agree): the config imports neither the loaders (Open3D) nor the model (Flax).
 # ---------------------------------------------------------------------------------------------------------------
 
-FORMATS = ("generic", "fusionportable", "newer_college", "lio_keyframes", "hba", "synthetic")  # data.formats.FORMATS
+FORMATS = ("generic", "fusionportable", "newer_college", "lio_keyframes", "hba", "kitti", "synthetic")  # data.formats.FORMATS
 START_POSES = ("input", "baseline", "crisper")  # neld_jax.start.CHOICES
 # data.scan_frame: the published frames of each format's ground truth (data.ground_truth.PUBLISHED_GT_FROM_SCAN)
 SCAN_FRAMES = {"fusionportable": ("body_imu", "ouster00"), "newer_college": ("os_sensor", "os_imu")}

@@ -273,7 +273,9 @@ def _folder_state(folder) -> dict:
 
 
 def _quick_config(output_dir: str, steps: int = 4):
+    """A tiny run of one sample-count stage (one compile) without a rendered map."""
     config = make_tiny_config(output_dir, steps=steps)
+    config.sampling.coarse_stages, config.sampling.fine_stages = (8,), (4,)
     config.mapping.enabled = False
     return config
 

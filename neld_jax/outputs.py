@@ -187,10 +187,11 @@ def write_scan_report(out_dir: str, made: RunSteps, T_all: np.ndarray, per_scan_
                 residual[k] = float(np.median(errors[hits]))
     correction_m, correction_deg = report.aligned_corrections(loaded.poses, T_all)
     refinement_m, refinement_deg = report.aligned_corrections(made.start.poses, refined.poses)
-    rows = report.scan_report(loaded.num_scans, keyframes.loaded_index, loaded.files, loaded.timestamps,
-                              refined.rays_per_keyframe, residual, correction_m, correction_deg,
-                              per_scan_entropy.get("initial"), per_scan_entropy.get("optimized"), refinement_m,
-                              refinement_deg)
+    rows = report.scan_report(
+        report.ScanList(loaded.num_scans, keyframes.loaded_index, loaded.files, loaded.timestamps),
+        report.KeyframeMeasures(refined.rays_per_keyframe, residual, per_scan_entropy.get("initial"),
+                                per_scan_entropy.get("optimized"), refinement_m, refinement_deg),
+        correction_m, correction_deg)
     report.write_csv(os.path.join(out_dir, "scans_report.csv"), rows)
     plots.plot_scan_report(os.path.join(out_dir, "scans_report.png"), rows)
     logger.info("scans_report.csv: %d input scans, %d keyframes trained on", loaded.num_scans, num_keyframes)

@@ -108,9 +108,13 @@ class RunViewer:
 
     def __exit__(self, kind, error, trace) -> bool:
         """Closes the recording however the run ends; a run that failed (or was interrupted) logs why first."""
-        if error is not None:
-            self.log_failure(error)
-        self.close()
+        try:
+            if error is not None:
+                self.log_failure(error)
+        except Exception as logging_error:  # the run's own error is the one to report
+            logger.warning("run.rrd: the failure could not be logged (%s)", logging_error)
+        finally:
+            self.close()
         return False  # the error goes on
 
     # ------------------------------------------------------------------------------------------ the steps

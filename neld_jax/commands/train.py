@@ -5,10 +5,11 @@
     neld-train --config=configs/lio_keyframes.py:cpu --config.data.root=/data/HKU_1_bag
 
 A rerun with the same output_dir and configuration resumes from its latest checkpoint; a rerun of another
-configuration into it stops with one line naming the fields that differ, and changes nothing there.
---restart deletes the earlier run's files from output_dir (the log names them) and starts over. Several hosts: NELD_JAX_COORDINATOR=host:port
-with NELD_JAX_NUM_PROCESSES and NELD_JAX_PROCESS_ID join this process to the others before jax starts, so that the
-submaps' mesh spans every host's devices.
+configuration into it stops with one line naming the fields that differ, and changes nothing there (docs/design.md,
+"Resume"). --restart deletes the earlier run's files from output_dir (the log names them) and starts over.
+
+Several hosts: NELD_JAX_COORDINATOR=host:port with NELD_JAX_NUM_PROCESSES and NELD_JAX_PROCESS_ID join this process
+to the others before jax starts, so that the submaps' mesh spans every host's devices.
 """
 
 import os

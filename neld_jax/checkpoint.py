@@ -59,7 +59,8 @@ class Checkpointer:
         if expected_config_hash is not None and metadata.get("config_hash") != expected_config_hash:
             raise ConfigError(
                 f"the checkpoint in {self.directory} was written with a different configuration "
-                f"(hash {metadata.get('config_hash')} != {expected_config_hash}); use a new output_dir or delete it"
+                f"(hash {metadata.get('config_hash')} != {expected_config_hash}); use a new output_dir, or neld-train "
+                f"--restart to start over"
             )
         if expected_data is not None:
             self._check_data(metadata, expected_data)
@@ -80,7 +81,7 @@ class Checkpointer:
                 differences.append(what)
         if differences:
             raise DataError(f"the checkpoint in {self.directory} was written for other data "
-                            f"({'; '.join(differences)}); use a new output_dir or delete it")
+                            f"({'; '.join(differences)}); use a new output_dir, or neld-train --restart to start over")
 
     def close(self) -> None:
         self._manager.close()

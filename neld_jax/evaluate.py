@@ -1,26 +1,29 @@
-"""Evaluate the outputs of a run against ground truth: pose errors, map errors, plots, metrics.json.
+"""Evaluate a run against ground truth: pose errors, map errors, plots.
 
-Both `bin/evaluate.py` and the trainer call `evaluate_run`. It reads what a run wrote into OUTPUT_DIR:
+`evaluate` measures arrays (RunArtifacts: each method's trajectory and maps, the ground truth); the run hands it
+what it has just written, from memory. `evaluate_run` is the same for a finished output folder (neld-evaluate,
+neld-baseline): it reads what a run wrote into OUTPUT_DIR,
 
     poses_<method>.txt          TUM trajectories; <method> = initial, optimized, baseline, ...
     map_raw.ply                 raw map of "optimized"; map_raw_<method>.ply for any other method
     map_rendered.ply            rendered map of "optimized"; map_rendered_<method>.ply for others
     poses_gt.txt, map_gt.ply    ground truth, used when no explicit path is given
 
-and computes, per method: ATE (SE(3) Umeyama alignment, as evo) and RPE against the GT poses, then the
-map metrics of its maps against the GT map -- raw maps with the paper's 1 m cutoff, rendered maps
-without -- after moving the maps into the GT frame with the ATE alignment of that trajectory (the
-odometry frame is not the GT frame on real data), optionally refined by Open3D point-to-point ICP of the
-raw map against the GT map (map_icp_m > 0: a GT map whose frame differs a little from the GT trajectory's, as a
-survey map registered separately does; FusionPortable's own map evaluation aligns maps by ICP too:
-github.com/JokerJohn/Cloud_Map_Evaluation, linked from fusionportable_dataset_tools' README). Without GT poses
-the ICP starts from the identity. The result is merged into
-`OUTPUT_DIR/metrics.json` under "evaluation"; plots go to trajectory.png, pose_error.png and
-error_histogram.png.
+and merges its result into OUTPUT_DIR/metrics.json under "evaluation".
+
+Per method: ATE (SE(3) Umeyama alignment, as evo) and RPE against the GT poses, then the map metrics of its maps
+against the GT map -- raw maps with the paper's 1 m cutoff, rendered maps without -- after moving the maps into
+the GT frame with the ATE alignment of that trajectory (the odometry frame is not the GT frame on real data),
+optionally refined by Open3D point-to-point ICP of the raw map against the GT map (map_icp_m > 0: a GT map whose
+frame differs a little from the GT trajectory's, as a survey map registered separately does; FusionPortable's own
+map evaluation aligns maps by ICP too: github.com/JokerJohn/Cloud_Map_Evaluation, linked from
+fusionportable_dataset_tools' README). Without GT poses the ICP starts from the identity. Plots go to
+trajectory.png, pose_error.png and error_histogram.png.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -60,11 +63,14 @@ def find_trajectories(output_dir: str | os.PathLike) -> dict[str, Path]:
     return {name: found[name] for name in ordered}
 
 
+def map_file_name(method: str, kind: str) -> str:
+    """The name of a method's map of a kind ("raw" | "rendered") in an output folder."""
+    return f"map_{kind}{'' if method == PRIMARY_METHOD else f'_{method}'}.ply"
+
+
 def map_files(output_dir: str | os.PathLike, method: str) -> dict[str, Path]:
     """{"raw": path, "rendered": path} of the maps of a method that exist in output_dir."""
-    output_dir = Path(output_dir)
-    suffix = "" if method == PRIMARY_METHOD else f"_{method}"
-    candidates = {"raw": output_dir / f"map_raw{suffix}.ply", "rendered": output_dir / f"map_rendered{suffix}.ply"}
+    candidates = {kind: Path(output_dir) / map_file_name(method, kind) for kind in ("raw", "rendered")}
     return {kind: path for kind, path in candidates.items() if path.is_file()}
 
 
@@ -119,25 +125,11 @@ def _resolve_gt_map(output_dir: Path, gt_map_path: str | os.PathLike | None) -> 
     return next((output_dir / name for name in GT_MAP_FILES if (output_dir / name).is_file()), None)
 
 
-# ---------------------------------------------------------------------------------------------
-# The evaluation
-# ---------------------------------------------------------------------------------------------
-
-
-def evaluate_run(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLike | None = None,
-                 gt_map_path: str | os.PathLike | None = None, threshold: float = 0.2,
-                 raw_cutoff: float = 1.0, max_time_diff: float = 0.01, write_plots: bool = True,
-                 map_icp_m: float = 0.0) -> dict[str, Any]:
-    """Evaluate every trajectory and map in output_dir; merge the result into metrics.json.
-
-    gt_poses_path / gt_map_path default to OUTPUT_DIR/poses_gt.txt and OUTPUT_DIR/map_gt.ply when
-    those exist. threshold: F1 / inlier distance (m); raw_cutoff: Chamfer cutoff of raw maps (m); map_icp_m: the
-    ICP correspondence distance (m) that refines each method's map alignment (0: off, the trajectory alignment
-    alone), recorded per map as "icp" (fitness, correction in m and deg).
-    Returns {"output_dir", "gt_poses", "gt_map", "threshold_m", "raw_cutoff_m", "methods": {method:
-    {"poses", "num_poses", ["matching", "matched_poses", "ate", "rpe"], ["raw_map", "rendered_map"]}},
-    "plots"}; a map entry holds `metrics.map_metrics` keys plus "file" and "aligned_to_gt".
-    """
+def read_artifacts(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLike | None = None,
+                   gt_map_path: str | os.PathLike | None = None) -> tuple["RunArtifacts", dict[str, str | None]]:
+    """What a finished run wrote into output_dir, as `evaluate` takes it (maps read only where a GT map is), and
+    the ground truth's files ({"gt_poses", "gt_map"}: paths or None). gt_poses_path / gt_map_path default to
+    OUTPUT_DIR/poses_gt.txt and OUTPUT_DIR/map_gt.ply when those exist."""
     output_dir = Path(output_dir)
     if not output_dir.is_dir():
         raise DataError(f"{output_dir}: output directory does not exist")
@@ -145,71 +137,161 @@ def evaluate_run(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLike
     if not trajectory_files:
         raise DataError(f"{output_dir}: no trajectory to evaluate (expected poses_initial.txt, "
                         "poses_optimized.txt or another poses_<method>.txt)")
-
     if gt_poses_path is None and (output_dir / GT_POSES_FILE).is_file():
         gt_poses_path = output_dir / GT_POSES_FILE
-    gt_stamps, gt_poses = read_trajectory(gt_poses_path) if gt_poses_path else (None, None)
     gt_map_file = _resolve_gt_map(output_dir, gt_map_path)
-    gt_map = read_scan(gt_map_file) if gt_map_file else None
     logger.info("evaluating %s: %s; GT poses %s; GT map %s", output_dir, ", ".join(trajectory_files),
                 gt_poses_path or "none", gt_map_file or "none")
+    gt_map = read_scan(gt_map_file) if gt_map_file else None
+    maps = {} if gt_map is None else {
+        name: {kind: read_scan(path) for kind, path in map_files(output_dir, name).items()} for name in trajectory_files}
+    artifacts = RunArtifacts({name: Trajectory(*read_tum(path)) for name, path in trajectory_files.items()}, maps,
+                             Trajectory(*read_trajectory(gt_poses_path)) if gt_poses_path else None, gt_map)
+    files = {"gt_poses": None if gt_poses_path is None else str(gt_poses_path),
+             "gt_map": None if gt_map_file is None else str(gt_map_file)}
+    return artifacts, files
 
-    methods: dict[str, dict[str, Any]] = {}
-    aligned_trajectories: dict[str, np.ndarray] = {}
-    pose_errors: dict[str, np.ndarray] = {}
-    map_distances: dict[str, np.ndarray] = {}
-    for name, path in trajectory_files.items():
-        stamps, poses = read_tum(path)
-        entry: dict[str, Any] = {"poses": path.name, "num_poses": int(len(poses))}
-        alignment = None
-        aligned_trajectories[name] = poses
-        if gt_poses is not None:
-            est_idx, gt_idx, how = match_poses(stamps, gt_stamps, len(poses), len(gt_poses), f"{path}",
-                                               max_time_diff)
-            errors = metrics.ate_errors(poses[est_idx], gt_poses[gt_idx], "se3")
-            translation_errors, alignment = errors[0], errors[2]
-            entry.update(matching=how, matched_poses=int(len(est_idx)),
-                         ate=metrics.ate_summary(*errors, align="se3"),
-                         rpe=metrics.rpe(poses[est_idx], gt_poses[gt_idx], delta=1))
-            aligned_trajectories[name] = alignment @ poses
-            pose_errors[name] = translation_errors
-        if gt_map is not None:
-            maps = {kind: read_scan(map_path) for kind, map_path in map_files(output_dir, name).items()}
-            to_gt = np.eye(4) if alignment is None else alignment
-            icp = None
-            if map_icp_m > 0 and maps:
-                if alignment is None:
-                    logger.warning("%s: no GT poses to align the maps with; ICP starts from the odometry frame", name)
-                reference = maps.get("raw", next(iter(maps.values())))
-                icp = refine_map_alignment(transform_points(reference, to_gt), gt_map, map_icp_m)
-                to_gt = icp.pop("transform") @ to_gt
-            for kind, map_path in map_files(output_dir, name).items():
-                points = transform_points(maps[kind], to_gt)
-                est_to_gt = metrics.nearest_neighbor_distances(points, gt_map)
-                gt_to_est = metrics.nearest_neighbor_distances(gt_map, points)
-                # Raw maps keep outliers from misregistered scans: the paper cuts their distances at 1 m.
-                cutoff = raw_cutoff if kind == "raw" else None
-                entry[f"{kind}_map"] = {
-                    "file": map_path.name, "aligned_to_gt": alignment is not None or icp is not None,
-                    "icp": icp,
-                    **metrics.map_metrics_from_distances(est_to_gt, gt_to_est, threshold, cutoff, "paper")}
-                map_distances[f"{name} {kind}"] = est_to_gt
+
+# ---------------------------------------------------------------------------------------------
+# The evaluation
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Trajectory:
+    """Poses [S, 4, 4] and their timestamps [S] (None: matched to the ground truth by order)."""
+
+    stamps: np.ndarray | None
+    poses: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class RunArtifacts:
+    """What a run made, as evaluation measures it: each method's trajectory ({method: Trajectory}, in table order),
+    its maps ({method: {"raw" | "rendered": points [N, 3]}}, a method's own frame) and the ground truth (a
+    Trajectory, a map [M, 3]; None where there is none)."""
+
+    trajectories: dict[str, Trajectory]
+    maps: dict[str, dict[str, np.ndarray]]
+    gt: Trajectory | None = None
+    gt_map: np.ndarray | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalSettings:
+    """threshold: F1 / inlier distance (m); raw_cutoff: Chamfer cutoff of raw maps (m); max_time_diff: pose matching
+    by timestamp (s); map_icp_m: the ICP correspondence distance (m) that refines each method's map alignment (0: off,
+    the trajectory alignment alone)."""
+
+    threshold: float = 0.2
+    raw_cutoff: float = 1.0
+    max_time_diff: float = 0.01
+    map_icp_m: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Evaluation:
+    """evaluate's answer: `result` (metrics.json's "evaluation" less where the files came from) and what the plots
+    draw: each method's trajectory aligned to the GT ({method: [S, 4, 4]}), its ATE errors ({method: [K] m}), and
+    each map's distances to the GT map ({"<method> <kind>": [N] m})."""
+
+    result: dict[str, Any]
+    aligned: dict[str, np.ndarray]
+    pose_errors: dict[str, np.ndarray]
+    map_distances: dict[str, np.ndarray]
+
+
+def evaluate(artifacts: RunArtifacts, settings: EvalSettings = EvalSettings()) -> Evaluation:
+    """Every method's pose errors against the GT poses and map errors against the GT map (module docstring).
+
+    result: {"threshold_m", "raw_cutoff_m", "map_icp_m", "methods": {method: {"poses", "num_poses", ["matching",
+    "matched_poses", "ate", "rpe"], ["raw_map", "rendered_map"]}}}; a map entry holds `metrics.map_metrics` keys
+    plus "file" (the map's name in an output folder), "aligned_to_gt" and "icp" (fitness, correction in m and deg;
+    None without ICP)."""
+    methods, aligned, pose_errors, map_distances = {}, {}, {}, {}
+    for name, trajectory in artifacts.trajectories.items():
+        entry, alignment, errors = _pose_entry(name, trajectory, artifacts.gt, settings)
+        aligned[name] = trajectory.poses if alignment is None else alignment @ trajectory.poses
+        if errors is not None:
+            pose_errors[name] = errors
+        if artifacts.gt_map is not None:
+            for kind, (map_entry, distances) in _map_entries(name, artifacts.maps.get(name, {}), artifacts.gt_map,
+                                                               alignment, settings).items():
+                entry[f"{kind}_map"] = map_entry
+                map_distances[f"{name} {kind}"] = distances
         methods[name] = entry
+    result = {"threshold_m": float(settings.threshold), "raw_cutoff_m": float(settings.raw_cutoff),
+              "map_icp_m": float(settings.map_icp_m), "methods": methods}
+    return Evaluation(result, aligned, pose_errors, map_distances)
 
-    result: dict[str, Any] = {
-        "output_dir": str(output_dir),
-        "gt_poses": None if gt_poses_path is None else str(gt_poses_path),
-        "gt_map": None if gt_map_file is None else str(gt_map_file),
-        "threshold_m": float(threshold),
-        "raw_cutoff_m": float(raw_cutoff),
-        "map_icp_m": float(map_icp_m),
-        "methods": methods,
-        "plots": [],
-    }
+
+def _pose_entry(name: str, trajectory: Trajectory, gt: Trajectory | None,
+                settings: EvalSettings) -> tuple[dict, np.ndarray | None, np.ndarray | None]:
+    """A method's entry with its pose errors (where there are GT poses), the SE(3) alignment to the GT [4, 4] and
+    the translation errors [K] (None, None without GT poses)."""
+    poses = trajectory.poses
+    entry: dict[str, Any] = {"poses": f"poses_{name}.txt", "num_poses": int(len(poses))}
+    if gt is None:
+        return entry, None, None
+    est_idx, gt_idx, how = match_poses(trajectory.stamps, gt.stamps, len(poses), len(gt.poses), f"poses_{name}",
+                                       settings.max_time_diff)
+    errors = metrics.ate_errors(poses[est_idx], gt.poses[gt_idx], "se3")
+    entry.update(matching=how, matched_poses=int(len(est_idx)), ate=metrics.ate_summary(*errors, align="se3"),
+                 rpe=metrics.rpe(poses[est_idx], gt.poses[gt_idx], delta=1))
+    return entry, errors[2], errors[0]
+
+
+def _map_entries(name: str, maps: dict[str, np.ndarray], gt_map: np.ndarray, alignment: np.ndarray | None,
+                 settings: EvalSettings) -> dict[str, tuple[dict, np.ndarray]]:
+    """{kind: (the map entry, its points' distances to the GT map [N])} of a method's maps ({kind: [N, 3]}), moved
+    into the GT frame by its trajectory's alignment [4, 4] (None: the identity), refined by ICP with map_icp_m."""
+    to_gt = np.eye(4) if alignment is None else alignment
+    icp = None
+    if settings.map_icp_m > 0 and maps:
+        if alignment is None:
+            logger.warning("%s: no GT poses to align the maps with; ICP starts from the odometry frame", name)
+        reference = maps.get("raw", next(iter(maps.values())))
+        icp = refine_map_alignment(transform_points(reference, to_gt), gt_map, settings.map_icp_m)
+        to_gt = icp.pop("transform") @ to_gt
+    entries = {}
+    for kind, points in maps.items():
+        points = transform_points(points, to_gt)
+        est_to_gt = metrics.nearest_neighbor_distances(points, gt_map)
+        gt_to_est = metrics.nearest_neighbor_distances(gt_map, points)
+        # Raw maps keep outliers from misregistered scans: the paper cuts their distances at 1 m.
+        cutoff = settings.raw_cutoff if kind == "raw" else None
+        entries[kind] = ({"file": map_file_name(name, kind), "aligned_to_gt": alignment is not None or icp is not None,
+                          "icp": icp, **metrics.map_metrics_from_distances(est_to_gt, gt_to_est, settings.threshold,
+                                                                           cutoff, "paper")},
+                         est_to_gt)
+    return entries
+
+
+def evaluation_record(output_dir: str | os.PathLike, artifacts: RunArtifacts, settings: EvalSettings,
+                      gt_files: dict[str, str | None], write_plots: bool = True) -> dict[str, Any]:
+    """`evaluate` of a run's artifacts, with its plots written into output_dir (write_plots): the "evaluation"
+    section of metrics.json, {"output_dir", "gt_poses", "gt_map" (gt_files: where the ground truth came from),
+    "threshold_m", "raw_cutoff_m", "map_icp_m", "methods", "plots"}."""
+    evaluation = evaluate(artifacts, settings)
+    plots_written = []
     if write_plots:
-        result["plots"] = _write_plots(output_dir, aligned_trajectories, gt_poses, pose_errors, map_distances,
-                                       threshold, raw_cutoff)
-    write_json(output_dir / METRICS_FILE, {"evaluation": result})
+        plots_written = _write_plots(Path(output_dir), evaluation, None if artifacts.gt is None else artifacts.gt.poses,
+                                     settings)
+    return {"output_dir": str(output_dir), "gt_poses": gt_files.get("gt_poses"), "gt_map": gt_files.get("gt_map"),
+            **evaluation.result, "plots": plots_written}
+
+
+def evaluate_run(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLike | None = None,
+                 gt_map_path: str | os.PathLike | None = None, threshold: float = 0.2,
+                 raw_cutoff: float = 1.0, max_time_diff: float = 0.01, write_plots: bool = True,
+                 map_icp_m: float = 0.0) -> dict[str, Any]:
+    """Evaluate every trajectory and map of a finished output folder (read_artifacts; the settings: EvalSettings),
+    write the plots, and merge the result into its metrics.json under "evaluation" (the folder's other sections
+    stay). Returns evaluation_record's answer."""
+    artifacts, gt_files = read_artifacts(output_dir, gt_poses_path, gt_map_path)
+    settings = EvalSettings(threshold, raw_cutoff, max_time_diff, map_icp_m)
+    result = evaluation_record(output_dir, artifacts, settings, gt_files, write_plots)
+    write_json(Path(output_dir) / METRICS_FILE, {"evaluation": result}, merge=True)
     return result
 
 
@@ -235,15 +317,15 @@ def refine_map_alignment(points: np.ndarray, gt_map: np.ndarray, max_distance: f
             "correction_deg": float(rotation_angles_deg(transform[:3, :3]))}
 
 
-def _write_plots(output_dir: Path, trajectories: dict[str, np.ndarray], gt_poses: np.ndarray | None,
-                 pose_errors: dict[str, np.ndarray], map_distances: dict[str, np.ndarray], threshold: float,
-                 raw_cutoff: float) -> list[str]:
-    written = [plots.plot_trajectories(output_dir / "trajectory.png", trajectories, gt_poses)]
-    if pose_errors:
-        written.append(plots.plot_pose_errors(output_dir / "pose_error.png", pose_errors))
-    if map_distances:
-        written.append(plots.plot_error_histogram(output_dir / "error_histogram.png", map_distances, threshold,
-                                                  max_distance=max(raw_cutoff, 2.0 * threshold)))
+def _write_plots(output_dir: Path, evaluation: Evaluation, gt_poses: np.ndarray | None,
+                 settings: EvalSettings) -> list[str]:
+    written = [plots.plot_trajectories(output_dir / "trajectory.png", evaluation.aligned, gt_poses)]
+    if evaluation.pose_errors:
+        written.append(plots.plot_pose_errors(output_dir / "pose_error.png", evaluation.pose_errors))
+    if evaluation.map_distances:
+        written.append(plots.plot_error_histogram(output_dir / "error_histogram.png", evaluation.map_distances,
+                                                  settings.threshold,
+                                                  max_distance=max(settings.raw_cutoff, 2.0 * settings.threshold)))
     return [path.name for path in written]
 
 

@@ -139,25 +139,17 @@ def crispest_over_draws(margins: dict, against: str = "optimized") -> str | None
     return max(below, key=below.get) if below else against
 
 
-def warn_if_not_crispest(summaries: dict, refused: dict | None = None, margins: dict | None = None) -> str | None:
+def warn_if_not_crispest(summaries: dict, margins: dict | None = None) -> str | None:
     """Log a warning when the refined poses ("optimized") do not give the crispest raw map of the run's methods,
     naming the poses file that does: a user must not take poses_optimized for the best answer when the run
-    measured otherwise. refused: {method: why} the run did not trust whatever their crispness (a baseline bent
-    as a whole: the judge is local); they are not named as the crispest. margins: crispness_margins' answer for
-    "optimized"; given, the verdict is the mean over its query draws instead of draw 0's figures alone, and a
-    crisper method whose draws disagree in sign is logged as a tie, not warned about. Returns the crispest trusted
-    method."""
-    refused = refused or {}
-    trusted_margins = {name: m for name, m in (margins or {}).items() if name not in refused and name in summaries}
-    if trusted_margins and "optimized" in summaries:
-        best = crispest_over_draws(trusted_margins)
-    else:
-        best = crispest({name: s for name, s in summaries.items() if name not in refused})
-    for name, why in refused.items():
-        if name in summaries and crispest(summaries) == name:
-            logger.info("the %s poses give a locally crisper raw map, but the run does not trust them: %s", name, why)
+    measured otherwise. margins: crispness_margins' answer for "optimized"; given, the verdict is the mean over its
+    query draws instead of draw 0's figures alone, and a crisper method whose draws disagree in sign is logged as a
+    tie, not warned about. Returns the crispest method."""
+    known_margins = {name: m for name, m in (margins or {}).items() if name in summaries}
+    best = (crispest_over_draws(known_margins) if known_margins and "optimized" in summaries
+            else crispest(summaries))
     if best is not None and "optimized" in summaries and best != "optimized":
-        margin = trusted_margins.get(best)
+        margin = known_margins.get(best)
         if margin is not None and not margin["all_draws_agree"]:
             logger.info("the raw map is a little crisper with the %s poses (%s) than after NeLD-BA, by %.5f nats of "
                         "mean map entropy over %d query draws, but the draws disagree in sign: a tie", best,

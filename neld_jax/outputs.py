@@ -1,15 +1,17 @@
-"""A run's outputs (docs/design.md, "Outputs of a run"): the output folder and config.json, the poses of every
-input scan and the maps, then the verdict: the raw map's crispness before and after (and the classical
-baseline's), how sure that is over query draws, the per-scan report, metrics.json and, where ground truth
-exists, the evaluation against it.
+"""A run's outputs (docs/design.md, "Outputs of a run"): the poses of every input scan and the maps, then the
+verdict: the raw map's crispness before and after (and the classical baseline's), how sure that is over query
+draws, the per-scan report and, where ground truth exists, the evaluation against it, all in metrics.json, which
+is built in memory and written once. The output folder itself and config.json: neld_jax.output_folder.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
 import os
+from typing import Any
 
 import jax
 import ml_collections
@@ -18,13 +20,16 @@ import numpy as np
 from neld_jax import judge, plots, report
 from neld_jax.budget import TimeBudget
 from neld_jax.data.preprocess import voxel_downsample
-from neld_jax.export import read_json, write_json, write_point_cloud, write_poses, write_raw_map
+from neld_jax.evaluate import GT_POSES_FILE, EvalSettings, RunArtifacts, Trajectory, evaluation_record
+from neld_jax.export import write_json, write_point_cloud, write_poses, write_raw_map
 from neld_jax.geometry import register_scans
 from neld_jax.trajectory import propagate_corrections
 
 logger = logging.getLogger(__name__)
 
-# Fields that do not change what is computed: a resumed run may change them (the budget is a name of the others)
+# Fields that do not change what training computes: outside the hash that guards a checkpoint and a saved start (the
+# budget is a name of the others). A rerun into a run's folder must match its config.json in every field but
+# output_folder.UNCOMPARED before it gets that far.
 NOT_HASHED = ("output_dir", "budget", "max_minutes", "train.log_every", "train.checkpoint_every", "mapping", "eval",
               "viz", "data.gt_poses_path", "data.gt_map_path", "data.gt_from_scan", "data.scan_frame",
               "data.gt_time_offset_s")
@@ -42,57 +47,94 @@ def config_hash(config: ml_collections.ConfigDict) -> str:
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def prepare(config: ml_collections.ConfigDict) -> tuple[str, str]:
-    """Create the output folder and write config.json, the settings of the run as given (once; the run never
-    rewrites them). Returns (the folder's absolute path, the config hash)."""
-    out_dir = os.path.abspath(config.output_dir)
-    os.makedirs(out_dir, exist_ok=True)
-    write_json(os.path.join(out_dir, "config.json"), json.loads(config.to_json_best_effort()), merge=False)
-    return out_dir, config_hash(config)
+@dataclasses.dataclass(frozen=True)
+class RunSteps:
+    """What a run's steps made: every input scan (`loaded`) and the keyframes (step 1), the start (2), the refined
+    poses and fields (3) and the rendered map (4; None with mapping off)."""
+
+    loaded: Any
+    keyframes: Any
+    start: Any
+    refined: Any
+    render: Any = None
 
 
-def write_outputs(out_dir: str, config: ml_collections.ConfigDict, loaded, keyframes, start, refined,
-                  render) -> np.ndarray:
+def write_outputs(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps) -> RunArtifacts:
     """poses_initial / poses_optimized (TUM .txt and KITTI .kitti, one line per input scan: the scans between
     keyframes take their keyframes' interpolated correction), poses_baseline when the baseline ran, poses_gt where
     ground truth exists, poses_odometry when the input poses were made from the scans (KISS-ICP; the same poses as
     poses_initial, under the name that says where they came from); map_raw.ply (the keyframes registered with the
-    optimised poses), map_raw_initial.ply, map_rendered.ply, map_gt.ply. Returns the poses of every input scan [S, 4, 4]."""
+    optimised poses), map_raw_initial.ply, map_rendered.ply, map_gt.ply. Returns what it wrote, as arrays (the
+    evaluation measures them without reading the files back); trajectories["optimized"]: every input scan's
+    poses [S, 4, 4]."""
+    loaded, keyframes, refined, render = made.loaded, made.keyframes, made.refined, made.render
     index = keyframes.loaded_index
-    T_all = propagate_corrections(loaded.poses, index, refined.poses, loaded.timestamps)
-    write_poses(out_dir, "poses_initial", loaded.timestamps, loaded.poses)
-    write_poses(out_dir, "poses_optimized", loaded.timestamps, T_all)
-    if start.baseline_poses is not None:
-        write_poses(out_dir, "poses_baseline", loaded.timestamps,
-                    propagate_corrections(loaded.poses, index, start.baseline_poses, loaded.timestamps))
-    if loaded.gt_poses is not None:
-        write_poses(out_dir, "poses_gt", loaded.timestamps, loaded.gt_poses)
+    stamps = loaded.timestamps if loaded.timestamps is not None else np.arange(loaded.num_scans, dtype=np.float64)
+    trajectories = {"initial": loaded.poses}
+    if made.start.baseline_poses is not None:
+        trajectories["baseline"] = propagate_corrections(loaded.poses, index, made.start.baseline_poses,
+                                                         loaded.timestamps)
+    trajectories["optimized"] = propagate_corrections(loaded.poses, index, refined.poses, loaded.timestamps)
     if loaded.poses_from == "kiss_icp":
-        write_poses(out_dir, "poses_odometry", loaded.timestamps, loaded.poses)
+        trajectories["odometry"] = loaded.poses
+    for name, poses in trajectories.items():
+        write_poses(out_dir, f"poses_{name}", stamps, poses)
+    if loaded.gt_poses is not None:
+        write_poses(out_dir, "poses_gt", stamps, loaded.gt_poses)
     voxel = float(config.mapping.voxel_size_m)
-    write_raw_map(os.path.join(out_dir, "map_raw.ply"), keyframes.scans, refined.poses, voxel_size=voxel)
-    write_raw_map(os.path.join(out_dir, "map_raw_initial.ply"), keyframes.scans, keyframes.poses, voxel_size=voxel)
+    maps = {"optimized": {"raw": write_raw_map(os.path.join(out_dir, "map_raw.ply"), keyframes.scans, refined.poses,
+                                               voxel_size=voxel)},
+            "initial": {"raw": write_raw_map(os.path.join(out_dir, "map_raw_initial.ply"), keyframes.scans,
+                                             keyframes.poses, voxel_size=voxel)}}
     if keyframes.gt_map is not None:
         write_point_cloud(os.path.join(out_dir, "map_gt.ply"), keyframes.gt_map)
     if render is not None:
         if len(render.points):
-            write_point_cloud(os.path.join(out_dir, "map_rendered.ply"), voxel_downsample(render.points, voxel))
+            maps["optimized"]["rendered"] = voxel_downsample(render.points, voxel)
+            write_point_cloud(os.path.join(out_dir, "map_rendered.ply"), maps["optimized"]["rendered"])
         else:
             logger.warning("rendered map is empty: no ray reached opacity %.2f (train longer or lower "
                            "mapping.min_opacity); map_rendered.ply not written", config.mapping.min_opacity)
-    return T_all
+    return RunArtifacts({name: Trajectory(stamps, poses) for name, poses in trajectories.items()}, maps,
+                        None if loaded.gt_poses is None else Trajectory(stamps, loaded.gt_poses), keyframes.gt_map)
 
 
-def judge_run(out_dir: str, config: ml_collections.ConfigDict, loaded, keyframes, start, refined, render, T_all,
-              budget: TimeBudget, config_hash_: str, progress: bool = True) -> tuple[dict, list[dict]]:
-    """The verdict of a run, written to metrics.json (run, crispness, scans_report; evaluation where ground truth
-    exists), history.json, scans_report.csv / .png and map_topdown.png. Returns (metrics.json's content, the
-    per-scan report's rows)."""
-    methods = {"initial": keyframes.poses, "optimized": refined.poses}
-    if start.baseline_poses is not None:
-        methods["baseline"] = start.baseline_poses
-    # The same query points for every method, so the start's figures are reused as they are.
-    judged, judged_per_scan = start.judged
+def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, written: RunArtifacts,
+              budget: TimeBudget, progress: bool = True) -> tuple[dict, list[dict]]:
+    """The verdict of a run: metrics.json (run, scans_report, crispness; evaluation where ground truth exists),
+    built here and written once, whole (a rerun into the folder inherits nothing of an earlier metrics.json),
+    history.json, scans_report.csv / .png, map_topdown.png and the evaluation's plots. Returns (metrics.json's
+    content, the per-scan report's rows)."""
+    keyframes, refined = made.keyframes, made.refined
+    crisp, per_scan_entropy, margins = judge_crispness(config, made, budget, progress)
+    rows = write_scan_report(out_dir, made, written.trajectories["optimized"].poses, per_scan_entropy,
+                             float(config.mapping.min_opacity))
+    plots.plot_map_topdown(os.path.join(out_dir, "map_topdown.png"),
+                           {"input poses": register_scans(keyframes.scans, keyframes.poses),
+                            "after NeLD-BA": register_scans(keyframes.scans, refined.poses)})
+    summary = {"run": run_record(config, made, budget, margins, judge.warn_if_not_crispest(crisp, margins)),
+               "scans_report": report.summarize(rows), "crispness": crisp}
+    if written.gt is not None or written.gt_map is not None:
+        gt_files = {"gt_poses": None if written.gt is None else os.path.join(out_dir, GT_POSES_FILE),
+                    "gt_map": None if written.gt_map is None else os.path.join(out_dir, "map_gt.ply")}
+        summary["evaluation"] = evaluation_record(out_dir, written, EvalSettings(map_icp_m=float(config.eval.map_icp_m)),
+                                                  gt_files)
+    write_json(os.path.join(out_dir, "metrics.json"), summary, merge=False)
+    with open(os.path.join(out_dir, "history.json"), "w") as f:
+        json.dump(refined.result.history, f)
+    return summary, rows
+
+
+def judge_crispness(config: ml_collections.ConfigDict, made: RunSteps, budget: TimeBudget,
+                    progress: bool = True) -> tuple[dict, dict, dict]:
+    """The raw map's crispness under the input's, the baseline's (where it ran) and the refined poses, on the same
+    query points (the start's figures reused as they are), and how sure the verdict is over query draws (up to the
+    budget's judging deadline): ({method: summary}, {method: per-keyframe entropy [K]}, crispness_margins' answer)."""
+    keyframes = made.keyframes
+    methods = {"initial": keyframes.poses, "optimized": made.refined.poses}
+    if made.start.baseline_poses is not None:
+        methods["baseline"] = made.start.baseline_poses
+    judged, judged_per_scan = made.start.judged
     crisp, per_scan_entropy = judge.map_crispness(
         keyframes, {name: poses for name, poses in methods.items() if name not in judged}, config.eval)
     crisp, per_scan_entropy = {**judged, **crisp}, {**judged_per_scan, **per_scan_entropy}
@@ -100,17 +142,18 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, loaded, keyframes
                                       deadline=budget.judging_deadline(), progress=progress)
     for other, margin in margins.items():
         logger.info("%s", judge.describe_margin(other, margin))
-    rows = write_scan_report(out_dir, loaded, keyframes, T_all, refined, render, per_scan_entropy,
-                             float(config.mapping.min_opacity), start.poses)
-    plots.plot_map_topdown(os.path.join(out_dir, "map_topdown.png"),
-                           {"input poses": register_scans(keyframes.scans, keyframes.poses),
-                            "after NeLD-BA": register_scans(keyframes.scans, refined.poses)})
-    result = refined.result
-    run = {
-        "config_hash": config_hash_,
-        "num_input_scans": loaded.num_scans,
-        "num_scans": keyframes.num_scans,  # keyframes: the scans trained on
-        "submaps": refined.plan.num_submaps,
+    return crisp, per_scan_entropy, margins
+
+
+def run_record(config: ml_collections.ConfigDict, made: RunSteps, budget: TimeBudget, margins: dict,
+               crispest: str | None) -> dict:
+    """metrics.json's "run" section: what ran, what the run decided, how long it took, the crispness verdict."""
+    result, render = made.refined.result, made.render
+    return {
+        "config_hash": config_hash(config),
+        "num_input_scans": made.loaded.num_scans,
+        "num_scans": made.keyframes.num_scans,  # keyframes: the scans trained on
+        "submaps": made.refined.plan.num_submaps,
         "steps": int(result.state.step),
         "schedule_steps": result.schedules.total_steps,  # the plan that ran: fewer than asked when compressed
         "stopped_early": bool(result.stopped_early),
@@ -120,26 +163,18 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, loaded, keyframes
         "map_rays": None if render is None else int(render.rays.num_rays),
         "map_rays_rendered": None if render is None else render.num_rendered,
         "final": result.history[-1] if result.history else {},
-        **start.record(),
-        "crispest": judge.warn_if_not_crispest(crisp, {}, margins),
+        **made.start.record(),
+        "crispest": crispest,
         "crispness_margin": margins,  # {other method: NeLD-BA's entropy minus its, per draw and mean}
     }
-    summary = {"run": run, "scans_report": report.summarize(rows)}
-    write_json(os.path.join(out_dir, "metrics.json"), summary)
-    summary["crispness"] = record_crispness(out_dir, crisp)
-    with open(os.path.join(out_dir, "history.json"), "w") as f:
-        json.dump(result.history, f)
-    if keyframes.gt_poses is not None or keyframes.gt_map is not None:
-        from neld_jax.evaluate import evaluate_run
-
-        summary["evaluation"] = evaluate_run(out_dir, map_icp_m=float(config.eval.map_icp_m))
-    return summary, rows
 
 
-def write_scan_report(out_dir: str, loaded, keyframes, T_all: np.ndarray, refined, render, per_scan_entropy: dict,
-                      min_opacity: float, start_poses: np.ndarray) -> list[dict]:
-    """scans_report.csv and scans_report.png: one row per input scan (neld_jax.report); the residuals from the
-    rendered map (none without it), the refinement from the poses training started from."""
+def write_scan_report(out_dir: str, made: RunSteps, T_all: np.ndarray, per_scan_entropy: dict,
+                      min_opacity: float) -> list[dict]:
+    """scans_report.csv and scans_report.png: one row per input scan (neld_jax.report; T_all: every input scan's
+    refined poses [S, 4, 4]); the residuals from the rendered map (none without it), the refinement from the poses
+    training started from."""
+    loaded, keyframes, refined, render = made.loaded, made.keyframes, made.refined, made.render
     num_keyframes = keyframes.num_scans
     residual = np.full(num_keyframes, np.nan)
     if render is not None:
@@ -151,21 +186,13 @@ def write_scan_report(out_dir: str, loaded, keyframes, T_all: np.ndarray, refine
             if hits.any():
                 residual[k] = float(np.median(errors[hits]))
     correction_m, correction_deg = report.aligned_corrections(loaded.poses, T_all)
-    refinement_m, refinement_deg = report.aligned_corrections(start_poses, refined.poses)
-    rows = report.scan_report(loaded.num_scans, keyframes.loaded_index, loaded.files, loaded.timestamps,
-                              refined.rays_per_keyframe, residual, correction_m, correction_deg,
-                              per_scan_entropy.get("initial"), per_scan_entropy.get("optimized"), refinement_m,
-                              refinement_deg)
+    refinement_m, refinement_deg = report.aligned_corrections(made.start.poses, refined.poses)
+    rows = report.scan_report(
+        report.ScanList(loaded.num_scans, keyframes.loaded_index, loaded.files, loaded.timestamps),
+        report.KeyframeMeasures(refined.rays_per_keyframe, residual, per_scan_entropy.get("initial"),
+                                per_scan_entropy.get("optimized"), refinement_m, refinement_deg),
+        correction_m, correction_deg)
     report.write_csv(os.path.join(out_dir, "scans_report.csv"), rows)
     plots.plot_scan_report(os.path.join(out_dir, "scans_report.png"), rows)
     logger.info("scans_report.csv: %d input scans, %d keyframes trained on", loaded.num_scans, num_keyframes)
     return rows
-
-
-def record_crispness(out_dir: str, summaries: dict) -> dict:
-    """Merge {method: crispness summary} into the "crispness" section of OUT_DIR/metrics.json (the run and the
-    baseline each add their methods); returns the merged section."""
-    path = os.path.join(out_dir, "metrics.json")
-    merged = {**read_json(path).get("crispness", {}), **summaries}
-    write_json(path, {"crispness": merged})
-    return merged

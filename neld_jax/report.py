@@ -20,6 +20,7 @@ report")."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import logging
 import os
 from pathlib import Path
@@ -76,41 +77,65 @@ def robust_outliers(values: np.ndarray, threshold: float = MAD_THRESHOLD, min_ex
     return flags
 
 
-def scan_report(num_scans: int, keyframe_index: np.ndarray, files: list[str] | None, timestamps: np.ndarray | None,
-                rays_per_keyframe: np.ndarray, residual_per_keyframe: np.ndarray, correction_m: np.ndarray,
-                correction_deg: np.ndarray, entropy_before_kf: np.ndarray, entropy_after_kf: np.ndarray,
-                refinement_m: np.ndarray | None = None, refinement_deg: np.ndarray | None = None) -> list[dict]:
-    """Rows (dicts with COLUMNS) for every input scan; per-keyframe arrays are [K], corrections are [S].
+@dataclasses.dataclass(frozen=True)
+class ScanList:
+    """The input scans a report lists: how many (S), which are keyframes (keyframe_index [K], into the S), their
+    files ([S] names, or None) and timestamps ([S] seconds, or None)."""
 
-    refinement_m / refinement_deg [K]: the bundle adjustment's own move of each keyframe from its start (None: the
-    correction's, as when training started from the input). The flag names why a keyframe is an outlier
-    ("residual", "refinement" or both, joined by '+'); a residual less than RESIDUAL_FLOOR_M above the median and
-    a refinement under REFINEMENT_FLOOR_M and REFINEMENT_FLOOR_DEG are never flagged."""
-    keyframe_index = np.asarray(keyframe_index, np.int64)
+    num_scans: int
+    keyframe_index: np.ndarray
+    files: list[str] | None = None
+    timestamps: np.ndarray | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class KeyframeMeasures:
+    """What the run measured of each keyframe, [K] each: training rays, median range residual (m; NaN: none), local
+    crispness before and after (mean entropy; None: not measured), and the bundle adjustment's own move from its
+    start (m, deg; None: the correction's, as when training started from the input)."""
+
+    rays: np.ndarray
+    residual_m: np.ndarray
+    entropy_before: np.ndarray | None = None
+    entropy_after: np.ndarray | None = None
+    refinement_m: np.ndarray | None = None
+    refinement_deg: np.ndarray | None = None
+
+
+def scan_report(scans: ScanList, measures: KeyframeMeasures, correction_m: np.ndarray,
+                correction_deg: np.ndarray) -> list[dict]:
+    """Rows (dicts with COLUMNS) for every input scan; correction_m / correction_deg [S]: each scan's correction from
+    the input (aligned_corrections).
+
+    The flag names why a keyframe is an outlier ("residual", "refinement" or both, joined by '+'); a residual less
+    than RESIDUAL_FLOOR_M above the median and a refinement under REFINEMENT_FLOOR_M and REFINEMENT_FLOOR_DEG are
+    never flagged."""
+    keyframe_index = np.asarray(scans.keyframe_index, np.int64)
+    refinement_m, refinement_deg = measures.refinement_m, measures.refinement_deg
     if refinement_m is None or refinement_deg is None:
         refinement_m, refinement_deg = correction_m[keyframe_index], correction_deg[keyframe_index]
-    residual_flags = robust_outliers(residual_per_keyframe, min_excess=RESIDUAL_FLOOR_M)
+    residual_flags = robust_outliers(measures.residual_m, min_excess=RESIDUAL_FLOOR_M)
     refinement_flags = ((robust_outliers(refinement_m) & (np.asarray(refinement_m) >= REFINEMENT_FLOOR_M))
                         | (robust_outliers(refinement_deg) & (np.asarray(refinement_deg) >= REFINEMENT_FLOOR_DEG)))
     kf_row = {int(s): k for k, s in enumerate(keyframe_index)}
     rows = []
-    for s in range(num_scans):
+    for s in range(scans.num_scans):
         k = kf_row.get(s)
         reasons = [] if k is None else ([r for r, f in (("residual", residual_flags[k]),
                                                         ("refinement", refinement_flags[k])) if f])
         rows.append({
             "scan": s,
-            "file": files[s] if files is not None else "",
-            "timestamp": None if timestamps is None else float(timestamps[s]),
+            "file": scans.files[s] if scans.files is not None else "",
+            "timestamp": None if scans.timestamps is None else float(scans.timestamps[s]),
             "keyframe": int(k is not None),
-            "rays": int(rays_per_keyframe[k]) if k is not None else 0,
-            "median_residual_m": _value(residual_per_keyframe, k),
+            "rays": int(measures.rays[k]) if k is not None else 0,
+            "median_residual_m": _value(measures.residual_m, k),
             "correction_cm": float(100.0 * correction_m[s]),
             "correction_deg": float(correction_deg[s]),
             "refinement_cm": None if k is None else float(100.0 * refinement_m[k]),
             "refinement_deg": _value(refinement_deg, k),
-            "entropy_before": _value(entropy_before_kf, k),
-            "entropy_after": _value(entropy_after_kf, k),
+            "entropy_before": _value(measures.entropy_before, k),
+            "entropy_after": _value(measures.entropy_after, k),
             "flag": "+".join(reasons),
         })
     return rows

@@ -4,7 +4,8 @@ Each step is a function in the module of its idea; `bin/train.py` (neld-train) c
 (neld_jax.viewer) records what each step made to run.rrd, and streams it with viz.live. The config is the
 user's, written once to config.json and never changed; what the run decides (the start, the pose steps, a plan
 compressed to the time) is recorded in metrics.json. One clock, config.max_minutes, is shared by the steps
-(neld_jax.budget). A rerun with the same output_dir resumes from its last checkpoint and its saved start.
+(neld_jax.budget). A rerun with the same output_dir and configuration resumes from its last checkpoint and its
+saved start; one of another configuration stops before it writes anything (neld_jax.output_folder).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import logging
 import jax
 import ml_collections
 
-from neld_jax import mapping, outputs, refine, start, train
+from neld_jax import mapping, output_folder, outputs, refine, start, train
 from neld_jax.budget import TimeBudget
 from neld_jax.data.preprocess import load_keyframes
 from neld_jax.viewer import RunViewer
@@ -22,12 +23,21 @@ from neld_jax.viewer import RunViewer
 logger = logging.getLogger(__name__)
 
 
-def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
-    """Run the bundle adjustment `config` describes; returns what it wrote to metrics.json."""
+def run(config: ml_collections.ConfigDict, progress: bool = True, restart: bool = False) -> dict:
+    """Run the bundle adjustment `config` describes; returns what it wrote to metrics.json. The output folder is
+    checked first (a folder of another configuration is a ConfigError; restart=True deletes the earlier run's files
+    instead); run.rrd is closed however the steps end, with the error that stopped them."""
     budget = TimeBudget.start(config)
-    out_dir, config_hash = outputs.prepare(config)
+    out_dir = output_folder.prepare(config, restart)
+    with RunViewer.open(out_dir, config.viz) as viewer:
+        return run_steps(config, out_dir, budget, viewer, progress)
+
+
+def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudget, viewer: RunViewer,
+              progress: bool = True) -> dict:
+    """The steps of `run` in its prepared output folder."""
+    config_hash = outputs.config_hash(config)
     logger.info("budget %s on jax's %s backend: %s", config.budget, jax.default_backend(), budget.describe())
-    viewer = RunViewer.open(out_dir, config.viz)
 
     # 1. Load every input scan, and the preprocessed keyframes training works on (neld_jax.data.preprocess).
     loaded, keyframes = load_keyframes(config.data)
@@ -55,12 +65,12 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
         viewer.log_rendered(render)
 
     # 5. Write the poses of every input scan and the maps (neld_jax.outputs).
-    T_all = outputs.write_outputs(out_dir, config, loaded, keyframes, begin, refined, render)
+    made = outputs.RunSteps(loaded, keyframes, begin, refined, render)
+    written = outputs.write_outputs(out_dir, config, made)
+    T_all = written.trajectories["optimized"].poses
     viewer.log_outputs(keyframes, refined, T_all)
 
-    # 6. Judge: crispness before and after, how sure, the per-scan report, metrics.json; ground truth where it exists.
-    summary, scan_rows = outputs.judge_run(out_dir, config, loaded, keyframes, begin, refined, render, T_all, budget,
-                                           config_hash, progress)
+    # 6. Judge: crispness before and after, how sure, the per-scan report; ground truth where it exists; metrics.json.
+    summary, scan_rows = outputs.judge_run(out_dir, config, made, written, budget, progress)
     viewer.log_verdict(scan_rows, loaded, T_all)
-    viewer.close()
     return summary

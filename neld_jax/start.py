@@ -29,7 +29,7 @@ import numpy as np
 
 from neld_jax import judge, metrics
 from neld_jax.baseline import BaselineSettings, register_sequence
-from neld_jax.errors import ConfigError
+from neld_jax.errors import ConfigError, DataError
 from neld_jax.train import PoseSteps, fixed_rows
 
 logger = logging.getLogger(__name__)
@@ -80,8 +80,9 @@ class Start:
 
     @classmethod
     def resumed(cls, out_dir: str, config_hash: str, input_poses: np.ndarray) -> "Start | None":
-        """The start a run in out_dir saved when it has a checkpoint to resume, the same config hash and the same
-        input poses [K, 4, 4] (to 1e-9); None otherwise (the start is chosen again)."""
+        """The start a run in out_dir saved, when it has a checkpoint to resume; None when there is none (the start
+        is chosen). A saved start of another config hash or other input poses [K, 4, 4] (beyond 1e-9) is an error
+        before anything runs: the checkpoint's corrections are relative to that start."""
         path = os.path.join(out_dir, FILE)
         if not os.path.isfile(path) or not os.path.isdir(os.path.join(out_dir, "checkpoints")):
             return None
@@ -89,8 +90,12 @@ class Start:
             meta = json.loads(str(saved["meta"]))
             same_input = (saved["input_poses"].shape == np.shape(input_poses)
                           and np.allclose(saved["input_poses"], input_poses, rtol=0.0, atol=1e-9))
-            if meta.get("config_hash") != config_hash or not same_input:
-                return None
+            if meta.get("config_hash") != config_hash:
+                raise ConfigError(f"{path} was saved under another configuration (hash {meta.get('config_hash')} != "
+                                  f"{config_hash}); use a new output_dir, or neld-train --restart to start over")
+            if not same_input:
+                raise DataError(f"{path} was saved for other input poses than the data's now; use a new output_dir, "
+                                "or neld-train --restart to start over")
             steps = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["pose_steps"].items()}
             return cls(saved["poses"], meta["chosen"], PoseSteps(**steps), saved["baseline_poses"],
                        meta["baseline_seconds"], meta["baseline_report"], meta["departure_m"])

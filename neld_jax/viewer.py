@@ -16,6 +16,8 @@ Entities (world frame, z up; timeline "step" for training, everything else stati
   world/map/{raw_input,raw_refined,rendered,gt} Points3D coloured by height, voxel-thinned to MAX_MAP_POINTS
   world/trajectory/training                     LineStrips3D of the keyframes' poses at each logged step
   train/{loss,range_err_m,frequency,pose_change_cm,pose_change_deg,lr/field,lr/pose_trans,lr/pose_rot}  Scalars
+  run/failure                                   TextLog (level ERROR): the error that stopped a run, with its
+                                                 traceback; the recording is closed and complete all the same
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import functools
 import logging
 import os
 import time
+import traceback
 
 import ml_collections
 import numpy as np
@@ -35,6 +38,7 @@ from neld_jax.trajectory import propagate_corrections
 logger = logging.getLogger(__name__)
 
 RECORDING = "run.rrd"
+FAILURE_ENTITY = "run/failure"
 APPLICATION_ID = "neld-jax"
 LIVE_PORT = 9876  # viz.live serves here (Rerun's default port; `rerun rerun+http://127.0.0.1:9876/proxy`)
 MAX_MAP_POINTS = 400_000  # a map the viewer opens in a few seconds
@@ -98,6 +102,20 @@ class RunViewer:
     @property
     def enabled(self) -> bool:
         return self._stream is not None
+
+    def __enter__(self) -> "RunViewer":
+        return self
+
+    def __exit__(self, kind, error, trace) -> bool:
+        """Closes the recording however the run ends; a run that failed (or was interrupted) logs why first."""
+        try:
+            if error is not None:
+                self.log_failure(error)
+        except Exception as logging_error:  # the run's own error is the one to report
+            logger.warning("run.rrd: the failure could not be logged (%s)", logging_error)
+        finally:
+            self.close()
+        return False  # the error goes on
 
     # ------------------------------------------------------------------------------------------ the steps
 
@@ -167,6 +185,16 @@ class RunViewer:
                                      colors=np.where(flagged[:, None], FLAG_COLOUR, SCAN_COLOUR).astype(np.uint8),
                                      radii=np.where(flagged, 2.0, 0.6) * self._marker_m / 4),
                          rr.AnyValues(flag=flags, **values), static=True)
+
+    @_timed
+    def log_failure(self, error: BaseException) -> None:
+        """What stopped the run: the error's line and its traceback, as an error-level text log (FAILURE_ENTITY)."""
+        import rerun as rr
+
+        what = "interrupted" if isinstance(error, KeyboardInterrupt) else "failed"
+        text = (f"the run {what}: {type(error).__name__}: {error}\n"
+                + "".join(traceback.format_exception(type(error), error, error.__traceback__)))
+        self._stream.log(FAILURE_ENTITY, rr.TextLog(text, level=rr.TextLogLevel.ERROR), static=True)
 
     def close(self) -> None:
         if not self.enabled:
@@ -248,6 +276,7 @@ def layout():
                                    contents=["train/pose_change_cm", "train/pose_change_deg"]),
                 rrb.TimeSeriesView(name="coarse-to-fine frequency", contents=["train/frequency"]),
                 rrb.TimeSeriesView(name="learning rates", contents=["train/lr/**"]),
+                rrb.TextLogView(name="failure", origin="run"),
             ),
             column_shares=[3, 1],
         ),

@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 from neld_jax import export
 from neld_jax.data.poses import write_kitti, write_tum
 from neld_jax.errors import DataError
-from neld_jax.evaluate import evaluate_run, find_trajectories, format_table, map_files, match_poses
+from neld_jax.evaluate import (RunArtifacts, Trajectory, evaluate, evaluate_run, find_trajectories, format_table,
+                               map_files, match_poses)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -51,7 +52,8 @@ def _scene_and_run(root: Path, num_scans: int = 6):
     export.write_raw_map(root / "map_raw.ply", scans, optimized)
     export.write_raw_map(root / "map_raw_initial.ply", scans, initial)
     rendered = world[::2] + rng.normal(0, 0.03, (len(world[::2]), 3))  # a rendered map, in the odometry frame
-    export.write_point_cloud(root / "map_rendered.ply", rendered @ odometry_frame[:3, :3].T + odometry_frame[:3, 3])
+    rendered = rendered @ odometry_frame[:3, :3].T + odometry_frame[:3, 3]
+    export.write_point_cloud(root / "map_rendered.ply", rendered)
     export.write_json(root / "metrics.json", {"run": {"steps": 5}})
     return gt, stamps
 
@@ -90,6 +92,38 @@ def test_evaluate_run_measures_and_aligns(tmp_path):
     assert "ATE RMSE [m]" in lines[0] and "raw L1-CD [cm]" in lines[0] and "rend. F1 [%]" in lines[0]
     assert lines[2].startswith("initial") and lines[3].startswith("optimized")
     assert "-" in lines[2].split()  # initial has no rendered map
+
+
+def test_the_arrays_a_run_holds_measure_as_the_files_it_wrote(tmp_path):
+    # The run evaluates what it has in memory (evaluate); neld-evaluate reads the same from the folder: the same
+    # figures, to the files' precision. The arrays are the ones _scene_and_run wrote.
+    run = tmp_path / "run"
+    gt, stamps = _scene_and_run(run)
+    from_files = evaluate_run(run, write_plots=False)
+    read = __import__("open3d").io.read_point_cloud
+    maps = {"optimized": {"raw": np.asarray(read(str(run / "map_raw.ply")).points),
+                          "rendered": np.asarray(read(str(run / "map_rendered.ply")).points)},
+            "initial": {"raw": np.asarray(read(str(run / "map_raw_initial.ply")).points)}}
+    from neld_jax.data.poses import read_kitti
+
+    gt_map = np.asarray(read(str(run / "map_gt.ply")).points)
+    artifacts = RunArtifacts({name: Trajectory(stamps, read_kitti(run / f"poses_{name}.kitti"))
+                              for name in ("initial", "optimized")}, maps, Trajectory(stamps, gt), gt_map)
+    in_memory = evaluate(artifacts).result
+    assert set(in_memory) == {"threshold_m", "raw_cutoff_m", "map_icp_m", "methods"}
+    assert list(in_memory["methods"]) == list(from_files["methods"]) == ["initial", "optimized"]
+    for name, entry in in_memory["methods"].items():
+        on_disk = from_files["methods"][name]
+        assert entry.keys() == on_disk.keys()
+        assert entry["poses"] == on_disk["poses"] == f"poses_{name}.txt"
+        assert entry["raw_map"]["file"] == on_disk["raw_map"]["file"]
+        for section in ("ate", "rpe", "raw_map"):
+            for key, value in entry[section].items():
+                if isinstance(value, float):
+                    assert value == pytest.approx(on_disk[section][key], rel=1e-6, abs=1e-9), (name, section, key)
+    # No GT at all: the trajectories are listed, nothing measured.
+    bare = evaluate(RunArtifacts(artifacts.trajectories, {})).result["methods"]["optimized"]
+    assert bare == {"poses": "poses_optimized.txt", "num_poses": 6}
 
 
 def test_explicit_gt_in_kitti_format_matches_by_order(tmp_path):

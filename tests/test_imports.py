@@ -18,7 +18,8 @@ LAYERS = [
     ("data", {"data"}),
     ("library", {"config", "submaps", "crispness", "metrics", "trajectory", "report", "judge", "baseline", "budget"}),
     ("steps", {"refine", "mapping", "start"}),
-    ("edge", {"run", "outputs", "export", "evaluate", "plots", "viewer", "cli", "hugepages", "commands"}),
+    ("edge", {"run", "outputs", "output_folder", "export", "evaluate", "plots", "viewer", "cli", "hugepages",
+              "commands"}),
 ]
 
 

@@ -90,8 +90,9 @@ def test_robust_outliers_and_report_rows():
     metres, degrees = report.pose_corrections(T, T_after)
     np.testing.assert_allclose(metres, [0, 0.05, 0], atol=1e-12)
     np.testing.assert_allclose(degrees, [0, 2.0, 0], atol=1e-9)
-    rows = report.scan_report(3, np.array([0, 2]), ["a.pcd", "b.pcd", "c.pcd"], None, np.array([10, 20]),
-                              np.array([0.1, 0.2]), metres, degrees, np.array([-3.0, -3.1]), np.array([-3.2, -3.3]))
+    rows = report.scan_report(report.ScanList(3, np.array([0, 2]), ["a.pcd", "b.pcd", "c.pcd"]),
+                              report.KeyframeMeasures(np.array([10, 20]), np.array([0.1, 0.2]), np.array([-3.0, -3.1]),
+                                                      np.array([-3.2, -3.3])), metres, degrees)
     assert [r["keyframe"] for r in rows] == [1, 0, 1] and rows[1]["rays"] == 0 and rows[1]["entropy_after"] is None
     assert rows[2]["median_residual_m"] == pytest.approx(0.2) and rows[1]["correction_cm"] == pytest.approx(5.0)
     # Without a start of its own the refinement is the correction from the input (keyframes only)
@@ -106,19 +107,19 @@ def test_the_report_flags_the_bundle_adjustments_own_moves_not_its_starts():
     refinement_m = 0.001 + 0.001 * np.arange(keyframes) / keyframes
     refinement_m[7] = 0.02
     flat, zeros = np.full(keyframes, 0.1), np.zeros(keyframes)
-    by_correction = report.scan_report(keyframes, np.arange(keyframes), None, None, flat, flat, correction_m, zeros,
-                                       flat, flat)
+    scans = report.ScanList(keyframes, np.arange(keyframes))
+    by_correction = report.scan_report(scans, report.KeyframeMeasures(flat, flat, flat, flat), correction_m, zeros)
     assert [r["scan"] for r in by_correction if r["flag"]] == [7, 8, 9, 10, 11]  # the start's upper group
-    rows = report.scan_report(keyframes, np.arange(keyframes), None, None, flat, flat, correction_m, zeros, flat,
-                              flat, refinement_m, zeros)
+    rows = report.scan_report(scans, report.KeyframeMeasures(flat, flat, flat, flat, refinement_m, zeros), correction_m,
+                              zeros)
     assert [r["scan"] for r in rows if r["flag"]] == [7] and rows[7]["flag"] == "refinement"
     assert rows[7]["refinement_cm"] == pytest.approx(2.0) and rows[7]["correction_cm"] == pytest.approx(4.0 + 0.0583,
                                                                                                         abs=1e-3)
     summary = report.summarize(rows)
     assert [f["scan"] for f in summary["flagged"]] == [7] and summary["flagged"][0]["refinement_cm"] == 2.0
     # An outlier among sub-millimetre moves is below the floor (REFINEMENT_FLOOR_M): not flagged
-    tiny = report.scan_report(keyframes, np.arange(keyframes), None, None, flat, flat, correction_m, zeros, flat,
-                              flat, refinement_m / 10, zeros)
+    tiny = report.scan_report(scans, report.KeyframeMeasures(flat, flat, flat, flat, refinement_m / 10, zeros),
+                              correction_m, zeros)
     assert not any(r["flag"] for r in tiny)
 
 
@@ -127,8 +128,8 @@ def test_the_report_flags_residuals_only_well_above_the_rest():
     flat, zeros = np.full(keyframes, 0.1), np.zeros(keyframes)
 
     def flagged(residual_m):
-        rows = report.scan_report(keyframes, np.arange(keyframes), None, None, flat, residual_m, zeros, zeros,
-                                  flat, flat)
+        rows = report.scan_report(report.ScanList(keyframes, np.arange(keyframes)),
+                                  report.KeyframeMeasures(flat, residual_m, flat, flat), zeros, zeros)
         return [r["scan"] for r in rows if r["flag"]]
 
     # Noise-free synthetic scans (the demo): residuals 1.1-1.2 cm and one at 1.37 cm, above median + 3 MADs but

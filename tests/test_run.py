@@ -11,9 +11,9 @@ import time
 import numpy as np
 import pytest
 
-from neld_jax import baseline, budget, checkpoint, judge, run, start, submaps
+from neld_jax import baseline, budget, checkpoint, judge, output_folder, run, start, submaps
 from neld_jax.data.poses import read_kitti, read_tum
-from neld_jax.errors import DataError
+from neld_jax.errors import ConfigError, DataError
 
 from conftest import make_tiny_config
 
@@ -67,11 +67,12 @@ def test_run_writes_outputs_and_resumes_after_a_kill(tmp_path, monkeypatch):
     _run_killed_after_its_first_checkpoint(_free_gauge(make_tiny_config(str(out), steps=12)), monkeypatch)
     assert checkpoint.Checkpointer(str(out / "checkpoints")).latest_step() == 5
 
-    # ... and rerun with the same output_dir resumes there and ends at the same final step and poses.
+    # ... and rerun with the same output_dir resumes there and ends at the same final step and the same poses, bit
+    # for bit: the key travels in the checkpointed state and the chunks are cut at the same steps.
     resumed = run.run(_free_gauge(make_tiny_config(str(out), steps=12)), progress=False)["run"]
     assert resumed["steps"] == 12
-    _, T_resumed = read_tum(out / "poses_optimized.txt")
-    np.testing.assert_allclose(T_resumed, T_opt, atol=1e-6)
+    for name in ("poses_optimized.txt", "poses_optimized.kitti"):
+        assert (out / name).read_bytes() == (tmp_path / "ref" / name).read_bytes(), name
     # The history and the training time continue across the resume instead of restarting.
     history = json.loads((out / "history.json").read_text())
     ref_history = json.loads((tmp_path / "ref" / "history.json").read_text())
@@ -179,8 +180,8 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     verdicts = []  # the margins the run's crispest verdict is given, and the verdict
     real_verdict = judge.warn_if_not_crispest
 
-    def verdict_spy(summaries, refused=None, margins=None):
-        verdicts.append((margins, real_verdict(summaries, refused, margins)))
+    def verdict_spy(summaries, margins=None):
+        verdicts.append((margins, real_verdict(summaries, margins)))
         return verdicts[-1][1]
 
     monkeypatch.setattr(judge, "warn_if_not_crispest", verdict_spy)
@@ -223,11 +224,14 @@ def test_a_resumed_run_starts_from_the_baseline_poses_its_first_run_chose(tmp_pa
     assert resumed["steps"] == 12 and resumed["started_from"] == "baseline"
     _, T_baseline = read_tum(tmp_path / "run" / "poses_baseline.txt")
     np.testing.assert_allclose(T_baseline, first_start, atol=1e-6)
-    # Another input (or another configuration) is not that run's: its start is chosen again.
+    # Another input (or another configuration) is not that run's: an error before anything runs, not a second
+    # baseline overwriting the saved start.
     moved = np.array(saved["input_poses"])
     moved[:, 0, 3] += 0.01
-    assert start.Start.resumed(str(tmp_path / "run"), resumed["config_hash"], moved) is None
-    assert start.Start.resumed(str(tmp_path / "run"), "another hash", saved["input_poses"]) is None
+    with pytest.raises(DataError, match="start_poses.npz was saved for other input poses"):
+        start.Start.resumed(str(tmp_path / "run"), resumed["config_hash"], moved)
+    with pytest.raises(ConfigError, match="start_poses.npz was saved under another configuration"):
+        start.Start.resumed(str(tmp_path / "run"), "another hash", saved["input_poses"])
     again = start.Start.resumed(str(tmp_path / "run"), resumed["config_hash"], saved["input_poses"])
     assert again is not None and again.pose_steps.keep_scale and again.chosen == "baseline"
 
@@ -248,15 +252,83 @@ def test_the_run_renders_its_map_within_the_time_its_budget_gives(tmp_path, monk
 
 
 def test_run_reads_as_its_named_steps():
-    # run.run is the pipeline: load, choose the start, train, render, write, judge, each a call into its module.
+    # run.run_steps is the pipeline: load, choose the start, train, render, write, judge, each a call into its module.
     import ast
     import inspect
 
-    tree = ast.parse(inspect.getsource(run.run))
+    tree = ast.parse(inspect.getsource(run.run_steps))
     calls = [ast.unparse(node.func) for node in sorted((n for n in ast.walk(tree) if isinstance(n, ast.Call)),
                                                         key=lambda n: (n.lineno, n.col_offset))]
     order = ["load_keyframes", "start.choose_start", "refine.refine_keyframes", "mapping.render_map",
              "outputs.write_outputs", "outputs.judge_run"]
     positions = [calls.index(name) for name in order]
     assert positions == sorted(positions), calls
-    assert len(inspect.getsource(run.run).splitlines()) < 50
+    assert len(inspect.getsource(run.run_steps).splitlines()) < 50
+
+
+def _folder_state(folder) -> dict:
+    """{relative path: (bytes, mtime in ns)} of every file under folder."""
+    return {str(p.relative_to(folder)): (p.read_bytes(), p.stat().st_mtime_ns)
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _quick_config(output_dir: str, steps: int = 4):
+    """A tiny run of one sample-count stage (one compile) without a rendered map."""
+    config = make_tiny_config(output_dir, steps=steps)
+    config.sampling.coarse_stages, config.sampling.fine_stages = (8,), (4,)
+    config.mapping.enabled = False
+    return config
+
+
+def test_a_rerun_resumes_its_own_configuration_refuses_another_and_restarts_when_asked(tmp_path, caplog):
+    out = tmp_path / "run"
+    first = run.run(_quick_config(str(out)), progress=False)
+    # metrics.json is the run's alone: a rerun rewrites it whole, inheriting no section of an earlier one.
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics) == {"run", "scans_report", "crispness", "evaluation"} == set(first)
+    (out / "metrics.json").write_text(json.dumps({**metrics, "baseline": {"seconds": 1.0},
+                                                  "crispness": {**metrics["crispness"], "stale": {}}}))
+    config_bytes = (out / "config.json").read_bytes()
+    again = run.run(_quick_config(str(out)), progress=False)  # the same configuration: it resumes (at its end)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics) == set(again) == set(first) and "stale" not in metrics["crispness"]
+    assert metrics["run"]["steps"] == 4 and (out / "config.json").read_bytes() == config_bytes
+
+    # Another configuration: one ConfigError naming each field that differs, old -> new, before anything is written.
+    before = _folder_state(out)
+    changed = _quick_config(str(out), steps=6)
+    changed.seed = 3
+    changed.viz.record = False  # where the run writes and how it is watched is not compared
+    with pytest.raises(ConfigError) as refused:
+        run.run(changed, progress=False)
+    line = str(refused.value)
+    assert "\n" not in line and str(out / "config.json") in line and "new output_dir" in line and "--restart" in line
+    assert "seed: 0 -> 3" in line and "train.steps: 4 -> 6" in line and "viz" not in line
+    assert _folder_state(out) == before
+
+    # neld-train: the same refusal is one line on stderr, and the folder is still as it was.
+    proc = _train_cli("--config=configs/demo.py", f"--config.output_dir={out}")
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith(f"error: {out / 'config.json'} holds another configuration")
+    assert _folder_state(out) == before
+
+    # --restart: the earlier run's files go (the log names them; other files stay), and the run starts over.
+    (out / "notes.txt").write_text("mine")
+    with caplog.at_level("WARNING", logger="neld_jax.output_folder"):
+        restarted = run.run(changed, progress=False, restart=True)["run"]
+    assert "--restart: deleting" in caplog.text and "checkpoints/" in caplog.text and "metrics.json" in caplog.text
+    assert "notes.txt" not in caplog.text and (out / "notes.txt").read_text() == "mine"
+    assert restarted["steps"] == 6 and not (out / "run.rrd").exists()
+    assert json.loads((out / "config.json").read_text())["seed"] == 3
+
+
+def test_config_differences_name_dotted_fields_old_and_new():
+    saved = {"seed": 0, "output_dir": "/a", "viz": {"record": True}, "train": {"steps": 4, "fixed_scans": [0]},
+             "data": {"root": "/x"}}
+    now = {"seed": 0, "output_dir": "/b", "viz": {"record": False}, "train": {"steps": 8, "fixed_scans": []},
+           "data": {"root": "/x", "added": 1.5}}
+    assert output_folder.config_differences(saved, now) == [
+        "data.added: (absent) -> 1.5", "train.fixed_scans: [0] -> []", "train.steps: 4 -> 8"]
+    assert output_folder.config_differences(saved, saved) == []
+    many = output_folder.refusal("/r/config.json", [f"f{i}: 0 -> 1" for i in range(9)])
+    assert "f5: 0 -> 1" in many and "f6" not in many and "and 3 more" in many

@@ -142,3 +142,20 @@ def test_live_view_serves_on_a_local_port_and_still_records(tmp_path, monkeypatc
     del live
     entities = read_recording(tmp_path / viewer.RECORDING)
     assert entities["/train/loss"]["step"] == [1] and len(entities["/world/trajectory/training"]["step"]) == 1
+
+
+def test_a_run_that_fails_midway_leaves_a_closed_recording_that_says_why(tmp_path, monkeypatch):
+    def broken_training(*args, **kwargs):
+        raise RuntimeError("training broke on purpose")
+
+    monkeypatch.setattr(run.refine, "refine_keyframes", broken_training)
+    out = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="training broke on purpose"):
+        run.run(make_tiny_config(str(out), steps=4), progress=False)
+    entities = read_recording(out / viewer.RECORDING)  # Rerun's reader loads it whole
+    # what the steps before the failure made is there, and the failure with its traceback
+    assert {"/world/trajectory/input", "/world/map/raw_input"} <= set(entities)
+    (text,) = entities["/" + viewer.FAILURE_ENTITY]["TextLog:text"]
+    (level,) = entities["/" + viewer.FAILURE_ENTITY]["TextLog:level"]
+    assert text[0].startswith("the run failed: RuntimeError: training broke on purpose")
+    assert "broken_training" in text[0] and level == ["ERROR"]

@@ -27,8 +27,7 @@ def run_baseline(config, progress: bool = True) -> dict:
     from neld_jax.baseline import BaselineSettings, register_sequence
     from neld_jax.data.preprocess import load_keyframes
     from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
-    from neld_jax.export import write_json, write_point_cloud, write_poses, write_raw_map
-    from neld_jax.outputs import record_crispness
+    from neld_jax.export import read_json, write_json, write_point_cloud, write_poses, write_raw_map
     from neld_jax.trajectory import propagate_corrections
 
     loaded, keyframes = load_keyframes(config.data)
@@ -52,9 +51,11 @@ def run_baseline(config, progress: bool = True) -> dict:
     if keyframes.gt_map is not None and not any((out / name).exists() for name in GT_MAP_FILES):
         write_point_cloud(out / GT_MAP_FILES[0], keyframes.gt_map)
     crisp, _ = judge.map_crispness(keyframes, {"initial": keyframes.poses, "baseline": poses}, config.eval)
-    crisp = record_crispness(str(out), crisp)
-    write_json(out / "metrics.json", {"baseline": {"seconds": round(seconds, 2), "decided": report,
-                                                   "settings": dataclasses.asdict(settings)}})
+    # Its sections join the folder's metrics.json (a run's, say): its methods' crispness beside the run's.
+    crisp = {**read_json(out / "metrics.json").get("crispness", {}), **crisp}
+    write_json(out / "metrics.json", {"crispness": crisp, "baseline": {"seconds": round(seconds, 2), "decided": report,
+                                                                        "settings": dataclasses.asdict(settings)}},
+               merge=True)
     logger.info("baseline outputs written to %s (registration took %.1f s)", out, seconds)
     evaluation = None
     if keyframes.gt_poses is not None or keyframes.gt_map is not None:

@@ -6,15 +6,23 @@
 
 No budget named: cpu (within 10 minutes on 2 cores), or gpu where JAX's default backend is a GPU (neld_jax.config).
 
-A rerun with the same output_dir resumes from its latest checkpoint. Several hosts: NELD_JAX_COORDINATOR=host:port
-with NELD_JAX_NUM_PROCESSES and NELD_JAX_PROCESS_ID join this process to the others before jax starts, so that the
-submaps' mesh spans every host's devices.
+A rerun with the same output_dir and configuration resumes from its latest checkpoint; a rerun of another
+configuration into it stops with one line naming the fields that differ, and changes nothing there (docs/design.md,
+"Resume"). --restart deletes the earlier run's files from output_dir (the log names them) and starts over.
+
+Several hosts: NELD_JAX_COORDINATOR=host:port with NELD_JAX_NUM_PROCESSES and NELD_JAX_PROCESS_ID join this process
+to the others before jax starts, so that the submaps' mesh spans every host's devices.
 """
 
 import logging
 import os
 
+from absl import flags
+
 from neld_jax.cli import main_with_config
+
+RESTART = flags.DEFINE_bool("restart", False, "Delete the files an earlier run wrote into output_dir (config.json, "
+                            "checkpoints, outputs) and start over, instead of resuming it.")
 
 
 def job(config) -> None:
@@ -25,7 +33,7 @@ def job(config) -> None:
 
     if slow := slow_run_warning(config):  # e.g. :paper on a CPU: weeks
         logging.getLogger(__name__).warning(slow)
-    summary = run(config)
+    summary = run(config, restart=RESTART.value)
     r = summary["run"]
     print(f"{r['steps']} steps in {r['train_seconds']:.0f} s on {r['num_scans']} keyframes of {r['num_input_scans']} "
           f"input scans (every input scan has a refined pose), started from the {r['started_from']} poses; outputs "

@@ -52,14 +52,16 @@ def prepare(config: ml_collections.ConfigDict) -> tuple[str, str]:
 
 
 def write_outputs(out_dir: str, config: ml_collections.ConfigDict, loaded, keyframes, start, refined,
-                  render) -> np.ndarray:
+                  render, registration=None) -> np.ndarray:
     """poses_initial / poses_optimized (TUM .txt and KITTI .kitti, one line per input scan: the scans between
-    keyframes take their keyframes' interpolated correction), poses_baseline when the baseline ran, poses_gt where
+    keyframes registered to the result (registration: neld_jax.register_scans.ScanRegistration), or where it is
+    None or refused a scan, their keyframes' interpolated correction), poses_baseline when the baseline ran, poses_gt where
     ground truth exists, poses_odometry when the input poses were made from the scans (KISS-ICP; the same poses as
     poses_initial, under the name that says where they came from); map_raw.ply (the keyframes registered with the
     optimised poses), map_raw_initial.ply, map_rendered.ply, map_gt.ply. Returns the poses of every input scan [S, 4, 4]."""
     index = keyframes.loaded_index
-    T_all = propagate_corrections(loaded.poses, index, refined.poses, loaded.timestamps)
+    T_all = (propagate_corrections(loaded.poses, index, refined.poses, loaded.timestamps) if registration is None
+             else registration.poses)
     write_poses(out_dir, "poses_initial", loaded.timestamps, loaded.poses)
     write_poses(out_dir, "poses_optimized", loaded.timestamps, T_all)
     if start.baseline_poses is not None:
@@ -84,9 +86,11 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, loaded, keyfr
 
 
 def judge_run(out_dir: str, config: ml_collections.ConfigDict, loaded, keyframes, start, refined, render, T_all,
-              budget: TimeBudget, config_hash_: str, progress: bool = True) -> tuple[dict, list[dict]]:
+              budget: TimeBudget, config_hash_: str, progress: bool = True,
+              registration=None) -> tuple[dict, list[dict]]:
     """The verdict of a run, written to metrics.json (run, crispness, scans_report; evaluation where ground truth
-    exists), history.json, scans_report.csv / .png and map_topdown.png. Returns (metrics.json's content, the
+    exists), history.json, scans_report.csv / .png (with each scan's registration, when given) and map_topdown.png.
+    Returns (metrics.json's content, the
     per-scan report's rows)."""
     methods = {"initial": keyframes.poses, "optimized": refined.poses}
     if start.baseline_poses is not None:
@@ -101,7 +105,7 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, loaded, keyframes
     for other, margin in margins.items():
         logger.info("%s", judge.describe_margin(other, margin))
     rows = write_scan_report(out_dir, loaded, keyframes, T_all, refined, render, per_scan_entropy,
-                             float(config.mapping.min_opacity), start.poses)
+                             float(config.mapping.min_opacity), start.poses, registration)
     plots.plot_map_topdown(os.path.join(out_dir, "map_topdown.png"),
                            {"input poses": register_scans(keyframes.scans, keyframes.poses),
                             "after NeLD-BA": register_scans(keyframes.scans, refined.poses)})
@@ -137,9 +141,10 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, loaded, keyframes
 
 
 def write_scan_report(out_dir: str, loaded, keyframes, T_all: np.ndarray, refined, render, per_scan_entropy: dict,
-                      min_opacity: float, start_poses: np.ndarray) -> list[dict]:
+                      min_opacity: float, start_poses: np.ndarray, registration=None) -> list[dict]:
     """scans_report.csv and scans_report.png: one row per input scan (neld_jax.report); the residuals from the
-    rendered map (none without it), the refinement from the poses training started from."""
+    rendered map (none without it), the refinement from the poses training started from, and each scan's
+    registration to the result (registration: neld_jax.register_scans.ScanRegistration, or None)."""
     num_keyframes = keyframes.num_scans
     residual = np.full(num_keyframes, np.nan)
     if render is not None:
@@ -156,6 +161,8 @@ def write_scan_report(out_dir: str, loaded, keyframes, T_all: np.ndarray, refine
                               refined.rays_per_keyframe, residual, correction_m, correction_deg,
                               per_scan_entropy.get("initial"), per_scan_entropy.get("optimized"), refinement_m,
                               refinement_deg)
+    if registration is not None:
+        rows = report.add_registration(rows, registration.residual_m, registration.flag)
     report.write_csv(os.path.join(out_dir, "scans_report.csv"), rows)
     plots.plot_scan_report(os.path.join(out_dir, "scans_report.png"), rows)
     logger.info("scans_report.csv: %d input scans, %d keyframes trained on", loaded.num_scans, num_keyframes)

@@ -35,8 +35,8 @@ MAD_THRESHOLD = 3.0
 RESIDUAL_FLOOR_M = 0.03  # a residual is flagged only this far above the keyframes' median or further
 REFINEMENT_FLOOR_M = 0.01  # a refinement is flagged only from this size on (translation) ...
 REFINEMENT_FLOOR_DEG = 0.1  # ... or this (rotation)
-COLUMNS = ("scan", "file", "timestamp", "keyframe", "rays", "median_residual_m", "correction_cm",
-           "correction_deg", "refinement_cm", "refinement_deg", "entropy_before", "entropy_after", "flag")
+COLUMNS = ("scan", "file", "timestamp", "keyframe", "rays", "median_residual_m", "registration_residual_m",
+           "correction_cm", "correction_deg", "refinement_cm", "refinement_deg", "entropy_before", "entropy_after", "flag")
 
 
 def pose_corrections(T_before: np.ndarray, T_after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -105,6 +105,7 @@ def scan_report(num_scans: int, keyframe_index: np.ndarray, files: list[str] | N
             "keyframe": int(k is not None),
             "rays": int(rays_per_keyframe[k]) if k is not None else 0,
             "median_residual_m": _value(residual_per_keyframe, k),
+            "registration_residual_m": None,
             "correction_cm": float(100.0 * correction_m[s]),
             "correction_deg": float(correction_deg[s]),
             "refinement_cm": None if k is None else float(100.0 * refinement_m[k]),
@@ -113,6 +114,17 @@ def scan_report(num_scans: int, keyframe_index: np.ndarray, files: list[str] | N
             "entropy_after": _value(entropy_after_kf, k),
             "flag": "+".join(reasons),
         })
+    return rows
+
+
+def add_registration(rows: list[dict], residual_m: np.ndarray, flags: list[str]) -> list[dict]:
+    """The registration of every input scan to the result (neld_jax.register_scans) in the rows: its residual [S]
+    (NaN: not registered, as the keyframes, which make the map) and, for a scan it refused, the flag
+    "unregistered (<why>)" beside any other."""
+    for row, residual, flag in zip(rows, residual_m, flags):
+        row["registration_residual_m"] = float(residual) if np.isfinite(residual) else None
+        if flag:
+            row["flag"] = "+".join([r for r in (row["flag"], f"unregistered ({flag})") if r])
     return rows
 
 
@@ -145,16 +157,19 @@ def summarize(rows: list[dict], max_listed: int = 10) -> dict:
     """{"num_scans", "num_keyframes", "flagged": [{"scan", "file", "flag", ...}]} for metrics.json and the log."""
     flagged = [row for row in rows if row["flag"]]
     for row in flagged[:max_listed]:
-        logger.warning("scan report: %s flagged (%s): median residual %s m, refinement %.2f cm / %.3f deg "
-                       "(from the input: %.1f cm / %.2f deg)", row["file"] or f"scan {row['scan']}", row["flag"],
+        logger.warning("scan report: %s flagged (%s): median residual %s m, refinement %s (from the input: %.1f cm "
+                       "/ %.2f deg)", row["file"] or f"scan {row['scan']}", row["flag"],
                        "-" if row["median_residual_m"] is None else f"{row['median_residual_m']:.3f}",
-                       row["refinement_cm"], row["refinement_deg"], row["correction_cm"], row["correction_deg"])
+                       "-" if row["refinement_cm"] is None
+                       else f"{row['refinement_cm']:.2f} cm / {row['refinement_deg']:.3f} deg",
+                       row["correction_cm"], row["correction_deg"])
     if len(flagged) > max_listed:
         logger.warning("scan report: %d more scans flagged (see scans_report.csv)", len(flagged) - max_listed)
     return {
         "num_scans": len(rows),
         "num_keyframes": int(sum(row["keyframe"] for row in rows)),
-        "flagged": [{key: row[key] for key in ("scan", "file", "flag", "median_residual_m", "correction_cm",
+        "flagged": [{key: row[key] for key in ("scan", "file", "flag", "median_residual_m",
+                                               "registration_residual_m", "correction_cm",
                                                "correction_deg", "refinement_cm", "refinement_deg")}
                     for row in flagged],
     }

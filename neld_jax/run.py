@@ -14,7 +14,7 @@ import logging
 import jax
 import ml_collections
 
-from neld_jax import mapping, outputs, refine, start, train
+from neld_jax import mapping, outputs, refine, register_scans, start, train
 from neld_jax.budget import TimeBudget
 from neld_jax.data.preprocess import load_keyframes
 from neld_jax.viewer import RunViewer
@@ -54,13 +54,16 @@ def run(config: ml_collections.ConfigDict, progress: bool = True) -> dict:
                                     budget.render_seconds(), config.seed + 1, progress)
         viewer.log_rendered(render)
 
-    # 5. Write the poses of every input scan and the maps (neld_jax.outputs).
-    T_all = outputs.write_outputs(out_dir, config, loaded, keyframes, begin, refined, render)
+    # 5. Register every input scan that was not a keyframe to the keyframes' refined map, from its interpolated
+    #    correction (neld_jax.register_scans); write the poses of every input scan and the maps (neld_jax.outputs).
+    registration = register_scans.register_every_scan(loaded, keyframes, refined.poses,
+                                                      register_scans.RegistrationSettings.from_config(config), progress)
+    T_all = outputs.write_outputs(out_dir, config, loaded, keyframes, begin, refined, render, registration)
     viewer.log_outputs(keyframes, refined, T_all)
 
     # 6. Judge: crispness before and after, how sure, the per-scan report, metrics.json; ground truth where it exists.
     summary, scan_rows = outputs.judge_run(out_dir, config, loaded, keyframes, begin, refined, render, T_all, budget,
-                                           config_hash, progress)
+                                           config_hash, progress, registration)
     viewer.log_verdict(scan_rows, loaded, T_all)
     viewer.close()
     return summary

@@ -1,0 +1,240 @@
+"""Every input scan registered to the result: a scan that was not a keyframe starts from its interpolated
+correction (neld_jax.trajectory) and is then registered to the keyframes' refined raw map by point-to-plane ICP
+(neld_jax.baseline.multiscale_icp), so that it does not keep the odometry's error between keyframes.
+
+A scan that cannot be registered keeps its interpolated pose and is flagged: too few points in range, too little
+of it on the map (ICP's fitness), or a result that moves it further from its interpolated pose than a bound.
+The same registration poses the scans of another recording in a finished run's map (neld-localize).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import NamedTuple
+
+import numpy as np
+
+from neld_jax.data.preprocess import crop_range
+from neld_jax.geometry import invert_poses, register_scans, rotation_angles_deg
+from neld_jax.trajectory import propagate_corrections
+
+logger = logging.getLogger(__name__)
+
+TOO_FEW_POINTS = "too few points"
+POOR_FITNESS = "poor fitness"
+JUMP = "jump"
+
+
+@dataclasses.dataclass(frozen=True)
+class RegistrationSettings:
+    """How a scan is registered to the map, and when a registration is refused (metres unless named)."""
+
+    voxel_size_m: float = 0.1  # the scan's and the map's grid
+    normal_radius_m: float = 0.5
+    icp_distances_m: tuple = (0.5, 0.25, 0.1)  # coarse first; the interpolated pose is within dm of the truth
+    icp_iterations: int = 30
+    min_range_m: float = 0.5
+    max_range_m: float = 80.0
+    min_points: int = 100  # fewer points in range (on the grid): not registered
+    fit_distance_m: float = 0.3  # a scan point within this of a map point lies on the map ...
+    min_fitness: float = 0.5  # ... and a scan less of whose points do is not registered
+    max_jump_m: float = 0.5  # a result further than this from the guess ...
+    max_jump_deg: float = 5.0  # ... or turned more than this: not registered
+
+    @classmethod
+    def from_config(cls, config) -> "RegistrationSettings":
+        """The run's range crop (config.data) and its map's grid (config.baseline.voxel_size_m); the rest as above."""
+        return cls(voxel_size_m=float(config.baseline.voxel_size_m), min_range_m=float(config.data.min_range_m),
+                   max_range_m=float(config.data.max_range_m))
+
+
+class ScanRegistration(NamedTuple):
+    """poses [S, 4, 4]: every scan's pose in the map (the guess where it was not registered); residual_m [S] and
+    fitness [S]: how its points lie on the map after ICP (fit_to_map; NaN where not tried); flag [S]: why a scan tried was not registered ("" registered or not tried); tried [S] bool."""
+
+    poses: np.ndarray
+    residual_m: np.ndarray
+    fitness: np.ndarray
+    flag: list
+    tried: np.ndarray
+
+    @property
+    def registered(self) -> np.ndarray:
+        """[S] bool: tried and kept."""
+        return self.tried & np.array([not f for f in self.flag], bool)
+
+
+def map_cloud(scans: list[np.ndarray], poses: np.ndarray, settings: RegistrationSettings):
+    """The target: scans (list of [N_i, 3], sensor frames) registered with poses [K, 4, 4] on the settings' grid,
+    with normals (unoriented: the map's points come from several sensors). An Open3D cloud."""
+    return cloud_with_normals(register_scans(scans, poses), settings)
+
+
+def cloud_with_normals(points: np.ndarray, settings: RegistrationSettings, sensor_frame: bool = False):
+    """points [N, 3] -> an Open3D cloud on the settings' grid with normals (facing the origin when sensor_frame)."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    cloud = cloud.voxel_down_sample(settings.voxel_size_m)
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=settings.normal_radius_m, max_nn=30))
+    if sensor_frame:
+        cloud.orient_normals_towards_camera_location(np.zeros(3))
+    return cloud
+
+
+def register_scan(scan: np.ndarray, guess: np.ndarray, target, settings: RegistrationSettings):
+    """One scan [N, 3] (sensor frame) from its guess [4, 4] (sensor -> map) to the target map (map_cloud).
+
+    Returns (pose [4, 4], residual_m, fitness, flag): the guess and a flag where it is refused."""
+    from neld_jax.baseline import BaselineSettings, multiscale_icp
+
+    source = cloud_with_normals(crop_range(scan, settings.min_range_m, settings.max_range_m), settings,
+                                sensor_frame=True)
+    if len(source.points) < settings.min_points:
+        return guess, np.nan, np.nan, TOO_FEW_POINTS
+    icp = BaselineSettings(voxel_size_m=settings.voxel_size_m, normal_radius_m=settings.normal_radius_m,
+                           icp_distances_m=tuple(settings.icp_distances_m), icp_iterations=settings.icp_iterations)
+    pose, _ = multiscale_icp(source, target, guess, icp, oriented=False)
+    fitness, residual = fit_to_map(np.asarray(source.points), pose, target, settings.fit_distance_m)
+    if fitness < settings.min_fitness:
+        return guess, residual, fitness, POOR_FITNESS
+    jump_m, jump_deg = pose_change(guess, pose)
+    if jump_m > settings.max_jump_m or jump_deg > settings.max_jump_deg:
+        return guess, residual, fitness, JUMP
+    return pose, residual, fitness, ""
+
+
+def fit_to_map(points: np.ndarray, pose: np.ndarray, target, distance_m: float) -> tuple[float, float]:
+    """How a scan's points [N, 3] (sensor frame) under pose [4, 4] lie on the target map (an Open3D cloud with
+    normals): (fitness: the fraction with a map point within distance_m, residual [m]: the RMS distance of those to
+    their map point's plane; NaN without one)."""
+    from neld_jax.baseline import TargetIndex
+
+    moved = points @ pose[:3, :3].T + pose[:3, 3]
+    nearest, _ = TargetIndex(target, distance_m).nearest(moved, distance_m)
+    paired = nearest >= 0
+    if not paired.any():
+        return 0.0, float("nan")
+    offsets = moved[paired] - np.asarray(target.points)[nearest[paired]]
+    along_normal = np.einsum("ij,ij->i", offsets, np.asarray(target.normals)[nearest[paired]])
+    return float(paired.mean()), float(np.sqrt(np.mean(along_normal ** 2)))
+
+
+def pose_change(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+    """How far [m] and how much [deg] a pose [4, 4] moved, in its own frame: before^-1 after."""
+    delta = invert_poses(before[None])[0] @ after
+    return float(np.linalg.norm(delta[:3, 3])), float(rotation_angles_deg(delta[None, :3, :3])[0])
+
+
+def register_to_map(scans: list[np.ndarray], guesses: np.ndarray, target, settings: RegistrationSettings,
+                    which: np.ndarray | None = None, progress: bool = False, label=str) -> ScanRegistration:
+    """Register the scans (list of S [N_i, 3], sensor frames) chosen by which [S] bool (None: every one) from
+    their guesses [S, 4, 4] to the target map (map_cloud). The others keep their guesses, untried. label(s): how the
+    log names scan s."""
+    from tqdm.auto import tqdm
+
+    num_scans = len(scans)
+    which = np.ones(num_scans, bool) if which is None else np.asarray(which, bool)
+    poses = np.array(guesses, np.float64, copy=True)
+    residual, fitness, flags = np.full(num_scans, np.nan), np.full(num_scans, np.nan), [""] * num_scans
+    for s in tqdm(np.flatnonzero(which), disable=not progress, desc="registering scans", unit="scan"):
+        poses[s], residual[s], fitness[s], flags[s] = register_scan(scans[s], poses[s], target, settings)
+    registration = ScanRegistration(poses, residual, fitness, flags, which)
+    log_refused(registration, label)
+    return registration
+
+
+def log_refused(registration: ScanRegistration, label=str) -> None:
+    """One warning per scan that was tried and refused (it keeps its guess; label(s) names it), and a count."""
+    for s, flag in enumerate(registration.flag):
+        if flag:
+            logger.warning("%s not registered (%s: fitness %.2f, residual %.3f m): it keeps its guess", label(s),
+                           flag, registration.fitness[s], registration.residual_m[s])
+    logger.info("registered %d of %d scans tried to the map (median residual %.3f m)",
+                int(registration.registered.sum()), int(registration.tried.sum()),
+                float(np.nanmedian(registration.residual_m)) if np.isfinite(registration.residual_m).any() else np.nan)
+
+
+def register_every_scan(loaded, keyframes, keyframe_poses: np.ndarray, settings: RegistrationSettings,
+                        progress: bool = False) -> ScanRegistration:
+    """After training: every input scan (loaded: the input Sequence) that is not a keyframe (keyframes: the trained
+    ones, keyframes.loaded_index into loaded) registered to the keyframes' raw map under their refined poses
+    keyframe_poses [K, 4, 4], from its interpolated correction (trajectory.propagate_corrections). The keyframes
+    keep their poses, untried: they make the map."""
+    guesses = propagate_corrections(loaded.poses, keyframes.loaded_index, keyframe_poses, loaded.timestamps)
+    target = map_cloud(keyframes.scans, keyframe_poses, settings)
+    which = np.ones(loaded.num_scans, bool)
+    which[keyframes.loaded_index] = False
+    return register_to_map(loaded.scans, guesses, target, settings, which, progress, loaded.scan_label)
+
+
+def register_in_field(refined, config, scans: list[np.ndarray], guesses: np.ndarray, which: np.ndarray,
+                      rays_per_scan: int = 256, steps: int = 100, chunk: int = 16, seed: int = 0) -> ScanRegistration:
+    """Pose-only optimisation in the trained field (one cube): each chosen scan's right correction from its guess
+    [4, 4] (world, anchored as refined.poses) under the run's loss (eq. 13) with the field frozen; vmapped over
+    `chunk` scans at a time, `steps` Adam steps of the run's initial pose learning rates."""
+    import jax
+    import jax.numpy as jnp
+    import optax
+
+    from neld_jax import lie, train
+    from neld_jax.model import in_units, render_rays, world_rays
+
+    plan = refined.plan
+    if plan.num_submaps != 1:
+        raise ValueError("register_in_field: one cube only")
+    norm = plan.norms[0]
+    fields = jax.tree.map(lambda x: x[0], refined.result.state.params["fields"])
+    sampler = in_units(train.sampler_settings(config, config.sampling.coarse_stages[-1],
+                                              config.sampling.fine_stages[-1]), norm.scale)
+    loss_settings = train.loss_settings(config, 1)
+    alpha = jnp.float32(refined.alpha)
+    idx = np.flatnonzero(which)
+    rng = np.random.default_rng(seed)
+    dirs, ranges = [], []
+    for s in idx:
+        p = crop_range(scans[s], float(config.data.min_range_m), float(config.data.max_range_m))
+        p = p[rng.choice(len(p), rays_per_scan, replace=len(p) < rays_per_scan)]
+        r = np.linalg.norm(p, axis=1)
+        dirs.append(p / r[:, None])
+        ranges.append(r * norm.scale)
+    T0 = norm.poses_to_normalized(np.linalg.inv(refined.anchor) @ guesses[idx])
+    lr = jnp.asarray([0.005 * norm.scale] * 3 + [5e-4] * 3, jnp.float32)
+    tx = optax.chain(optax.scale_by_adam(), optax.scale_by_schedule(optax.exponential_decay(-1.0, steps, 0.1)))
+
+    def scan_loss(xi, T_start, d, r, key):
+        T = lie.compose(T_start[None], lie.se3_exp(xi[None]))
+        origins, directions = world_rays(jnp.broadcast_to(T, (d.shape[0], 4, 4)), d)
+        out = render_rays(fields, refined.field, sampler, origins, directions, alpha, key, r)
+        total, metrics = train.ray_losses(out, r, loss_settings)
+        return total, metrics["range_residual_median"]
+
+    @jax.jit
+    def solve(T_start, d, r, key):
+        xi = jnp.zeros((T_start.shape[0], 6), jnp.float32)
+
+        def body(carry, k):
+            xi, opt = carry
+            (_, _), g = jax.vmap(jax.value_and_grad(scan_loss, has_aux=True))(xi, T_start, d, r,
+                                                                             jax.random.split(k, xi.shape[0]))
+            upd, opt = tx.update(g, opt)
+            return (xi + upd * lr, opt), None
+
+        (xi, _), _ = jax.lax.scan(body, (xi, tx.init(xi)), jax.random.split(key, steps))
+        _, res = jax.vmap(scan_loss)(xi, T_start, d, r, jax.random.split(key, xi.shape[0]))
+        return xi, res
+
+    poses = np.array(guesses, np.float64, copy=True)
+    residual = np.full(len(scans), np.nan)
+    key = jax.random.PRNGKey(seed)
+    for start in range(0, len(idx), chunk):
+        sel = np.arange(start, min(start + chunk, len(idx)))
+        pad = np.pad(sel, (0, chunk - len(sel)), mode="edge")
+        xi, res = solve(jnp.asarray(T0[pad], jnp.float32), jnp.asarray(np.stack([dirs[i] for i in pad]), jnp.float32),
+                        jnp.asarray(np.stack([ranges[i] for i in pad]), jnp.float32), key)
+        xi = np.asarray(xi, np.float64)[: len(sel)]
+        T_n = T0[sel] @ lie.se3_exp_float64(xi)
+        poses[idx[sel]] = refined.anchor @ norm.poses_to_world(T_n)
+        residual[idx[sel]] = np.asarray(res)[: len(sel)] / norm.scale
+    return ScanRegistration(poses, residual, np.full(len(scans), np.nan), [""] * len(scans), np.asarray(which, bool))

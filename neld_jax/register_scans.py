@@ -169,6 +169,52 @@ def register_every_scan(loaded, keyframes, keyframe_poses: np.ndarray, settings:
     return register_to_map(loaded.scans, guesses, target, settings, which, progress, loaded.scan_label)
 
 
+def place_first_scan(scan: np.ndarray, pose: np.ndarray, target, settings: RegistrationSettings
+                     ) -> tuple[np.ndarray, str]:
+    """Where scan [N, 3] (sensor frame) lies in the target map (map_cloud), its own pose [4, 4] being in a frame
+    that may not be the map's: ICP from that pose, or where that is refused, global registration (FPFH + RANSAC,
+    then ICP: neld_jax.baseline.global_registration) checked as any registration. Returns (pose [4, 4] in the map,
+    "icp" or "global"); a DataError when neither places it."""
+    from neld_jax.baseline import BaselineSettings, _fpfh, global_registration
+    from neld_jax.errors import DataError
+
+    placed, _, _, flag = register_scan(scan, pose, target, settings)
+    if not flag:
+        return placed, "icp"
+    source = cloud_with_normals(crop_range(scan, settings.min_range_m, settings.max_range_m), settings,
+                                sensor_frame=True)
+    features = BaselineSettings()
+    transform, _ = global_registration(source, target, _fpfh(source, features), _fpfh(target, features), features)
+    placed, residual, fitness, flag = register_scan(scan, transform, target, settings)
+    if flag:
+        raise DataError(f"the first scan could not be placed in the map: ICP from its own pose and global "
+                        f"registration both failed ({flag}: {fitness:.0%} of its points on the map, residual "
+                        f"{residual:.3f} m); are these scans of the mapped place?")
+    return placed, "global"
+
+
+def localize(scans: list[np.ndarray], poses: np.ndarray, target, settings: RegistrationSettings,
+             progress: bool = False, label=str) -> tuple[ScanRegistration, str]:
+    """Pose scans (list of S [N_i, 3], sensor frames, in time order) in a map (map_cloud) whose frame their own
+    poses [S, 4, 4] (layout or odometry) need not share: the first scan placed by place_first_scan, then each scan
+    by ICP from its own pose carried by the last registered scan's correction (the odometry holds between them).
+    A refused scan keeps that guess. Returns (the registration, how the first scan was placed)."""
+    from tqdm.auto import tqdm
+
+    num_scans = len(scans)
+    placed, how = place_first_scan(scans[0], poses[0], target, settings)
+    correction = placed @ invert_poses(poses[:1])[0]
+    out = np.array(poses, np.float64, copy=True)
+    residual, fitness, flags = np.full(num_scans, np.nan), np.full(num_scans, np.nan), [""] * num_scans
+    for s in tqdm(range(num_scans), disable=not progress, desc="localizing scans", unit="scan"):
+        out[s], residual[s], fitness[s], flags[s] = register_scan(scans[s], correction @ poses[s], target, settings)
+        if not flags[s]:
+            correction = out[s] @ invert_poses(poses[s:s + 1])[0]
+    registration = ScanRegistration(out, residual, fitness, flags, np.ones(num_scans, bool))
+    log_refused(registration, label)
+    return registration, how
+
+
 def register_in_field(refined, config, scans: list[np.ndarray], guesses: np.ndarray, which: np.ndarray,
                       rays_per_scan: int = 256, steps: int = 100, chunk: int = 16, seed: int = 0) -> ScanRegistration:
     """Pose-only optimisation in the trained field (one cube): each chosen scan's right correction from its guess

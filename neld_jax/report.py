@@ -37,6 +37,7 @@ REFINEMENT_FLOOR_M = 0.01  # a refinement is flagged only from this size on (tra
 REFINEMENT_FLOOR_DEG = 0.1  # ... or this (rotation)
 COLUMNS = ("scan", "file", "timestamp", "keyframe", "rays", "median_residual_m", "registration_residual_m",
            "correction_cm", "correction_deg", "refinement_cm", "refinement_deg", "entropy_before", "entropy_after", "flag")
+LOCALIZATION_COLUMNS = ("scan", "file", "timestamp", "registration_residual_m", "fitness", "flag")
 
 
 def pose_corrections(T_before: np.ndarray, T_after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -135,13 +136,22 @@ def _value(per_keyframe: np.ndarray, k: int | None) -> float | None:
     return value if np.isfinite(value) else None
 
 
-def write_csv(path: str | os.PathLike, rows: list[dict]) -> Path:
+def localization_rows(registration, files: list[str] | None, timestamps: np.ndarray | None) -> list[dict]:
+    """Rows (LOCALIZATION_COLUMNS) of scans posed in a finished run's map (neld-localize): registration, a
+    neld_jax.register_scans.ScanRegistration of S scans; files [S] or None; timestamps [S] or None."""
+    return [{"scan": s, "file": files[s] if files is not None else "",
+             "timestamp": None if timestamps is None else float(timestamps[s]),
+             "registration_residual_m": _value(registration.residual_m, s), "fitness": _value(registration.fitness, s),
+             "flag": f"unregistered ({flag})" if flag else ""} for s, flag in enumerate(registration.flag)]
+
+
+def write_csv(path: str | os.PathLike, rows: list[dict], columns: tuple = COLUMNS) -> Path:
     path = Path(path)
     with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer = csv.DictWriter(f, fieldnames=columns)
         writer.writeheader()
         for row in rows:
-            writer.writerow({key: _format(row[key]) for key in COLUMNS})
+            writer.writerow({key: _format(row[key]) for key in columns})
     return path
 
 

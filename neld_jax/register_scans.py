@@ -163,9 +163,12 @@ def register_every_scan(loaded, keyframes, keyframe_poses: np.ndarray, settings:
     keyframe_poses [K, 4, 4], from its interpolated correction (trajectory.propagate_corrections). The keyframes
     keep their poses, untried: they make the map."""
     guesses = propagate_corrections(loaded.poses, keyframes.loaded_index, keyframe_poses, loaded.timestamps)
-    target = map_cloud(keyframes.scans, keyframe_poses, settings)
     which = np.ones(loaded.num_scans, bool)
     which[keyframes.loaded_index] = False
+    if not which.any():  # every scan a keyframe: nothing to register, no map to build
+        nothing = np.full(loaded.num_scans, np.nan)
+        return ScanRegistration(guesses, nothing, nothing.copy(), [""] * loaded.num_scans, which)
+    target = map_cloud(keyframes.scans, keyframe_poses, settings)
     return register_to_map(loaded.scans, guesses, target, settings, which, progress, loaded.scan_label)
 
 

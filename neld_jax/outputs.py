@@ -55,8 +55,8 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, loaded, keyfr
                   render, registration=None) -> np.ndarray:
     """poses_initial / poses_optimized (TUM .txt and KITTI .kitti, one line per input scan: the scans between
     keyframes registered to the result (registration: neld_jax.register_scans.ScanRegistration), or where it is
-    None or refused a scan, their keyframes' interpolated correction), poses_baseline when the baseline ran, poses_gt where
-    ground truth exists, poses_odometry when the input poses were made from the scans (KISS-ICP; the same poses as
+    None or refused a scan, their keyframes' interpolated correction), poses_baseline when the baseline ran, poses_gt
+    where ground truth exists, poses_odometry when the input poses were made from the scans (KISS-ICP; the same poses as
     poses_initial, under the name that says where they came from); map_raw.ply (the keyframes registered with the
     optimised poses), map_raw_initial.ply, map_rendered.ply, map_gt.ply. Returns the poses of every input scan [S, 4, 4]."""
     index = keyframes.loaded_index
@@ -90,8 +90,7 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, loaded, keyframes
               registration=None) -> tuple[dict, list[dict]]:
     """The verdict of a run, written to metrics.json (run, crispness, scans_report; evaluation where ground truth
     exists), history.json, scans_report.csv / .png (with each scan's registration, when given) and map_topdown.png.
-    Returns (metrics.json's content, the
-    per-scan report's rows)."""
+    Returns (metrics.json's content, the per-scan report's rows)."""
     methods = {"initial": keyframes.poses, "optimized": refined.poses}
     if start.baseline_poses is not None:
         methods["baseline"] = start.baseline_poses

@@ -3,8 +3,10 @@ correction (neld_jax.trajectory) and is then registered to the keyframes' refine
 (neld_jax.baseline.multiscale_icp), so that it does not keep the odometry's error between keyframes.
 
 A scan that cannot be registered keeps its interpolated pose and is flagged: too few points in range, too little
-of it on the map (ICP's fitness), or a result that moves it further from its interpolated pose than a bound.
-The same registration poses the scans of another recording in a finished run's map (neld-localize).
+of it on the map (its fitness: the share of its points near map points), or a result that moves it further from
+its interpolated pose than a bound. The same registration poses the scans of another recording in a finished run's
+map (neld-localize). Registering in the trained field instead (pose-only, the field frozen) was measured and lost
+to this (docs/evaluation.md, "Every input scan").
 """
 
 from __future__ import annotations
@@ -51,7 +53,8 @@ class RegistrationSettings:
 
 class ScanRegistration(NamedTuple):
     """poses [S, 4, 4]: every scan's pose in the map (the guess where it was not registered); residual_m [S] and
-    fitness [S]: how its points lie on the map after ICP (fit_to_map; NaN where not tried); flag [S]: why a scan tried was not registered ("" registered or not tried); tried [S] bool."""
+    fitness [S]: how its points lie on the map after ICP (fit_to_map; NaN where not tried); flag [S]: why a scan
+    tried was not registered ("" registered or not tried); tried [S] bool."""
 
     poses: np.ndarray
     residual_m: np.ndarray

@@ -36,7 +36,8 @@ RESIDUAL_FLOOR_M = 0.03  # a residual is flagged only this far above the keyfram
 REFINEMENT_FLOOR_M = 0.01  # a refinement is flagged only from this size on (translation) ...
 REFINEMENT_FLOOR_DEG = 0.1  # ... or this (rotation)
 COLUMNS = ("scan", "file", "timestamp", "keyframe", "rays", "median_residual_m", "registration_residual_m",
-           "correction_cm", "correction_deg", "refinement_cm", "refinement_deg", "entropy_before", "entropy_after", "flag")
+           "correction_cm", "correction_deg", "refinement_cm", "refinement_deg", "entropy_before", "entropy_after",
+           "flag")
 LOCALIZATION_COLUMNS = ("scan", "file", "timestamp", "registration_residual_m", "fitness", "flag")
 
 

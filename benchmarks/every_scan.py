@@ -64,7 +64,8 @@ def measure(run_dir: str) -> dict:
     seconds = time.perf_counter() - t0
     radius = float(config.eval.crispness_radius_m)
     entry = {"run": run_dir, "input_scans": loaded.num_scans, "keyframes": keyframes.num_scans,
-             "num_registered": int(registration.registered.sum()), "num_refused": int(sum(map(bool, registration.flag))),
+             "num_registered": int(registration.registered.sum()),
+             "num_refused": int(sum(map(bool, registration.flag))),
              "registration_s": round(seconds, 1),
              "median_residual_cm": round(100 * float(np.nanmedian(registration.residual_m)), 3)}
     for name, poses in (("odometry", loaded.poses), ("interpolated", interpolated),

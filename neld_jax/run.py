@@ -1,4 +1,5 @@
-"""One bundle-adjustment run, read top to bottom: load, choose the start, train, render, write, judge.
+"""One bundle-adjustment run, read top to bottom: load, choose the start, train, render, register every scan,
+write, judge.
 
 Each step is a function in the module of its idea; `bin/train.py` (neld-train) calls `run`. The viewer
 (neld_jax.viewer) records what each step made to run.rrd, and streams it with viz.live. The config is the

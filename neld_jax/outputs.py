@@ -50,19 +50,22 @@ def config_hash(config: ml_collections.ConfigDict) -> str:
 @dataclasses.dataclass(frozen=True)
 class RunSteps:
     """What a run's steps made: every input scan (`loaded`) and the keyframes (step 1), the start (2), the refined
-    poses and fields (3) and the rendered map (4; None with mapping off)."""
+    poses and fields (3), the rendered map (4; None with mapping off) and every other input scan registered to the
+    result (5; neld_jax.register_scans.ScanRegistration, None where nothing was registered)."""
 
     loaded: Any
     keyframes: Any
     start: Any
     refined: Any
     render: Any = None
+    registration: Any = None
 
 
 def write_outputs(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps) -> RunArtifacts:
     """poses_initial / poses_optimized (TUM .txt and KITTI .kitti, one line per input scan: the scans between
-    keyframes take their keyframes' interpolated correction), poses_baseline when the baseline ran, poses_gt where
-    ground truth exists, poses_odometry when the input poses were made from the scans (KISS-ICP; the same poses as
+    keyframes registered to the result (made.registration), or where it is
+    None or refused a scan, their keyframes' interpolated correction), poses_baseline when the baseline ran, poses_gt
+    where ground truth exists, poses_odometry when the input poses were made from the scans (KISS-ICP; the same poses as
     poses_initial, under the name that says where they came from); map_raw.ply (the keyframes registered with the
     optimised poses), map_raw_initial.ply, map_rendered.ply, map_gt.ply. Returns what it wrote, as arrays (the
     evaluation measures them without reading the files back); trajectories["optimized"]: every input scan's
@@ -74,7 +77,8 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, made: RunStep
     if made.start.baseline_poses is not None:
         trajectories["baseline"] = propagate_corrections(loaded.poses, index, made.start.baseline_poses,
                                                          loaded.timestamps)
-    trajectories["optimized"] = propagate_corrections(loaded.poses, index, refined.poses, loaded.timestamps)
+    trajectories["optimized"] = (propagate_corrections(loaded.poses, index, refined.poses, loaded.timestamps)
+                                 if made.registration is None else made.registration.poses)
     if loaded.poses_from == "kiss_icp":
         trajectories["odometry"] = loaded.poses
     for name, poses in trajectories.items():
@@ -173,7 +177,7 @@ def write_scan_report(out_dir: str, made: RunSteps, T_all: np.ndarray, per_scan_
                       min_opacity: float) -> list[dict]:
     """scans_report.csv and scans_report.png: one row per input scan (neld_jax.report; T_all: every input scan's
     refined poses [S, 4, 4]); the residuals from the rendered map (none without it), the refinement from the poses
-    training started from."""
+    training started from, and each scan's registration to the result (made.registration, where it ran)."""
     loaded, keyframes, refined, render = made.loaded, made.keyframes, made.refined, made.render
     num_keyframes = keyframes.num_scans
     residual = np.full(num_keyframes, np.nan)
@@ -192,6 +196,8 @@ def write_scan_report(out_dir: str, made: RunSteps, T_all: np.ndarray, per_scan_
         report.KeyframeMeasures(refined.rays_per_keyframe, residual, per_scan_entropy.get("initial"),
                                 per_scan_entropy.get("optimized"), refinement_m, refinement_deg),
         correction_m, correction_deg)
+    if made.registration is not None:
+        rows = report.add_registration(rows, made.registration.residual_m, made.registration.flag)
     report.write_csv(os.path.join(out_dir, "scans_report.csv"), rows)
     plots.plot_scan_report(os.path.join(out_dir, "scans_report.png"), rows)
     logger.info("scans_report.csv: %d input scans, %d keyframes trained on", loaded.num_scans, num_keyframes)

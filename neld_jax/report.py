@@ -36,8 +36,10 @@ MAD_THRESHOLD = 3.0
 RESIDUAL_FLOOR_M = 0.03  # a residual is flagged only this far above the keyframes' median or further
 REFINEMENT_FLOOR_M = 0.01  # a refinement is flagged only from this size on (translation) ...
 REFINEMENT_FLOOR_DEG = 0.1  # ... or this (rotation)
-COLUMNS = ("scan", "file", "timestamp", "keyframe", "rays", "median_residual_m", "correction_cm",
-           "correction_deg", "refinement_cm", "refinement_deg", "entropy_before", "entropy_after", "flag")
+COLUMNS = ("scan", "file", "timestamp", "keyframe", "rays", "median_residual_m", "registration_residual_m",
+           "correction_cm", "correction_deg", "refinement_cm", "refinement_deg", "entropy_before", "entropy_after",
+           "flag")
+LOCALIZATION_COLUMNS = ("scan", "file", "timestamp", "registration_residual_m", "fitness", "flag")
 
 
 def pose_corrections(T_before: np.ndarray, T_after: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,6 +132,7 @@ def scan_report(scans: ScanList, measures: KeyframeMeasures, correction_m: np.nd
             "keyframe": int(k is not None),
             "rays": int(measures.rays[k]) if k is not None else 0,
             "median_residual_m": _value(measures.residual_m, k),
+            "registration_residual_m": None,
             "correction_cm": float(100.0 * correction_m[s]),
             "correction_deg": float(correction_deg[s]),
             "refinement_cm": None if k is None else float(100.0 * refinement_m[k]),
@@ -141,6 +144,17 @@ def scan_report(scans: ScanList, measures: KeyframeMeasures, correction_m: np.nd
     return rows
 
 
+def add_registration(rows: list[dict], residual_m: np.ndarray, flags: list[str]) -> list[dict]:
+    """The registration of every input scan to the result (neld_jax.register_scans) in the rows: its residual [S]
+    (NaN: not registered, as the keyframes, which make the map) and, for a scan it refused, the flag
+    "unregistered (<why>)" beside any other."""
+    for row, residual, flag in zip(rows, residual_m, flags):
+        row["registration_residual_m"] = float(residual) if np.isfinite(residual) else None
+        if flag:
+            row["flag"] = "+".join([r for r in (row["flag"], f"unregistered ({flag})") if r])
+    return rows
+
+
 def _value(per_keyframe: np.ndarray, k: int | None) -> float | None:
     if k is None or per_keyframe is None:
         return None
@@ -148,13 +162,22 @@ def _value(per_keyframe: np.ndarray, k: int | None) -> float | None:
     return value if np.isfinite(value) else None
 
 
-def write_csv(path: str | os.PathLike, rows: list[dict]) -> Path:
+def localization_rows(registration, files: list[str] | None, timestamps: np.ndarray | None) -> list[dict]:
+    """Rows (LOCALIZATION_COLUMNS) of scans posed in a finished run's map (neld-localize): registration, a
+    neld_jax.register_scans.ScanRegistration of S scans; files [S] or None; timestamps [S] or None."""
+    return [{"scan": s, "file": files[s] if files is not None else "",
+             "timestamp": None if timestamps is None else float(timestamps[s]),
+             "registration_residual_m": _value(registration.residual_m, s), "fitness": _value(registration.fitness, s),
+             "flag": f"unregistered ({flag})" if flag else ""} for s, flag in enumerate(registration.flag)]
+
+
+def write_csv(path: str | os.PathLike, rows: list[dict], columns: tuple = COLUMNS) -> Path:
     path = Path(path)
     with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer = csv.DictWriter(f, fieldnames=columns)
         writer.writeheader()
         for row in rows:
-            writer.writerow({key: _format(row[key]) for key in COLUMNS})
+            writer.writerow({key: _format(row[key]) for key in columns})
     return path
 
 
@@ -170,16 +193,19 @@ def summarize(rows: list[dict], max_listed: int = 10) -> dict:
     """{"num_scans", "num_keyframes", "flagged": [{"scan", "file", "flag", ...}]} for metrics.json and the log."""
     flagged = [row for row in rows if row["flag"]]
     for row in flagged[:max_listed]:
-        logger.warning("scan report: %s flagged (%s): median residual %s m, refinement %.2f cm / %.3f deg "
-                       "(from the input: %.1f cm / %.2f deg)", row["file"] or f"scan {row['scan']}", row["flag"],
+        logger.warning("scan report: %s flagged (%s): median residual %s m, refinement %s (from the input: %.1f cm "
+                       "/ %.2f deg)", row["file"] or f"scan {row['scan']}", row["flag"],
                        "-" if row["median_residual_m"] is None else f"{row['median_residual_m']:.3f}",
-                       row["refinement_cm"], row["refinement_deg"], row["correction_cm"], row["correction_deg"])
+                       "-" if row["refinement_cm"] is None
+                       else f"{row['refinement_cm']:.2f} cm / {row['refinement_deg']:.3f} deg",
+                       row["correction_cm"], row["correction_deg"])
     if len(flagged) > max_listed:
         logger.warning("scan report: %d more scans flagged (see scans_report.csv)", len(flagged) - max_listed)
     return {
         "num_scans": len(rows),
         "num_keyframes": int(sum(row["keyframe"] for row in rows)),
-        "flagged": [{key: row[key] for key in ("scan", "file", "flag", "median_residual_m", "correction_cm",
+        "flagged": [{key: row[key] for key in ("scan", "file", "flag", "median_residual_m",
+                                               "registration_residual_m", "correction_cm",
                                                "correction_deg", "refinement_cm", "refinement_deg")}
                     for row in flagged],
     }

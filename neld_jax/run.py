@@ -1,4 +1,5 @@
-"""One bundle-adjustment run, read top to bottom: load, choose the start, train, render, write, judge.
+"""One bundle-adjustment run, read top to bottom: load, choose the start, train, render, register every scan,
+write, judge.
 
 Each step is a function in the module of its idea; `bin/train.py` (neld-train) calls `run`. The viewer
 (neld_jax.viewer) records what each step made to run.rrd, and streams it with viz.live. The config is the
@@ -15,7 +16,7 @@ import logging
 import jax
 import ml_collections
 
-from neld_jax import mapping, output_folder, outputs, refine, start, train
+from neld_jax import mapping, output_folder, outputs, refine, register_scans, start, train
 from neld_jax.budget import TimeBudget
 from neld_jax.data.preprocess import load_keyframes
 from neld_jax.viewer import RunViewer
@@ -64,8 +65,11 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
                                     budget.render_seconds(), config.seed + 1, progress)
         viewer.log_rendered(render)
 
-    # 5. Write the poses of every input scan and the maps (neld_jax.outputs).
-    made = outputs.RunSteps(loaded, keyframes, begin, refined, render)
+    # 5. Register every input scan that was not a keyframe to the keyframes' refined map, from its interpolated
+    #    correction (neld_jax.register_scans); write the poses of every input scan and the maps (neld_jax.outputs).
+    registration = register_scans.register_every_scan(loaded, keyframes, refined.poses,
+                                                      register_scans.RegistrationSettings.from_config(config), progress)
+    made = outputs.RunSteps(loaded, keyframes, begin, refined, render, registration)
     written = outputs.write_outputs(out_dir, config, made)
     T_all = written.trajectories["optimized"].poses
     viewer.log_outputs(keyframes, refined, T_all)

@@ -15,7 +15,7 @@ with open(os.path.join(REPO, "pyproject.toml"), "rb") as f:
 
 def test_every_command_has_its_bin_script():
     assert set(SCRIPTS) == {"neld-train", "neld-baseline", "neld-evaluate", "neld-crispness", "neld-import-rosbag",
-                            "neld-perturb", "neld-make-synthetic"}
+                            "neld-perturb", "neld-make-synthetic", "neld-localize"}
     for name, target in SCRIPTS.items():
         module, function = target.split(":")
         assert function == "main" and module == f"neld_jax.commands.{name[len('neld-'):].replace('-', '_')}"

@@ -17,7 +17,7 @@ LAYERS = [
     ("trainer", {"train", "checkpoint"}),
     ("data", {"data"}),
     ("library", {"config", "submaps", "crispness", "metrics", "trajectory", "report", "judge", "baseline", "budget"}),
-    ("steps", {"refine", "mapping", "start"}),
+    ("steps", {"refine", "mapping", "start", "register_scans"}),
     ("edge", {"run", "outputs", "output_folder", "export", "evaluate", "plots", "viewer", "cli", "hugepages",
               "commands"}),
 ]

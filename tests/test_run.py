@@ -252,7 +252,8 @@ def test_the_run_renders_its_map_within_the_time_its_budget_gives(tmp_path, monk
 
 
 def test_run_reads_as_its_named_steps():
-    # run.run_steps is the pipeline: load, choose the start, train, render, write, judge, each a call into its module.
+    # run.run_steps is the pipeline: load, choose the start, train, render, register every scan, write, judge,
+    # each a call into its module.
     import ast
     import inspect
 
@@ -260,7 +261,7 @@ def test_run_reads_as_its_named_steps():
     calls = [ast.unparse(node.func) for node in sorted((n for n in ast.walk(tree) if isinstance(n, ast.Call)),
                                                         key=lambda n: (n.lineno, n.col_offset))]
     order = ["load_keyframes", "start.choose_start", "refine.refine_keyframes", "mapping.render_map",
-             "outputs.write_outputs", "outputs.judge_run"]
+             "register_scans.register_every_scan", "outputs.write_outputs", "outputs.judge_run"]
     positions = [calls.index(name) for name in order]
     assert positions == sorted(positions), calls
     assert len(inspect.getsource(run.run_steps).splitlines()) < 50

@@ -1,0 +1,94 @@
+#!/usr/bin/env python
+"""What registering every input scan to the result gains (neld_jax.register_scans): ATE against the ground truth
+over every sweep, over the keyframes and over the other sweeps, and the raw map of every sweep's crispness, for the
+odometry (the run's input), the keyframes' interpolated corrections (what every other sweep had before), and every
+sweep registered to the keyframes' refined map; and the registration's time.
+
+    neld-make-synthetic --config=configs/demo.py --root=/tmp/sweeps --rate_hz=10 \\
+        --config.data.synthetic.num_scans=300 --config.data.synthetic.max_range_m=40
+    neld-train --config=configs/generic.py:cpu --config.data.root=/tmp/sweeps --config.output_dir=/tmp/sweeps_run \\
+        --config.data.initial_poses=kiss_icp
+    python benchmarks/every_scan.py --runs=/tmp/sweeps_run --out=/tmp/every_scan.json
+
+Each run folder is a finished run with ground truth (its config.json names the sequence, which is loaded again as
+the run loaded it). The keyframes' refined poses are read from its poses_optimized.txt; the registration is run
+again here from them (and timed), the interpolation recomputed. The target of the issue this answers: ATE over
+every sweep at most 1.2 x the keyframes' ATE.
+"""
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+
+def ate_cm(T: np.ndarray, gt: np.ndarray) -> float:
+    from neld_jax.metrics import ate
+
+    return round(100 * ate(T, gt)["translation_rmse_m"], 3)
+
+
+def figures(T: np.ndarray, loaded, keyframe: np.ndarray, radius_m: float) -> dict:
+    """ATE [cm] over every sweep, the keyframes and the others; the raw map of every sweep's mean map entropy."""
+    from neld_jax.crispness import crispness
+    from neld_jax.geometry import register_scans
+
+    gt = loaded.gt_poses
+    summary = crispness(register_scans(loaded.scans, T), radius=radius_m, max_queries=20_000, seed=0).summary()
+    return {"ate_every_sweep_cm": ate_cm(T, gt), "ate_keyframes_cm": ate_cm(T[keyframe], gt[keyframe]),
+            "ate_other_sweeps_cm": ate_cm(T[~keyframe], gt[~keyframe]),
+            "entropy_every_sweep": round(summary["mean_map_entropy"], 4),
+            "thickness_every_sweep_cm": round(100 * summary["mean_plane_thickness_m"], 3)}
+
+
+def measure(run_dir: str) -> dict:
+    import ml_collections
+
+    from neld_jax import register_scans
+    from neld_jax.data.poses import read_tum
+    from neld_jax.data.preprocess import load_keyframes
+    from neld_jax.export import read_json
+    from neld_jax.trajectory import propagate_corrections
+
+    config = ml_collections.ConfigDict(read_json(f"{run_dir}/config.json"))
+    loaded, keyframes = load_keyframes(config.data)
+    keyframe = np.zeros(loaded.num_scans, bool)
+    keyframe[keyframes.loaded_index] = True
+    _, written = read_tum(f"{run_dir}/poses_optimized.txt")
+    refined = written[keyframes.loaded_index]
+    interpolated = propagate_corrections(loaded.poses, keyframes.loaded_index, refined, loaded.timestamps)
+    t0 = time.perf_counter()
+    registration = register_scans.register_every_scan(loaded, keyframes, refined,
+                                                      register_scans.RegistrationSettings.from_config(config))
+    seconds = time.perf_counter() - t0
+    radius = float(config.eval.crispness_radius_m)
+    entry = {"run": run_dir, "input_scans": loaded.num_scans, "keyframes": keyframes.num_scans,
+             "num_registered": int(registration.registered.sum()),
+             "num_refused": int(sum(map(bool, registration.flag))),
+             "registration_s": round(seconds, 1),
+             "median_residual_cm": round(100 * float(np.nanmedian(registration.residual_m)), 3)}
+    for name, poses in (("odometry", loaded.poses), ("interpolated", interpolated),
+                        ("registered", registration.poses)):
+        entry[name] = figures(poses, loaded, keyframe, radius)
+    after = entry["registered"]
+    entry["every_sweep_over_keyframes"] = round(after["ate_every_sweep_cm"] / after["ate_keyframes_cm"], 3)
+    entry["target_met"] = entry["every_sweep_over_keyframes"] <= 1.2
+    return entry
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--runs", required=True, help="Finished run folders with ground truth, comma-separated.")
+    parser.add_argument("--out", default="", help="JSON file with one entry per run.")
+    args = parser.parse_args()
+    entries = [measure(run_dir) for run_dir in args.runs.split(",") if run_dir]
+    text = json.dumps(entries, indent=1)
+    print(text)
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -205,8 +205,7 @@ def run_baseline_here(config, loaded, keyframes, path_dir: str):
     from neld_jax.trajectory import propagate_corrections
 
     t0 = time.perf_counter()
-    poses = register_sequence(keyframes.scans, keyframes.poses, BaselineSettings.from_config(config), report={},
-                              progress=False)
+    poses = register_sequence(keyframes.scans, keyframes.poses, BaselineSettings.from_config(config)).poses
     seconds = time.perf_counter() - t0
     write_poses(path_dir, "poses_baseline", loaded.timestamps,
                 propagate_corrections(loaded.poses, keyframes.loaded_index, poses, loaded.timestamps))

@@ -33,10 +33,10 @@ def run_baseline(config, progress: bool = True) -> dict:
 
     loaded, keyframes = load_keyframes(config.data)
     settings = BaselineSettings.from_config(config)
-    report = {}
     t0 = time.perf_counter()
-    poses = register_sequence(keyframes.scans, keyframes.poses, settings, report=report, progress=progress)
+    result = register_sequence(keyframes.scans, keyframes.poses, settings, progress=progress)
     seconds = time.perf_counter() - t0
+    poses, report = result.poses, result.report()
 
     out = Path(config.output_dir)
     voxel = float(config.mapping.voxel_size_m)

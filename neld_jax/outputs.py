@@ -18,7 +18,7 @@ import numpy as np
 from neld_jax import judge, plots, report
 from neld_jax.budget import TimeBudget
 from neld_jax.data.preprocess import voxel_downsample
-from neld_jax.export import read_json, write_json, write_point_cloud, write_poses, write_raw_map
+from neld_jax.export import read_json, write_json, write_keyframe_poses, write_point_cloud, write_poses, write_raw_map
 from neld_jax.geometry import register_scans
 from neld_jax.trajectory import propagate_corrections
 
@@ -63,8 +63,7 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, loaded, keyfr
     write_poses(out_dir, "poses_initial", loaded.timestamps, loaded.poses)
     write_poses(out_dir, "poses_optimized", loaded.timestamps, T_all)
     if start.baseline_poses is not None:
-        write_poses(out_dir, "poses_baseline", loaded.timestamps,
-                    propagate_corrections(loaded.poses, index, start.baseline_poses, loaded.timestamps))
+        write_keyframe_poses(out_dir, "poses_baseline", loaded, keyframes, start.baseline_poses)
     if loaded.gt_poses is not None:
         write_poses(out_dir, "poses_gt", loaded.timestamps, loaded.gt_poses)
     if loaded.poses_from == "kiss_icp":

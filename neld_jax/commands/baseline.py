@@ -27,9 +27,8 @@ def run_baseline(config, progress: bool = True) -> dict:
     from neld_jax.baseline import BaselineSettings, register_sequence
     from neld_jax.data.preprocess import load_keyframes
     from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
-    from neld_jax.export import write_json, write_point_cloud, write_poses, write_raw_map
+    from neld_jax.export import write_json, write_keyframe_poses, write_point_cloud, write_poses, write_raw_map
     from neld_jax.outputs import record_crispness
-    from neld_jax.trajectory import propagate_corrections
 
     loaded, keyframes = load_keyframes(config.data)
     settings = BaselineSettings.from_config(config)
@@ -40,8 +39,7 @@ def run_baseline(config, progress: bool = True) -> dict:
 
     out = Path(config.output_dir)
     voxel = float(config.mapping.voxel_size_m)
-    write_poses(out, "poses_baseline", loaded.timestamps,
-                propagate_corrections(loaded.poses, keyframes.loaded_index, poses, loaded.timestamps))
+    write_keyframe_poses(out, "poses_baseline", loaded, keyframes, poses)
     write_raw_map(out / "map_raw_baseline.ply", keyframes.scans, poses, voxel_size=voxel)
     if not (out / "poses_initial.txt").exists():
         write_poses(out, "poses_initial", loaded.timestamps, loaded.poses)

@@ -56,11 +56,11 @@ def _rounds(seq, config) -> tuple[list, float, dict]:
     and where the refinement started)."""
     from neld_jax.baseline import BaselineSettings, register_sequence
 
-    history, report = [], {}
+    history = []
     t0 = time.perf_counter()
-    register_sequence(seq.scans, seq.poses, BaselineSettings.from_config(config),
-                      on_round=lambda r, poses: history.append(poses), report=report)
-    return history, time.perf_counter() - t0, {key: report.get(key) for key in ("tilt", "refined_from")}
+    result = register_sequence(seq.scans, seq.poses, BaselineSettings.from_config(config),
+                               on_round=lambda r, poses: history.append(poses))
+    return history, time.perf_counter() - t0, {"tilt": result.tilt, "refined_from": result.refined_from}
 
 
 def _regraph(clouds: list, config, poses):

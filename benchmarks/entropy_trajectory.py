@@ -47,6 +47,7 @@ def main(argv):
     from neld_jax.data.normalize import Normalization
     from neld_jax.data.preprocess import load_keyframes
     from neld_jax.data.rays import build_rays
+    from neld_jax.geometry import anchored_on_first
     from neld_jax.model import world_poses
 
     config = from_file(os.path.join(REPO, "configs", "lio_keyframes.py"), "cpu")
@@ -76,7 +77,7 @@ def main(argv):
 
     def measure(step: int, poses, history: list) -> None:
         in_field = world_poses(start_poses, np.asarray(poses), plan.ref_scale)
-        T_world = np.asarray(start_poses[0], np.float64) @ np.linalg.inv(in_field[0]) @ in_field  # keyframe 0 stays
+        T_world, _ = anchored_on_first(in_field, start_poses[0])  # keyframe 0 stays
         summary, _ = judge.map_crispness(keyframes, {"poses": T_world}, config.eval)
         last = history[-1] if history else {}
         records.append({"step": step, "mean_map_entropy": summary["poses"]["mean_map_entropy"],

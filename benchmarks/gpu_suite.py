@@ -149,8 +149,7 @@ def load_demo(path: str) -> Demo:
     rays_m = RaySet(d["directions"], d["ranges_m"], d["scan_index"])
     scale = float(d["scale"])
     num_scans = len(d["poses"])
-    plan = submaps.SubmapPlan(members=np.arange(num_scans)[None], norms=(Normalization(scale, d["offset"]),),
-                              ref_scale=scale, weight=np.ones(1))
+    plan = submaps.one_cube_plan(num_scans, Normalization(scale, d["offset"]))
     mesh = train.make_mesh(1)
     rays, frames = train.device_data(submaps.submap_arrays(plan, rays_m, d["poses"]), mesh)
     return Demo(rays_m, rays, frames, d["poses"], d["gt_poses"], scale, plan, mesh)

@@ -201,15 +201,12 @@ def run_baseline_here(config, loaded, keyframes, path_dir: str):
     """The classical baseline from the keyframes' poses (as neld-baseline), its poses of every input sweep written to
     path_dir/poses_baseline.txt. Returns its registration seconds."""
     from neld_jax.baseline import BaselineSettings, register_sequence
-    from neld_jax.export import write_poses
-    from neld_jax.trajectory import propagate_corrections
+    from neld_jax.export import write_keyframe_poses
 
     t0 = time.perf_counter()
-    poses = register_sequence(keyframes.scans, keyframes.poses, BaselineSettings.from_config(config), report={},
-                              progress=False)
+    poses = register_sequence(keyframes.scans, keyframes.poses, BaselineSettings.from_config(config)).poses
     seconds = time.perf_counter() - t0
-    write_poses(path_dir, "poses_baseline", loaded.timestamps,
-                propagate_corrections(loaded.poses, keyframes.loaded_index, poses, loaded.timestamps))
+    write_keyframe_poses(path_dir, "poses_baseline", loaded, keyframes, poses)
     return seconds
 
 

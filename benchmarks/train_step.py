@@ -164,12 +164,6 @@ class SyntheticCube(NamedTuple):
     mesh: object
 
 
-def one_cube_plan(num_scans: int, scale: float) -> submaps.SubmapPlan:
-    """A plan of one cube holding every scan, normalised by `scale` (normalised units per metre) about the origin."""
-    return submaps.SubmapPlan(members=np.arange(num_scans)[None], norms=(Normalization(scale),), ref_scale=scale,
-                              weight=np.ones(1))
-
-
 def synthetic_rays(num_scans: int, rays_per_scan: int, seed: int = 0) -> SyntheticCube:
     """Rays of `num_scans` sensors inside the cube looking at a sphere of radius 0.8 around the origin, as one cube
     of SYNTHETIC_SCALE normalised units per metre (the sphere is 64 m across), placed as the trainer takes them."""
@@ -178,7 +172,7 @@ def synthetic_rays(num_scans: int, rays_per_scan: int, seed: int = 0) -> Synthet
     T_m = np.array(T, np.float64)
     T_m[:, :3, 3] /= SYNTHETIC_SCALE
     mesh = train.make_mesh(1)
-    arrays = submaps.submap_arrays(one_cube_plan(num_scans, SYNTHETIC_SCALE), rays_m, T_m)
+    arrays = submaps.submap_arrays(submaps.one_cube_plan(num_scans, Normalization(SYNTHETIC_SCALE)), rays_m, T_m)
     placed, frames = train.device_data(arrays, mesh)
     return SyntheticCube(placed, frames, T_m, mesh)
 

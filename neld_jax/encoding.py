@@ -22,11 +22,6 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def encoded_dim(in_dim: int, num_freqs: int) -> int:
-    """Width of `fourier_encode`'s output for `in_dim` inputs and `num_freqs` frequencies."""
-    return in_dim * (1 + 2 * num_freqs)
-
-
 # Taylor coefficients of sin(theta) / theta in theta^2: float64-accurate on |theta| <= pi/2 (the last term
 # dropped, (pi/2)^25 / 25!, is ~1e-20).
 _SIN_COEFFS = tuple((-1) ** i / math.factorial(2 * i + 1) for i in range(12))

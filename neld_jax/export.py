@@ -19,6 +19,7 @@ from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.errors import DataError
 from neld_jax.jsonable import to_jsonable  # noqa: F401  (re-exported: callers write JSON through export)
 from neld_jax.geometry import register_scans
+from neld_jax.trajectory import propagate_corrections
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +41,16 @@ def write_poses(output_dir: str | os.PathLike, stem: str, timestamps: np.ndarray
     write_tum(tum_path, timestamps, poses)
     write_kitti(kitti_path, poses)
     return tum_path, kitti_path
+
+
+def write_keyframe_poses(output_dir: str | os.PathLike, stem: str, loaded, keyframes, T_keyframes: np.ndarray
+                         ) -> np.ndarray:
+    """The keyframes' poses T_keyframes [K, 4, 4] carried to every input scan of `loaded` (the scans between
+    keyframes take their keyframes' interpolated correction: trajectory.propagate_corrections) and written as
+    `write_poses` does. loaded, keyframes: data.preprocess.load_keyframes's. Returns the poses [S, 4, 4] written."""
+    T_all = propagate_corrections(loaded.poses, keyframes.loaded_index, T_keyframes, loaded.timestamps)
+    write_poses(output_dir, stem, loaded.timestamps, T_all)
+    return T_all
 
 
 def write_point_cloud(path: str | os.PathLike, points: np.ndarray) -> Path:

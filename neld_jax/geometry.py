@@ -53,6 +53,13 @@ def nearest_rotations(matrices: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
+def anchored_on_first(poses: np.ndarray, pose0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """poses [S, 4, 4] moved rigidly so that poses[0] becomes pose0 [4, 4] (the gauge: keyframe 0 keeps its start
+    pose) -> (the moved poses [S, 4, 4], the rigid transform [4, 4] that moved them: pose0 poses[0]^-1)."""
+    anchor = np.asarray(pose0, np.float64) @ np.linalg.inv(poses[0])
+    return anchor @ poses, anchor
+
+
 def with_up_axis_of(poses: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """poses tilted onto the reference's up axis: each rotation turned, about a horizontal axis, by the smallest
     angle that gives its sensor the world's up direction (+z) where the reference's sensor has it, so heading and

@@ -21,6 +21,7 @@ from neld_jax import submaps, train
 from neld_jax.checkpoint import fit_resuming
 from neld_jax.data.normalize import Normalization
 from neld_jax.data.rays import build_rays
+from neld_jax.geometry import anchored_on_first
 from neld_jax.model import world_poses
 
 logger = logging.getLogger(__name__)
@@ -79,7 +80,7 @@ def refine_keyframes(config: ml_collections.ConfigDict, keyframes, start_poses: 
                                             on_log=None if on_log is None else posed(on_log, start_poses,
                                                                                      plan.ref_scale)))
     poses_in_field = world_poses(start_poses, np.asarray(result.state.params["poses"]), plan.ref_scale)
-    poses, anchor = anchored(start_poses, poses_in_field)
+    poses, anchor = anchored_on_first(poses_in_field, start_poses[0])
     return Refined(result, plan, first.field, poses, poses_in_field, anchor,
                    np.bincount(rays_m.scan_index, minlength=num_scans))
 
@@ -91,13 +92,7 @@ def posed(on_log: Callable[[dict, np.ndarray], None], start_poses: np.ndarray,
 
     def observe(entry: dict, state: train.TrainState) -> None:
         in_field = world_poses(start_poses, np.asarray(jax.device_get(state.params["poses"])), ref_scale)
-        on_log(entry, anchored(start_poses, in_field)[0])
+        on_log(entry, anchored_on_first(in_field, start_poses[0])[0])
 
     return observe
 
-
-def anchored(start_poses: np.ndarray, poses_in_field: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The poses [K, 4, 4] the fields see, moved rigidly so that keyframe 0 keeps its start pose (with every pose
-    free the field, not a fixed scan, holds the frame): (the anchored poses [K, 4, 4], the anchor [4, 4])."""
-    anchor = np.asarray(start_poses[0], np.float64) @ np.linalg.inv(poses_in_field[0])
-    return anchor @ poses_in_field, anchor

@@ -181,7 +181,7 @@ def place_first_scan(scan: np.ndarray, pose: np.ndarray, target, settings: Regis
     that may not be the map's: ICP from that pose, or where that is refused, global registration (FPFH + RANSAC,
     then ICP: neld_jax.baseline.global_registration) checked as any registration. Returns (pose [4, 4] in the map,
     "icp" or "global"); a DataError when neither places it."""
-    from neld_jax.baseline import BaselineSettings, _fpfh, global_registration
+    from neld_jax.baseline import BaselineSettings, fpfh_features, global_registration
     from neld_jax.errors import DataError
 
     placed, _, _, flag = register_scan(scan, pose, target, settings)
@@ -190,7 +190,8 @@ def place_first_scan(scan: np.ndarray, pose: np.ndarray, target, settings: Regis
     source = cloud_with_normals(crop_range(scan, settings.min_range_m, settings.max_range_m), settings,
                                 sensor_frame=True)
     features = BaselineSettings()
-    transform, _ = global_registration(source, target, _fpfh(source, features), _fpfh(target, features), features)
+    transform, _ = global_registration(source, target, fpfh_features(source, features),
+                                       fpfh_features(target, features), features)
     placed, residual, fitness, flag = register_scan(scan, transform, target, settings)
     if flag:
         raise DataError(f"the first scan could not be placed in the map: ICP from its own pose and global "

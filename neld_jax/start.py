@@ -41,7 +41,7 @@ FILE = "start_poses.npz"  # the start a run chose, kept for a resume (the baseli
 @dataclasses.dataclass(frozen=True)
 class Start:
     """Where training starts: the keyframes' poses [K, 4, 4], which they are ("input" | "baseline"), and the pose
-    steps from there. When the baseline ran: its poses [K, 4, 4], seconds, what it decided (baseline.register_sequence's
+    steps from there. When the baseline ran: its poses [K, 4, 4], seconds, what it decided (baseline.BaselineResult's
     report), how far it departs from the input (metres, largest position difference after rigid alignment) and the
     crispness that judged the start ({method: summary}, {method: per-keyframe entropy}; ({}, {}) when not judged)."""
 
@@ -116,10 +116,10 @@ def choose_start(config: ml_collections.ConfigDict, keyframes, deadline: float |
     if how == "input":
         return Start(keyframes.poses, "input", PoseSteps.from_config(config))
     t0 = time.perf_counter()
-    report = {}
-    baseline = register_sequence(keyframes.scans, keyframes.poses, BaselineSettings.from_config(config),
-                                 deadline=deadline, report=report, progress=progress)
+    result = register_sequence(keyframes.scans, keyframes.poses, BaselineSettings.from_config(config),
+                               deadline=deadline, progress=progress)
     seconds = time.perf_counter() - t0
+    baseline, report = result.poses, result.report()
     if report.get("stopped_at_deadline"):
         logger.warning("the classical baseline's multi-view refinement stopped after %.2f of its %d rounds, so that "
                        "training keeps its share of max_minutes=%g (max_minutes=0 lifts the limit)",

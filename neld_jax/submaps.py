@@ -23,7 +23,7 @@ import dataclasses
 import logging
 import numpy as np
 
-from neld_jax.data.normalize import NORMALIZATION_MARGIN, fit_normalization
+from neld_jax.data.normalize import NORMALIZATION_MARGIN, Normalization, fit_normalization
 from neld_jax.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -196,6 +196,11 @@ def plan_submaps(scans: list[np.ndarray], poses: np.ndarray, window: int, overla
     return SubmapPlan(members=members, norms=tuple(norms), ref_scale=ref_scale, weight=weight)
 
 
+def one_cube_plan(num_scans: int, norm: Normalization) -> SubmapPlan:
+    """The plan of one cube, normalised by `norm`, holding every one of `num_scans` keyframes."""
+    return SubmapPlan(members=np.arange(num_scans)[None], norms=(norm,), ref_scale=norm.scale, weight=np.ones(1))
+
+
 def plan_from_config(seq, config, num_devices: int = 1) -> SubmapPlan:
     """The plan of a preprocessed sequence (seq.scans, seq.poses: the poses training starts from): one cube fitted to
     every keyframe when it holds them at submaps.max_detail_m (or submaps.enabled="off"), else windows. Logs how the
@@ -203,8 +208,7 @@ def plan_from_config(seq, config, num_devices: int = 1) -> SubmapPlan:
     norm = fit_normalization(seq.scans, seq.poses, margin=NORMALIZATION_MARGIN)
     extent_m = 2.0 * NORMALIZATION_MARGIN / norm.scale
     if not submaps_wanted(config, extent_m):
-        return SubmapPlan(members=np.arange(seq.num_scans)[None], norms=(norm,), ref_scale=norm.scale,
-                          weight=np.ones(1))
+        return one_cube_plan(seq.num_scans, norm)
     sc = config.submaps
     margin = NORMALIZATION_MARGIN
     max_extent = max_submap_extent_m(float(sc.max_detail_m), config.model.pos_freqs, margin)

@@ -10,6 +10,11 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 from neld_jax.config import defaults  # noqa: E402
 
 
+def encoded_dim(in_dim: int, num_freqs: int) -> int:
+    """Width of encoding.fourier_encode's output for `in_dim` inputs and `num_freqs` frequencies."""
+    return in_dim * (1 + 2 * num_freqs)
+
+
 def make_tiny_config(output_dir: str = "", steps: int = 20):
     c = defaults()
     c.output_dir = output_dir
@@ -107,8 +112,7 @@ def sphere_plan(num_scans: int = 3, per_scan: int = 64, seed: int = 0, window: i
                  for s in range(num_scans)]
         plan = submaps.plan_submaps(scans, T, window, overlap, 0.9, num_devices=num_devices)
     else:
-        plan = submaps.SubmapPlan(members=np.arange(num_scans)[None], norms=(Normalization(1.0),), ref_scale=1.0,
-                                  weight=np.ones(1))
+        plan = submaps.one_cube_plan(num_scans, Normalization(1.0))
     mesh = train.make_mesh(submaps.mesh_size(plan, num_devices))
     device_rays, frames = train.device_data(submaps.submap_arrays(plan, rays, T), mesh)
     return device_rays, frames, plan, T

@@ -40,7 +40,7 @@ SETTINGS = BaselineSettings(window=2, voxel_size_m=0.2)
 def test_register_sequence_reduces_ate(drifted_sequence):
     seq = drifted_sequence
     before = ate(seq.poses, seq.gt_poses)
-    refined = register_sequence(seq.scans, seq.poses, SETTINGS)
+    refined = register_sequence(seq.scans, seq.poses, SETTINGS).poses
     after = ate(refined, seq.gt_poses)
     assert before["translation_rmse_m"] > 0.1
     assert after["translation_rmse_m"] < 0.25 * before["translation_rmse_m"]
@@ -55,9 +55,9 @@ def test_progress_bars_follow_each_step_of_the_baseline_only_when_asked(drifted_
     # Minutes of registrations on a real recording: bin/baseline.py and bin/train.py show a bar per step; the
     # library's default is quiet. The refinement's bar counts every scan of every round.
     seq = drifted_sequence
-    quiet = register_sequence(seq.scans, seq.poses, SETTINGS)
+    quiet = register_sequence(seq.scans, seq.poses, SETTINGS).poses
     assert capsys.readouterr().err == ""
-    shown = register_sequence(seq.scans, seq.poses, SETTINGS, progress=True)
+    shown = register_sequence(seq.scans, seq.poses, SETTINGS, progress=True).poses
     err = capsys.readouterr().err
     np.testing.assert_array_equal(shown, quiet)
     rounds = SETTINGS.map_rounds * seq.num_scans
@@ -76,11 +76,11 @@ def test_the_refinement_starts_from_the_crisper_of_the_graph_and_the_chain(drift
     start, entropy = baseline.choose_refinement_start(drifted, truth, seq.scans, SETTINGS)
     assert start == "chain" and entropy["chain"] < entropy["graph"]
     assert baseline.choose_refinement_start(truth, truth, seq.scans, SETTINGS)[0] == "graph"  # a tie
-    rounds, report = [], {}
-    register_sequence(seq.scans, seq.poses, SETTINGS, on_round=lambda r, poses: rounds.append((r, poses)),
-                      report=report)
+    rounds = []
+    result = register_sequence(seq.scans, seq.poses, SETTINGS, on_round=lambda r, poses: rounds.append((r, poses)))
     assert [r for r, _ in rounds] == list(range(SETTINGS.map_rounds + 1))
-    assert report["refined_from"] in ("graph", "chain") and set(report["start_entropy"]) == {"graph", "chain"}
+    assert result.refined_from in ("graph", "chain") and set(result.start_entropy) == {"graph", "chain"}
+    assert result.report()["refined_from"] == result.refined_from and "poses" not in result.report()
     before = ate(seq.poses, seq.gt_poses)["translation_rmse_m"]
     assert ate(rounds[0][1], seq.gt_poses)["translation_rmse_m"] < 0.25 * before  # the rounds start from the scans
 
@@ -96,14 +96,12 @@ def test_the_chain_that_goes_on_keeps_the_input_tilt_unless_the_free_one_is_clea
     assert baseline.choose_chain({"input tilt": None, "free": truth}, seq.scans, SETTINGS) == ("free", {})
     # From a drift of position and heading only (an IMU-aided odometry's), the run trusts the input's tilt ...
     kept_tilt = with_drift(dataclasses.replace(seq, poses=truth), 0.15, 1.0, seed=3, keep_tilt=True)
-    report = {}
-    register_sequence(kept_tilt.scans, kept_tilt.poses, dataclasses.replace(SETTINGS, map_rounds=0), report=report)
-    assert report["tilt"] == "input", report["chain_entropy"]
+    result = register_sequence(kept_tilt.scans, kept_tilt.poses, dataclasses.replace(SETTINGS, map_rounds=0))
+    assert result.tilt == "input", result.chain_entropy
     # ... and from a drift that tilts the scans (a LiDAR-only odometry's), it finds its own
     tilted = with_drift(dataclasses.replace(seq, poses=truth), 0.05, 3.0, seed=3)
-    report = {}
-    register_sequence(tilted.scans, tilted.poses, dataclasses.replace(SETTINGS, map_rounds=0), report=report)
-    assert report["tilt"] == "free", report["chain_entropy"]
+    result = register_sequence(tilted.scans, tilted.poses, dataclasses.replace(SETTINGS, map_rounds=0))
+    assert result.tilt == "free", result.chain_entropy
 
 
 def test_answer_does_not_depend_on_the_start(drifted_sequence):
@@ -111,8 +109,8 @@ def test_answer_does_not_depend_on_the_start(drifted_sequence):
     # starts from the odometry's increment, which both starts get within ICP's basin.
     seq = drifted_sequence
     further = with_drift(seq, 0.05, 0.5, seed=3)
-    a = register_sequence(seq.scans, seq.poses, SETTINGS)
-    b = register_sequence(seq.scans, further.poses, SETTINGS)
+    a = register_sequence(seq.scans, seq.poses, SETTINGS).poses
+    b = register_sequence(seq.scans, further.poses, SETTINGS).poses
     apart_before = ate(further.poses, seq.poses)["translation_rmse_m"]
     apart_after = ate(b, a)["translation_rmse_m"]
     assert apart_before > 0.02
@@ -124,27 +122,27 @@ def test_register_sequence_repeats_bit_for_bit(drifted_sequence):
     # pairs in an order that changes from call to call (TBB), so the baseline sums them itself, in index order
     # (with Open3D's sums two runs on this sequence came out up to 1.4e-6 apart).
     seq = drifted_sequence
-    first = register_sequence(seq.scans, seq.poses, SETTINGS)
-    np.testing.assert_array_equal(register_sequence(seq.scans, seq.poses, SETTINGS), first)
+    first = register_sequence(seq.scans, seq.poses, SETTINGS).poses
+    np.testing.assert_array_equal(register_sequence(seq.scans, seq.poses, SETTINGS).poses, first)
 
 
 def test_icp_steps_and_information_are_open3ds(drifted_sequence):
     # The fixed-order sums compute what Open3D's TransformationEstimationPointToPlane and
     # get_information_matrix_from_point_clouds compute, to round-off.
-    from neld_jax.baseline import _information, _point_to_plane_step
+    from neld_jax.baseline import information, point_to_plane_step
 
     source, target = prepare_clouds(drifted_sequence.scans[1:3], SETTINGS)
     guess = invert_poses(drifted_sequence.poses[2]) @ drifted_sequence.poses[1]
     registration = o3d.pipelines.registration
     expected = registration.get_information_matrix_from_point_clouds(source, target, 0.25, guess)
-    np.testing.assert_allclose(_information(source, target, guess, SETTINGS), expected, rtol=1e-12,
+    np.testing.assert_allclose(information(source, target, guess, SETTINGS), expected, rtol=1e-12,
                                atol=1e-12 * np.abs(expected).max())
     moved = np.asarray(source.points) @ guess[:3, :3].T + guess[:3, 3]
     nearest, _ = TargetIndex(target, 0.5).nearest(moved, 0.5)
     pairs = np.stack([np.flatnonzero(nearest >= 0), nearest[nearest >= 0]], axis=1).astype(np.int32)
     expected = registration.TransformationEstimationPointToPlane().compute_transformation(
         o3d.geometry.PointCloud(o3d.utility.Vector3dVector(moved)), target, o3d.utility.Vector2iVector(pairs))
-    step = _point_to_plane_step(moved[pairs[:, 0]], np.asarray(target.points)[pairs[:, 1]],
+    step = point_to_plane_step(moved[pairs[:, 0]], np.asarray(target.points)[pairs[:, 1]],
                                 np.asarray(target.normals)[pairs[:, 1]])
     assert np.linalg.norm(expected[:3, 3]) > 0.01  # a real step
     np.testing.assert_allclose(step, expected, atol=1e-12)
@@ -178,7 +176,9 @@ def test_candidate_pairs_are_neighbours_and_close_non_neighbours():
 
 def test_single_scan_is_returned_unchanged():
     poses = np.eye(4)[None]
-    np.testing.assert_array_equal(register_sequence([np.zeros((10, 3))], poses), poses)
+    result = register_sequence([np.zeros((10, 3))], poses)
+    np.testing.assert_array_equal(result.poses, poses)
+    assert result.report() == {}
 
 
 def test_cli_writes_baseline_outputs_and_table(tmp_path):
@@ -221,7 +221,7 @@ def test_training_starts_from_the_baseline_of_config_baseline(drifted_sequence):
     assert chosen.baseline_seconds > 0 and chosen.chosen == "baseline" and chosen.pose_steps.keep_scale
     assert chosen.baseline_report["refined_from"] in ("graph", "chain")
     np.testing.assert_array_equal(chosen.poses, register_sequence(drifted_sequence.scans, drifted_sequence.poses,
-                                                                  BaselineSettings.from_config(config)))
+                                                                  BaselineSettings.from_config(config)).poses)
     config.start.poses = "input"
     chosen = choose_start(config, drifted_sequence)
     assert chosen.baseline_seconds is None and chosen.poses is drifted_sequence.poses and chosen.chosen == "input"
@@ -253,7 +253,7 @@ def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence
     class Result:
         fitness = 0.9
 
-    monkeypatch.setattr(baseline, "multiscale_icp", lambda source, target, guess, settings: (guess @ slide, Result()))
+    monkeypatch.setattr(baseline.chain, "multiscale_icp", lambda source, target, guess, settings: (guess @ slide, Result()))
     chain, fitness = baseline.scan_to_map_chain(clouds, seq.poses, SETTINGS)
     np.testing.assert_allclose(chain, seq.poses, atol=1e-9)  # every link kept the odometry's increment
     warned = [r.getMessage() for r in caplog.records if "max_link_correction_m" in r.getMessage()]
@@ -272,7 +272,7 @@ def test_a_chain_whose_links_overlap_too_little_is_given_up(drifted_sequence, mo
     class Result:
         fitness = 0.2  # enough for a link (min_chain_fitness), too little for a chain
 
-    monkeypatch.setattr(baseline, "multiscale_icp", lambda source, target, guess, settings: (guess, Result()))
+    monkeypatch.setattr(baseline.chain, "multiscale_icp", lambda source, target, guess, settings: (guess, Result()))
     settings = dataclasses.replace(SETTINGS, chain_check_links=2, map_rounds=0)
     chain, fitness = baseline.scan_to_map_chain(clouds, seq.poses, settings)
     assert chain is None and np.all(fitness[1:3] == 0.2) and np.all(np.isnan(fitness[3:]))  # checked at link 2
@@ -288,12 +288,11 @@ def test_a_chain_whose_links_overlap_too_little_is_given_up(drifted_sequence, mo
         raise AssertionError("no pose graph without a chain")
 
     Result.fitness = 0.2
-    monkeypatch.setattr(baseline, "loop_closed_graph", not_called)
-    report = {}
-    poses = register_sequence(seq.scans, seq.poses, settings, report=report)
-    np.testing.assert_allclose(poses, seq.poses, atol=1e-9)  # no rounds here: the input as it came
-    assert report["chain_given_up"] and report["refined_from"] == "input" and report["chain_entropy"] == {}
-    assert report["tilt"] is None  # no chain went on
+    monkeypatch.setattr(baseline.sequence, "loop_closed_graph", not_called)
+    result = register_sequence(seq.scans, seq.poses, settings)
+    np.testing.assert_allclose(result.poses, seq.poses, atol=1e-9)  # no rounds here: the input as it came
+    assert result.chain_given_up and result.refined_from == "input" and result.chain_entropy == {}
+    assert result.tilt is None and result.report()["tilt"] is None  # no chain went on
 
 
 def test_a_chain_still_running_at_the_deadline_is_given_up(drifted_sequence, monkeypatch, caplog):
@@ -312,13 +311,12 @@ def test_a_chain_still_running_at_the_deadline_is_given_up(drifted_sequence, mon
     def not_called(*args):
         raise AssertionError("no pose graph without a chain")
 
-    monkeypatch.setattr(baseline, "loop_closed_graph", not_called)
-    report = {}
-    poses = register_sequence(seq.scans, seq.poses, dataclasses.replace(SETTINGS, map_rounds=2),
-                              deadline=time.perf_counter() - 1.0, report=report)
-    np.testing.assert_allclose(poses, seq.poses, atol=1e-9)
-    assert report["chain_given_up"] and report["refined_from"] == "input"
-    assert report["map_rounds_done"] == 0 and report["stopped_at_deadline"]
+    monkeypatch.setattr(baseline.sequence, "loop_closed_graph", not_called)
+    result = register_sequence(seq.scans, seq.poses, dataclasses.replace(SETTINGS, map_rounds=2),
+                               deadline=time.perf_counter() - 1.0)
+    np.testing.assert_allclose(result.poses, seq.poses, atol=1e-9)
+    assert result.chain_given_up and result.refined_from == "input"
+    assert result.map_rounds_done == 0 and result.stopped_at_deadline
 
 
 def test_multi_view_refinement_pulls_a_scan_onto_the_others_map_and_gates_a_far_one(drifted_sequence):
@@ -471,3 +469,30 @@ def test_target_index_finds_the_nearest_point_within_the_distance(num_targets, m
         np.testing.assert_array_equal(nearest >= 0, found)
         np.testing.assert_array_equal(nearest[found], expected[found])
         np.testing.assert_allclose(np.sqrt(squared[found]), expected_distance[found], atol=1e-9)
+
+
+def test_a_large_scan_registers_a_subsample_at_all_but_the_finest_scale():
+    # A raw 64-beam sweep (tens of thousands of points) registers every k-th point at the coarse scales, the finest
+    # scale every point; a keyframe of a few thousand points registers as it is.
+    from neld_jax.baseline.icp import COARSE_SOURCE_POINTS, coarse_source
+
+    rng = np.random.default_rng(0)
+    small = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rng.uniform(-5, 5, (COARSE_SOURCE_POINTS, 3))))
+    assert coarse_source(small) is small
+    large = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rng.uniform(-5, 5, (3 * COARSE_SOURCE_POINTS + 1, 3))))
+    sub = coarse_source(large)
+    assert len(sub.points) <= COARSE_SOURCE_POINTS and len(sub.points) > COARSE_SOURCE_POINTS // 2
+    np.testing.assert_array_equal(np.asarray(sub.points), np.asarray(large.points)[::4])  # every 4th, in order
+    # ... and the pose is found as with every point: a dense room (about 40,000 points) nudged by 0.3 m and 2 degrees
+    floor = (_plane_points([-6, -4, 0], [1, 0, 0], [0, 1, 0], 12, 8, 0.05), [0, 0, 1])
+    side = (_plane_points([-6, -4, 0], [1, 0, 0], [0, 0, 1], 12, 3, 0.1), [0, 1, 0])
+    far = (_plane_points([-6, -4, 0], [0, 1, 0], [0, 0, 1], 8, 3, 0.1), [1, 0, 0])
+    room = _cloud([floor, side, far])
+    assert len(room.points) > 3 * COARSE_SOURCE_POINTS
+    angle = np.radians(2.0)
+    nudge = np.eye(4)
+    nudge[:2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    nudge[:3, 3] = [0.3, -0.2, 0.1]
+    transform, result = multiscale_icp(room, room, nudge, BaselineSettings())
+    np.testing.assert_allclose(transform, np.eye(4), atol=1e-6)
+    assert result.fitness == 1.0

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from neld_jax.config import defaults as base_config
 from neld_jax.data.formats import load_sequence
 from neld_jax.data.ground_truth import published_offset
-from neld_jax.data.poses import write_hba_poses, write_newer_college_csv, write_tum
+from neld_jax.data.poses import rotation_to_quat, write_newer_college_csv, write_tum
 from neld_jax.data.scans import write_scan
 from neld_jax.errors import ConfigError, DataError
 from neld_jax.geometry import invert_poses
@@ -24,6 +24,14 @@ from neld_jax.geometry import invert_poses
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SEQ = "20220216_canteen_day"
 T0 = 1644987000
+
+
+def write_hba_poses(path, poses: np.ndarray) -> None:
+    """Write poses [S, 4, 4] as HBA's pose.json ('tx ty tz qw qx qy qz', full precision)."""
+    q = rotation_to_quat(poses[:, :3, :3])
+    lines = [" ".join(repr(float(v)) for v in (*pose[:3, 3], qi[3], qi[0], qi[1], qi[2])) for pose, qi in zip(poses, q)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
 
 
 def _data_cfg(fmt, root, **fields):

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from neld_jax.encoding import barf_window, encoded_dim, fourier_encode
+from neld_jax.encoding import barf_window, fourier_encode
+
+from conftest import encoded_dim
 
 NUM_FREQS = 5
 

@@ -32,6 +32,21 @@ def test_write_poses_round_trips_tum_and_kitti(tmp_path):
     np.testing.assert_allclose(read_kitti(kitti_path), poses, atol=1e-12)
 
 
+def test_keyframe_poses_are_carried_to_every_input_scan_and_written(tmp_path):
+    # Keyframes 0 and 2 of three scans moved by one rigid correction: the scan between them takes it too.
+    from types import SimpleNamespace
+
+    poses = _poses(3)
+    loaded = SimpleNamespace(poses=poses, timestamps=np.array([10.0, 10.1, 10.2]))
+    keyframes = SimpleNamespace(loaded_index=np.array([0, 2]))
+    correction = _poses(1, seed=4)[0]
+    written = export.write_keyframe_poses(tmp_path, "poses_baseline", loaded, keyframes, correction @ poses[[0, 2]])
+    np.testing.assert_allclose(written, correction @ poses, atol=1e-9)
+    stamps, read = read_tum(tmp_path / "poses_baseline.txt")
+    np.testing.assert_allclose(stamps, loaded.timestamps, atol=1e-6)
+    np.testing.assert_allclose(read, written, atol=1e-9)
+
+
 def test_write_poses_without_timestamps_numbers_the_poses(tmp_path):
     export.write_poses(tmp_path, "poses_initial", None, _poses(3))
     stamps, _ = read_tum(tmp_path / "poses_initial.txt")

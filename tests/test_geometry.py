@@ -1,9 +1,10 @@
-"""neld_jax.geometry.with_up_axis_of: a pose tilted onto a reference's up axis, heading and position kept."""
+"""neld_jax.geometry.with_up_axis_of: a pose tilted onto a reference's up axis, heading and position kept;
+anchored_on_first: a trajectory moved rigidly onto its first pose's start."""
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from neld_jax.geometry import rotation_angles_deg, with_up_axis_of
+from neld_jax.geometry import anchored_on_first, rotation_angles_deg, with_up_axis_of
 
 
 def _poses(count: int, seed: int, tilt_deg: float) -> np.ndarray:
@@ -39,3 +40,12 @@ def test_a_pose_with_the_references_tilt_is_left_as_it_is_and_single_poses_work(
     heading[:3, :3] = Rotation.from_euler("z", 40, degrees=True).as_matrix()  # turned about world up: same tilt
     np.testing.assert_allclose(with_up_axis_of(heading @ poses, poses), heading @ poses, atol=1e-12)
     np.testing.assert_allclose(with_up_axis_of(poses[3], poses[5]), with_up_axis_of(poses, poses[5])[3], atol=1e-12)
+
+
+def test_a_trajectory_anchored_on_its_first_pose_keeps_its_shape():
+    poses, start = _poses(5, seed=1, tilt_deg=10.0), _poses(1, seed=2, tilt_deg=10.0)[0]
+    anchored, anchor = anchored_on_first(poses, start)
+    np.testing.assert_allclose(anchored[0], start, atol=1e-12)  # the gauge
+    np.testing.assert_allclose(anchored, anchor @ poses, atol=0)
+    relative = np.linalg.inv(poses[:-1]) @ poses[1:]
+    np.testing.assert_allclose(np.linalg.inv(anchored[:-1]) @ anchored[1:], relative, atol=1e-9)

@@ -4,10 +4,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from neld_jax import encoding, lie
+from neld_jax import lie
 from neld_jax.field import DensityField
 from neld_jax import lie as _lie
 from neld_jax.model import SamplerSettings, corrected_poses, render_rays, world_poses, world_rays
+
+from conftest import encoded_dim
 
 SAMPLER = SamplerSettings(num_coarse=16, num_fine=8, z_low=0.01, z_up=4.0)
 FIELD = DensityField(width=32, depth=2, skip_layers=(1,), pos_freqs=4, dir_freqs=4)
@@ -54,7 +56,7 @@ def test_view_input_is_the_world_direction():
     _, world = world_rays(jnp.broadcast_to(T, (2, 4, 4)), directions)
     np.testing.assert_allclose(np.linalg.norm(world, axis=1), 1.0, atol=1e-6)
     np.testing.assert_allclose(world, directions @ np.asarray(T[:3, :3]).T, atol=1e-6)
-    assert encoding.encoded_dim(3, FIELD.dir_freqs) == 3 * (1 + 2 * FIELD.dir_freqs)
+    assert encoded_dim(3, FIELD.dir_freqs) == 3 * (1 + 2 * FIELD.dir_freqs)
 
 
 def test_a_shared_correction_is_the_same_motion_in_every_cube():

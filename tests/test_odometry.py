@@ -17,12 +17,13 @@ from neld_jax import metrics, run
 from neld_jax.data import odometry
 from neld_jax.data.formats import load_sequence
 from neld_jax.data.poses import read_tum
-from neld_jax.data.raw_bag_downloads import (
+from neld_jax.data.synthetic import loop_poses, make_sequence, write_generic
+from neld_jax.errors import DataError
+
+from raw_bag_downloads import (
     write_fusionportable_download,
     write_newer_college_download,
 )
-from neld_jax.data.synthetic import loop_poses, make_sequence, write_generic
-from neld_jax.errors import DataError
 
 REPO = Path(__file__).resolve().parents[1]
 # 40 raw sweeps at 10 Hz, 2.1 m/s round a 10 m loop (0.2 m a sweep), 32 beams x 512 columns, 40 m range

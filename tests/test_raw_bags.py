@@ -7,12 +7,13 @@ from scipy.spatial.transform import Rotation
 
 from neld_jax.config import defaults
 from neld_jax.data import fusionportable, newer_college
-from neld_jax.data.raw_bag_downloads import (
+from neld_jax.data.raw_bags import read_lidar_bag, write_lidar_bag
+from neld_jax.errors import DataError
+
+from raw_bag_downloads import (
     write_fusionportable_download,
     write_newer_college_download,
 )
-from neld_jax.data.raw_bags import read_lidar_bag, write_lidar_bag
-from neld_jax.errors import DataError
 
 T0 = 1_650_000_000.123456789
 ROWS, COLUMNS = 8, 64

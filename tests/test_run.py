@@ -176,7 +176,7 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
         chain_deadlines.append(deadline)
         return real_chain(clouds, init_poses, settings, keep_input_tilt, progress=progress)
 
-    monkeypatch.setattr(baseline, "scan_to_map_chain", chain_without_deadline)
+    monkeypatch.setattr(baseline.sequence, "scan_to_map_chain", chain_without_deadline)
     verdicts = []  # the margins the run's crispest verdict is given, and the verdict
     real_verdict = judge.warn_if_not_crispest
 

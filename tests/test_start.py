@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from neld_jax import start
+from neld_jax.baseline import BaselineResult
 from neld_jax.config import recording
 from neld_jax.errors import ConfigError
 from neld_jax.train import PoseSteps
@@ -86,7 +87,8 @@ def test_the_crisper_start_is_the_one_with_the_crisper_map(monkeypatch):
 
     truthful = dataclasses.replace(seq, poses=seq.gt_poses)  # an input crisper than a drifted baseline
     for data, baseline_poses, expected in ((seq, seq.gt_poses, "baseline"), (truthful, seq.poses, "input")):
-        monkeypatch.setattr(start, "register_sequence", lambda scans, poses, settings, **kw: baseline_poses)
+        monkeypatch.setattr(start, "register_sequence",
+                            lambda scans, poses, settings, **kw: BaselineResult(baseline_poses))
         chosen = start.choose_start(config, data)
         assert chosen.chosen == expected and chosen.baseline_poses is baseline_poses
         assert chosen.pose_steps.keep_scale == (expected == "baseline")

@@ -27,20 +27,18 @@ def run_baseline(config, progress: bool = True) -> dict:
     from neld_jax.baseline import BaselineSettings, register_sequence
     from neld_jax.data.preprocess import load_keyframes
     from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
-    from neld_jax.export import read_json, write_json, write_point_cloud, write_poses, write_raw_map
-    from neld_jax.trajectory import propagate_corrections
+    from neld_jax.export import read_json, write_json, write_keyframe_poses, write_point_cloud, write_poses, write_raw_map
 
     loaded, keyframes = load_keyframes(config.data)
     settings = BaselineSettings.from_config(config)
-    report = {}
     t0 = time.perf_counter()
-    poses = register_sequence(keyframes.scans, keyframes.poses, settings, report=report, progress=progress)
+    result = register_sequence(keyframes.scans, keyframes.poses, settings, progress=progress)
     seconds = time.perf_counter() - t0
+    poses, report = result.poses, result.report()
 
     out = Path(config.output_dir)
     voxel = float(config.mapping.voxel_size_m)
-    write_poses(out, "poses_baseline", loaded.timestamps,
-                propagate_corrections(loaded.poses, keyframes.loaded_index, poses, loaded.timestamps))
+    write_keyframe_poses(out, "poses_baseline", loaded, keyframes, poses)
     write_raw_map(out / "map_raw_baseline.ply", keyframes.scans, poses, voxel_size=voxel)
     if not (out / "poses_initial.txt").exists():
         write_poses(out, "poses_initial", loaded.timestamps, loaded.poses)

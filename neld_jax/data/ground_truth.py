@@ -99,14 +99,6 @@ def published_offset(release: str, scan_frame: str = "") -> np.ndarray:
     return PUBLISHED_GT_FROM_SCAN[(release, frame)].copy()
 
 
-def gt_from_scan(data_cfg, release: str, scan_frame: str = "") -> np.ndarray:
-    """T_G_S for a config: data.gt_from_scan when set (7 numbers), else the published value (published_offset)."""
-    explicit = tuple(data_cfg.get("gt_from_scan", ()) or ())
-    if explicit:
-        return pose_from_tuple(explicit)
-    return published_offset(release, scan_frame or str(data_cfg.get("scan_frame", "") or ""))
-
-
 def read_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """A ground-truth trajectory: Newer College CSV (.csv, sec,nsec,...) or TUM (anything else).
 

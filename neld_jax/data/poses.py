@@ -287,13 +287,3 @@ def read_hba_poses(path: str | os.PathLike) -> np.ndarray:
     values, line_numbers = _parse_rows(path, _read_lines(path, "HBA pose"), 7, "tx ty tz qw qx qy qz")
     quaternions = _checked_quaternions(path, values[:, [4, 5, 6, 3]], line_numbers)
     return make_poses(values[:, :3], quaternions)
-
-
-def write_hba_poses(path: str | os.PathLike, poses: np.ndarray) -> None:
-    """Write poses [S, 4, 4] as HBA's pose.json ('tx ty tz qw qx qy qz', full precision)."""
-    path = Path(path)
-    poses = _check_pose_array(path, poses)
-    q = rotation_to_quat(poses[:, :3, :3])
-    lines = [" ".join(repr(float(v)) for v in (*pose[:3, 3], qi[3], qi[0], qi[1], qi[2])) for pose, qi in zip(poses, q)]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")

@@ -75,14 +75,6 @@ def rays_per_scan(max_rays_per_scan: int, max_rays: int, num_scans: int) -> int 
     return min(limits) if limits else None
 
 
-def build_mapping_rays(config, seq: Sequence, norm: Normalization) -> RaySet:
-    """The rays the rendered map casts: each scan's own directions, config.mapping's share of them
-    (`rays_per_scan`), drawn with a seed of their own (config.seed + 1, not the training rays')."""
-    m = config.mapping
-    per_scan = rays_per_scan(int(m.max_rays_per_scan), int(m.get("max_rays", 0)), seq.num_scans)
-    return build_rays(seq, norm, max_rays_per_scan=per_scan, seed=config.seed + 1)
-
-
 def sphere_scene_rays(num_scans: int, rays_per_scan: int, seed: int = 0, radius: float = 0.8,
                       spread: float = 0.3) -> tuple[RaySet, np.ndarray]:
     """An analytic ray set for tests and benchmarks, already in the normalised frame: `num_scans` sensors at

@@ -1,8 +1,9 @@
 """The run's wall clock: one budget (config.max_minutes) shared by its steps, so that a run ends on time however
 long its classical baseline or its map took (docs/design.md, "One run, top to bottom").
 
-The budget runs from the run's start. After training it keeps back `mapping.max_seconds` for the rendered map and
-JUDGING_S for the crispness margins; training ends where that reserve begins, but always gets at least
+The budget runs from the run's start. After training it keeps back `mapping.max_seconds` for the rendered map,
+REGISTRATION_S_PER_SCAN for each input scan that is not a keyframe (registered to the result after training; at
+most MAX_REGISTRATION_SHARE of the budget) and JUDGING_S for the crispness margins; training ends where that reserve begins, but always gets at least
 MIN_SHARE of its share of the budget, however long the baseline took before it; the baseline's multi-view
 refinement stops where only that floor would be left. A step that overran its share is paid back by the next
 (the render gets its seconds less the overrun, at least MIN_SHARE of them). A budget of 0 minutes has no limits.
@@ -18,21 +19,33 @@ import time
 JUDGING_S = 30.0
 # The floor of training's and of the render's share, whatever the steps before them took
 MIN_SHARE = 0.25
+# Kept back for each input scan registered to the result after training (neld_jax.register_scans), and the most of
+# the budget that may go to it; scans past its deadline keep their interpolated poses, flagged
+REGISTRATION_S_PER_SCAN = 0.5
+MAX_REGISTRATION_SHARE = 0.3
 
 
 @dataclasses.dataclass(frozen=True)
 class TimeBudget:
     """total_s: the whole run's seconds (0: no limit); render_s: the rendered map's share (0: no limit);
-    started: time.perf_counter() at the run's start."""
+    started: time.perf_counter() at the run's start; registration_s: kept back for registering every other input
+    scan (reserving_registration)."""
 
     total_s: float
     render_s: float
     started: float
+    registration_s: float = 0.0
 
     @classmethod
     def start(cls, config) -> "TimeBudget":
         """The budget of config.max_minutes and config.mapping.max_seconds, starting now."""
         return cls(60.0 * float(config.max_minutes), float(config.mapping.max_seconds), time.perf_counter())
+
+    def reserving_registration(self, num_scans: int) -> "TimeBudget":
+        """This budget keeping back REGISTRATION_S_PER_SCAN for each of num_scans scans to register after training
+        (at most MAX_REGISTRATION_SHARE of the whole)."""
+        reserve = min(REGISTRATION_S_PER_SCAN * num_scans, MAX_REGISTRATION_SHARE * self.total_s)
+        return dataclasses.replace(self, registration_s=reserve if self.limited else 0.0)
 
     @property
     def limited(self) -> bool:
@@ -40,8 +53,9 @@ class TimeBudget:
 
     @property
     def training_share_s(self) -> float:
-        """The seconds up to the end of training: the budget less the reserve for the map and the judging."""
-        return max(self.total_s - max(self.render_s, 0.0) - JUDGING_S, 0.0)
+        """The seconds up to the end of training: the budget less the reserve for the map, the registration of every
+        other scan and the judging."""
+        return max(self.total_s - max(self.render_s, 0.0) - self.registration_s - JUDGING_S, 0.0)
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
@@ -68,6 +82,13 @@ class TimeBudget:
         overrun = max(self.elapsed() - self.training_share_s, 0.0)
         return max(self.render_s - overrun, MIN_SHARE * self.render_s)
 
+    def registration_deadline(self) -> float | None:
+        """A time.perf_counter() value after which no more scans are registered to the result: where the judging's
+        reserve begins, but at least MIN_SHARE of the registration's reserve from now (None: no limit)."""
+        if not self.limited:
+            return None
+        return max(self.started + self.total_s - JUDGING_S, time.perf_counter() + MIN_SHARE * self.registration_s)
+
     def judging_deadline(self) -> float | None:
         """A time.perf_counter() value after which no more query draws start (None: no limit)."""
         return self.started + self.total_s if self.limited else None
@@ -76,5 +97,6 @@ class TimeBudget:
         if not self.limited:
             return "no time limit (max_minutes=0)"
         return (f"{self.total_s / 60:g} minutes: training until {self.training_share_s / 60:.1f} min, then "
-                f"{self.render_s:g} s for the rendered map and {JUDGING_S:g} s for the crispness draws")
+                f"{self.render_s:g} s for the rendered map, {self.registration_s:.0f} s for registering every other "
+                f"scan and {JUDGING_S:g} s for the crispness draws")
 

@@ -26,6 +26,7 @@ logger = logging.getLogger(__name__)
 TOO_FEW_POINTS = "too few points"
 POOR_FITNESS = "poor fitness"
 JUMP = "jump"
+OUT_OF_TIME = "out of time"  # past the run's registration deadline (neld_jax.budget): not tried
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,10 +132,14 @@ def pose_change(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
 
 
 def register_to_map(scans: list[np.ndarray], guesses: np.ndarray, target, settings: RegistrationSettings,
-                    which: np.ndarray | None = None, progress: bool = False, label=str) -> ScanRegistration:
+                    which: np.ndarray | None = None, progress: bool = False, label=str,
+                    deadline: float | None = None) -> ScanRegistration:
     """Register the scans (list of S [N_i, 3], sensor frames) chosen by which [S] bool (None: every one) from
     their guesses [S, 4, 4] to the target map (map_cloud). The others keep their guesses, untried. label(s): how the
-    log names scan s."""
+    log names scan s. deadline: a time.perf_counter() value after which the scans left keep their guesses, flagged
+    OUT_OF_TIME (None: no limit)."""
+    import time
+
     from tqdm.auto import tqdm
 
     num_scans = len(scans)
@@ -142,6 +147,9 @@ def register_to_map(scans: list[np.ndarray], guesses: np.ndarray, target, settin
     poses = np.array(guesses, np.float64, copy=True)
     residual, fitness, flags = np.full(num_scans, np.nan), np.full(num_scans, np.nan), [""] * num_scans
     for s in tqdm(np.flatnonzero(which), disable=not progress, desc="registering scans", unit="scan"):
+        if deadline is not None and time.perf_counter() > deadline:
+            flags[s] = OUT_OF_TIME
+            continue
         poses[s], residual[s], fitness[s], flags[s] = register_scan(scans[s], poses[s], target, settings)
     registration = ScanRegistration(poses, residual, fitness, flags, which)
     log_refused(registration, label)
@@ -149,9 +157,14 @@ def register_to_map(scans: list[np.ndarray], guesses: np.ndarray, target, settin
 
 
 def log_refused(registration: ScanRegistration, label=str) -> None:
-    """One warning per scan that was tried and refused (it keeps its guess; label(s) names it), and a count."""
+    """One warning per scan that was tried and refused (it keeps its guess; label(s) names it), one for the scans
+    the deadline left (OUT_OF_TIME), and a count."""
+    late = [s for s, flag in enumerate(registration.flag) if flag == OUT_OF_TIME]
+    if late:
+        logger.warning("%d scans from %s on were not registered: the run's time (max_minutes) ran out; they keep "
+                       "their interpolated poses, flagged in scans_report.csv", len(late), label(late[0]))
     for s, flag in enumerate(registration.flag):
-        if flag:
+        if flag and flag != OUT_OF_TIME:
             logger.warning("%s not registered (%s: fitness %.2f, residual %.3f m): it keeps its guess", label(s),
                            flag, registration.fitness[s], registration.residual_m[s])
     logger.info("registered %d of %d scans tried to the map (median residual %.3f m)",
@@ -160,11 +173,11 @@ def log_refused(registration: ScanRegistration, label=str) -> None:
 
 
 def register_every_scan(loaded, keyframes, keyframe_poses: np.ndarray, settings: RegistrationSettings,
-                        progress: bool = False) -> ScanRegistration:
+                        progress: bool = False, deadline: float | None = None) -> ScanRegistration:
     """After training: every input scan (loaded: the input Sequence) that is not a keyframe (keyframes: the trained
     ones, keyframes.loaded_index into loaded) registered to the keyframes' raw map under their refined poses
-    keyframe_poses [K, 4, 4], from its interpolated correction (trajectory.propagate_corrections). The keyframes
-    keep their poses, untried: they make the map."""
+    keyframe_poses [K, 4, 4], from its interpolated correction (trajectory.propagate_corrections), until deadline
+    (register_to_map). The keyframes keep their poses, untried: they make the map."""
     guesses = propagate_corrections(loaded.poses, keyframes.loaded_index, keyframe_poses, loaded.timestamps)
     which = np.ones(loaded.num_scans, bool)
     which[keyframes.loaded_index] = False
@@ -172,7 +185,7 @@ def register_every_scan(loaded, keyframes, keyframe_poses: np.ndarray, settings:
         nothing = np.full(loaded.num_scans, np.nan)
         return ScanRegistration(guesses, nothing, nothing.copy(), [""] * loaded.num_scans, which)
     target = map_cloud(keyframes.scans, keyframe_poses, settings)
-    return register_to_map(loaded.scans, guesses, target, settings, which, progress, loaded.scan_label)
+    return register_to_map(loaded.scans, guesses, target, settings, which, progress, loaded.scan_label, deadline)
 
 
 def place_first_scan(scan: np.ndarray, pose: np.ndarray, target, settings: RegistrationSettings

@@ -38,10 +38,11 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
               progress: bool = True) -> dict:
     """The steps of `run` in its prepared output folder."""
     config_hash = outputs.config_hash(config)
-    logger.info("budget %s on jax's %s backend: %s", config.budget, jax.default_backend(), budget.describe())
 
     # 1. Load every input scan, and the preprocessed keyframes training works on (neld_jax.data.preprocess).
     loaded, keyframes = load_keyframes(config.data)
+    budget = budget.reserving_registration(loaded.num_scans - keyframes.num_scans)  # step 5's share of the clock
+    logger.info("budget %s on jax's %s backend: %s", config.budget, jax.default_backend(), budget.describe())
     viewer.log_input(loaded, keyframes)
 
     # 2. Choose the start: the input or the classical baseline's poses, and the pose steps from there
@@ -68,7 +69,8 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     # 5. Register every input scan that was not a keyframe to the keyframes' refined map, from its interpolated
     #    correction (neld_jax.register_scans); write the poses of every input scan and the maps (neld_jax.outputs).
     registration = register_scans.register_every_scan(loaded, keyframes, refined.poses,
-                                                      register_scans.RegistrationSettings.from_config(config), progress)
+                                                      register_scans.RegistrationSettings.from_config(config), progress,
+                                                      budget.registration_deadline())
     made = outputs.RunSteps(loaded, keyframes, begin, refined, render, registration)
     written = outputs.write_outputs(out_dir, config, made)
     T_all = written.trajectories["optimized"].poses

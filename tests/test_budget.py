@@ -37,3 +37,18 @@ def test_zero_minutes_is_no_limit(monkeypatch):
     assert TimeBudget(0.0, 0.0, 5.0).render_seconds() == 0.0
     assert TimeBudget(600.0, 0.0, 5.0).render_seconds() == 0.0  # a map without a limit stays without one
     assert "no time limit" in b.describe() and "training until" in TimeBudget(570.0, 60.0, 0.0).describe()
+
+
+def test_registering_every_other_scan_is_kept_back_from_training(monkeypatch):
+    from neld_jax.budget import MAX_REGISTRATION_SHARE, REGISTRATION_S_PER_SCAN
+
+    b = TimeBudget(570.0, 60.0, 100.0).reserving_registration(100)
+    assert b.registration_s == 100 * REGISTRATION_S_PER_SCAN
+    assert b.training_share_s == 570.0 - 60.0 - b.registration_s - JUDGING_S
+    assert _at(b, 0.0, monkeypatch).registration_deadline() == 100.0 + 570.0 - JUDGING_S  # up to the judging
+    late = _at(b, 600.0, monkeypatch).registration_deadline()  # a run already past it: a quarter of the reserve
+    assert late == pytest.approx(100.0 + 600.0 + 0.25 * b.registration_s)
+    # Thousands of sweeps take at most their share of the budget; no limit reserves nothing.
+    assert TimeBudget(570.0, 60.0, 0.0).reserving_registration(10_000).registration_s == MAX_REGISTRATION_SHARE * 570.0
+    assert TimeBudget(0.0, 60.0, 0.0).reserving_registration(100).registration_s == 0.0
+    assert TimeBudget(0.0, 60.0, 0.0).registration_deadline() is None

@@ -95,3 +95,15 @@ def test_the_report_carries_the_residual_and_the_refusal():
     rows = report.add_registration(rows, np.array([np.nan, 0.01, 0.2]), ["", "", register_scans.POOR_FITNESS])
     assert [r["registration_residual_m"] for r in rows] == [None, 0.01, 0.2]
     assert [r["flag"] for r in rows] == ["", "residual", "unregistered (poor fitness)"]
+
+
+def test_scans_past_the_deadline_keep_their_guesses_flagged_out_of_time(scene):
+    settings = register_scans.RegistrationSettings(max_range_m=30.0)
+    target = register_scans.map_cloud([scene.scans[k] for k in KEYFRAMES], scene.gt_poses[KEYFRAMES], settings)
+    guesses = perturbed(scene.gt_poses[[1, 3]], seed=3)
+
+    result = register_scans.register_to_map([scene.scans[1], scene.scans[3]], guesses, target, settings,
+                                            deadline=0.0)  # long past
+
+    assert result.flag == [register_scans.OUT_OF_TIME] * 2 and not result.registered.any()
+    np.testing.assert_array_equal(result.poses, guesses)

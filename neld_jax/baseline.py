@@ -59,6 +59,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from neld_jax import judge
+from neld_jax.data.feature_registration import fpfh_features, ransac_alignment
 from neld_jax.geometry import nearest_rotations, register_scans, transform_points, with_up_axis_of
 
 logger = logging.getLogger(__name__)
@@ -435,11 +436,7 @@ def _information(source, target, transform, settings: BaselineSettings) -> np.nd
 
 def _fpfh(cloud: o3d.geometry.PointCloud, settings: BaselineSettings):
     """cloud (sensor frame) -> (the cloud on the global_voxel_m grid with normals, its FPFH features)."""
-    coarse = cloud.voxel_down_sample(settings.global_voxel_m)
-    coarse.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * settings.global_voxel_m, max_nn=30))
-    features = _reg.compute_fpfh_feature(
-        coarse, o3d.geometry.KDTreeSearchParamHybrid(radius=settings.global_feature_radius_m, max_nn=100))
-    return coarse, features
+    return fpfh_features(cloud, settings.global_voxel_m, settings.global_feature_radius_m)
 
 
 def global_registration(source, target, source_features, target_features, settings: BaselineSettings):
@@ -448,16 +445,10 @@ def global_registration(source, target, source_features, target_features, settin
     source, target: Open3D clouds with normals (sensor frames); source_features, target_features: their
     (coarse cloud, FPFH features) from _fpfh. Returns (transform [4, 4] mapping source into target's frame, the
     IcpResult of the finest ICP scale)."""
-    (source_coarse, source_fpfh), (target_coarse, target_fpfh) = source_features, target_features
-    distance = 1.5 * settings.global_voxel_m
-    o3d.utility.random.seed(settings.global_seed)
-    ransac = _reg.registration_ransac_based_on_feature_matching(
-        source_coarse, target_coarse, source_fpfh, target_fpfh, True, distance,
-        _reg.TransformationEstimationPointToPoint(False), 3,
-        [_reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), _reg.CorrespondenceCheckerBasedOnDistance(distance)],
-        _reg.RANSACConvergenceCriteria(settings.global_ransac_iterations, 0.999))
+    guess = ransac_alignment(source_features, target_features, settings.global_voxel_m,
+                             settings.global_ransac_iterations, settings.global_seed)
     refine = dataclasses.replace(settings, icp_distances_m=settings.global_icp_distances_m)
-    return multiscale_icp(source, target, ransac.transformation, refine)
+    return multiscale_icp(source, target, guess, refine)
 
 
 class LoopClosures(NamedTuple):

@@ -61,6 +61,12 @@ SENSOR_HEIGHT_M = 1.8
 PATH_WOBBLE = 0.08  # relative radial wobble of the loop; the scene keeps this band clear
 SCAN_INTERVAL_S = 3.0  # 30 frames of 0.1 s: one keyframe per scan at the paper's 3 s spacing
 GT_MAP_VISIBILITY_TOLERANCE_M = 0.02
+ROUTES = ("loop", "courtyards", "handheld", "car")
+HANDHELD_RATE_HZ = 2.0  # the handheld route's scans, when make_sequence is given no rate
+HANDHELD_SPEED_M_S = 1.4  # walking
+HANDHELD_TURN_DEG = (40.0, 50.0)  # the turn between consecutive handheld scans, either side
+HANDHELD_STEADY_SCANS = 8  # the handheld walk's first scans look ahead (an odometry learns the sensor's overlap)
+CAR_RATE_HZ = 10.0  # the car route's scans, when make_sequence is given no rate
 
 
 def _yaw_matrix(yaw: float) -> np.ndarray:
@@ -259,6 +265,28 @@ def loop_poses(fraction: np.ndarray, radius_m: float, seed: int) -> np.ndarray:
     poses = np.tile(np.eye(4), (theta.shape[0], 1, 1))
     poses[:, :3, :3] = Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], axis=1)).as_matrix()
     poses[:, :3, 3] = np.stack([x, y, z], axis=1)
+    return poses
+
+
+def handheld_walk(num_scans: int, radius_m: float, seed: int, rate_hz: float) -> np.ndarray:
+    """Ground-truth poses [S, 4, 4] (sensor -> world) of a handheld LiDAR carried round the seed's loop at
+    HANDHELD_SPEED_M_S, one scan each 1 / rate_hz s, turned about the vertical by HANDHELD_TURN_DEG (40-50 degrees)
+    between consecutive scans, left or right at random, after HANDHELD_STEADY_SCANS scans looking ahead: the walker
+    sets off, then looks around. A constant-velocity guess is then wrong by up to 100 degrees whenever the turn
+    changes side."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed + 4)
+    step_m = HANDHELD_SPEED_M_S / rate_hz
+    poses = loop_poses(np.arange(num_scans) * step_m / (2 * np.pi * radius_m), radius_m, seed)
+    turns = rng.uniform(*HANDHELD_TURN_DEG, size=num_scans) * rng.choice([-1.0, 1.0], size=num_scans)
+    steady = min(HANDHELD_STEADY_SCANS, num_scans)
+    turns[:steady] = 0.0
+    heading = np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
+    # about the world's vertical, so that the turn from scan to scan is the drawn one, whatever the loop's heading
+    look = np.deg2rad(np.cumsum(turns))
+    look[steady:] -= heading[steady:] - heading[steady - 1]
+    poses[:, :3, :3] = Rotation.from_euler("z", look[:, None]).as_matrix() @ poses[:, :3, :3]
     return poses
 
 
@@ -566,11 +594,11 @@ def _resolve_config(cfg) -> ml_collections.ConfigDict:
             raise ConfigError(f"data.synthetic.{key}: cannot use {value!r} ({exc})") from exc
     if resolved.num_scans < 1 or resolved.num_beams < 1 or resolved.num_columns < 1:
         raise ConfigError("data.synthetic: num_scans, num_beams and num_columns must be at least 1")
-    if resolved.route not in ("loop", "courtyards"):
-        raise ConfigError(f"data.synthetic.route: unknown route {resolved.route!r} (loop | courtyards)")
-    if resolved.route == "courtyards" and resolved.route_length_m < 100.0:
+    if resolved.route not in ROUTES:
+        raise ConfigError(f"data.synthetic.route: unknown route {resolved.route!r} ({' | '.join(ROUTES)})")
+    if resolved.route in ("courtyards", "car") and resolved.route_length_m < 100.0:
         raise ConfigError(f"data.synthetic.route_length_m ({resolved.route_length_m}) must be at least 100 m")
-    if resolved.route == "loop" and not (
+    if resolved.route in ("loop", "handheld") and not (
             0 < resolved.trajectory_radius_m * (1 + PATH_WOBBLE) < resolved.scene_size_m / 2 - 1.0):
         raise ConfigError(
             f"data.synthetic: trajectory_radius_m ({resolved.trajectory_radius_m}) must be positive and leave the "
@@ -591,29 +619,25 @@ def make_sequence(cfg=None, rate_hz: float = 0.0) -> Sequence:
     rate_hz > 0: the raw sweeps of a LiDAR spinning at that rate instead, as a recording holds them (the loop
     route only): num_scans sweeps 1 / rate_hz apart, each point cast from where the sensor was at its column's
     instant, `point_times` [N_i] seconds after the sweep's stamp, ground truth at the sweeps' stamps (their
-    starts), and no initial poses (poses None: a run makes them from the scans, data/odometry.py)."""
+    starts), and no initial poses (poses None: a run makes them from the scans, data/odometry.py).
+
+    The routes "handheld" (handheld_walk round the loop, HANDHELD_RATE_HZ unless rate_hz is given) and "car"
+    (the courtyards' route at CAR_RATE_HZ unless rate_hz is given: num_scans over route_length_m) are rigid scans
+    (deskewed, as a front-end writes them) 1 / rate_hz apart, with ground truth and no initial poses."""
     cfg = _resolve_config(cfg)
-    if rate_hz > 0 and cfg.route != "loop":
+    if rate_hz > 0 and cfg.route == "courtyards":
         raise ConfigError(f"synthetic sweeps at {rate_hz} Hz follow the loop route, not {cfg.route!r}")
     started = time.perf_counter()
-    if cfg.route == "courtyards":
-        gt_poses, route_xy = courtyard_route(cfg.num_scans, cfg.route_length_m, cfg.seed)
-        meshes = make_courtyards_meshes(cfg.seed, route_xy)
-        scene = raycasting_scene(meshes)
-    else:
-        scene, meshes = make_scene(cfg.seed, cfg.scene_size_m, path_radius_m=cfg.trajectory_radius_m)
-        gt_poses = smooth_trajectory(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
+    scene, meshes, gt_poses = _scene_and_route(cfg, rate_hz)
     directions = spinning_lidar_directions(cfg.num_beams, FOV_DEG[1], FOV_DEG[0], cfg.num_columns)
     rng = np.random.default_rng(cfg.seed + 2)
-    point_times = None
-    if rate_hz > 0:
-        init_poses, timestamps, scans, point_times = None, np.arange(cfg.num_scans) / rate_hz, [], []
-        column_fraction = np.arange(cfg.num_columns) / cfg.num_columns
-        for i in range(cfg.num_scans):
-            column_poses = loop_poses((i + column_fraction) / cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
-            points, column = cast_sweep(scene, column_poses, directions, cfg.max_range_m, cfg.range_noise_m, rng)
-            scans.append(points)
-            point_times.append(column_fraction[column] / rate_hz)
+    point_times, init_poses = None, None
+    if cfg.route in ("handheld", "car"):
+        rate_hz = rate_hz or (HANDHELD_RATE_HZ if cfg.route == "handheld" else CAR_RATE_HZ)
+        timestamps = np.arange(cfg.num_scans) / rate_hz
+        scans = [cast_scan(scene, pose, directions, cfg.max_range_m, cfg.range_noise_m, rng) for pose in gt_poses]
+    elif rate_hz > 0:
+        timestamps, scans, point_times = _raw_sweeps(cfg, rate_hz, scene, directions, rng)
     else:
         init_poses = add_odometry_drift(gt_poses, cfg.drift_trans_m, cfg.drift_rot_deg, cfg.seed + 1)
         timestamps = SCAN_INTERVAL_S * np.arange(cfg.num_scans, dtype=np.float64)
@@ -629,16 +653,43 @@ def make_sequence(cfg=None, rate_hz: float = 0.0) -> Sequence:
         cfg.seed, len(scans), sum(len(s) for s in scans), 0 if gt_map is None else len(gt_map), len(meshes),
         time.perf_counter() - started,
     )
+    suffix = f"_{cfg.route}" if cfg.route in ("handheld", "car") else ""
     return Sequence(
         scans=scans,
         poses=init_poses,
         timestamps=timestamps,
         gt_poses=gt_poses,
         gt_map=gt_map,
-        name=f"synthetic_seed{cfg.seed}" + (f"_{rate_hz:g}hz" if rate_hz > 0 else ""),
+        name=f"synthetic_seed{cfg.seed}{suffix}" + (f"_{rate_hz:g}hz" if rate_hz > 0 else ""),
         source="synthetic",
         point_times=point_times,
     )
+
+
+def _scene_and_route(cfg, rate_hz: float):
+    """(RaycastingScene, meshes, ground-truth poses [S, 4, 4]) of the resolved cfg's route."""
+    if cfg.route in ("courtyards", "car"):
+        gt_poses, route_xy = courtyard_route(cfg.num_scans, cfg.route_length_m, cfg.seed)
+        meshes = make_courtyards_meshes(cfg.seed, route_xy)
+        return raycasting_scene(meshes), meshes, gt_poses
+    scene, meshes = make_scene(cfg.seed, cfg.scene_size_m, path_radius_m=cfg.trajectory_radius_m)
+    if cfg.route == "handheld":
+        return scene, meshes, handheld_walk(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed,
+                                            rate_hz or HANDHELD_RATE_HZ)
+    return scene, meshes, smooth_trajectory(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
+
+
+def _raw_sweeps(cfg, rate_hz: float, scene, directions: np.ndarray, rng: np.random.Generator):
+    """(stamps [S], sweeps [S] x [N_i, 3], per-point times [S] x [N_i]) of a LiDAR spinning at rate_hz round the
+    loop: each column cast from where the sensor is at its instant."""
+    timestamps, scans, point_times = np.arange(cfg.num_scans) / rate_hz, [], []
+    column_fraction = np.arange(cfg.num_columns) / cfg.num_columns
+    for i in range(cfg.num_scans):
+        column_poses = loop_poses((i + column_fraction) / cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
+        points, column = cast_sweep(scene, column_poses, directions, cfg.max_range_m, cfg.range_noise_m, rng)
+        scans.append(points)
+        point_times.append(column_fraction[column] / rate_hz)
+    return timestamps, scans, point_times
 
 
 def load(data_cfg) -> Sequence:

@@ -700,9 +700,10 @@ def load(data_cfg) -> Sequence:
 def write_generic(seq: Sequence, root) -> None:
     """Write seq in the generic layout: ROOT/scans/%06d.pcd, poses.txt, gt_poses.txt (TUM), gt_map.pcd.
 
-    Scans are written as binary PCD (float32 coordinates). Without timestamps, 0, 1, 2, ... are written. Raw
-    sweeps (point_times set) are named by their stamps (<seconds>.pcd) with point_times/<stamp>.npy beside, as
-    bin/import_rosbag.py writes a bag without odometry; without poses (None) no poses.txt is written."""
+    Scans are written as binary PCD (float32 coordinates). Without timestamps, 0, 1, 2, ... are written. Scans
+    without poses (None: no poses.txt) are named by their stamps (<seconds>.pcd), which the layout reads them by,
+    raw sweeps (point_times set) with point_times/<stamp>.npy beside, as bin/import_rosbag.py writes a bag without
+    odometry."""
     from neld_jax.data.generic import POINT_TIMES_FOLDER
     from neld_jax.data.poses import write_tum
     from neld_jax.data.scans import write_scan
@@ -713,7 +714,7 @@ def write_generic(seq: Sequence, root) -> None:
     if seq.point_times is not None:
         (root / POINT_TIMES_FOLDER).mkdir(exist_ok=True)
     for i, scan in enumerate(seq.scans):
-        name = f"{i:06d}" if seq.point_times is None else f"{timestamps[i]:.9f}"
+        name = f"{i:06d}" if seq.poses is not None else f"{timestamps[i]:.9f}"
         write_scan(root / "scans" / f"{name}.pcd", scan)
         if seq.point_times is not None:
             np.save(root / POINT_TIMES_FOLDER / f"{name}.npy", seq.point_times[i])

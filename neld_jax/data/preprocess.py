@@ -30,8 +30,9 @@ def select_keyframes(
     timestamps), `distance_m` apart in space and `angle_deg` apart in rotation (need poses [S, 4, 4]) where they
     can. The first scan is one; a scan after it is one when the next scan would lie beyond any of these caps from
     the last keyframe (whichever first), so each keyframe is the last scan within the caps, and an input sparser
-    than the caps keeps every scan. The last scan is one unless the last keyframe lies within half the caps of it. A cap is off when it is <= 0 (or its input None); with every cap off all scans
-    are kept. `num_scans` is needed only when timestamps and poses are both None."""
+    than the caps keeps every scan. The last scan is one unless the last keyframe lies within half the caps of it.
+    A cap is off when it is <= 0 (or its input None); with every cap off all scans are kept. `num_scans` is needed
+    only when timestamps and poses are both None."""
     if timestamps is not None:
         timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
         num_scans = timestamps.size

@@ -18,7 +18,11 @@ constant-velocity guess and ICP lead, and the map bends. After each registration
 registration points within one of KISS-ICP's voxels of the previous sweep's (both in the world, under the new
 poses) says how well the two still overlap. That share depends on the sensor (a non-repetitive pattern overlaps
 less from sweep to sweep), so a sweep has lost track when its share falls below LOST_OVERLAP_RATIO times the median
-of the last OVERLAP_WINDOW sweeps'; the load stops with one line naming the scan. Measured: synthetic 10 Hz
+of the last OVERLAP_WINDOW sweeps'. Such a sweep is registered again (Tracker.recover: KISS-ICP's registration
+undone, then its ICP from RANSAC on FPFH features and from three motion guesses, the best overlap kept) and KISS-ICP
+goes on from there; only when no start brings the overlap back to the recent range does the load stop, with one
+line naming the scan. Measured on the synthetic handheld walk (2 Hz, 40-50 degree turns between scans), which
+KISS-ICP alone loses at its first turn: 1.6-1.7 m ATE over 18 scans alone, 4-5 cm recovered. Measured: synthetic 10 Hz
 sweeps (32 beams, 60 m range, voxel 0.6 m) overlap 0.78-0.90, 0.20 after a jump into another courtyard (0.24 of the
 median), 0.23 after a 2 s gap; FAST-LIO2's keyframes of four real handheld recordings (5 Hz, gaps up to 6 s, 40 m,
 voxel 0.4 m) 0.61-0.69 in the median, and no tracked step below 0.71 of its median, while an absolute threshold of
@@ -147,7 +151,7 @@ class Tracker:
     def recover(self, sweep: np.ndarray, source: np.ndarray, before: tuple[np.ndarray, np.ndarray]) -> float:
         """Undo KISS-ICP's registration of a scan that lost track (sweep [M, 3] deskewed, registration points source
         [N, 3]; before: motion() before it) and register it again, by KISS-ICP's ICP against the rebuilt local map,
-        from each of: RANSAC on FPFH features against the local map, no motion, constant velocity, the last turn
+        from each of: RANSAC on FPFH features against the previous scan, no motion, constant velocity, the last turn
         without the last step. Keeps the result that overlaps the previous scan most, as KISS-ICP's last pose and
         in its map; returns that overlap."""
         from kiss_icp.threshold import get_threshold_estimator

@@ -28,10 +28,11 @@ def make_sequence(num_scans=5, points_per_scan=400, seed=0, timestamps=None):
 
 def test_select_keyframes_interval_is_a_cap_on_the_gap():
     times = np.array([0.0, 1.0, 2.9, 3.0, 4.0, 5.9, 6.5, 9.49, 9.5])
-    # each keyframe the last scan within 3 s of the one before, and the end (3 s after the last keyframe)
-    np.testing.assert_array_equal(select_keyframes(times, 3.0), [0, 3, 5, 6, 8])
-    np.testing.assert_array_equal(select_keyframes(times[:-1], 3.0), [0, 3, 5, 6, 7])  # 2.99 s: beyond half the cap
-    np.testing.assert_array_equal(select_keyframes(times[:5], 3.0), [0, 3])  # the end 1 s after a keyframe
+    # each keyframe the last scan within 3 s of the one before
+    np.testing.assert_array_equal(select_keyframes(times, 3.0), [0, 3, 5, 6])
+    # the last scan where the input is sparse at its end: 2.99 s after the scan before, beyond half the cap
+    np.testing.assert_array_equal(select_keyframes(times[:-1], 3.0), [0, 3, 5, 6, 7])
+    np.testing.assert_array_equal(select_keyframes(times[:5], 3.0), [0, 3])  # 1 s: within half the cap
 
 
 def test_scans_sparser_than_the_time_cap_are_all_keyframes():
@@ -41,7 +42,7 @@ def test_scans_sparser_than_the_time_cap_are_all_keyframes():
 
 def test_ten_hz_sweeps_give_a_keyframe_every_3_s():
     times = 0.1 * np.arange(301)
-    np.testing.assert_array_equal(select_keyframes(times, 3.0), np.arange(0, 301, 30))
+    np.testing.assert_array_equal(select_keyframes(times, 3.0), np.arange(0, 300, 30))
 
 
 def test_keyframes_follow_the_motion_whichever_cap_comes_first():
@@ -51,7 +52,7 @@ def test_keyframes_follow_the_motion_whichever_cap_comes_first():
     poses[50:, :3, :3] = Rotation.from_euler("z", 10.0 * np.arange(50)[:, None], degrees=True).as_matrix()
     kept = select_keyframes(times, 3.0, poses=poses, distance_m=8.0, angle_deg=30.0)
     np.testing.assert_array_equal(kept[:6], [0, 8, 16, 24, 32, 40])  # 8 m apart
-    assert np.all(np.diff(kept[kept >= 52]) == 3) and kept[-1] == 98  # 30 degrees apart (the end 10 degrees on)
+    assert np.all(np.diff(kept[kept >= 52]) == 3) and kept[-1] == 98  # 30 degrees apart
     np.testing.assert_array_equal(select_keyframes(times, 3.0, poses=poses), np.arange(0, 100, 30))
 
 

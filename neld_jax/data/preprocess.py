@@ -30,7 +30,7 @@ def select_keyframes(
     timestamps), `distance_m` apart in space and `angle_deg` apart in rotation (need poses [S, 4, 4]) where they
     can. The first scan is one; a scan after it is one when the next scan would lie beyond any of these caps from
     the last keyframe (whichever first), so each keyframe is the last scan within the caps, and an input sparser
-    than the caps keeps every scan. The last scan is one unless the last keyframe lies within half the caps of it.
+    than the caps keeps every scan: the last scan is one where it lies beyond half a cap from the scan before it.
     A cap is off when it is <= 0 (or its input None); with every cap off all scans are kept. `num_scans` is needed
     only when timestamps and poses are both None."""
     if timestamps is not None:
@@ -59,7 +59,7 @@ def select_keyframes(
     for i in range(1, num_scans - 1):
         if beyond_caps(kept[-1], i + 1):
             kept.append(i)
-    if num_scans > 1 and beyond_caps(kept[-1], num_scans - 1, share=0.5):  # the route's end, unless a keyframe is near
+    if num_scans > 1 and beyond_caps(num_scans - 2, num_scans - 1, share=0.5):  # a sparse input's last scan
         kept.append(num_scans - 1)
     return np.asarray(kept, dtype=np.int64)
 

@@ -212,7 +212,8 @@ def test_a_car_route_is_long_with_turns_at_10_hz(tmp_path):
     assert seq.poses is None and seq.name == "synthetic_seed0_car_10hz"
     np.testing.assert_allclose(np.diff(seq.timestamps), 0.1)
     path = np.linalg.norm(np.diff(seq.gt_poses[:, :3, 3], axis=0), axis=1)
-    assert path.sum() > 300.0 and np.all(path < 1.0)  # 8 m/s
+    assert path.sum() > 300.0 and np.all(path < 1.0)  # 8.4 m/s
+    assert path[:5].sum() < 0.3 and path[40:].min() > 0.75  # from rest, at speed after 4 s
     heading = np.unwrap(np.arctan2(seq.gt_poses[:, 1, 0], seq.gt_poses[:, 0, 0]))
     assert abs(heading[-1] - heading[0]) > np.deg2rad(340)  # four corners round a closed route
     write_generic(seq, tmp_path)  # no poses.txt: the scans carry their stamps in their names

@@ -67,6 +67,8 @@ HANDHELD_SPEED_M_S = 1.4  # walking
 HANDHELD_TURN_DEG = (40.0, 50.0)  # the turn between consecutive handheld scans, either side
 HANDHELD_STEADY_SCANS = 8  # the handheld walk's first scans look ahead (an odometry learns the sensor's overlap)
 CAR_RATE_HZ = 10.0  # the car route's scans, when make_sequence is given no rate
+CAR_START_S = 4.0  # the car speeds up from rest over this long
+CAR_ROUTE_SAMPLES_PER_SCAN = 20  # the car's poses are the route's nearest samples, this many a scan apart
 
 
 def _yaw_matrix(yaw: float) -> np.ndarray:
@@ -379,6 +381,18 @@ def courtyard_route(num_scans: int, length_m: float, seed: int) -> tuple[np.ndar
     return poses, dense
 
 
+def car_drive(num_scans: int, length_m: float, seed: int, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """courtyard_route's poses [S, 4, 4] and dense route [N, 2] for a car that starts from rest: one scan each
+    1 / rate_hz s, speeding up evenly over CAR_START_S, then at the speed that brings it round the closed route of
+    length_m by the time of scan S (the ground truth of the route's samples nearest each scan's distance)."""
+    samples = CAR_ROUTE_SAMPLES_PER_SCAN * num_scans
+    poses, dense = courtyard_route(samples, length_m, seed)
+    times = np.arange(num_scans + 1) / rate_hz
+    travelled = np.where(times < CAR_START_S, times ** 2 / (2 * CAR_START_S), times - CAR_START_S / 2)  # x speed
+    index = np.rint(travelled[:-1] / travelled[-1] * samples).astype(np.int64) % samples
+    return poses[index], dense
+
+
 def make_courtyards_meshes(seed: int, route_xy: np.ndarray) -> list[o3d.geometry.TriangleMesh]:
     """Meshes of a ring of connected courtyards along a closed route [N, 2]: a ground plane, a wall across the
     route every COURTYARD_SPACING_M with a gate where the route passes, box buildings, poles and trees beside
@@ -622,7 +636,8 @@ def make_sequence(cfg=None, rate_hz: float = 0.0) -> Sequence:
     starts), and no initial poses (poses None: a run makes them from the scans, data/odometry.py).
 
     The routes "handheld" (handheld_walk round the loop, HANDHELD_RATE_HZ unless rate_hz is given) and "car"
-    (the courtyards' route at CAR_RATE_HZ unless rate_hz is given: num_scans over route_length_m) are rigid scans
+    (car_drive along the courtyards' route at CAR_RATE_HZ unless rate_hz is given: num_scans over route_length_m,
+    from rest) are rigid scans
     (deskewed, as a front-end writes them) 1 / rate_hz apart, with ground truth and no initial poses."""
     cfg = _resolve_config(cfg)
     if rate_hz > 0 and cfg.route == "courtyards":
@@ -668,7 +683,11 @@ def make_sequence(cfg=None, rate_hz: float = 0.0) -> Sequence:
 
 def _scene_and_route(cfg, rate_hz: float):
     """(RaycastingScene, meshes, ground-truth poses [S, 4, 4]) of the resolved cfg's route."""
-    if cfg.route in ("courtyards", "car"):
+    if cfg.route == "car":
+        gt_poses, route_xy = car_drive(cfg.num_scans, cfg.route_length_m, cfg.seed, rate_hz or CAR_RATE_HZ)
+        meshes = make_courtyards_meshes(cfg.seed, route_xy)
+        return raycasting_scene(meshes), meshes, gt_poses
+    if cfg.route == "courtyards":
         gt_poses, route_xy = courtyard_route(cfg.num_scans, cfg.route_length_m, cfg.seed)
         meshes = make_courtyards_meshes(cfg.seed, route_xy)
         return raycasting_scene(meshes), meshes, gt_poses

@@ -53,9 +53,9 @@ def defaults() -> ml_collections.ConfigDict:
     c.data.drop_unmatched_tail = False  # drop up to 5 trailing scans without a pose or stamp instead of failing
     c.data.scans_in_world_frame = False  # the scans are registered already: move them into their sensors' frames
     c.data.invert_poses = False  # the poses file holds world -> sensor transforms
-    c.data.keyframe_interval_s = 3.0  # keyframes: a scan every this many seconds (<= 0: rule off) ...
-    c.data.keyframe_distance_m = 0.0  # ... or after moving this far (<= 0: off; all rules off: every scan)
-    c.data.keyframe_angle_deg = 0.0  # ... or after turning this far (<= 0: off)
+    c.data.keyframe_interval_s = 3.0  # keyframes at most this many seconds apart (<= 0: cap off) ...
+    c.data.keyframe_distance_m = 0.0  # ... this far apart (0: a tenth of max_range_m with the time cap, else off) ...
+    c.data.keyframe_angle_deg = 0.0  # ... and turned this far (0: 30 with the time cap, else off; all off: every scan)
     c.data.min_range_m = 0.5  # points nearer the sensor are dropped
     c.data.max_range_m = 80.0  # points further away are dropped
     c.data.voxel_size_m = 0.05  # each keyframe's points on this grid

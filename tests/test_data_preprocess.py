@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neld_jax.data.normalize import Normalization, fit_normalization
-from neld_jax.data.preprocess import crop_range, preprocess, select_keyframes, voxel_downsample
+from neld_jax.data.preprocess import crop_range, keyframe_caps, preprocess, select_keyframes, voxel_downsample
 from neld_jax.data.rays import build_rays
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
@@ -26,9 +26,40 @@ def make_sequence(num_scans=5, points_per_scan=400, seed=0, timestamps=None):
 # ---------------------------------------------------------------------------------------------- keyframes
 
 
-def test_select_keyframes_interval():
+def test_select_keyframes_interval_is_a_cap_on_the_gap():
     times = np.array([0.0, 1.0, 2.9, 3.0, 4.0, 5.9, 6.5, 9.49, 9.5])
-    np.testing.assert_array_equal(select_keyframes(times, 3.0), [0, 3, 6, 8])
+    # each keyframe the last scan within 3 s of the one before
+    np.testing.assert_array_equal(select_keyframes(times, 3.0), [0, 3, 5, 6])
+    # the last scan where the input is sparse at its end: 2.99 s after the scan before, beyond half the cap
+    np.testing.assert_array_equal(select_keyframes(times[:-1], 3.0), [0, 3, 5, 6, 7])
+    np.testing.assert_array_equal(select_keyframes(times[:5], 3.0), [0, 3])  # 1 s: within half the cap
+
+
+def test_scans_sparser_than_the_time_cap_are_all_keyframes():
+    times = np.cumsum(np.r_[0.0, np.random.default_rng(0).uniform(2.9, 3.0, size=29)])  # 30 scans 2.9-3.0 s apart
+    np.testing.assert_array_equal(select_keyframes(times, 3.0), np.arange(30))
+
+
+def test_ten_hz_sweeps_give_a_keyframe_every_3_s():
+    times = 0.1 * np.arange(301)
+    np.testing.assert_array_equal(select_keyframes(times, 3.0), np.arange(0, 300, 30))
+
+
+def test_keyframes_follow_the_motion_whichever_cap_comes_first():
+    times = 0.1 * np.arange(100)  # 10 s at 10 Hz, 1 m a sweep (a car), turning 10 degrees a sweep from sweep 50 on
+    poses = np.tile(np.eye(4), (100, 1, 1))
+    poses[:, 0, 3] = np.arange(100.0)
+    poses[50:, :3, :3] = Rotation.from_euler("z", 10.0 * np.arange(50)[:, None], degrees=True).as_matrix()
+    kept = select_keyframes(times, 3.0, poses=poses, distance_m=8.0, angle_deg=30.0)
+    np.testing.assert_array_equal(kept[:6], [0, 8, 16, 24, 32, 40])  # 8 m apart
+    assert np.all(np.diff(kept[kept >= 52]) == 3) and kept[-1] == 98  # 30 degrees apart
+    np.testing.assert_array_equal(select_keyframes(times, 3.0, poses=poses), np.arange(0, 100, 30))
+
+
+def test_the_range_sets_the_distance_cap_when_the_time_cap_is_on():
+    assert keyframe_caps(3.0, 0.0, 0.0, 80.0) == (8.0, 30.0)  # a tenth of the range, 30 degrees
+    assert keyframe_caps(3.0, 2.0, 10.0, 80.0) == (2.0, 10.0)  # as given
+    assert keyframe_caps(0.0, 0.0, 0.0, 80.0) == (0.0, 0.0)  # a layout whose scans are keyframes: every scan
 
 
 def test_select_keyframes_exact_spacing_keeps_all_even_at_epoch_times():
@@ -96,8 +127,8 @@ def test_preprocess_scan_left_empty_names_its_file_and_time_after_keyframes(tmp_
     from neld_jax.data.generic import load_generic
     from neld_jax.data.synthetic import write_generic
 
-    times = np.array([0.0, 1.0, 3.0, 4.0, 6.0])
-    src = make_sequence(num_scans=5, timestamps=times)
+    times = np.array([0.0, 1.0, 3.0, 4.0, 6.0, 9.5])  # keyframes 0, 2 and 4
+    src = make_sequence(num_scans=6, timestamps=times)
     src.scans[4] = np.random.default_rng(1).uniform(-0.2, 0.2, size=(500, 3))  # all within 0.5 m
     write_generic(src, tmp_path)
     seq = load_generic(tmp_path)

@@ -191,3 +191,33 @@ def test_config_defaults_and_errors():
         make_sequence({"trajectory_radius_m": 40.0})
     with pytest.raises(ConfigError, match="unknown field 'fov_down_deg'"):  # the field of view is the generator's own
         make_sequence({"fov_down_deg": 20.0})
+
+
+def test_a_handheld_walk_turns_40_to_50_degrees_between_scans_at_2_hz():
+    seq = make_sequence({**SMALL, "route": "handheld", "num_scans": 14, "gt_map_points": 0})
+    assert seq.poses is None and seq.point_times is None and seq.name == "synthetic_seed0_handheld_2hz"
+    np.testing.assert_allclose(np.diff(seq.timestamps), 0.5)
+    relative = np.einsum("sji,sjk->sik", seq.gt_poses[:-1, :3, :3], seq.gt_poses[1:, :3, :3])
+    turns = np.rad2deg(np.linalg.norm(Rotation.from_matrix(relative).as_rotvec(), axis=1))
+    assert np.all(turns[:7] < 6.0)  # the first 8 scans look ahead along the loop
+    assert np.all((turns[7:] > 39.0) & (turns[7:] < 51.0)), turns  # then 40-50 degrees (roll and pitch aside)
+    steps = np.linalg.norm(np.diff(seq.gt_poses[:, :3, 3], axis=0), axis=1)
+    np.testing.assert_allclose(steps, 0.7, atol=0.1)  # walking, 1.4 m/s
+
+
+def test_a_car_route_is_long_with_turns_at_10_hz(tmp_path):
+    cfg = {**SMALL, "route": "car", "num_scans": 400, "route_length_m": 320.0, "num_beams": 4, "num_columns": 32,
+           "gt_map_points": 0}
+    seq = make_sequence(cfg)
+    assert seq.poses is None and seq.name == "synthetic_seed0_car_10hz"
+    np.testing.assert_allclose(np.diff(seq.timestamps), 0.1)
+    path = np.linalg.norm(np.diff(seq.gt_poses[:, :3, 3], axis=0), axis=1)
+    assert path.sum() > 300.0 and np.all(path < 1.0)  # 8.4 m/s
+    assert path[:5].sum() < 0.3 and path[40:].min() > 0.75  # from rest, at speed after 4 s
+    heading = np.unwrap(np.arctan2(seq.gt_poses[:, 1, 0], seq.gt_poses[:, 0, 0]))
+    assert abs(heading[-1] - heading[0]) > np.deg2rad(340)  # four corners round a closed route
+    write_generic(seq, tmp_path)  # no poses.txt: the scans carry their stamps in their names
+    back = load_generic(tmp_path)
+    assert back.poses is None and back.num_scans == 400 and not (tmp_path / "poses.txt").exists()
+    np.testing.assert_allclose(back.timestamps, seq.timestamps, atol=1e-6)
+    np.testing.assert_allclose(back.gt_poses, seq.gt_poses, atol=1e-6)

@@ -97,14 +97,58 @@ def test_rigid_scans_and_a_layout_with_poses_can_ask_for_odometry(sweeps, tmp_pa
     assert metrics.ate(loaded.poses, loaded.gt_poses)["translation_rmse_m"] < 0.1  # the motion stays in them
 
 
-def test_odometry_that_loses_track_names_the_scan(sweeps, tmp_path):
-    # Twenty sweeps of one courtyard, then twenty of another: the 21st sweep jumps.
+def test_odometry_that_loses_track_for_good_names_the_scan(sweeps, tmp_path):
+    # Twenty sweeps of one courtyard, then twenty of another: the 21st sweep jumps, and registering it again from
+    # features or from any motion guess finds no pose where it overlaps the 20th.
     other = _sweeps(seed=7)
     jumped = dataclasses.replace(sweeps, scans=sweeps.scans[:20] + other.scans[20:],
                                  point_times=sweeps.point_times[:20] + other.point_times[20:], gt_poses=None)
     write_generic(jumped, tmp_path)
     with pytest.raises(DataError, match=r"^scans/2\.000000000\.pcd \(t=2\.000000\): KISS-ICP lost track here"):
         load_sequence(_data(tmp_path))
+
+
+def _kiss_icp_alone(scans: list, max_range_m: float) -> np.ndarray:
+    """KISS-ICP's poses [S, 4, 4] of rigid scans with no check and no recovery: what it makes of them by itself."""
+    from kiss_icp.config import KISSConfig
+    from kiss_icp.kiss_icp import KissICP
+
+    config = KISSConfig()
+    config.data.min_range, config.data.max_range, config.data.deskew = 0.5, max_range_m, False
+    config.mapping.voxel_size = odometry.VOXELS_PER_RANGE * max_range_m
+    kiss, poses = KissICP(config), []
+    for scan in scans:
+        kiss.register_frame(scan, np.zeros(0))
+        poses.append(np.array(kiss.last_pose))
+    return np.stack(poses)
+
+
+def test_a_handheld_walk_that_kiss_icp_loses_is_registered_again(caplog):
+    # 2 Hz, 0.7 m and 40-50 degrees left or right from scan to scan after 8 scans looking ahead
+    walk = make_sequence({"route": "handheld", "num_scans": 16, "max_range_m": 40.0, "gt_map_points": 0})
+    labels = [f"s{i}" for i in range(walk.num_scans)]
+    with caplog.at_level(logging.INFO, logger="neld_jax.data.odometry"):
+        poses, _, _ = odometry.kiss_icp_odometry(walk.scans, None, labels, 0.5, 40.0)
+    alone = metrics.ate(_kiss_icp_alone(walk.scans, 40.0), walk.gt_poses)["translation_rmse_m"]
+    recovered = metrics.ate(poses, walk.gt_poses)["translation_rmse_m"]
+    assert alone > 0.5, alone  # measured 1.6-1.7 m over 18 scans (two seeds)
+    assert recovered < min(0.1 * alone, 0.1), (recovered, alone)  # measured 4-5 cm
+    assert "s8: KISS-ICP lost track (" in caplog.text  # the first turn
+    recoveries = caplog.text.count("registered again:")
+    assert 3 <= recoveries < walk.num_scans - 8, recoveries  # a turn to the same side as the last one is tracked
+
+
+def test_the_guesses_of_a_lost_scan_are_no_motion_constant_velocity_and_the_last_turn():
+    from scipy.spatial.transform import Rotation
+
+    last, delta = np.eye(4), np.eye(4)
+    last[:3, 3] = [5.0, 1.0, 0.0]
+    delta[:3, :3], delta[:3, 3] = Rotation.from_euler("z", 45, degrees=True).as_matrix(), [0.7, 0.0, 0.0]
+    still, constant, turned = odometry.guesses(last, delta)
+    np.testing.assert_allclose(still, last)
+    np.testing.assert_allclose(constant, last @ delta)
+    np.testing.assert_allclose(turned[:3, 3], last[:3, 3])  # turned on the spot
+    np.testing.assert_allclose(turned[:3, :3], delta[:3, :3])
 
 
 def test_a_gap_in_the_stamps_is_named(caplog):

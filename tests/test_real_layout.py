@@ -181,7 +181,8 @@ def test_train_on_the_layout_writes_every_input_scan_and_quality(tmp_path):
     assert "wrote 6 scans" in perturbed.stdout
     out = tmp_path / "out"
     args = ["--config=configs/generic.py:paper", f"--config.data.root={tmp_path / 'drift'}", f"--config.output_dir={out}",
-            "--config.data.keyframe_interval_s=2.0", "--config.model.width=16", "--config.model.depth=2",
+            "--config.data.keyframe_interval_s=2.0", "--config.data.keyframe_angle_deg=360",  # 60 degrees a scan
+            "--config.data.keyframe_distance_m=1000", "--config.model.width=16", "--config.model.depth=2",
             "--config.model.skip_layers=(1,)", "--config.model.pos_freqs=6", "--config.model.dir_freqs=2",
             "--config.sampling.coarse_stages=(8,)", "--config.sampling.fine_stages=(4,)",
             "--config.train.steps=12", "--config.train.batch_rays=32", "--config.train.log_every=4",
@@ -236,6 +237,7 @@ def _loaded_and_keyframes(root, keyframe_interval_s=0.0):
 
     data = get_config("cpu").data
     data.root, data.keyframe_interval_s = str(root), keyframe_interval_s
+    data.keyframe_angle_deg, data.keyframe_distance_m = 360.0, 1000.0  # the time cap alone: 60 degrees a scan
     return load_keyframes(data)
 
 

@@ -16,6 +16,7 @@ import open3d as o3d
 
 from neld_jax.baseline.icp import IcpResult, correction_m, information, multiscale_icp
 from neld_jax.baseline.settings import BaselineSettings, progress_bar
+from neld_jax.data import feature_registration
 
 _reg = o3d.pipelines.registration
 
@@ -57,29 +58,20 @@ def passes_loop_gates(result: IcpResult, moved_m: float, settings: BaselineSetti
 
 def fpfh_features(cloud: o3d.geometry.PointCloud, settings: BaselineSettings):
     """cloud (sensor frame) -> (the cloud on the global_voxel_m grid with normals, its FPFH features)."""
-    coarse = cloud.voxel_down_sample(settings.global_voxel_m)
-    coarse.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * settings.global_voxel_m, max_nn=30))
-    features = _reg.compute_fpfh_feature(
-        coarse, o3d.geometry.KDTreeSearchParamHybrid(radius=settings.global_feature_radius_m, max_nn=100))
-    return coarse, features
+    return feature_registration.fpfh_features(cloud, settings.global_voxel_m, settings.global_feature_radius_m)
 
 
 def global_registration(source, target, source_features, target_features, settings: BaselineSettings):
-    """FPFH + RANSAC, then multi-scale ICP at global_icp_distances_m: registration from no initial guess.
+    """FPFH + RANSAC (neld_jax.data.feature_registration), then multi-scale ICP at global_icp_distances_m:
+    registration from no initial guess.
 
     source, target: Open3D clouds with normals (sensor frames); source_features, target_features: their
     (coarse cloud, FPFH features) from fpfh_features. Returns (transform [4, 4] mapping source into target's frame, the
     IcpResult of the finest ICP scale)."""
-    (source_coarse, source_fpfh), (target_coarse, target_fpfh) = source_features, target_features
-    distance = 1.5 * settings.global_voxel_m
-    o3d.utility.random.seed(settings.global_seed)
-    ransac = _reg.registration_ransac_based_on_feature_matching(
-        source_coarse, target_coarse, source_fpfh, target_fpfh, True, distance,
-        _reg.TransformationEstimationPointToPoint(False), 3,
-        [_reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), _reg.CorrespondenceCheckerBasedOnDistance(distance)],
-        _reg.RANSACConvergenceCriteria(settings.global_ransac_iterations, 0.999))
+    guess = feature_registration.ransac_alignment(source_features, target_features, settings.global_voxel_m,
+                                                  settings.global_ransac_iterations, settings.global_seed)
     refine = dataclasses.replace(settings, icp_distances_m=settings.global_icp_distances_m)
-    return multiscale_icp(source, target, ransac.transformation, refine)
+    return multiscale_icp(source, target, guess, refine)
 
 
 class LoopClosures(NamedTuple):

@@ -11,6 +11,14 @@ KISS-ICP), as a recording holds them:
 
     neld-make-synthetic --config=configs/demo.py --root=/tmp/sweeps --rate_hz=10 --config.data.synthetic.num_scans=300 \
         --config.data.synthetic.trajectory_radius_m=10 --config.data.synthetic.max_range_m=40
+
+The routes "car" and "handheld" (data.synthetic.route) write rigid scans named by their stamps, with ground truth
+and no poses: a car's 10 Hz scans along the courtyards' route (num_scans over route_length_m), a handheld sensor's
+2 Hz scans turned 40-50 degrees from one to the next (--rate_hz sets another rate):
+
+    neld-make-synthetic --config=configs/demo.py --root=/tmp/car --config.data.synthetic.route=car \
+        --config.data.synthetic.num_beams=64 --config.data.synthetic.num_scans=400 \
+        --config.data.synthetic.route_length_m=320 --config.data.synthetic.max_range_m=80
 """
 
 from absl import flags
@@ -28,7 +36,10 @@ def job(config) -> None:
 
     seq = make_sequence(config.data.synthetic, rate_hz=RATE_HZ.value)
     write_generic(seq, ROOT.value)
-    kind = f"raw {RATE_HZ.value:g} Hz sweeps (no poses)" if RATE_HZ.value > 0 else "scans"
+    if seq.point_times is not None:
+        kind = f"raw {RATE_HZ.value:g} Hz sweeps (no poses)"
+    else:
+        kind = "scans" if seq.poses is not None else f"{config.data.synthetic.route} scans (no poses)"
     print(f"wrote {seq.num_scans} {kind} with ground truth to {ROOT.value}")
 
 

@@ -61,6 +61,14 @@ SENSOR_HEIGHT_M = 1.8
 PATH_WOBBLE = 0.08  # relative radial wobble of the loop; the scene keeps this band clear
 SCAN_INTERVAL_S = 3.0  # 30 frames of 0.1 s: one keyframe per scan at the paper's 3 s spacing
 GT_MAP_VISIBILITY_TOLERANCE_M = 0.02
+ROUTES = ("loop", "courtyards", "handheld", "car")
+HANDHELD_RATE_HZ = 2.0  # the handheld route's scans, when make_sequence is given no rate
+HANDHELD_SPEED_M_S = 1.4  # walking
+HANDHELD_TURN_DEG = (40.0, 50.0)  # the turn between consecutive handheld scans, either side
+HANDHELD_STEADY_SCANS = 8  # the handheld walk's first scans look ahead (an odometry learns the sensor's overlap)
+CAR_RATE_HZ = 10.0  # the car route's scans, when make_sequence is given no rate
+CAR_START_S = 4.0  # the car speeds up from rest over this long
+CAR_ROUTE_SAMPLES_PER_SCAN = 20  # the car's poses are the route's nearest samples, this many a scan apart
 
 
 def _yaw_matrix(yaw: float) -> np.ndarray:
@@ -262,6 +270,28 @@ def loop_poses(fraction: np.ndarray, radius_m: float, seed: int) -> np.ndarray:
     return poses
 
 
+def handheld_walk(num_scans: int, radius_m: float, seed: int, rate_hz: float) -> np.ndarray:
+    """Ground-truth poses [S, 4, 4] (sensor -> world) of a handheld LiDAR carried round the seed's loop at
+    HANDHELD_SPEED_M_S, one scan each 1 / rate_hz s, turned about the vertical by HANDHELD_TURN_DEG (40-50 degrees)
+    between consecutive scans, left or right at random, after HANDHELD_STEADY_SCANS scans looking ahead: the walker
+    sets off, then looks around. A constant-velocity guess is then wrong by up to 100 degrees whenever the turn
+    changes side."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed + 4)
+    step_m = HANDHELD_SPEED_M_S / rate_hz
+    poses = loop_poses(np.arange(num_scans) * step_m / (2 * np.pi * radius_m), radius_m, seed)
+    turns = rng.uniform(*HANDHELD_TURN_DEG, size=num_scans) * rng.choice([-1.0, 1.0], size=num_scans)
+    steady = min(HANDHELD_STEADY_SCANS, num_scans)
+    turns[:steady] = 0.0
+    heading = np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
+    # about the world's vertical, so that the turn from scan to scan is the drawn one, whatever the loop's heading
+    look = np.deg2rad(np.cumsum(turns))
+    look[steady:] -= heading[steady:] - heading[steady - 1]
+    poses[:, :3, :3] = Rotation.from_euler("z", look[:, None]).as_matrix() @ poses[:, :3, :3]
+    return poses
+
+
 def add_odometry_drift(gt_poses: np.ndarray, trans_sigma_m: float, rot_sigma_deg: float, seed: int,
                        keep_tilt: bool = False) -> np.ndarray:
     """Initial poses [S, 4, 4] that drift from gt_poses [S, 4, 4] like odometry.
@@ -349,6 +379,18 @@ def courtyard_route(num_scans: int, length_m: float, seed: int) -> tuple[np.ndar
     poses[:, :3, :3] = Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], axis=1)).as_matrix()
     poses[:, :3, 3] = np.stack([xy[:, 0], xy[:, 1], SENSOR_HEIGHT_M + 0.1 * np.sin(3 * theta + z_phase)], axis=1)
     return poses, dense
+
+
+def car_drive(num_scans: int, length_m: float, seed: int, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """courtyard_route's poses [S, 4, 4] and dense route [N, 2] for a car that starts from rest: one scan each
+    1 / rate_hz s, speeding up evenly over CAR_START_S, then at the speed that brings it round the closed route of
+    length_m by the time of scan S (the ground truth of the route's samples nearest each scan's distance)."""
+    samples = CAR_ROUTE_SAMPLES_PER_SCAN * num_scans
+    poses, dense = courtyard_route(samples, length_m, seed)
+    times = np.arange(num_scans + 1) / rate_hz
+    travelled = np.where(times < CAR_START_S, times ** 2 / (2 * CAR_START_S), times - CAR_START_S / 2)  # x speed
+    index = np.rint(travelled[:-1] / travelled[-1] * samples).astype(np.int64) % samples
+    return poses[index], dense
 
 
 def make_courtyards_meshes(seed: int, route_xy: np.ndarray) -> list[o3d.geometry.TriangleMesh]:
@@ -566,11 +608,11 @@ def _resolve_config(cfg) -> ml_collections.ConfigDict:
             raise ConfigError(f"data.synthetic.{key}: cannot use {value!r} ({exc})") from exc
     if resolved.num_scans < 1 or resolved.num_beams < 1 or resolved.num_columns < 1:
         raise ConfigError("data.synthetic: num_scans, num_beams and num_columns must be at least 1")
-    if resolved.route not in ("loop", "courtyards"):
-        raise ConfigError(f"data.synthetic.route: unknown route {resolved.route!r} (loop | courtyards)")
-    if resolved.route == "courtyards" and resolved.route_length_m < 100.0:
+    if resolved.route not in ROUTES:
+        raise ConfigError(f"data.synthetic.route: unknown route {resolved.route!r} ({' | '.join(ROUTES)})")
+    if resolved.route in ("courtyards", "car") and resolved.route_length_m < 100.0:
         raise ConfigError(f"data.synthetic.route_length_m ({resolved.route_length_m}) must be at least 100 m")
-    if resolved.route == "loop" and not (
+    if resolved.route in ("loop", "handheld") and not (
             0 < resolved.trajectory_radius_m * (1 + PATH_WOBBLE) < resolved.scene_size_m / 2 - 1.0):
         raise ConfigError(
             f"data.synthetic: trajectory_radius_m ({resolved.trajectory_radius_m}) must be positive and leave the "
@@ -591,29 +633,26 @@ def make_sequence(cfg=None, rate_hz: float = 0.0) -> Sequence:
     rate_hz > 0: the raw sweeps of a LiDAR spinning at that rate instead, as a recording holds them (the loop
     route only): num_scans sweeps 1 / rate_hz apart, each point cast from where the sensor was at its column's
     instant, `point_times` [N_i] seconds after the sweep's stamp, ground truth at the sweeps' stamps (their
-    starts), and no initial poses (poses None: a run makes them from the scans, data/odometry.py)."""
+    starts), and no initial poses (poses None: a run makes them from the scans, data/odometry.py).
+
+    The routes "handheld" (handheld_walk round the loop, HANDHELD_RATE_HZ unless rate_hz is given) and "car"
+    (car_drive along the courtyards' route at CAR_RATE_HZ unless rate_hz is given: num_scans over route_length_m,
+    from rest) are rigid scans
+    (deskewed, as a front-end writes them) 1 / rate_hz apart, with ground truth and no initial poses."""
     cfg = _resolve_config(cfg)
-    if rate_hz > 0 and cfg.route != "loop":
+    if rate_hz > 0 and cfg.route == "courtyards":
         raise ConfigError(f"synthetic sweeps at {rate_hz} Hz follow the loop route, not {cfg.route!r}")
     started = time.perf_counter()
-    if cfg.route == "courtyards":
-        gt_poses, route_xy = courtyard_route(cfg.num_scans, cfg.route_length_m, cfg.seed)
-        meshes = make_courtyards_meshes(cfg.seed, route_xy)
-        scene = raycasting_scene(meshes)
-    else:
-        scene, meshes = make_scene(cfg.seed, cfg.scene_size_m, path_radius_m=cfg.trajectory_radius_m)
-        gt_poses = smooth_trajectory(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
+    scene, meshes, gt_poses = _scene_and_route(cfg, rate_hz)
     directions = spinning_lidar_directions(cfg.num_beams, FOV_DEG[1], FOV_DEG[0], cfg.num_columns)
     rng = np.random.default_rng(cfg.seed + 2)
-    point_times = None
-    if rate_hz > 0:
-        init_poses, timestamps, scans, point_times = None, np.arange(cfg.num_scans) / rate_hz, [], []
-        column_fraction = np.arange(cfg.num_columns) / cfg.num_columns
-        for i in range(cfg.num_scans):
-            column_poses = loop_poses((i + column_fraction) / cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
-            points, column = cast_sweep(scene, column_poses, directions, cfg.max_range_m, cfg.range_noise_m, rng)
-            scans.append(points)
-            point_times.append(column_fraction[column] / rate_hz)
+    point_times, init_poses = None, None
+    if cfg.route in ("handheld", "car"):
+        rate_hz = rate_hz or (HANDHELD_RATE_HZ if cfg.route == "handheld" else CAR_RATE_HZ)
+        timestamps = np.arange(cfg.num_scans) / rate_hz
+        scans = [cast_scan(scene, pose, directions, cfg.max_range_m, cfg.range_noise_m, rng) for pose in gt_poses]
+    elif rate_hz > 0:
+        timestamps, scans, point_times = _raw_sweeps(cfg, rate_hz, scene, directions, rng)
     else:
         init_poses = add_odometry_drift(gt_poses, cfg.drift_trans_m, cfg.drift_rot_deg, cfg.seed + 1)
         timestamps = SCAN_INTERVAL_S * np.arange(cfg.num_scans, dtype=np.float64)
@@ -629,16 +668,47 @@ def make_sequence(cfg=None, rate_hz: float = 0.0) -> Sequence:
         cfg.seed, len(scans), sum(len(s) for s in scans), 0 if gt_map is None else len(gt_map), len(meshes),
         time.perf_counter() - started,
     )
+    suffix = f"_{cfg.route}" if cfg.route in ("handheld", "car") else ""
     return Sequence(
         scans=scans,
         poses=init_poses,
         timestamps=timestamps,
         gt_poses=gt_poses,
         gt_map=gt_map,
-        name=f"synthetic_seed{cfg.seed}" + (f"_{rate_hz:g}hz" if rate_hz > 0 else ""),
+        name=f"synthetic_seed{cfg.seed}{suffix}" + (f"_{rate_hz:g}hz" if rate_hz > 0 else ""),
         source="synthetic",
         point_times=point_times,
     )
+
+
+def _scene_and_route(cfg, rate_hz: float):
+    """(RaycastingScene, meshes, ground-truth poses [S, 4, 4]) of the resolved cfg's route."""
+    if cfg.route == "car":
+        gt_poses, route_xy = car_drive(cfg.num_scans, cfg.route_length_m, cfg.seed, rate_hz or CAR_RATE_HZ)
+        meshes = make_courtyards_meshes(cfg.seed, route_xy)
+        return raycasting_scene(meshes), meshes, gt_poses
+    if cfg.route == "courtyards":
+        gt_poses, route_xy = courtyard_route(cfg.num_scans, cfg.route_length_m, cfg.seed)
+        meshes = make_courtyards_meshes(cfg.seed, route_xy)
+        return raycasting_scene(meshes), meshes, gt_poses
+    scene, meshes = make_scene(cfg.seed, cfg.scene_size_m, path_radius_m=cfg.trajectory_radius_m)
+    if cfg.route == "handheld":
+        return scene, meshes, handheld_walk(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed,
+                                            rate_hz or HANDHELD_RATE_HZ)
+    return scene, meshes, smooth_trajectory(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
+
+
+def _raw_sweeps(cfg, rate_hz: float, scene, directions: np.ndarray, rng: np.random.Generator):
+    """(stamps [S], sweeps [S] x [N_i, 3], per-point times [S] x [N_i]) of a LiDAR spinning at rate_hz round the
+    loop: each column cast from where the sensor is at its instant."""
+    timestamps, scans, point_times = np.arange(cfg.num_scans) / rate_hz, [], []
+    column_fraction = np.arange(cfg.num_columns) / cfg.num_columns
+    for i in range(cfg.num_scans):
+        column_poses = loop_poses((i + column_fraction) / cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
+        points, column = cast_sweep(scene, column_poses, directions, cfg.max_range_m, cfg.range_noise_m, rng)
+        scans.append(points)
+        point_times.append(column_fraction[column] / rate_hz)
+    return timestamps, scans, point_times
 
 
 def load(data_cfg) -> Sequence:
@@ -649,9 +719,10 @@ def load(data_cfg) -> Sequence:
 def write_generic(seq: Sequence, root) -> None:
     """Write seq in the generic layout: ROOT/scans/%06d.pcd, poses.txt, gt_poses.txt (TUM), gt_map.pcd.
 
-    Scans are written as binary PCD (float32 coordinates). Without timestamps, 0, 1, 2, ... are written. Raw
-    sweeps (point_times set) are named by their stamps (<seconds>.pcd) with point_times/<stamp>.npy beside, as
-    bin/import_rosbag.py writes a bag without odometry; without poses (None) no poses.txt is written."""
+    Scans are written as binary PCD (float32 coordinates). Without timestamps, 0, 1, 2, ... are written. Scans
+    without poses (None: no poses.txt) are named by their stamps (<seconds>.pcd), which the layout reads them by,
+    raw sweeps (point_times set) with point_times/<stamp>.npy beside, as bin/import_rosbag.py writes a bag without
+    odometry."""
     from neld_jax.data.generic import POINT_TIMES_FOLDER
     from neld_jax.data.poses import write_tum
     from neld_jax.data.scans import write_scan
@@ -662,7 +733,7 @@ def write_generic(seq: Sequence, root) -> None:
     if seq.point_times is not None:
         (root / POINT_TIMES_FOLDER).mkdir(exist_ok=True)
     for i, scan in enumerate(seq.scans):
-        name = f"{i:06d}" if seq.point_times is None else f"{timestamps[i]:.9f}"
+        name = f"{i:06d}" if seq.poses is not None else f"{timestamps[i]:.9f}"
         write_scan(root / "scans" / f"{name}.pcd", scan)
         if seq.point_times is not None:
             np.save(root / POINT_TIMES_FOLDER / f"{name}.npy", seq.point_times[i])

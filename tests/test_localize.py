@@ -32,6 +32,7 @@ def finished_run(tmp_path_factory):
     c = make_tiny_config(str(root / "run"), steps=20)
     c.data.format, c.data.root = "generic", str(root / "data")
     c.data.keyframe_interval_s, c.data.max_range_m = 6.0, 30.0
+    c.data.keyframe_distance_m, c.data.keyframe_angle_deg = 1000.0, 360.0  # the time cap alone: every other scan
     c.viz.record, c.mapping.enabled, c.eval.crispness_draws, c.eval.crispness_queries = False, False, 1, 2000
     for k in ("rot", "trans"):  # a few steps of training: the poses stay at the truth
         c.train[f"pose_lr_{k}_init"], c.train[f"pose_lr_{k}_final"] = 1e-6, 1e-7

@@ -72,11 +72,13 @@ def test_spatial_keyframes_and_any_rule():
     poses = np.tile(np.eye(4), (6, 1, 1))
     poses[:, 0, 3] = [0.0, 0.4, 0.9, 1.0, 1.0, 1.0]
     poses[4:, :3, :3] = Rotation.from_euler("z", [[20.0], [50.0]], degrees=True).as_matrix()
-    np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, distance_m=0.5), [0, 2])
-    np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, angle_deg=15.0), [0, 4, 5])
-    np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, distance_m=0.5, angle_deg=15.0), [0, 2, 4, 5])
+    # Caps on the gap between neighbouring keyframes: each keyframe is the last scan within them of the one before.
+    np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, distance_m=0.5), [0, 1, 2])
+    np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, angle_deg=15.0), [0, 3, 4, 5])
+    np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, distance_m=0.5, angle_deg=15.0),
+                                  [0, 1, 2, 3, 4, 5])
     times = np.arange(6) * 1.0
-    np.testing.assert_array_equal(select_keyframes(times, 3.0, poses=poses, distance_m=0.5), [0, 2, 5])
+    np.testing.assert_array_equal(select_keyframes(times, 3.0, poses=poses, distance_m=0.5), [0, 1, 2])
 
 
 def test_robust_outliers_and_report_rows():

@@ -21,7 +21,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 
 from neld_jax.errors import DataError
 
@@ -61,6 +60,8 @@ def _header_point_count(path: Path, ext: str) -> int | None:
 
 
 def _read_open3d(path: Path, ext: str) -> np.ndarray:
+    import open3d as o3d  # only where a cloud is read: the training step's imports stay without it
+
     # Open3D cannot tell "0 points" from "unreadable" (it fails on a PCD header with POINTS 0), so ask
     # the header first for a clearer message.
     if _header_point_count(path, ext) == 0:
@@ -163,6 +164,8 @@ def write_scan(path: str | os.PathLike, points: np.ndarray) -> None:
         raise DataError(f"{path}: points to write must have shape [N, 3], got {points.shape}")
     path.parent.mkdir(parents=True, exist_ok=True)
     if ext in (".pcd", ".ply"):
+        import open3d as o3d  # only where a cloud is written: the training step's imports stay without it
+
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
         if not o3d.io.write_point_cloud(str(path), cloud):
             raise DataError(f"{path}: Open3D could not write the point cloud")

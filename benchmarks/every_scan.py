@@ -12,7 +12,7 @@ sweep registered to the keyframes' refined map; and the registration's time.
 
 Each run folder is a finished run with ground truth (its config.json names the sequence, which is loaded again as
 the run loaded it). The keyframes' refined poses are read from its poses_optimized.txt; the registration is run
-again here from them (and timed), the interpolation recomputed. The target of the issue this answers: ATE over
+again here from them (and timed), the interpolation recomputed. The target: ATE over
 every sweep at most 1.2 x the keyframes' ATE.
 """
 

@@ -23,8 +23,8 @@ Published offsets (T_G_S, metres and unit quaternions), where they come from, an
     (/cloud_registered_body); FAST-LIO2's shipped config/ouster64.yaml (github.com/hku-mars/FAST_LIO) starts from
     an identity extrinsic instead, i.e. from "os_sensor", and estimates it online unless extrinsic_est_en is false
 - Newer College 2020 (stereo-cam release, Ouster OS1-64): registered_poses.csv (sec, nsec, x, y, z, qx, qy, qz,
-  qw); same source (evalio, newer_college_2020.py: imu_T_lidar, imu_T_gt). Which physical frame G is (the
-  issue that asked for this calls it a camera frame) is not stated in the sources reached; only the transform is.
+  qw); same source (evalio, newer_college_2020.py: imu_T_lidar, imu_T_gt). Which physical frame G is (a
+  camera frame, by some accounts) is not stated in the sources reached; only the transform is.
 - FusionPortable (2022 handheld sequences, e.g. 20220216_canteen_day): the paper says the ground truth of these
   sequences is the LiDAR's pose from NDT localisation in the prior map (Jiao et al., IROS 2022, Sec. IV-B,
   doc/paper_fusionportable_iros2022.pdf in github.com/fusionportable/fusionportable_dataset_tools), so G is

@@ -16,11 +16,11 @@ again here from them (and timed), the interpolation recomputed. The target: ATE 
 every sweep at most 1.2 x the keyframes' ATE.
 """
 
-import argparse
 import json
 import time
 
 import numpy as np
+from absl import app, flags
 
 
 def ate_cm(T: np.ndarray, gt: np.ndarray) -> float:
@@ -77,18 +77,21 @@ def measure(run_dir: str) -> dict:
     return entry
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--runs", required=True, help="Finished run folders with ground truth, comma-separated.")
-    parser.add_argument("--out", default="", help="JSON file with one entry per run.")
-    args = parser.parse_args()
-    entries = [measure(run_dir) for run_dir in args.runs.split(",") if run_dir]
+RUNS = flags.DEFINE_list("runs", [], "Finished run folders with ground truth.")
+OUT = flags.DEFINE_string("out", "", "JSON file with one entry per run.")
+
+
+def main(argv) -> None:
+    del argv
+    if not RUNS.value:
+        raise app.UsageError("--runs: name at least one finished run folder")
+    entries = [measure(run_dir) for run_dir in RUNS.value]
     text = json.dumps(entries, indent=1)
     print(text)
-    if args.out:
-        with open(args.out, "w") as f:
+    if OUT.value:
+        with open(OUT.value, "w") as f:
             f.write(text + "\n")
 
 
 if __name__ == "__main__":
-    main()
+    app.run(main)

@@ -1,6 +1,9 @@
 """Shared fixtures: a tiny configuration that trains in seconds on a CPU."""
 
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -8,6 +11,8 @@ import pytest
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 from neld_jax.config import defaults  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def encoded_dim(in_dim: int, num_freqs: int) -> int:
@@ -116,3 +121,16 @@ def sphere_plan(num_scans: int = 3, per_scan: int = 64, seed: int = 0, window: i
     mesh = train.make_mesh(submaps.mesh_size(plan, num_devices))
     device_rays, frames = train.device_data(submaps.submap_arrays(plan, rays, T), mesh)
     return device_rays, frames, plan, T
+
+
+def train_a_download_briefly(config_file: str, root, output_dir) -> subprocess.CompletedProcess:
+    """bin/train.py on a dataset's download (root) in its own layout (configs/<config_file>, cpu budget), KISS-ICP
+    making the poses, with a field and a schedule so small that it ends in seconds; its output is captured."""
+    return subprocess.run(
+        [sys.executable, str(REPO / "bin" / "train.py"), f"--config={REPO / 'configs' / config_file}:cpu",
+         f"--config.data.root={root}", f"--config.output_dir={output_dir}", "--config.data.max_range_m=40",
+         "--config.data.keyframe_interval_s=1", "--config.data.max_rays_per_scan=256", "--config.train.steps=2",
+         "--config.train.batch_rays=32", "--config.model.width=16", "--config.model.depth=2",
+         "--config.model.skip_layers=(1,)", "--config.start.poses=input", "--config.mapping.enabled=False",
+         "--config.viz.record=False"],
+        check=False, capture_output=True, text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"), timeout=600)

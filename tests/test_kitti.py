@@ -2,14 +2,10 @@
 the stamps, the ground truth moved from camera 0 into the LiDAR frame, KISS-ICP's poses, one clear line for each kind
 of broken download, and a run through bin/train.py."""
 
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import make_tiny_config
+from conftest import make_tiny_config, train_a_download_briefly
 from kitti_layout import VELODYNE_TO_CAMERA, rigid_scans, write_kitti_download
 
 from neld_jax import metrics
@@ -18,7 +14,6 @@ from neld_jax.data.kitti import camera_to_lidar, corrected_elevations, load_kitt
 from neld_jax.data.poses import read_tum
 from neld_jax.errors import DataError
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -123,14 +118,7 @@ def test_a_download_runs_through_the_command(scans, tmp_path):
                        gt_poses=scans.gt_poses[:20])
     download = write_kitti_download(tmp_path / "download", half)
     out = tmp_path / "run"
-    done = subprocess.run(
-        [sys.executable, str(REPO / "bin" / "train.py"), f"--config={REPO / 'configs' / 'kitti.py'}:cpu",
-         f"--config.data.root={download}", f"--config.output_dir={out}", "--config.data.max_range_m=40",
-         "--config.data.keyframe_interval_s=1", "--config.data.max_rays_per_scan=256", "--config.train.steps=2",
-         "--config.train.batch_rays=32", "--config.model.width=16", "--config.model.depth=2",
-         "--config.model.skip_layers=(1,)", "--config.start.poses=input", "--config.mapping.enabled=False",
-         "--config.viz.record=False"],
-        check=False, capture_output=True, text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"), timeout=600)
+    done = train_a_download_briefly("kitti.py", download, out)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "making the initial poses from the 20 scans with KISS-ICP" in done.stderr
     _, odometry_poses = read_tum(out / "poses_odometry.txt")

@@ -4,14 +4,10 @@ run from scans alone writes the odometry as poses_odometry.txt; the downloads' b
 
 import dataclasses
 import logging
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import make_tiny_config
+from conftest import make_tiny_config, train_a_download_briefly
 
 from neld_jax import metrics, run
 from neld_jax.data import odometry
@@ -25,7 +21,6 @@ from raw_bag_downloads import (
     write_newer_college_download,
 )
 
-REPO = Path(__file__).resolve().parents[1]
 # 40 raw sweeps at 10 Hz, 2.1 m/s round a 10 m loop (0.2 m a sweep), 32 beams x 512 columns, 40 m range
 SWEEPS = {"num_scans": 300, "trajectory_radius_m": 10.0, "max_range_m": 40.0, "gt_map_points": 0}
 NUM_SWEEPS, RATE_HZ = 40, 10.0
@@ -192,14 +187,7 @@ def test_a_fusionportable_download_runs_through_the_command(sweeps, tmp_path):
     root = write_fusionportable_download(tmp_path / "download", "20220216_garden_day", sweeps.timestamps + 1.6e9,
                                          sweeps.scans, sweeps.point_times, sweeps.gt_poses)
     out = tmp_path / "run"
-    done = subprocess.run(
-        [sys.executable, str(REPO / "bin" / "train.py"), f"--config={REPO / 'configs' / 'fusionportable.py'}:cpu",
-         f"--config.data.root={root}", f"--config.output_dir={out}", "--config.data.max_range_m=40",
-         "--config.data.keyframe_interval_s=1", "--config.data.max_rays_per_scan=256", "--config.train.steps=2",
-         "--config.train.batch_rays=32", "--config.model.width=16", "--config.model.depth=2",
-         "--config.model.skip_layers=(1,)", "--config.start.poses=input", "--config.mapping.enabled=False",
-         "--config.viz.record=False"],
-        check=False, capture_output=True, text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"), timeout=600)
+    done = train_a_download_briefly("fusionportable.py", root, out)
     assert done.returncode == 0, done.stderr[-3000:]
     assert "making the initial poses from the 40 scans with KISS-ICP" in done.stderr
     _, odometry_poses = read_tum(out / "poses_odometry.txt")

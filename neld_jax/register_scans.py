@@ -87,11 +87,15 @@ def cloud_with_normals(points: np.ndarray, settings: RegistrationSettings, senso
     return cloud
 
 
-def register_scan(scan: np.ndarray, guess: np.ndarray, target, settings: RegistrationSettings):
-    """One scan [N, 3] (sensor frame) from its guess [4, 4] (sensor -> map) to the target map (map_cloud).
+def register_scan(scan: np.ndarray, guess: np.ndarray, target, settings: RegistrationSettings,
+                  indices: dict | None = None):
+    """One scan [N, 3] (sensor frame) from its guess [4, 4] (sensor -> map) to the target map (map_cloud). indices:
+    the map's nearest-point indices, kept by a caller that registers many scans to it (baseline.multiscale_icp).
 
     Returns (pose [4, 4], residual_m, fitness, flag): the guess and a flag where it is refused."""
-    from neld_jax.baseline import BaselineSettings, multiscale_icp
+    from neld_jax.baseline import BaselineSettings, TargetIndex, multiscale_icp
+
+    indices = {} if indices is None else indices
 
     source = cloud_with_normals(crop_range(scan, settings.min_range_m, settings.max_range_m), settings,
                                 sensor_frame=True)
@@ -99,8 +103,11 @@ def register_scan(scan: np.ndarray, guess: np.ndarray, target, settings: Registr
         return guess, np.nan, np.nan, TOO_FEW_POINTS
     icp = BaselineSettings(voxel_size_m=settings.voxel_size_m, normal_radius_m=settings.normal_radius_m,
                            icp_distances_m=tuple(settings.icp_distances_m), icp_iterations=settings.icp_iterations)
-    pose, _ = multiscale_icp(source, target, guess, icp, oriented=False)
-    fitness, residual = fit_to_map(np.asarray(source.points), pose, target, settings.fit_distance_m)
+    pose, _ = multiscale_icp(source, target, guess, icp, oriented=False, indices=indices)
+    fit = ("fit", settings.fit_distance_m)
+    if fit not in indices:
+        indices[fit] = TargetIndex(target, settings.fit_distance_m)
+    fitness, residual = fit_to_map(np.asarray(source.points), pose, target, settings.fit_distance_m, indices[fit])
     if fitness < settings.min_fitness:
         return guess, residual, fitness, POOR_FITNESS
     jump_m, jump_deg = pose_change(guess, pose)
@@ -109,14 +116,17 @@ def register_scan(scan: np.ndarray, guess: np.ndarray, target, settings: Registr
     return pose, residual, fitness, ""
 
 
-def fit_to_map(points: np.ndarray, pose: np.ndarray, target, distance_m: float) -> tuple[float, float]:
+def fit_to_map(points: np.ndarray, pose: np.ndarray, target, distance_m: float,
+               index=None) -> tuple[float, float]:
     """How a scan's points [N, 3] (sensor frame) under pose [4, 4] lie on the target map (an Open3D cloud with
     normals): (fitness: the fraction with a map point within distance_m, residual [m]: the RMS distance of those to
-    their map point's plane; NaN without one)."""
+    their map point's plane; NaN without one). index: the target's TargetIndex for searches up to distance_m (None:
+    built here)."""
     from neld_jax.baseline import TargetIndex
 
     moved = points @ pose[:3, :3].T + pose[:3, 3]
-    nearest, _ = TargetIndex(target, distance_m).nearest(moved, distance_m)
+    index = TargetIndex(target, distance_m) if index is None else index
+    nearest, _ = index.nearest(moved, distance_m)
     paired = nearest >= 0
     if not paired.any():
         return 0.0, float("nan")
@@ -146,11 +156,12 @@ def register_to_map(scans: list[np.ndarray], guesses: np.ndarray, target, settin
     which = np.ones(num_scans, bool) if which is None else np.asarray(which, bool)
     poses = np.array(guesses, np.float64, copy=True)
     residual, fitness, flags = np.full(num_scans, np.nan), np.full(num_scans, np.nan), [""] * num_scans
+    indices = {}  # the map's search indices, built once for every scan
     for s in tqdm(np.flatnonzero(which), disable=not progress, desc="registering scans", unit="scan"):
         if deadline is not None and time.perf_counter() > deadline:
             flags[s] = OUT_OF_TIME
             continue
-        poses[s], residual[s], fitness[s], flags[s] = register_scan(scans[s], poses[s], target, settings)
+        poses[s], residual[s], fitness[s], flags[s] = register_scan(scans[s], poses[s], target, settings, indices)
     registration = ScanRegistration(poses, residual, fitness, flags, which)
     log_refused(registration, label)
     return registration
@@ -226,8 +237,10 @@ def localize(scans: list[np.ndarray], poses: np.ndarray, target, settings: Regis
     correction = placed @ invert_poses(poses[:1])[0]
     out = np.array(poses, np.float64, copy=True)
     residual, fitness, flags = np.full(num_scans, np.nan), np.full(num_scans, np.nan), [""] * num_scans
+    indices = {}  # the map's search indices, built once for every scan
     for s in tqdm(range(num_scans), disable=not progress, desc="localizing scans", unit="scan"):
-        out[s], residual[s], fitness[s], flags[s] = register_scan(scans[s], correction @ poses[s], target, settings)
+        out[s], residual[s], fitness[s], flags[s] = register_scan(scans[s], correction @ poses[s], target, settings,
+                                                                 indices)
         if not flags[s]:
             correction = out[s] @ invert_poses(poses[s:s + 1])[0]
     registration = ScanRegistration(out, residual, fitness, flags, np.ones(num_scans, bool))

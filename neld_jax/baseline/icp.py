@@ -167,7 +167,8 @@ def point_to_plane_step(points: np.ndarray, target_points: np.ndarray, target_no
 
 
 def multiscale_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, guess: np.ndarray,
-                   settings: BaselineSettings, oriented: bool = True) -> tuple[np.ndarray, IcpResult]:
+                   settings: BaselineSettings, oriented: bool = True,
+                   indices: dict | None = None) -> tuple[np.ndarray, IcpResult]:
     """Point-to-plane ICP (point_to_plane_icp) at each of settings.icp_distances_m in turn, each from the previous
     result: at the distances above settings.normal_check_above_m with its normal check (settings.min_normal_cos), at
     the others pairing as Open3D's registration_icp does. Not registration_icp itself: it sums its steps in an order
@@ -176,14 +177,17 @@ def multiscale_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCl
     COARSE_SOURCE_POINTS points registers every k-th of them only (coarse_source).
 
     oriented: whether target's normals face its sensors like the source's (False for re-estimated map normals).
+    indices: the target's TargetIndex by search kind and reach, kept by a caller that registers many sources to one
+    target so that its index is built once (None: built for this call).
     Returns (transform [4, 4] mapping source into target's frame, the IcpResult of the finest scale)."""
-    transform, result, indices = np.asarray(guess, np.float64), None, {}
+    transform, result = np.asarray(guess, np.float64), None
+    indices = {} if indices is None else indices
     checked = [d for d in settings.icp_distances_m if d > settings.normal_check_above_m]
     coarse = coarse_source(source)
     for distance in settings.icp_distances_m:
         check = distance in checked
         reach = max(checked if check else [d for d in settings.icp_distances_m if d not in checked])
-        key = check if TargetIndex.searches_radius(len(target.points), reach) else "nearest"
+        key = (check if TargetIndex.searches_radius(len(target.points), reach) else "nearest", reach)
         if key not in indices:
             indices[key] = TargetIndex(target, reach)
         scan = source if distance == settings.icp_distances_m[-1] else coarse

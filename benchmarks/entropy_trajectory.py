@@ -94,8 +94,9 @@ def main(argv):
 
     t0 = time.perf_counter()
     measure(0, np.zeros((num_scans, 6)), [])
-    train.fit(config, plan_of, rays, frames, plan.ref_scale, state, progress=False,
-              checkpoint_fn=lambda state, history, seconds: measure(int(state.step), state.params["poses"], history))
+    train.fit(config, plan_of, train.TrainingData(rays, frames, plan.ref_scale), state,
+              checkpoint_fn=lambda state, history, seconds: measure(int(state.step), state.params["poses"], history),
+              settings=train.FitSettings(progress=False))
     print(f"done in {time.perf_counter() - t0:.0f} s", flush=True)
 
 

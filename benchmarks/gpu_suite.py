@@ -266,8 +266,8 @@ class Suite:
 
         plan_of = functools.partial(demo_trainer, config, demo)
         state = train.init_state(config, plan_of(), demo.num_scans, 1)
-        result = train.fit(config, plan_of, demo.rays, demo.frames, demo.scale, state, checkpoint_fn=probe,
-                           progress=False)
+        result = train.fit(config, plan_of, train.TrainingData(demo.rays, demo.frames, demo.scale), state,
+                           checkpoint_fn=probe, settings=train.FitSettings(progress=False))
         initial = ate_m(np.zeros((demo.num_scans, 6), np.float32), demo.start_poses, demo.gt_poses, demo.scale)
         final = probes[-1]
         return {"budget": budget, "matmul_dtype": matmul_dtype, "steps": int(result.state.step),
@@ -315,8 +315,8 @@ class Suite:
 
             t = time.perf_counter()
             try:
-                train.fit(config, plan_of, demo.rays, demo.frames, demo.scale, state, checkpoint_fn=mark,
-                          progress=False)
+                train.fit(config, plan_of, train.TrainingData(demo.rays, demo.frames, demo.scale), state,
+                          checkpoint_fn=mark, settings=train.FitSettings(progress=False))
             except _Enough:
                 pass
             if len(marks) < 2:

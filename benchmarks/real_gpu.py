@@ -180,8 +180,8 @@ def train_prepared(path: str, out_dir: str, max_seconds: float) -> dict:
     keyframes = prepared_keyframes(d)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as scratch:  # its checkpoints
-        refined = refine.refine_keyframes(config, keyframes, d["T_start"], PoseSteps(**d["pose_steps"]), scratch,
-                                          outputs.config_hash(config), max_seconds, progress=False)
+        context = refine.TrainingContext(scratch, outputs.config_hash(config), max_seconds, progress=False)
+        refined = refine.refine_keyframes(config, keyframes, d["T_start"], PoseSteps(**d["pose_steps"]), context)
     wall_s = time.perf_counter() - t0
     result = refined.result
     figures = {"name": d["name"], "device": str(jax.devices()[0]), "jax": jax.__version__,

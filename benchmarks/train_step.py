@@ -490,8 +490,8 @@ def timed_fit(fit_config: ml_collections.ConfigDict, plan_of: Callable, runner: 
 
     state = train.init_state(fit_config, plan_of(fit_steps), len(runner.cube.start_poses), 1)
     t0 = time.perf_counter()
-    result = train.fit(fit_config, plan_of, runner.rays, runner.frames, SYNTHETIC_SCALE, state,
-                       checkpoint_fn=mark, progress=False, on_log=on_log)
+    result = train.fit(fit_config, plan_of, train.TrainingData(runner.rays, runner.frames, SYNTHETIC_SCALE), state,
+                       checkpoint_fn=mark, settings=train.FitSettings(progress=False, on_log=on_log))
     (first_step, first_wall, first_cpu), (last_step, last_wall, last_cpu) = marks[0], marks[-1]
     return {"steps_per_s": (last_step - first_step) / (last_wall - first_wall),
             "cpu_ms_per_step": 1e3 * (last_cpu - first_cpu) / (last_step - first_step),

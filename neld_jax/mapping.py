@@ -75,6 +75,71 @@ def out_of_time(started: float, last_started: float, max_seconds: float) -> bool
     return max_seconds > 0 and (now - started) + (now - last_started) > max_seconds
 
 
+class CubeToRender(NamedTuple):
+    """One real cube of a plan, as the map renders it: slot_of [K] each keyframe's slot in the cube (-1: not a
+    member), params its field's parameters, norm its normalisation, poses [W, 4, 4] its keyframes' refined poses in
+    its frame (float32)."""
+
+    slot_of: np.ndarray
+    params: object
+    norm: Normalization
+    poses: jax.Array
+
+
+def cubes_to_render(refined) -> list[CubeToRender]:
+    """The real cubes (weight > 0) of refined.plan with their fields and refined poses (neld_jax.refine.Refined)."""
+    plan, fields = refined.plan, refined.result.state.params["fields"]
+    cubes = []
+    for m in np.flatnonzero(plan.weight > 0):
+        slot_of = np.full(len(refined.poses), -1)
+        slot_of[plan.members[m]] = np.arange(len(plan.members[m]))
+        norm_m = plan.norms[m]
+        cubes.append(CubeToRender(slot_of, jax.tree.map(lambda x, m=m: x[m], fields), norm_m,
+                                  jnp.asarray(norm_m.poses_to_normalized(refined.poses_in_field[plan.members[m]]),
+                                              jnp.float32)))
+    return cubes
+
+
+def render_parts(order: np.ndarray, max_seconds: float, num_cubes: int) -> list[np.ndarray]:
+    """The parts the rays of `order` are rendered in, the clock read between them: all at once without a limit;
+    under one each batch with one cube, RENDER_PARTS parts with several (each part costs every cube a batch)."""
+    if max_seconds <= 0:
+        return [order]
+    if num_cubes == 1:
+        return [order[i:i + RAYS_PER_BATCH] for i in range(0, len(order), RAYS_PER_BATCH)]
+    return np.array_split(order, RENDER_PARTS)
+
+
+class _MapSoFar(NamedTuple):
+    """Per ray [R]: the centrality of the point kept so far (inf: none), the point [R, 3] in the world before the
+    anchor, its range in metres and its opacity (NaN: not rendered)."""
+
+    centrality: np.ndarray
+    points_w: np.ndarray
+    ranges_m: np.ndarray
+    opacity: np.ndarray
+
+
+def _render_batch(cube: CubeToRender, field: DensityField, sampler_m: SamplerSettings, alpha, rays: RaySet,
+                  idx: np.ndarray, so_far: _MapSoFar) -> None:
+    """Render rays idx [n <= RAYS_PER_BATCH] (padded to a batch: one compile) in `cube` and keep, in so_far, the
+    points more central in it than those kept before."""
+    pad = RAYS_PER_BATCH - len(idx)
+    slots = np.pad(cube.slot_of[rays.scan_index[idx]], (0, pad), mode="edge")
+    directions = np.pad(rays.directions[idx], ((0, pad), (0, 0)), mode="edge")
+    p_n, op = render_points(cube.params, field, sampler_m, jnp.float32(cube.norm.scale), cube.poses[slots],
+                            jnp.asarray(directions, jnp.float32), alpha)
+    p_n, op = np.asarray(p_n, np.float64)[: len(idx)], np.asarray(op)[: len(idx)]
+    centrality = np.abs(p_n).max(axis=1)
+    better = centrality < so_far.centrality[idx]
+    kept = idx[better]
+    so_far.centrality[kept] = centrality[better]
+    so_far.points_w[kept] = cube.norm.points_to_world(p_n[better])
+    origins_n = np.asarray(cube.poses)[slots[: len(idx)][better], :3, 3]
+    so_far.ranges_m[kept] = np.linalg.norm(p_n[better] - origins_n, axis=1) / cube.norm.scale
+    so_far.opacity[kept] = op[better]
+
+
 def render_map(refined, rays: RaySet, sampler_m: SamplerSettings, min_opacity: float, max_seconds: float = 0.0,
                seed: int = 0, progress: bool = False) -> MapRender:
     """Render `rays` (ranges in metres, scan_index: keyframes) with the fields and poses of `refined`
@@ -85,55 +150,27 @@ def render_map(refined, rays: RaySet, sampler_m: SamplerSettings, min_opacity: f
     started that would end past the limit if it took as long as the one before; the rays left out get NaN."""
     from tqdm.auto import tqdm
 
-    plan, fields, field = refined.plan, refined.result.state.params["fields"], refined.field
     scan_index = np.asarray(rays.scan_index)
     r = len(scan_index)
-    best = np.full(r, np.inf)
-    points_w, ranges_m, opacity = np.zeros((r, 3)), np.full(r, np.nan), np.full(r, np.nan)
-    cubes = []  # per real cube: each keyframe's slot in it (-1: not a member), its field, frame and poses in it
-    for m in np.flatnonzero(plan.weight > 0):
-        slot_of = np.full(len(refined.poses), -1)
-        slot_of[plan.members[m]] = np.arange(len(plan.members[m]))
-        norm_m = plan.norms[m]
-        cubes.append((slot_of, jax.tree.map(lambda x, m=m: x[m], fields), norm_m,
-                      jnp.asarray(norm_m.poses_to_normalized(refined.poses_in_field[plan.members[m]]), jnp.float32)))
+    so_far = _MapSoFar(np.full(r, np.inf), np.zeros((r, 3)), np.full(r, np.nan), np.full(r, np.nan))
+    cubes = cubes_to_render(refined)
     max_seconds = float(max_seconds)
-    order = render_order(r, max_seconds, seed)
-    if max_seconds <= 0:
-        parts = [order]
-    elif len(cubes) == 1:  # one cube: every batch a part
-        parts = [order[i:i + RAYS_PER_BATCH] for i in range(0, r, RAYS_PER_BATCH)]
-    else:  # several: RENDER_PARTS parts, each rendered by every cube
-        parts = np.array_split(order, RENDER_PARTS)
     alpha = jnp.float32(refined.alpha)
     t0 = time.perf_counter()
     with tqdm(total=r * len(cubes), disable=not progress, desc="rendered map", unit="ray") as bar:
-        for part in parts:
+        for part in render_parts(render_order(r, max_seconds, seed), max_seconds, len(cubes)):
             t_part = time.perf_counter()
-            for slot_of, fields_m, norm_m, T_n in cubes:
-                sel = part[slot_of[scan_index[part]] >= 0]
+            for cube in cubes:
+                sel = part[cube.slot_of[scan_index[part]] >= 0]
                 for start in range(0, len(sel), RAYS_PER_BATCH):
                     idx = sel[start:start + RAYS_PER_BATCH]
-                    pad = RAYS_PER_BATCH - len(idx)
-                    slots = np.pad(slot_of[scan_index[idx]], (0, pad), mode="edge")
-                    directions = np.pad(rays.directions[idx], ((0, pad), (0, 0)), mode="edge")
-                    p_n, op = render_points(fields_m, field, sampler_m, jnp.float32(norm_m.scale), T_n[slots],
-                                            jnp.asarray(directions, jnp.float32), alpha)
-                    p_n, op = np.asarray(p_n, np.float64)[: len(idx)], np.asarray(op)[: len(idx)]
-                    centrality = np.abs(p_n).max(axis=1)
-                    better = centrality < best[idx]
-                    kept = idx[better]
-                    best[kept] = centrality[better]
-                    points_w[kept] = norm_m.points_to_world(p_n[better])
-                    origins_n = np.asarray(T_n)[slots[: len(idx)][better], :3, 3]
-                    ranges_m[kept] = np.linalg.norm(p_n[better] - origins_n, axis=1) / norm_m.scale
-                    opacity[kept] = op[better]
+                    _render_batch(cube, refined.field, sampler_m, alpha, rays, idx, so_far)
                     bar.update(len(idx))
             if out_of_time(t0, t_part, max_seconds):
                 break
-    hit = opacity >= float(min_opacity)  # NaN (not rendered) is not a hit
-    points = points_w[hit] @ refined.anchor[:3, :3].T + refined.anchor[:3, 3]
-    render = MapRender(rays, points, ranges_m, opacity)
+    hit = so_far.opacity >= float(min_opacity)  # NaN (not rendered) is not a hit
+    points = so_far.points_w[hit] @ refined.anchor[:3, :3].T + refined.anchor[:3, 3]
+    render = MapRender(rays, points, so_far.ranges_m, so_far.opacity)
     logger.info("rendered map: %d of %d rendered rays end on a surface%s", len(points), render.num_rendered,
                 "" if len(cubes) == 1 else f" (stitched from {len(cubes)} submaps)")
     if render.num_rendered < r:

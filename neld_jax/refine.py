@@ -48,13 +48,24 @@ class Refined:
         return float(self.result.schedules.alpha(int(self.result.state.step)))
 
 
+@dataclasses.dataclass(frozen=True)
+class TrainingContext:
+    """Where and how a run's training runs, besides what it trains: out_dir, whose checkpoints/ it resumes from and
+    writes (a checkpoint of another config_hash, other keyframes or another plan is an error); max_seconds, its
+    wall-clock limit (0: none); progress, a progress bar; on_log(entry, poses [K, 4, 4]), a viewer's hook that sees
+    each history entry with the keyframes' poses of that step, anchored as the outputs are."""
+
+    out_dir: str
+    config_hash: str
+    max_seconds: float = 0.0
+    progress: bool = True
+    on_log: Callable[[dict, np.ndarray], None] | None = None
+
+
 def refine_keyframes(config: ml_collections.ConfigDict, keyframes, start_poses: np.ndarray,
-                     pose_steps: train.PoseSteps, out_dir: str, config_hash: str, max_seconds: float = 0.0,
-                     progress: bool = True, on_log: Callable[[dict, np.ndarray], None] | None = None) -> Refined:
-    """Train from the keyframes' start poses [K, 4, 4] (world) with `pose_steps`; resumes from out_dir/checkpoints
-    (a checkpoint of another config hash, other keyframes or another plan is an error). max_seconds: training's
-    wall-clock limit (0: none). on_log(entry, poses [K, 4, 4]) sees each history entry with the keyframes' poses
-    of that step, anchored as the outputs are (a viewer's hook)."""
+                     pose_steps: train.PoseSteps, context: TrainingContext) -> Refined:
+    """Train from the keyframes' start poses [K, 4, 4] (world) with `pose_steps`, resuming from and checkpointing to
+    context.out_dir/checkpoints, within context.max_seconds (`TrainingContext`)."""
     num_scans = keyframes.num_scans
     plan = submaps.plan_from_config(dataclasses.replace(keyframes, poses=start_poses), config,
                                     num_devices=len(jax.devices()))
@@ -71,14 +82,14 @@ def refine_keyframes(config: ml_collections.ConfigDict, keyframes, start_poses: 
                 rays_m.num_rays, first.batch_rays * plan.num_submaps, first.field.width, float(field_lr(0)),
                 float(field_lr(first.schedules.total_steps)), mesh.size, jax.devices()[0].platform)
 
-    metadata = {"config_hash": config_hash, "num_scans": num_scans, "plan": plan.to_dict(),
+    metadata = {"config_hash": context.config_hash, "num_scans": num_scans, "plan": plan.to_dict(),
                 "pose_steps": pose_steps.to_dict()}
-    result = fit_resuming(os.path.join(out_dir, "checkpoints"), metadata,
+    on_log = None if context.on_log is None else posed(context.on_log, start_poses, plan.ref_scale)
+    data = train.TrainingData(rays, frames, plan.ref_scale)
+    settings = train.FitSettings(context.max_seconds, context.progress, on_log)
+    result = fit_resuming(os.path.join(context.out_dir, "checkpoints"), metadata,
                           lambda: train.init_state(config, first, num_scans, plan.num_submaps),
-                          functools.partial(train.fit, config, plan_of, rays, frames, plan.ref_scale,
-                                            progress=progress, max_seconds=max_seconds,
-                                            on_log=None if on_log is None else posed(on_log, start_poses,
-                                                                                     plan.ref_scale)))
+                          functools.partial(train.fit, config, plan_of, data, settings=settings))
     poses_in_field = world_poses(start_poses, np.asarray(result.state.params["poses"]), plan.ref_scale)
     poses, anchor = anchored_on_first(poses_in_field, start_poses[0])
     return Refined(result, plan, first.field, poses, poses_in_field, anchor,

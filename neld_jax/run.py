@@ -54,8 +54,8 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     viewer.log_start(loaded, keyframes, begin)
 
     # 3. Train the field(s) and the poses (neld_jax.refine: one cube, or submaps for a sequence larger than one).
-    refined = refine.refine_keyframes(config, keyframes, begin.poses, begin.pose_steps, out_dir, config_hash,
-                                      budget.training_seconds(), progress, viewer.training_hook())
+    context = refine.TrainingContext(out_dir, config_hash, budget.training_seconds(), progress, viewer.training_hook())
+    refined = refine.refine_keyframes(config, keyframes, begin.poses, begin.pose_steps, context)
 
     # 4. Render the map (neld_jax.mapping).
     render = None

@@ -509,6 +509,27 @@ class FitResult(NamedTuple):
     schedules: Schedules | None = None  # the plan that ran: train.steps, or fewer when compressed to the time
 
 
+@dataclasses.dataclass(frozen=True)
+class TrainingData:
+    """What every step draws its batch from: the M cubes' rays and frames (`device_data`, on the device mesh) and
+    ref_scale, the reference cube's units per metre (the pose rows' rho is in those units: the logs give metres)."""
+
+    rays: Rays
+    frames: Frames
+    ref_scale: float
+
+
+@dataclasses.dataclass(frozen=True)
+class FitSettings:
+    """How `fit` runs, besides what it trains: max_seconds > 0 the wall-clock limit of the call (0: none); progress:
+    a progress bar; on_log(entry, state) sees each history entry as it is made (a viewer's hook: host code between
+    device calls)."""
+
+    max_seconds: float = 0.0
+    progress: bool = True
+    on_log: Callable[[dict, TrainState], None] | None = None
+
+
 def pose_correction_stats(poses: np.ndarray, ref_scale: float) -> tuple[float, float]:
     """Mean translation [m] and rotation [deg] of the corrections, poses [S, 6] (rho in units of ref_scale per
     metre)."""
@@ -545,96 +566,122 @@ def steps_that_fit(done: int, total: int, seconds_left: float, seconds_per_step:
     return int(min(total, max(fitting, min_total)))
 
 
-def fit(config: ml_collections.ConfigDict, plan_of: Callable[[int], Trainer], rays: Rays, frames: Frames,
-        ref_scale: float, state: TrainState, checkpoint_fn: Callable[[TrainState, list, float], None] | None = None,
-        progress: bool = True, history: list | None = None, elapsed_s: float = 0.0,
-        max_seconds: float = 0.0, on_log: Callable[[dict, TrainState], None] | None = None) -> FitResult:
-    """Train from `state` to the end of the plan: plan_of(total_steps) builds the Trainer of a plan of that many
-    steps (`make_trainer`); the first is train.steps, or the plan a resumed history records.
+def history_entry(metrics: dict, poses: jax.Array, step: int, schedules: Schedules, ref_scale: float,
+                  clock: Callable[[], float]) -> dict:
+    """The history's entry of `step`: the metrics of that step (floats), its plan's total_steps, the corrections'
+    mean translation [m] and rotation [deg] (poses [S, 6]), training's seconds so far (clock(), read once the
+    metrics and poses are on the host: the chunk has run) and the step's learning rates."""
+    entry = {k: float(v) for k, v in jax.device_get(metrics).items()}
+    trans_m, rot_deg = pose_correction_stats(jax.device_get(poses), ref_scale)
+    entry.update(step=step, total_steps=schedules.total_steps, pose_trans_mean_m=trans_m, pose_rot_mean_deg=rot_deg,
+                 elapsed_s=clock(), field_lr=float(schedules.field_lr(step - 1)),
+                 pose_lr_trans=float(schedules.pose_lr_trans(step - 1)),
+                 pose_lr_rot=float(schedules.pose_lr_rot(step - 1)))
+    if not np.isfinite(entry["loss"]):
+        raise FloatingPointError(f"loss is {entry['loss']} at step {step}; lower the learning rates")
+    return entry
+
+
+def compressed_plan(plan_of: Callable[[int], Trainer], chunk_seconds: list, done: int, total: int,
+                    seconds_left: float) -> Trainer | None:
+    """The plan of fewer steps that, `done` steps in, ends within `seconds_left` (`steps_that_fit`, at least a
+    quarter of `total`); None when the remaining steps of the plan of `total` fit. chunk_seconds: the first two
+    chunks' (steps, seconds); the first one's excess over the second's rate is its compile."""
+    (first_steps, first_s), (steps, seconds) = chunk_seconds
+    per_step = seconds / max(steps, 1)
+    # The new plan compiles its chunk again, and the chunks cut at its pose start have other lengths (up to two
+    # more compiles).
+    compile_s = max(first_s - first_steps * per_step, 0.0)
+    fitting = steps_that_fit(done, total, seconds_left - 3 * compile_s, per_step, min_total=max(done + 1, total // 4))
+    if fitting >= total:
+        return None
+    logger.warning("the remaining %d steps would take %.1f min at %.2f s a step, and %.1f min are left (10%% of them "
+                   "and %.0f s for three compiles kept in hand): the plan is compressed to %d steps (max_minutes)",
+                   total - done, (total - done) * per_step / 60.0, per_step, seconds_left / 60.0, 3 * compile_s,
+                   fitting)
+    return plan_of(fitting)
+
+
+def _log_stage(step: int, stage: int, sampler: SamplerSettings, rays_per_step: int) -> None:
+    logger.info("step %d: stage %d, %d coarse + %d fine (+%d guided) samples per ray, %d rays per step", step, stage,
+                sampler.num_coarse, sampler.num_fine, sampler.guided_samples, rays_per_step)
+
+
+def _log_pose_start(config: ml_collections.ConfigDict, schedules: Schedules, step: int) -> None:
+    if step == schedules.pose_start_step and step > 0:
+        logger.info("step %d: frequency %d active, poses start moving", step,
+                    min(int(config.train.pose_start_freq), schedules.pos_freqs))
+
+
+def _time_is_up(seconds: float, max_seconds: float, done: int, total: int) -> bool:
+    """Whether training stops at step `done` of `total`, `seconds` into a limit of max_seconds (0: none); logged."""
+    if max_seconds > 0 and seconds > max_seconds and done != total:
+        logger.warning("stopping at step %d of %d: the %.1f minutes training may take are over (max_minutes)", done,
+                       total, max_seconds / 60.0)
+        return True
+    return False
+
+
+def _progress_postfix(entry: dict) -> dict:
+    """What the progress bar shows of a history entry."""
+    return dict(loss=f"{entry['loss']:.4f}", range_err=f"{entry['range_err_m']:.3f}m", freq=f"{entry['alpha']:.1f}",
+                dpose=f"{100 * entry['pose_trans_mean_m']:.1f}cm/{entry['pose_rot_mean_deg']:.2f}deg")
+
+
+def fit(config: ml_collections.ConfigDict, plan_of: Callable[[int], Trainer], data: TrainingData,
+        state: TrainState, checkpoint_fn: Callable[[TrainState, list, float], None] | None = None,
+        history: list | None = None, elapsed_s: float = 0.0, settings: FitSettings = FitSettings()) -> FitResult:
+    """Train from `state` on `data` to the end of the plan: plan_of(total_steps) builds the Trainer of a plan of that
+    many steps (`make_trainer`); the first is train.steps, or the plan a resumed run's history records.
 
     The steps run in chunks (`chunk_bounds`), one device call each. The history gets the last step of each chunk
-    that ends on a multiple of train.log_every, and the last step (with the learning rates of that step), and
-    on_log(entry, state) sees each such entry as it is made (a viewer's hook: host code between device calls); the
-    progress bar and the clock move at chunk ends; checkpoint_fn(state, history, train_seconds) runs every
-    train.checkpoint_every steps and at the end. A resumed run passes its restored history and elapsed_s.
-    max_seconds > 0: the wall-clock limit of this call; the loop times its second chunk (the first compiles) and,
-    when the remaining steps would overrun it, compresses the plan to the steps that fit (`steps_that_fit`), so that
-    the coarse-to-fine window, the pose start and the decays end within the time instead of being cut off; each
-    history entry records its plan's total_steps."""
+    that ends on a multiple of train.log_every, and the last step (`history_entry`; settings.on_log sees each);
+    checkpoint_fn(state, history, train_seconds) runs every train.checkpoint_every steps and at the end. A resumed
+    run passes its restored history and elapsed_s. settings.max_seconds > 0: timed by its second chunk (the first
+    compiles), a plan that would overrun goes on as the plan of the steps that fit (`compressed_plan`)."""
     from tqdm.auto import tqdm  # an effect at the edge; the step itself is pure
 
-    start = int(state.step)
-    log_every = max(int(config.train.log_every), 1)
-    ckpt_every = int(config.train.checkpoint_every)
+    start, max_seconds = int(state.step), settings.max_seconds
+    log_every, ckpt_every = max(int(config.train.log_every), 1), int(config.train.checkpoint_every)
     history = [h for h in (history or []) if h.get("step", 0) <= start]  # a resumed run's, up to its step
-    trainer = plan_of(int(history[-1]["total_steps"]) if history else int(config.train.steps))
-    schedules = trainer.schedules
-    total = schedules.total_steps
-    rays_per_step = trainer.batch_rays * int(frames.weight.shape[0])
-    stopped_early = False
+    trainer = plan_of(int(history[-1]["total_steps"] if history else config.train.steps))
+    schedules, total, current_stage, stopped_early = trainer.schedules, trainer.schedules.total_steps, None, False
     t0 = time.perf_counter()
 
     def train_seconds() -> float:
         return elapsed_s + time.perf_counter() - t0
 
-    current_stage = None
-    bar = tqdm(total=total, initial=start, disable=not progress, unit="step", dynamic_ncols=True)
+    bar = tqdm(total=total, initial=start, disable=not settings.progress, unit="step", dynamic_ncols=True)
     bounds, chunk_seconds = chunk_bounds(start, total, log_every, ckpt_every, schedules), []
     while bounds:
         begin, done = bounds.pop(0)
-        stage = schedules.stage(begin)
-        if stage != current_stage:
-            current_stage = stage
-            sampler = trainer.sampler(begin)
-            logger.info("step %d: stage %d, %d coarse + %d fine (+%d guided) samples per ray, %d rays per step",
-                        begin, stage, sampler.num_coarse, sampler.num_fine, sampler.guided_samples, rays_per_step)
-        if begin == schedules.pose_start_step and begin > 0:
-            logger.info("step %d: frequency %d active, poses start moving", begin,
-                        min(int(config.train.pose_start_freq), schedules.pos_freqs))
+        if schedules.stage(begin) != current_stage:
+            current_stage, sampler = schedules.stage(begin), trainer.sampler(begin)
+            _log_stage(begin, current_stage, sampler, trainer.batch_rays * int(data.frames.weight.shape[0]))
+        _log_pose_start(config, schedules, begin)
         t_chunk = time.perf_counter()
-        state, metrics = trainer.chunk(state, rays, frames, sampler, num_steps=done - begin)
+        state, metrics = trainer.chunk(state, data.rays, data.frames, sampler, num_steps=done - begin)
         if done % log_every == 0 or done == total:
-            m = {k: float(v) for k, v in jax.device_get(metrics).items()}
-            trans_m, rot_deg = pose_correction_stats(jax.device_get(state.params["poses"]), ref_scale)
-            m.update(step=done, total_steps=total, pose_trans_mean_m=trans_m, pose_rot_mean_deg=rot_deg,
-                     elapsed_s=train_seconds(), field_lr=float(schedules.field_lr(done - 1)),
-                     pose_lr_trans=float(schedules.pose_lr_trans(done - 1)),
-                     pose_lr_rot=float(schedules.pose_lr_rot(done - 1)))
+            m = history_entry(metrics, state.params["poses"], done, schedules, data.ref_scale, train_seconds)
             history.append(m)
-            if not np.isfinite(m["loss"]):
-                raise FloatingPointError(f"loss is {m['loss']} at step {done}; lower the learning rates")
-            if on_log is not None:
-                on_log(m, state)
-            bar.set_postfix(loss=f"{m['loss']:.4f}", range_err=f"{m['range_err_m']:.3f}m", freq=f"{m['alpha']:.1f}",
-                            dpose=f"{100 * trans_m:.1f}cm/{rot_deg:.2f}deg", refresh=False)
+            if settings.on_log is not None:
+                settings.on_log(m, state)
+            bar.set_postfix(**_progress_postfix(m), refresh=False)
         bar.update(done - begin)
-        timing = len(chunk_seconds) < 2  # the first two chunks time the plan (the first one compiles)
-        if timing:  # dispatch is asynchronous: wait for the chunk itself
-            jax.block_until_ready(state)
+        if len(chunk_seconds) < 2:  # the first two chunks time the plan (the first one compiles)
+            jax.block_until_ready(state)  # dispatch is asynchronous: wait for the chunk itself
             chunk_seconds.append((done - begin, time.perf_counter() - t_chunk))
-        if max_seconds > 0 and timing and len(chunk_seconds) == 2 and done < total:
-            (first_steps, first_s), (steps, seconds) = chunk_seconds
-            per_step = seconds / max(steps, 1)
-            # The new plan compiles its chunk again, and the chunks cut at its pose start have other lengths (up
-            # to two more compiles).
-            compile_s = max(first_s - first_steps * per_step, 0.0)
-            left_s = max_seconds - (time.perf_counter() - t0)
-            fitting = steps_that_fit(done, total, left_s - 3 * compile_s, per_step, min_total=max(done + 1, total // 4))
-            if fitting < total:
-                logger.warning("the remaining %d steps would take %.1f min at %.2f s a step, and %.1f min are left "
-                               "(10%% of them and %.0f s for three compiles kept in hand): the plan is compressed "
-                               "to %d steps (max_minutes)", total - done, (total - done) * per_step / 60.0,
-                               per_step, left_s / 60.0, 3 * compile_s, fitting)
-                trainer = plan_of(fitting)
-                schedules, total, current_stage = trainer.schedules, fitting, None
-                bounds = chunk_bounds(done, total, log_every, ckpt_every, schedules)
-                bar.total = total
+            if max_seconds > 0 and len(chunk_seconds) == 2 and done < total:
+                left_s = max_seconds - (time.perf_counter() - t0)
+                compressed = compressed_plan(plan_of, chunk_seconds, done, total, left_s)
+                if compressed is not None:
+                    trainer, schedules, current_stage = compressed, compressed.schedules, None
+                    total = bar.total = schedules.total_steps
+                    bounds = chunk_bounds(done, total, log_every, ckpt_every, schedules)
         if checkpoint_fn is not None and ckpt_every > 0 and done % ckpt_every == 0 and done != total:
             checkpoint_fn(state, history, train_seconds())
-        if max_seconds > 0 and time.perf_counter() - t0 > max_seconds and done != total:
-            logger.warning("stopping at step %d of %d: the %.1f minutes training may take are over (max_minutes)",
-                           done, total, max_seconds / 60.0)
-            stopped_early = True
+        stopped_early = _time_is_up(time.perf_counter() - t0, max_seconds, done, total)
+        if stopped_early:
             break
     bar.close()
     seconds = train_seconds()

@@ -131,8 +131,8 @@ def test_step_runner_starts_from_the_trainers_state():
     fit_config.train.steps = 0  # fit returns the state it starts from
     plan_of = functools.partial(bench.trainer_for, fit_config, runner.cube)
     start = train.init_state(fit_config, plan_of(0), 2, 1)
-    fitted = train.fit(fit_config, plan_of, runner.rays, runner.frames, bench.SYNTHETIC_SCALE, start,
-                       progress=False).state
+    data = train.TrainingData(runner.rays, runner.frames, bench.SYNTHETIC_SCALE)
+    fitted = train.fit(fit_config, plan_of, data, start, settings=train.FitSettings(progress=False)).state
     for expected in (fitted.params, train.init_state(runner.config, runner.trainer, 2, 1).params):
         assert jax.tree.structure(runner.state.params) == jax.tree.structure(expected)
         for a, b in zip(jax.tree.leaves(runner.state.params), jax.tree.leaves(expected)):

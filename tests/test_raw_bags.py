@@ -134,13 +134,14 @@ def test_newer_college_download_in_parts_loads_in_time_order(tmp_path):
 def test_import_without_odometry_writes_raw_sweeps_that_the_generic_loader_reads_with_times(tmp_path):
     from neld_jax.data.generic import load_generic
     from neld_jax.data.poses import write_tum
-    from neld_jax.data.rosbag_import import import_bag
+    from neld_jax.data.rosbag_import import ImportSettings, import_bag
 
     n = 3
     stamps, scans, times = _sweeps(n)
     scans[0][4] = 0.0
     write_lidar_bag(tmp_path / "raw.bag", TOPIC, "os_sensor", stamps, scans, times, rows=ROWS)
-    result = import_bag(tmp_path / "raw.bag", tmp_path / "out", cloud_topic=TOPIC, progress=False)  # no /Odometry
+    # no /Odometry in the bag
+    result = import_bag(tmp_path / "raw.bag", tmp_path / "out", ImportSettings(cloud_topic=TOPIC), progress=False)
     assert result.odometry_topic == "" and result.scans_written == n and result.point_times_written == n
     assert result.points_skipped == {"non-finite": 0, "zero": 1} and "KISS-ICP" in result.note
     out = tmp_path / "out"

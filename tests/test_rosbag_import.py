@@ -13,7 +13,7 @@ from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
 from neld_jax.data.generic import load_generic
-from neld_jax.data.rosbag_import import cloud_xyz, import_bag
+from neld_jax.data.rosbag_import import ImportSettings, cloud_xyz, import_bag
 from neld_jax.errors import DataError
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -147,7 +147,8 @@ def test_world_frame_clouds_are_named_in_the_note_and_load_with_the_option(tmp_p
                         _cloud(t, scan + pose[:3, 3], frame="camera_init")))
         entries.append(("/Odometry", "nav_msgs/msg/Odometry", t, _odometry(t, pose)))
     write_ros1(tmp_path / "w.bag", entries)
-    result = import_bag(tmp_path / "w.bag", tmp_path / "out", cloud_topic="/cloud_registered", progress=False)
+    result = import_bag(tmp_path / "w.bag", tmp_path / "out", ImportSettings(cloud_topic="/cloud_registered"),
+                        progress=False)
     assert "registered already" in result.note and "scans_in_world_frame=True" in result.note
     config = ml_collections.ConfigDict({"format": "generic", "root": str(tmp_path / "out")})
     with pytest.raises(DataError, match="registered already"):
@@ -165,10 +166,10 @@ def test_unmatched_cloud_is_named_never_given_a_neighbours_pose(tmp_path):
     with pytest.raises(DataError, match=r"gap.bag: 1 of 5 clouds on /cloud_registered_body have no /Odometry stamp "
                                         r"within 0.01 s: message 2 \(t=1650000000.200000\)"):
         import_bag(tmp_path / "gap.bag", tmp_path / "out", progress=False)
-    result = import_bag(tmp_path / "gap.bag", tmp_path / "out2", drop_unmatched=True, progress=False)
+    result = import_bag(tmp_path / "gap.bag", tmp_path / "out2", ImportSettings(drop_unmatched=True), progress=False)
     assert result.dropped_unmatched == 1 and result.scans_written == 4
     with pytest.raises(DataError, match=r"out2/scans: already holds scans; import into an empty folder"):
-        import_bag(tmp_path / "gap.bag", tmp_path / "out2", drop_unmatched=True, progress=False)
+        import_bag(tmp_path / "gap.bag", tmp_path / "out2", ImportSettings(drop_unmatched=True), progress=False)
     seq = load_generic(tmp_path / "out2")
     np.testing.assert_allclose(seq.poses, poses[[0, 1, 3, 4]], atol=1e-9)
     np.testing.assert_allclose(seq.scans[2], scans[3], atol=1e-5)
@@ -178,9 +179,9 @@ def test_missing_topic_lists_the_topics_of_the_bag(tmp_path):
     write_ros1(tmp_path / "b.bag", fastlio_entries(_scans(2), _poses(2), T0 + np.arange(2) * 0.1))
     with pytest.raises(DataError, match=r"no odometry topic '/odom' in the bag; it has: /Odometry "
                                         r"\(nav_msgs/msg/Odometry\), /cloud_registered_body"):
-        import_bag(tmp_path / "b.bag", tmp_path / "out", odometry_topic="/odom", progress=False)
+        import_bag(tmp_path / "b.bag", tmp_path / "out", ImportSettings(odometry_topic="/odom"), progress=False)
     with pytest.raises(DataError, match=r"topic '/Odometry' carries nav_msgs/msg/Odometry, not a cloud"):
-        import_bag(tmp_path / "b.bag", tmp_path / "out", cloud_topic="/Odometry", progress=False)
+        import_bag(tmp_path / "b.bag", tmp_path / "out", ImportSettings(cloud_topic="/Odometry"), progress=False)
     (tmp_path / "junk.bag").write_text("not a bag")
     with pytest.raises(DataError, match=r"junk.bag: cannot read the bag"):
         import_bag(tmp_path / "junk.bag", tmp_path / "out", progress=False)
@@ -201,9 +202,10 @@ def test_ros2_bag_with_pose_stamped_stride_and_time_offset(tmp_path):
     # (named), and the others would pair with the previous sweep's end pose -- which no matcher can tell from
     # the right one at 10 Hz, hence the stated conventions and time_offset_s.
     with pytest.raises(DataError, match=r"1 of 6 clouds on /points have no /pose stamp within 0.01 s: message 0 "):
-        import_bag(tmp_path / "ros2bag", tmp_path / "x", cloud_topic="/points", odometry_topic="/pose", progress=False)
-    result = import_bag(tmp_path / "ros2bag", tmp_path / "out", cloud_topic="/points", odometry_topic="/pose",
-                        time_offset_s=0.1, stride=2, progress=False)
+        import_bag(tmp_path / "ros2bag", tmp_path / "x", ImportSettings(cloud_topic="/points", odometry_topic="/pose"),
+                   progress=False)
+    settings = ImportSettings(cloud_topic="/points", odometry_topic="/pose", time_offset_s=0.1, stride=2)
+    result = import_bag(tmp_path / "ros2bag", tmp_path / "out", settings, progress=False)
     assert result.scans_written == 3 and result.skipped_by_keyframe_rule == 3 and result.frame == "os_sensor"
     seq = load_generic(tmp_path / "out")
     np.testing.assert_allclose(seq.poses, poses[[0, 2, 4]], atol=1e-9)
@@ -216,7 +218,7 @@ def test_keyframe_distance_rule_at_import(tmp_path):
     poses = np.tile(np.eye(4), (n, 1, 1))
     poses[:, 0, 3] = [0.0, 0.3, 0.6, 1.2, 1.3, 2.5]
     write_ros1(tmp_path / "k.bag", fastlio_entries(_scans(n), poses, T0 + 0.1 * np.arange(n)))
-    result = import_bag(tmp_path / "k.bag", tmp_path / "out", keyframe_distance_m=0.5, progress=False)
+    result = import_bag(tmp_path / "k.bag", tmp_path / "out", ImportSettings(keyframe_distance_m=0.5), progress=False)
     seq = load_generic(tmp_path / "out")
     np.testing.assert_allclose(seq.poses[:, 0, 3], [0.0, 0.6, 1.2, 2.5])
     assert result.skipped_by_keyframe_rule == 2

@@ -28,12 +28,13 @@ def _trainer(config, plan, T, pose_steps=None, steps=None):
                               steps)
 
 
-def _fit(config, rays, frames, plan, T, pose_steps=None, **kwargs):
+def _fit(config, rays, frames, plan, T, pose_steps=None, max_seconds=0.0, **kwargs):
     plan_of = functools.partial(train.make_trainer, config, len(T), plan.num_submaps,
                                 pose_steps or train.PoseSteps.from_config(config), T)
     state = kwargs.pop("state", None) or train.init_state(config, plan_of(int(config.train.steps)), len(T),
                                                           plan.num_submaps)
-    return train.fit(config, plan_of, rays, frames, plan.ref_scale, state, progress=False, **kwargs)
+    return train.fit(config, plan_of, train.TrainingData(rays, frames, plan.ref_scale), state,
+                     settings=train.FitSettings(max_seconds, progress=False), **kwargs)
 
 
 def _assert_trees_equal(a, b):

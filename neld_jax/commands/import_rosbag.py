@@ -39,9 +39,10 @@ ANGLE = flags.DEFINE_float("keyframe_angle_deg", 0.0, "... or after turning this
 
 
 def import_bag() -> int:
-    result = ri.import_bag(BAG.value, OUT.value, cloud_topic=CLOUD.value, odometry_topic=ODOM.value,
-                           tolerance_s=TOL.value, time_offset_s=OFFSET.value, drop_unmatched=DROP.value,
-                           stride=STRIDE.value, keyframe_distance_m=DIST.value, keyframe_angle_deg=ANGLE.value)
+    settings = ri.ImportSettings(cloud_topic=CLOUD.value, odometry_topic=ODOM.value, tolerance_s=TOL.value,
+                                 time_offset_s=OFFSET.value, drop_unmatched=DROP.value, stride=STRIDE.value,
+                                 keyframe_distance_m=DIST.value, keyframe_angle_deg=ANGLE.value)
+    result = ri.import_bag(BAG.value, OUT.value, settings)
     if not result.odometry_topic:
         print(f"wrote {result.scans_written} raw sweeps of {result.clouds_read} clouds to {OUT.value} "
               f"({result.skipped_by_keyframe_rule} skipped by --stride), no poses")

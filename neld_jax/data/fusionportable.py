@@ -1,6 +1,30 @@
 """FusionPortable (fusionportable.github.io): a sequence as the dataset's devkit exports a FAST-LIO2 run, or its bag
 as downloaded (raw Ouster sweeps, no poses), with the download's ground truth; or scans named by timestamp beside a
-pose file (load_fusionportable)."""
+pose file (load_fusionportable).
+
+ROOT is the devkit's sequence folder (<dataset_path>/<sequence>, e.g. .../sensor_data/handheld/20220216_canteen_day);
+its export, as the devkit writes it:
+
+    ROOT/algorithm_result/ouster00_undistort/points/data/000000.pcd ...   FAST-LIO2's /cloud_registered_body,
+                                                                           IMU (body_imu) frame
+    ROOT/algorithm_result/ouster00_undistort/points/timestamps.txt         one stamp per cloud (sec.nsec),
+                                                                           header stamps: END of the scan
+    ROOT/algorithm_result/odometry/odometry.txt                            FAST-LIO2 /Odometry, TUM, same stamps
+    (or ROOT/raw_data/ouster00/points/... raw Ouster clouds, frame ouster00, with ROOT/odometry.txt)
+
+or, without an export, the download's bag itself (load_fusionportable_bag): ROOT/<sequence>.bag (else the ROOT/*.bag),
+the Ouster's raw sweeps on LIDAR_TOPICS (frame ouster00) with per-point times and no poses (load_sequence makes them);
+
+and the dataset's ground truth, found beside or up to three folders above ROOT (the download's layout,
+fusionportable.github.io/dataset/fusionportable, "Data Organization"):
+
+    groundtruth/traj/<sequence>.txt                  TUM, <sequence> = ROOT's folder name
+    groundtruth/map/<sequence>/merged_scan.pcd       TLS map (1 cm), in the ground truth's world frame
+
+Also read: ROOT/scans/<timestamp>.pcd with ROOT/fastlio2_poses.txt (or poses.txt, odometry.txt) and
+ROOT/gt_poses.txt (or traj/gt_poses.txt, ground_truth.txt, traj/ground_truth.txt), ground truth in the scan frame
+unless gt_from_scan says otherwise.
+"""
 
 from __future__ import annotations
 
@@ -42,34 +66,13 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
                         gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
                         gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
                         gt_time_offset_s: float = 0.0) -> Sequence:
-    """Load a FusionPortable sequence. ROOT is the devkit's sequence folder (<dataset_path>/<sequence>, e.g.
-    .../sensor_data/handheld/20220216_canteen_day); its export, as the devkit writes it:
-
-        ROOT/algorithm_result/ouster00_undistort/points/data/000000.pcd ...   FAST-LIO2's /cloud_registered_body,
-                                                                               IMU (body_imu) frame
-        ROOT/algorithm_result/ouster00_undistort/points/timestamps.txt         one stamp per cloud (sec.nsec),
-                                                                               header stamps: END of the scan
-        ROOT/algorithm_result/odometry/odometry.txt                            FAST-LIO2 /Odometry, TUM, same stamps
-        (or ROOT/raw_data/ouster00/points/... raw Ouster clouds, frame ouster00, with ROOT/odometry.txt)
-
-    or, without an export, the download's bag itself (load_fusionportable_bag): ROOT/<sequence>.bag (else the
-    ROOT/*.bag), the Ouster's raw sweeps on LIDAR_TOPICS (frame ouster00) with per-point times and no poses
-    (load_sequence makes them);
-
-    and the dataset's ground truth, found beside or up to three folders above ROOT (the download's layout,
-    fusionportable.github.io/dataset/fusionportable, "Data Organization"):
-
-        groundtruth/traj/<sequence>.txt                  TUM, <sequence> = ROOT's folder name
-        groundtruth/map/<sequence>/merged_scan.pcd       TLS map (1 cm), in the ground truth's world frame
+    """Load a FusionPortable sequence from ROOT in any of the layouts of the module docstring.
 
     gt_poses_file / gt_map_file (config data.gt_poses_path / gt_map_path) override the search. Ground-truth poses
     are moved into the scans' frame by gt_from_scan (T_G_S [4, 4]; None: the published extrinsic for the scan
-    frame, ground_truth.PUBLISHED_GT_FROM_SCAN; scan_frame overrides the frame the folder implies).
-
-    Also read: ROOT/scans/<timestamp>.pcd with ROOT/fastlio2_poses.txt (or poses.txt, odometry.txt) and
-    ROOT/gt_poses.txt (or traj/gt_poses.txt, ground_truth.txt, traj/ground_truth.txt), ground truth in the scan
-    frame unless gt_from_scan says otherwise. Odometry and ground truth are matched to the scans by nearest
-    stamp within `tol` seconds; a scan without one is a DataError naming it."""
+    frame, ground_truth.PUBLISHED_GT_FROM_SCAN; scan_frame overrides the frame the folder implies). Odometry and
+    ground truth are matched to the scans by nearest stamp within `tol` seconds; a scan without one is a DataError
+    naming it."""
     root = check_root(root)
     if (root / "scans").is_dir():
         scan_folder = root / "scans"
@@ -89,16 +92,10 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
         raise DataError(f"{root}: no FusionPortable scans (looked for scans/, the devkit's {looked} and the "
                         f"download's {root.name}.bag or any *.bag)")
     points_folder, frame = found
-    files = sorted_by_name(list_scans(points_folder / "data"))
-    scan_times = read_times(points_folder / "timestamps.txt")
-    if len(scan_times) != len(files):
-        raise DataError(f"{points_folder / 'timestamps.txt'} has {len(scan_times)} stamps but {points_folder / 'data'} "
-                        f"has {len(files)} scans (the devkit writes one stamp per cloud, in order)")
+    files, scan_times = _devkit_scans(points_folder)
     if gt_from_scan is None:
         gt_from_scan = ground_truth.published_offset("fusionportable", scan_frame or frame)
-    name = root.name
-    gt_poses_file = gt_poses_file or ground_truth.first_upwards(root, f"groundtruth/traj/{name}.txt")
-    gt_map_file = gt_map_file or ground_truth.first_upwards(root, f"groundtruth/map/{name}/merged_scan.pcd")
+    gt_poses_file, gt_map_file = _download_ground_truth(root, gt_poses_file, gt_map_file)
     return timestamped_sequence(root, files, scan_times, DEVKIT_ODOMETRY, (), tol, gt_poses_file, gt_map_file,
                                 gt_from_scan, gt_time_offset_s)
 
@@ -115,10 +112,28 @@ def load_fusionportable_bag(root: Path, bags: list[Path], tol: float = DEFAULT_T
     sweeps = raw_bags.read_lidar_bag(bags, topic)
     if gt_from_scan is None:
         gt_from_scan = ground_truth.published_offset("fusionportable", scan_frame or LIDAR_FRAME)
+    gt_poses_file, gt_map_file = _download_ground_truth(root, gt_poses_file, gt_map_file)
+    return raw_bags.sweeps_sequence(root, sweeps, gt_poses_file, gt_from_scan, tol, gt_time_offset_s, gt_map_file)
+
+
+def _devkit_scans(points_folder: Path) -> tuple[list[Path], np.ndarray]:
+    """The devkit's export of one cloud topic: its scans (points_folder/data/, by name) and their stamps [S]
+    (points_folder/timestamps.txt, one per cloud in order); DataError when the counts differ."""
+    files = sorted_by_name(list_scans(points_folder / "data"))
+    scan_times = read_times(points_folder / "timestamps.txt")
+    if len(scan_times) != len(files):
+        raise DataError(f"{points_folder / 'timestamps.txt'} has {len(scan_times)} stamps but {points_folder / 'data'} "
+                        f"has {len(files)} scans (the devkit writes one stamp per cloud, in order)")
+    return files, scan_times
+
+
+def _download_ground_truth(root: Path, gt_poses_file: Path | None, gt_map_file: Path | None) -> tuple:
+    """The ground-truth trajectory and map files of sequence ROOT: those given, else the download's
+    groundtruth/traj/<sequence>.txt and groundtruth/map/<sequence>/merged_scan.pcd in or above ROOT (None: none)."""
     name = root.name
     gt_poses_file = gt_poses_file or ground_truth.first_upwards(root, f"groundtruth/traj/{name}.txt")
     gt_map_file = gt_map_file or ground_truth.first_upwards(root, f"groundtruth/map/{name}/merged_scan.pcd")
-    return raw_bags.sweeps_sequence(root, sweeps, gt_poses_file, gt_from_scan, tol, gt_time_offset_s, gt_map_file)
+    return gt_poses_file, gt_map_file
 
 
 def _timestamps_from_names(files: list[Path], folder: Path, pattern: str) -> np.ndarray:

@@ -53,6 +53,7 @@ import logging
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -239,20 +240,40 @@ def open_bag_reader(paths: list[Path]):
     return reader
 
 
-def import_bag(
-    bag_paths: str | os.PathLike | list,
-    out_dir: str | os.PathLike,
-    cloud_topic: str = DEFAULT_CLOUD_TOPIC,
-    odometry_topic: str = DEFAULT_ODOMETRY_TOPIC,
-    tolerance_s: float = DEFAULT_TOLERANCE_S,
-    time_offset_s: float = 0.0,
-    drop_unmatched: bool = False,
-    stride: int = 1,
-    keyframe_distance_m: float = 0.0,
-    keyframe_angle_deg: float = 0.0,
-    progress: bool = True,
-) -> ImportResult:
-    """Write the clouds of `cloud_topic` with their poses from `odometry_topic` into out_dir (module docstring).
+@dataclass(frozen=True)
+class ImportSettings:
+    """What import_bag reads and keeps (module docstring): the clouds of cloud_topic with the poses of
+    odometry_topic ('' for none: raw sweeps), matched within tolerance_s after adding time_offset_s to each cloud
+    stamp; drop_unmatched drops the clouds without a match instead of failing; every stride-th matched cloud is kept,
+    and only once it moved keyframe_distance_m or turned keyframe_angle_deg since the last kept one (0: off)."""
+
+    cloud_topic: str = DEFAULT_CLOUD_TOPIC
+    odometry_topic: str = DEFAULT_ODOMETRY_TOPIC
+    tolerance_s: float = DEFAULT_TOLERANCE_S
+    time_offset_s: float = 0.0
+    drop_unmatched: bool = False
+    stride: int = 1
+    keyframe_distance_m: float = 0.0
+    keyframe_angle_deg: float = 0.0
+
+    @property
+    def keyframe_rule(self) -> bool:
+        return self.keyframe_distance_m > 0 or self.keyframe_angle_deg > 0
+
+
+class Odometry(NamedTuple):
+    """An odometry topic's poses sorted by header stamp: times [P] seconds, poses [P, 4, 4] (the clouds' frame ->
+    frame, the odometry's world frame)."""
+
+    times: np.ndarray
+    poses: np.ndarray
+    frame: str
+
+
+def import_bag(bag_paths: str | os.PathLike | list, out_dir: str | os.PathLike,
+               settings: ImportSettings = ImportSettings(), progress: bool = True) -> ImportResult:
+    """Write the clouds of settings.cloud_topic with their poses from settings.odometry_topic into out_dir (module
+    docstring).
 
     bag_paths: a ROS1 .bag file, a ROS2 bag folder, or a list of them read as one recording. Raises DataError
     naming the bag for a missing topic (listing the topics the bag has), a topic of the wrong type, a cloud
@@ -260,115 +281,148 @@ def import_bag(
     out_dir already holds scans (a second import would mix two recordings). odometry_topic '' (or the default
     topic absent from the bag): the raw-sweep import, no poses (module docstring); a named odometry topic that
     is missing stays an error."""
-    from tqdm import tqdm
-
     paths = as_bag_paths(bag_paths)
     bag = ", ".join(str(p) for p in paths)
-    if stride < 1:
-        raise DataError(f"stride must be at least 1, got {stride}")
+    if settings.stride < 1:
+        raise DataError(f"stride must be at least 1, got {settings.stride}")
     out = Path(out_dir)
     if (out / "scans").is_dir() and any((out / "scans").iterdir()):
         raise DataError(f"{out / 'scans'}: already holds scans; import into an empty folder")
 
     reader = open_bag_reader(paths)
     try:
-        cloud_conns = topic_connections(reader, cloud_topic, CLOUD_TYPES, bag, "cloud")
-        if not odometry_topic or (odometry_topic == DEFAULT_ODOMETRY_TOPIC
-                                  and not any(c.topic == odometry_topic for c in reader.connections)):
-            if keyframe_distance_m > 0 or keyframe_angle_deg > 0:
-                raise DataError(f"{bag}: no odometry topic, so --keyframe_distance_m / --keyframe_angle_deg have no "
-                                "poses to measure; use --stride, or select keyframes when training")
-            logger.warning("%s: no odometry (%s): importing %s as raw sweeps without poses; training makes the "
-                           "poses from the scans with KISS-ICP", bag,
-                           f"no topic {odometry_topic}" if odometry_topic else "--odometry_topic=''", cloud_topic)
-            result = ImportResult(bag=[str(p) for p in paths], cloud_topic=cloud_topic, odometry_topic="", frame="",
-                                  odometry_frame="", tolerance_s=float(tolerance_s), time_offset_s=float(time_offset_s))
-            return _import_sweeps(reader, cloud_conns, out, result, stride, progress)
-        pose_conns = topic_connections(reader, odometry_topic, POSE_TYPES, bag, "odometry")
-
-        # Pass 1: every odometry pose, sorted by header stamp.
-        stamps, poses, odometry_frame = [], [], ""
-        for conn, _, raw in reader.messages(connections=pose_conns):
-            msg = reader.deserialize(raw, conn.msgtype)
-            stamps.append(stamp_seconds(msg.header))
-            poses.append(pose_matrix(msg, conn.msgtype))
-            odometry_frame = odometry_frame or str(msg.header.frame_id)
-        if not stamps:
-            raise DataError(f"{bag}: odometry topic '{odometry_topic}' has no messages")
-        order = np.argsort(stamps, kind="stable")
-        pose_times, pose_array = np.asarray(stamps)[order], np.asarray(poses)[order]
-
-        result = ImportResult(bag=[str(p) for p in paths], cloud_topic=cloud_topic, odometry_topic=odometry_topic,
-                              frame="", odometry_frame=odometry_frame, tolerance_s=float(tolerance_s),
-                              time_offset_s=float(time_offset_s))
-        # Pass 2: clouds in bag order; each is matched, kept or not, and written at once (memory stays flat).
-        kept_times, kept_poses, unmatched = [], [], []
-        matched_count = 0
-        total = sum(c.msgcount for c in cloud_conns)
-        messages = reader.messages(connections=cloud_conns)
-        for conn, _, raw in tqdm(messages, total=total, desc="clouds", unit="msg", disable=not progress):
-            msg = reader.deserialize(raw, conn.msgtype)
-            index = result.clouds_read
-            result.clouds_read += 1
-            t = stamp_seconds(msg.header) + time_offset_s
-            result.frame = result.frame or str(msg.header.frame_id)
-            match = nearest_within(pose_times, t, tolerance_s)
-            if match is None:
-                unmatched.append((index, t))
-                continue
-            matched_count += 1
-            pose = pose_array[match]
-            if (matched_count - 1) % stride:
-                result.skipped_by_keyframe_rule += 1
-                continue
-            if kept_poses and (keyframe_distance_m > 0 or keyframe_angle_deg > 0) and not moved_enough(
-                    kept_poses[-1], pose, keyframe_distance_m, keyframe_angle_deg):
-                result.skipped_by_keyframe_rule += 1
-                continue
-            try:
-                points = cloud_xyz(msg)
-            except ValueError as exc:
-                raise DataError(f"{bag}: {cloud_topic} message {index} (t={t:.6f}): {exc}") from None
-            points, dropped = drop_invalid_points(points)
-            result.points_skipped["non-finite"] += dropped["non-finite"]
-            result.points_skipped["zero"] += dropped["zero"]
-            if points.shape[0] == 0:
-                logger.warning("%s: %s message %d (t=%.6f) has no valid point; skipped", bag, cloud_topic, index, t)
-                continue
-            write_scan(out / "scans" / f"{len(kept_times):06d}.pcd", points)
-            result.points_written += int(points.shape[0])
-            kept_times.append(t)
-            kept_poses.append(pose)
+        cloud_conns = topic_connections(reader, settings.cloud_topic, CLOUD_TYPES, bag, "cloud")
+        if _as_raw_sweeps(reader, settings, bag):
+            result = ImportResult(bag=[str(p) for p in paths], cloud_topic=settings.cloud_topic, odometry_topic="",
+                                  frame="", odometry_frame="", tolerance_s=float(settings.tolerance_s),
+                                  time_offset_s=float(settings.time_offset_s))
+            return _import_sweeps(reader, cloud_conns, out, result, settings.stride, progress)
+        odometry = read_odometry(reader, settings.odometry_topic, bag)
+        result = ImportResult(bag=[str(p) for p in paths], cloud_topic=settings.cloud_topic,
+                              odometry_topic=settings.odometry_topic, frame="", odometry_frame=odometry.frame,
+                              tolerance_s=float(settings.tolerance_s), time_offset_s=float(settings.time_offset_s))
+        kept_times, kept_poses, unmatched = _import_matched(reader, cloud_conns, out, result, settings, odometry,
+                                                            progress)
     finally:
         reader.close()
 
     if unmatched:
-        listed = ", ".join(f"message {i} (t={t:.6f})" for i, t in unmatched[:_LISTED])
-        more = f", ... ({len(unmatched)} in all)" if len(unmatched) > _LISTED else ""
-        message = (f"{bag}: {len(unmatched)} of {result.clouds_read} clouds on {cloud_topic} have no {odometry_topic} "
-                   f"stamp within {tolerance_s} s: {listed}{more} (odometry covers t={pose_times[0]:.6f} to "
-                   f"t={pose_times[-1]:.6f})")
-        if not drop_unmatched:
-            raise DataError(message + "; pass --drop_unmatched to drop them, or --tolerance_s / --time_offset_s "
-                            "if the stamps follow another convention")
-        logger.warning("%s; dropped them (--drop_unmatched)", message)
-        result.dropped_unmatched = len(unmatched)
+        _drop_unmatched(unmatched, result, settings, odometry, bag)
     if not kept_times:
-        raise DataError(f"{bag}: no cloud on {cloud_topic} was kept ({result.clouds_read} read)")
-
+        raise DataError(f"{bag}: no cloud on {settings.cloud_topic} was kept ({result.clouds_read} read)")
     write_tum(out / "poses.txt", np.asarray(kept_times), np.asarray(kept_poses))
     result.scans_written = len(kept_times)
+    _note_matched(result, settings, bag)
+    return _recorded(out, result)
+
+
+def _as_raw_sweeps(reader, settings: ImportSettings, bag: str) -> bool:
+    """Whether the bag is imported as raw sweeps: no odometry topic named, or the default one absent (logged); a
+    keyframe rule then has no poses to measure (DataError)."""
+    topic = settings.odometry_topic
+    if topic and (topic != DEFAULT_ODOMETRY_TOPIC or any(c.topic == topic for c in reader.connections)):
+        return False
+    if settings.keyframe_rule:
+        raise DataError(f"{bag}: no odometry topic, so --keyframe_distance_m / --keyframe_angle_deg have no "
+                        "poses to measure; use --stride, or select keyframes when training")
+    logger.warning("%s: no odometry (%s): importing %s as raw sweeps without poses; training makes the poses from the "
+                   "scans with KISS-ICP", bag, f"no topic {topic}" if topic else "--odometry_topic=''",
+                   settings.cloud_topic)
+    return True
+
+
+def read_odometry(reader, topic: str, bag: str) -> Odometry:
+    """Every pose of the odometry `topic`, sorted by header stamp; DataError naming the bag when the topic is
+    missing, of another type or empty."""
+    pose_conns = topic_connections(reader, topic, POSE_TYPES, bag, "odometry")
+    stamps, poses, odometry_frame = [], [], ""
+    for conn, _, raw in reader.messages(connections=pose_conns):
+        msg = reader.deserialize(raw, conn.msgtype)
+        stamps.append(stamp_seconds(msg.header))
+        poses.append(pose_matrix(msg, conn.msgtype))
+        odometry_frame = odometry_frame or str(msg.header.frame_id)
+    if not stamps:
+        raise DataError(f"{bag}: odometry topic '{topic}' has no messages")
+    order = np.argsort(stamps, kind="stable")
+    return Odometry(np.asarray(stamps)[order], np.asarray(poses)[order], odometry_frame)
+
+
+def _import_matched(reader, cloud_conns, out: Path, result: ImportResult, settings: ImportSettings,
+                    odometry: Odometry, progress: bool) -> tuple[list, list, list]:
+    """The clouds in bag order, each matched to the odometry, kept or not, and written at once to
+    OUT/scans/NNNNNN.pcd (memory stays flat); result counts what was read, skipped and written. Returns the kept
+    clouds' stamps and poses [4, 4] and the (message index, stamp) of each cloud without a match."""
+    from tqdm import tqdm
+
+    bag = ", ".join(result.bag)
+    kept_times, kept_poses, unmatched = [], [], []
+    matched_count = 0
+    total = sum(c.msgcount for c in cloud_conns)
+    messages = reader.messages(connections=cloud_conns)
+    for conn, _, raw in tqdm(messages, total=total, desc="clouds", unit="msg", disable=not progress):
+        msg = reader.deserialize(raw, conn.msgtype)
+        index = result.clouds_read
+        result.clouds_read += 1
+        t = stamp_seconds(msg.header) + settings.time_offset_s
+        result.frame = result.frame or str(msg.header.frame_id)
+        match = nearest_within(odometry.times, t, settings.tolerance_s)
+        if match is None:
+            unmatched.append((index, t))
+            continue
+        matched_count += 1
+        pose = odometry.poses[match]
+        if (matched_count - 1) % settings.stride or (kept_poses and settings.keyframe_rule and not moved_enough(
+                kept_poses[-1], pose, settings.keyframe_distance_m, settings.keyframe_angle_deg)):
+            result.skipped_by_keyframe_rule += 1
+            continue
+        try:
+            points = cloud_xyz(msg)
+        except ValueError as exc:
+            raise DataError(f"{bag}: {settings.cloud_topic} message {index} (t={t:.6f}): {exc}") from None
+        points, dropped = drop_invalid_points(points)
+        result.points_skipped["non-finite"] += dropped["non-finite"]
+        result.points_skipped["zero"] += dropped["zero"]
+        if points.shape[0] == 0:
+            logger.warning("%s: %s message %d (t=%.6f) has no valid point; skipped", bag, settings.cloud_topic,
+                           index, t)
+            continue
+        write_scan(out / "scans" / f"{len(kept_times):06d}.pcd", points)
+        result.points_written += int(points.shape[0])
+        kept_times.append(t)
+        kept_poses.append(pose)
+    return kept_times, kept_poses, unmatched
+
+
+def _drop_unmatched(unmatched: list, result: ImportResult, settings: ImportSettings, odometry: Odometry,
+                    bag: str) -> None:
+    """The clouds without an odometry stamp within tolerance_s ((message index, stamp) each): a DataError listing
+    them, or with drop_unmatched a warning and their count in result."""
+    listed = ", ".join(f"message {i} (t={t:.6f})" for i, t in unmatched[:_LISTED])
+    more = f", ... ({len(unmatched)} in all)" if len(unmatched) > _LISTED else ""
+    message = (f"{bag}: {len(unmatched)} of {result.clouds_read} clouds on {settings.cloud_topic} have no "
+               f"{settings.odometry_topic} stamp within {settings.tolerance_s} s: {listed}{more} (odometry covers "
+               f"t={odometry.times[0]:.6f} to t={odometry.times[-1]:.6f})")
+    if not settings.drop_unmatched:
+        raise DataError(message + "; pass --drop_unmatched to drop them, or --tolerance_s / --time_offset_s "
+                        "if the stamps follow another convention")
+    logger.warning("%s; dropped them (--drop_unmatched)", message)
+    result.dropped_unmatched = len(unmatched)
+
+
+def _note_matched(result: ImportResult, settings: ImportSettings, bag: str) -> None:
+    """result.note of an import with poses: the frames of scans/ and poses.txt; a warning when the clouds are in
+    the odometry's world frame (registered already, which training refuses unless told)."""
+    offset = settings.time_offset_s
     result.note = (f"scans/ are in frame '{result.frame}' (the clouds' header.frame_id); poses.txt holds the pose of "
-                   f"that frame in '{result.odometry_frame}' from {odometry_topic}, one line per scan, at the scan's "
-                   f"stamp{'' if not time_offset_s else f' + {time_offset_s} s'}")
+                   f"that frame in '{result.odometry_frame}' from {result.odometry_topic}, one line per scan, at the "
+                   f"scan's stamp{'' if not offset else f' + {offset} s'}")
     if result.frame and result.frame == result.odometry_frame:
         # FAST-LIO2's /cloud_registered: the clouds are registered already, which training refuses unless told
         result.note += (f"; the clouds' frame is the odometry's world frame, so the scans are registered already: "
                         f"train with --config.data.scans_in_world_frame=True, or import {DEFAULT_CLOUD_TOPIC}")
         logger.warning("%s: %s is in '%s', the odometry's world frame: the scans are registered already "
                        "(data.scans_in_world_frame=True moves them into the sensor frame for training)",
-                       bag, cloud_topic, result.frame)
-    return _recorded(out, result)
+                       bag, result.cloud_topic, result.frame)
 
 
 def _import_sweeps(reader, cloud_conns, out: Path, result: ImportResult, stride: int, progress: bool) -> ImportResult:

@@ -37,8 +37,8 @@ class Sequence:
                 (synthetic); carried through keyframe selection so messages can name the file
     source_index: [S] int64 index of each scan in the sequence as loaded (set by keyframe selection), or
                 None when these are the loaded scans themselves
-    point_times: S arrays [N_i] float64 (a list, or a LazyScans), each point's time in seconds after its scan's timestamp (raw
-                full-rate scans: the sweep's motion is still in them), or None (the scans are rigid)
+    point_times: S arrays [N_i] float64 (a list, or a LazyScans), each point's time in seconds after its scan's
+                timestamp (raw full-rate scans: the sweep's motion is still in them), or None (the scans are rigid)
     poses_from: "kiss_icp" when load_sequence made the poses from the scans, else "" (the layout's poses)
     """
 

@@ -14,8 +14,9 @@ from where the sensor is at its instant (neld_jax.data.synthetic's per-sweep fun
         --config.output_dir=WORK_DIR/run_<S> --config.max_minutes=M
 
 in a subprocess (from --repo, its code on PYTHONPATH) and polls the resident memory of it and its children every
-POLL_S: the peak of their sum, the wall time, and the times of the stages that the log reports (KISS-ICP, the
-registration of every scan). One JSON object on stdout (and in --out).
+POLL_S: the peak of their sum over the run and over its load (step 1: the sweeps read, KISS-ICP, the keyframes),
+the wall time, and what the log reports (KISS-ICP's seconds, the keyframes). One JSON object on stdout (and in
+--out).
 """
 
 import json
@@ -101,6 +102,22 @@ def stage_times(log: str) -> dict:
     return found
 
 
+def load_peak_gb(samples: list[tuple[float, int]], log: str) -> float | None:
+    """The peak of samples [(time.time(), bytes)] up to the log line that ends the load (step 1: keyframes made,
+    "neld_jax.run: budget ..."), in GB; None when the log has no such line."""
+    import datetime
+
+    match = re.search(r"^(\d\d):(\d\d):(\d\d) INFO neld_jax\.run: budget", log, re.MULTILINE)
+    if match is None or not samples:
+        return None
+    start = datetime.datetime.fromtimestamp(samples[0][0])
+    end = start.replace(hour=int(match.group(1)), minute=int(match.group(2)), second=int(match.group(3)))
+    if end < start - datetime.timedelta(minutes=1):  # the run passed midnight
+        end += datetime.timedelta(days=1)
+    until = end.timestamp() + 1.0
+    return round(max((rss for t, rss in samples if t <= until), default=0) / 1e9, 3)
+
+
 def run_command(root: Path, out_dir: Path, repo: str, max_minutes: float) -> dict:
     """Run the own-data command on root; its peak resident memory (GB, the process tree's sum), wall time and
     stages."""
@@ -110,18 +127,20 @@ def run_command(root: Path, out_dir: Path, repo: str, max_minutes: float) -> dic
                f"--config.output_dir={out_dir}", f"--config.max_minutes={max_minutes}", "--restart"]
     env = dict(os.environ, PYTHONPATH=repo)
     log_path = out_dir.parent / f"{out_dir.name}.log"
-    started, peak = time.perf_counter(), 0
+    started, samples = time.perf_counter(), []
     with open(log_path, "w") as log:
         child = subprocess.Popen(command, cwd=repo, env=env, stdout=log, stderr=subprocess.STDOUT)
         process = psutil.Process(child.pid)
         while child.poll() is None:
-            peak = max(peak, tree_rss(process))
+            samples.append((time.time(), tree_rss(process)))
             time.sleep(POLL_S)
     wall = time.perf_counter() - started
+    peak = max((rss for _, rss in samples), default=0)
     text = log_path.read_text(errors="replace")
     if child.returncode != 0:
         raise RuntimeError(f"{' '.join(command)} failed ({child.returncode}); its log: {log_path}\n{text[-2000:]}")
-    return {"peak_rss_gb": round(peak / 1e9, 3), "wall_s": round(wall, 1), **stage_times(text),
+    return {"peak_rss_gb": round(peak / 1e9, 3), "load_peak_rss_gb": load_peak_gb(samples, text),
+            "wall_s": round(wall, 1), **stage_times(text),
             "command": " ".join(command), "log": str(log_path)}
 
 

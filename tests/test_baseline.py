@@ -18,7 +18,7 @@ import pytest
 from neld_jax import baseline
 from neld_jax.baseline import (BaselineSettings, TargetIndex, candidate_pairs, loop_closed_graph, multiscale_icp,
                               point_to_plane_icp, prepare_clouds, refine_against_map, register_sequence)
-from neld_jax.data.preprocess import preprocess
+from neld_jax.data.preprocess import KeyframeSettings, preprocess
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.synthetic import make_sequence
 from neld_jax.geometry import invert_poses, rotation_angles_deg
@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 def drifted_sequence():
     seq = make_sequence(dict(num_scans=6, num_beams=32, num_columns=512, gt_map_points=0, scene_size_m=40.0,
                              trajectory_radius_m=8.0, max_range_m=30.0, drift_trans_m=0.15, drift_rot_deg=1.0))
-    return preprocess(seq, keyframe_interval_s=0.0, min_range=0.5, max_range=30.0, voxel_size=0.1)
+    return preprocess(seq, KeyframeSettings(keyframe_interval_s=0.0, min_range=0.5, max_range=30.0, voxel_size=0.1))
 
 
 SETTINGS = BaselineSettings(window=2, voxel_size_m=0.2)
@@ -427,7 +427,7 @@ def test_icp_does_not_pair_the_two_faces_of_a_thin_wall():
 def short_courtyard_route():
     seq = make_sequence(dict(route="courtyards", route_length_m=100.0, num_scans=34, num_beams=32, num_columns=512,
                              gt_map_points=0, max_range_m=30.0, drift_trans_m=0.0, drift_rot_deg=0.0))
-    return preprocess(seq, keyframe_interval_s=0.0, min_range=0.5, max_range=30.0, voxel_size=0.1)
+    return preprocess(seq, KeyframeSettings(keyframe_interval_s=0.0, min_range=0.5, max_range=30.0, voxel_size=0.1))
 
 
 def test_global_registration_closes_a_loop_beyond_icps_reach(short_courtyard_route):

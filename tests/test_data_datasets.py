@@ -15,7 +15,7 @@ from neld_jax.data.generic import load_generic
 from neld_jax.data.layout import align_poses
 from neld_jax.data.newer_college import load_newer_college
 from neld_jax.data.poses import write_newer_college_csv, write_tum
-from neld_jax.data.preprocess import preprocess
+from neld_jax.data.preprocess import KeyframeSettings, preprocess
 from neld_jax.data.scans import write_scan
 from neld_jax.data.sequence import Sequence, check_pose_jumps
 from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S, match_by_timestamp
@@ -147,7 +147,7 @@ def test_load_generic_fills_files_and_keeps_them_through_preprocess(tmp_path):
     seq = load_generic(tmp_path)
     assert seq.files == [f"scans/{i:06d}.npy" for i in range(4)]
     assert seq.scan_label(2) == "scans/000002.npy (t=3.000000)"
-    out = preprocess(seq, keyframe_interval_s=3.0, min_range=0.0, max_range=100.0, voxel_size=0.0)
+    out = preprocess(seq, KeyframeSettings(keyframe_interval_s=3.0, min_range=0.0, max_range=100.0, voxel_size=0.0))
     assert out.files == ["scans/000000.npy", "scans/000002.npy"]
 
 

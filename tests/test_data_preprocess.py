@@ -8,7 +8,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neld_jax.data.normalize import Normalization, fit_normalization
-from neld_jax.data.preprocess import crop_range, keyframe_caps, preprocess, select_keyframes, voxel_downsample
+from neld_jax.data.preprocess import (
+    KeyframeSettings,
+    crop_range,
+    keyframe_caps,
+    preprocess,
+    select_keyframes,
+    voxel_downsample,
+)
 from neld_jax.data.rays import build_rays
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
@@ -100,7 +107,8 @@ def test_preprocess_subsets_everything_and_logs(caplog):
     times = np.array([0.0, 1.0, 3.0, 4.0, 6.5])
     seq = make_sequence(timestamps=times)
     with caplog.at_level(logging.INFO, logger="neld_jax.data.preprocess"):
-        out = preprocess(seq, keyframe_interval_s=3.0, min_range=1.0, max_range=25.0, voxel_size=2.0, max_scans=2)
+        out = preprocess(seq, KeyframeSettings(keyframe_interval_s=3.0, min_range=1.0, max_range=25.0, voxel_size=2.0,
+                                               max_scans=2))
     assert out.num_scans == 2
     np.testing.assert_array_equal(out.timestamps, [0.0, 3.0])
     np.testing.assert_array_equal(out.poses, seq.poses[[0, 2]])
@@ -119,7 +127,7 @@ def test_preprocess_scan_left_empty_is_an_error():
     seq = make_sequence(num_scans=2)
     seq.scans[1] = np.full((10, 3), 0.1)  # everything inside the 0.5 m minimum range
     with pytest.raises(DataError, match="test: scan 1 has no points left"):  # synthetic: no file to name
-        preprocess(seq, keyframe_interval_s=0.0)
+        preprocess(seq, KeyframeSettings(keyframe_interval_s=0.0))
 
 
 def test_preprocess_scan_left_empty_names_its_file_and_time_after_keyframes(tmp_path):
@@ -134,7 +142,7 @@ def test_preprocess_scan_left_empty_names_its_file_and_time_after_keyframes(tmp_
     seq = load_generic(tmp_path)
     with pytest.raises(DataError, match=re.escape(f"{tmp_path}: scans/000004.pcd (t=6.000000) has no points left "
                                                   "within 0.5-80.0 m (it had 500 points, ")):
-        preprocess(seq, keyframe_interval_s=3.0)
+        preprocess(seq, KeyframeSettings(keyframe_interval_s=3.0))
 
 
 # ---------------------------------------------------------------------------------------------- normalisation

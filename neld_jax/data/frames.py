@@ -28,6 +28,7 @@ import logging
 import numpy as np
 from scipy.spatial import cKDTree
 
+from neld_jax.data.scan_source import LazyScans, lazy
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
 from neld_jax.geometry import transform_points
@@ -66,9 +67,11 @@ def world_frame_votes(scans: list[np.ndarray], poses: np.ndarray, quantile: floa
     return len(votes), float(np.mean(votes)) if votes else 0.0
 
 
-def to_sensor_frame(scans: list[np.ndarray], poses: np.ndarray) -> list[np.ndarray]:
-    """World-frame scans [[N_i, 3]] moved into their sensors' frames: R_i^T (p - t_i)."""
-    return [transform_points(scan, np.linalg.inv(pose)) for scan, pose in zip(scans, poses)]
+def to_sensor_frame(scans, poses: np.ndarray) -> LazyScans:
+    """World-frame scans [[N_i, 3]] (a list or a LazyScans) moved into their sensors' frames: R_i^T (p - t_i), each
+    when it is used (data.scan_source)."""
+    sensor_from_world = np.linalg.inv(poses)
+    return lazy(scans).map(lambda i, scan: transform_points(scan, sensor_from_world[i]))
 
 
 def in_sensor_frame(seq: Sequence, where: str, scans_in_world_frame: bool = False) -> Sequence:

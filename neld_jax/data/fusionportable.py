@@ -41,6 +41,7 @@ from neld_jax.data.layout import (
     load_options,
     sorted_by_name,
     timestamp_from_name,
+    LoadOptions,
     timestamped_sequence,
 )
 from neld_jax.data.sequence import Sequence
@@ -78,8 +79,9 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
         scan_folder = root / "scans"
         files = sorted_by_name(list_scans(scan_folder))
         scan_times = _timestamps_from_names(files, scan_folder, "<timestamp>.pcd")
-        return timestamped_sequence(root, files, scan_times, POSE_FILES, GT_FILES, tol, gt_poses_file, gt_map_file,
-                                    gt_from_scan, gt_time_offset_s)
+        return timestamped_sequence(root, files, scan_times, POSE_FILES, GT_FILES, LoadOptions(
+            tol=tol, gt_poses_file=gt_poses_file, gt_map_file=gt_map_file, gt_from_scan=gt_from_scan,
+            gt_time_offset_s=gt_time_offset_s))
 
     found = next(((root / folder, frame) for folder, frame in DEVKIT_SCANS if (root / folder / "data").is_dir()),
                  None)
@@ -96,8 +98,9 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
     if gt_from_scan is None:
         gt_from_scan = ground_truth.published_offset("fusionportable", scan_frame or frame)
     gt_poses_file, gt_map_file = _download_ground_truth(root, gt_poses_file, gt_map_file)
-    return timestamped_sequence(root, files, scan_times, DEVKIT_ODOMETRY, (), tol, gt_poses_file, gt_map_file,
-                                gt_from_scan, gt_time_offset_s)
+    return timestamped_sequence(root, files, scan_times, DEVKIT_ODOMETRY, (), LoadOptions(
+        tol=tol, gt_poses_file=gt_poses_file, gt_map_file=gt_map_file, gt_from_scan=gt_from_scan,
+        gt_time_offset_s=gt_time_offset_s))
 
 
 def load_fusionportable_bag(root: Path, bags: list[Path], tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,

@@ -30,8 +30,10 @@ from neld_jax.data.layout import (
     with_explicit_ground_truth,
 )
 from neld_jax.data.poses import read_tum
+from neld_jax.data.scan_source import ScanFiles
 from neld_jax.data.sequence import Sequence
 from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S
+from neld_jax.errors import DataError
 
 logger = logging.getLogger(__name__)
 
@@ -88,8 +90,9 @@ def _ground_truth(root: Path, files: list[Path], timestamps: np.ndarray | None, 
 
 def with_point_times(seq: Sequence, root: Path) -> Sequence:
     """seq with point_times from ROOT/point_times/<scan stem>.npy when every scan has that file (else seq as it
-    is, with a warning when only some have one). A times file whose length is not its scan's point count is a
-    DataError naming the scan (Sequence)."""
+    is, with a warning when only some have one), read from disk when used (data.scan_source). A times file whose
+    length is not its scan's point count is a DataError naming the scan when the two are used together
+    (odometry.deskewed_sweeps)."""
     if not (root / POINT_TIMES_FOLDER).is_dir() or not seq.files:
         return seq
     paths = [root / POINT_TIMES_FOLDER / f"{Path(f).stem}.npy" for f in seq.files]
@@ -98,7 +101,15 @@ def with_point_times(seq: Sequence, root: Path) -> Sequence:
         logger.warning("%s: %d of %d scans have no %s/<scan>.npy (first: %s); per-point times are not used", root,
                        present.count(False), len(paths), POINT_TIMES_FOLDER, seq.files[present.index(False)])
         return seq
-    return dataclasses.replace(seq, point_times=[np.load(p, allow_pickle=False) for p in paths])
+    return dataclasses.replace(seq, point_times=ScanFiles(paths, read_point_times))
+
+
+def read_point_times(path: Path) -> np.ndarray:
+    """One scan's per-point times [N] float64 from path (.npy); a DataError naming it when unreadable."""
+    try:
+        return np.asarray(np.load(path, allow_pickle=False), dtype=np.float64).reshape(-1)
+    except (ValueError, OSError, EOFError) as exc:
+        raise DataError(f"{path}: unreadable per-point times ({exc})") from exc
 
 
 def load(data_cfg) -> Sequence:

@@ -37,6 +37,7 @@ from neld_jax.data.layout import (
     with_explicit_ground_truth,
 )
 from neld_jax.data.poses import read_kitti
+from neld_jax.data.scan_source import lazy
 from neld_jax.data.sequence import Sequence
 from neld_jax.data.timing import read_times
 from neld_jax.errors import DataError
@@ -134,7 +135,7 @@ def load_kitti(root: str | os.PathLike, gt_map_file: Path | None = None) -> Sequ
         gt_poses = camera_to_lidar(camera_poses, velodyne_to_camera)
         logger.info("%s: ground truth from %s, moved into the LiDAR frame with calib.txt's Tr", root, gt_file)
     seq = build_sequence(root, files, None, times, gt_poses, "no poses", gt_map_file)
-    return dataclasses.replace(seq, scans=[corrected_elevations(scan) for scan in seq.scans])
+    return dataclasses.replace(seq, scans=lazy(seq.scans).map(lambda _, scan: corrected_elevations(scan)))
 
 
 def load(data_cfg) -> Sequence:

@@ -29,6 +29,7 @@ import numpy as np
 
 from neld_jax.data import ground_truth
 from neld_jax.data.poses import read_tum
+from neld_jax.data.scan_source import ScanFiles
 from neld_jax.data.scans import SCAN_EXTENSIONS, read_scan, read_scan_counted
 from neld_jax.data.sequence import Sequence, check_pose_jumps
 from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S, match_by_timestamp
@@ -178,23 +179,26 @@ def _relative(path: Path, root: Path | None) -> str:
 # --------------------------------------------------------------------------------------------------
 
 
-def read_scans(files: list[Path]) -> list[np.ndarray]:
-    """Read every scan ([N_i, 3] each); one log line with the totals dropped per reason (each file's own is in
-    scans)."""
-    scans, totals, affected = [], {"read": 0, "non-finite": 0, "zero": 0}, {"non-finite": 0, "zero": 0}
+def read_scans(files: list[Path]) -> ScanFiles:
+    """The scans of files [S] ([N_i, 3] each), read from disk when used (data.scan_source). Each is read once here,
+    in order, and dropped, so that a file that cannot be read is a DataError now rather than in the middle of a
+    run; one log line with the totals dropped per reason (each file's own is in scans)."""
+    totals, affected = {"read": 0, "non-finite": 0, "zero": 0}, {"non-finite": 0, "zero": 0}
+    kept = 0
     for f in files:
         points, dropped = read_scan_counted(f)
-        scans.append(points)
+        kept += len(points)
         for key in totals:
             totals[key] += dropped[key]
         for key in affected:
             affected[key] += dropped[key] > 0
-    logger.info("read %d scans (%d points) from %s", len(scans), sum(len(s) for s in scans), files[0].parent)
+    logger.info("read %d scans (%d points) from %s; they are read again from disk when used", len(files), kept,
+                files[0].parent)
     if totals["non-finite"] or totals["zero"]:
         logger.info("dropped %d of %d points: %d NaN/infinite (in %d scans), %d at (0, 0, 0), i.e. no return "
                     "(in %d scans)", totals["non-finite"] + totals["zero"], totals["read"], totals["non-finite"],
                     affected["non-finite"], totals["zero"], affected["zero"])
-    return scans
+    return ScanFiles(files)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -250,20 +254,32 @@ def align_poses(
     poses = np.asarray(poses, dtype=np.float64)
     pose_times = None if pose_times is None else np.asarray(pose_times, dtype=np.float64).reshape(-1)
     labels = [_relative(Path(f), root) for f in scan_files]
-    num_poses, num_scans = poses.shape[0], len(scan_files)
-
     if scan_times is not None:
         scan_times = np.asarray(scan_times, dtype=np.float64).reshape(-1)
-        if pose_times is None:
-            raise DataError(f"{pose_file}: has no timestamps, so its poses cannot be matched to scans by time")
-        back = np.flatnonzero(np.diff(pose_times) < 0)
-        if back.size:
-            logger.warning("%s: timestamps are not in time order (pose %d at t=%.6f comes after t=%.6f; %d such "
-                           "places); poses are matched by time, so this only matters if the file is a mix-up",
-                           pose_file, back[0] + 2, pose_times[back[0] + 1], pose_times[back[0]], back.size)
-        indices = match_by_timestamp(scan_times, pose_times, tol=tol, what=str(pose_file), scan_labels=labels)
-        return Alignment(poses[indices], scan_times, np.arange(num_scans, dtype=np.int64))
+        indices = _matched_by_time(pose_times, pose_file, scan_times, tol, labels)
+        return Alignment(poses[indices], scan_times, np.arange(len(scan_files), dtype=np.int64))
+    keep = _matched_by_order(poses.shape[0], pose_times, pose_file, scan_files, drop_unmatched_tail, root)
+    times = None if pose_times is None else pose_times[:keep]
+    return Alignment(poses[:keep], times, np.arange(keep, dtype=np.int64))
 
+
+def _matched_by_time(pose_times: np.ndarray | None, pose_file: Path, scan_times: np.ndarray, tol: float,
+                     labels: list[str]) -> np.ndarray:
+    """align_poses by time: the index [S] of each scan's pose (nearest within tol); pose times out of order warned
+    about."""
+    if pose_times is None:
+        raise DataError(f"{pose_file}: has no timestamps, so its poses cannot be matched to scans by time")
+    back = np.flatnonzero(np.diff(pose_times) < 0)
+    if back.size:
+        logger.warning("%s: timestamps are not in time order (pose %d at t=%.6f comes after t=%.6f; %d such "
+                       "places); poses are matched by time, so this only matters if the file is a mix-up",
+                       pose_file, back[0] + 2, pose_times[back[0] + 1], pose_times[back[0]], back.size)
+    return match_by_timestamp(scan_times, pose_times, tol=tol, what=str(pose_file), scan_labels=labels)
+
+
+def _matched_by_order(num_poses: int, pose_times: np.ndarray | None, pose_file: Path, scan_files: list[Path],
+                      drop_unmatched_tail: bool, root: Path | None) -> int:
+    """align_poses by order: how many leading scans and poses pair up (align_poses' errors and warnings)."""
     if pose_times is not None:
         back = np.flatnonzero(np.diff(pose_times) <= 0)
         if back.size:
@@ -273,28 +289,27 @@ def align_poses(
                 f"t={pose_times[i - 1]:.6f}; {back.size} such place(s)); poses are matched to the scans "
                 "one to one, in order, so the file must be sorted by time (sort it by its first column)"
             )
-    keep = min(num_poses, num_scans)
-    extra = abs(num_poses - num_scans)
-    if extra:
-        if num_poses < num_scans:
-            left_over = labels[keep:]
-            what = (f"the last {extra} scan(s) ({_listed(left_over)}) have no pose; "
-                    "delete them or add poses")
-        else:
-            left_over = ([f"pose {i + 1}" for i in range(keep, num_poses)] if pose_times is None
-                         else [f"t={t:.6f}" for t in pose_times[keep:]])
-            what = (f"the last {extra} pose(s) ({_listed(left_over)}) have no scan; "
-                    "delete them or add the missing scans")
-        folder = _relative(Path(scan_files[0]).parent, root) + "/" if scan_files else "the scan list"
-        message = (f"{'' if root is None else f'{root}: '}{_relative(pose_file, root)} has {num_poses} poses "
-                   f"but {folder} has {num_scans} scans: {what} (poses are matched to scans one to one, in order)")
-        if not drop_unmatched_tail or extra > MAX_UNMATCHED_TAIL:
-            if drop_unmatched_tail:
-                message += f"; drop_unmatched_tail drops at most {MAX_UNMATCHED_TAIL}, not {extra}"
-            raise DataError(message)
-        logger.warning("%s; dropped them (drop_unmatched_tail)", message)
-    times = None if pose_times is None else pose_times[:keep]
-    return Alignment(poses[:keep], times, np.arange(keep, dtype=np.int64))
+    num_scans = len(scan_files)
+    keep, extra = min(num_poses, num_scans), abs(num_poses - num_scans)
+    if not extra:
+        return keep
+    if num_poses < num_scans:
+        left_over = [_relative(Path(f), root) for f in scan_files[keep:]]
+        what = f"the last {extra} scan(s) ({_listed(left_over)}) have no pose; delete them or add poses"
+    else:
+        left_over = ([f"pose {i + 1}" for i in range(keep, num_poses)] if pose_times is None
+                     else [f"t={t:.6f}" for t in pose_times[keep:]])
+        what = (f"the last {extra} pose(s) ({_listed(left_over)}) have no scan; "
+                "delete them or add the missing scans")
+    folder = _relative(Path(scan_files[0]).parent, root) + "/" if scan_files else "the scan list"
+    message = (f"{'' if root is None else f'{root}: '}{_relative(pose_file, root)} has {num_poses} poses "
+               f"but {folder} has {num_scans} scans: {what} (poses are matched to scans one to one, in order)")
+    if not drop_unmatched_tail or extra > MAX_UNMATCHED_TAIL:
+        if drop_unmatched_tail:
+            message += f"; drop_unmatched_tail drops at most {MAX_UNMATCHED_TAIL}, not {extra}"
+        raise DataError(message)
+    logger.warning("%s; dropped them (drop_unmatched_tail)", message)
+    return keep
 
 
 # --------------------------------------------------------------------------------------------------
@@ -372,22 +387,22 @@ def build_sequence(root: Path, files: list[Path], poses: np.ndarray | None, time
 
 
 def timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray, pose_files: tuple[str, ...],
-                         gt_files: tuple[str, ...], tol: float, gt_poses_file: Path | None = None,
-                         gt_map_file: Path | None = None, gt_from_scan: np.ndarray | None = None,
-                         gt_time_offset_s: float = 0.0) -> Sequence:
+                         gt_files: tuple[str, ...], options: LoadOptions) -> Sequence:
     """Scans with timestamps (files [S], scan_times [S] seconds), initial poses (the first of pose_files under
-    root, TUM) and optional ground truth (gt_poses_file, else the first of gt_files under root) matched to them by
-    nearest timestamp, optional GT map (gt_map_file, else ROOT/gt_map.pcd|ply): the part that the FusionPortable
-    and Newer College loaders share."""
+    root, TUM) and optional ground truth (options.gt_poses_file, else the first of gt_files under root) matched to
+    them by nearest timestamp within options.tol and moved by options.gt_from_scan, optional GT map
+    (options.gt_map_file, else ROOT/gt_map.pcd|ply): the part that the FusionPortable and Newer College loaders
+    share."""
     pose_file = first_existing(root, pose_files)
     if pose_file is None:
         raise DataError(f"{root}: no initial pose file (looked for {', '.join(pose_files)})")
     pose_times, poses = read_tum(pose_file)
-    aligned = align_poses(poses, pose_times, pose_file, files, scan_times, tol=tol, root=root)
+    aligned = align_poses(poses, pose_times, pose_file, files, scan_times, tol=options.tol, root=root)
 
     gt_poses = None
-    gt_file = gt_poses_file or first_existing(root, gt_files)
+    gt_file = options.gt_poses_file or first_existing(root, gt_files)
     if gt_file is not None:
-        gt_poses = matched_ground_truth(root, files, scan_times, gt_file, tol, gt_from_scan, gt_time_offset_s)
+        gt_poses = matched_ground_truth(root, files, scan_times, gt_file, options.tol, options.gt_from_scan,
+                                        options.gt_time_offset_s)
 
-    return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file, gt_map_file)
+    return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file, options.gt_map_file)

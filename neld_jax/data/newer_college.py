@@ -45,6 +45,7 @@ from neld_jax.data.layout import (
     load_options,
     matched_ground_truth,
     sorted_by_name,
+    LoadOptions,
     timestamped_sequence,
 )
 from neld_jax.data.poses import read_tum
@@ -100,8 +101,9 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
     gt_file = gt_poses_file or first_existing(root, GT_FILES)
     if gt_from_scan is None and gt_file is not None:
         gt_from_scan = ground_truth.published_offset(newer_college_release(gt_file), scan_frame)
-    return timestamped_sequence(root, files, scan_times, POSE_FILES, GT_FILES, tol, gt_file, gt_map_file,
-                                gt_from_scan, gt_time_offset_s)
+    return timestamped_sequence(root, files, scan_times, POSE_FILES, GT_FILES, LoadOptions(
+        tol=tol, gt_poses_file=gt_file, gt_map_file=gt_map_file, gt_from_scan=gt_from_scan,
+        gt_time_offset_s=gt_time_offset_s))
 
 
 def _load_imported_2021(root: Path, tol: float, gt_poses_file: Path | None, gt_map_file: Path | None,

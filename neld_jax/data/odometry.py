@@ -42,6 +42,7 @@ import time
 
 import numpy as np
 
+from neld_jax.data.scan_source import LazyScans, lazy
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
 
@@ -58,11 +59,12 @@ RECOVERY_ICP_VOXELS = 3.0  # ICP from RANSAC's pose pairs points this far apart 
 RANSAC_ITERATIONS = 20_000  # at most, per recovery (the classical baseline's)
 
 
-def kiss_icp_odometry(scans: list[np.ndarray], point_times: list[np.ndarray] | None, labels: list[str],
-                      min_range_m: float, max_range_m: float, keep_sweeps: bool = True,
+def kiss_icp_odometry(scans, point_times, labels: list[str], min_range_m: float, max_range_m: float,
+                      keep_sweeps: bool = True,
                       progress: bool = False) -> tuple[np.ndarray, list[np.ndarray] | None, np.ndarray]:
-    """KISS-ICP over scans [S] x [N_i, 3] (sensor frame, time order), deskewing where point_times [S] x [N_i]
-    (seconds after each scan's stamp) are given; a scan that lost track is registered again (Tracker.recover).
+    """KISS-ICP over scans [S] x [N_i, 3] (sensor frame, time order; a list or a LazyScans, read one at a time),
+    deskewing where point_times [S] x [N_i] (seconds after each scan's stamp) are given; a scan that lost track is
+    registered again (Tracker.recover). Of the scans it keeps only its poses (and its bounded local map).
     labels [S] name the scans in the logs and in the error of a track that could not be recovered.
 
     Returns (poses [S, 4, 4] sensor -> world at each sweep's reference instant (scan 0's at the identity),
@@ -72,9 +74,10 @@ def kiss_icp_odometry(scans: list[np.ndarray], point_times: list[np.ndarray] | N
     from tqdm.auto import tqdm
 
     tracker = Tracker(min_range_m, max_range_m, deskew=point_times is not None)
-    poses, sweeps = [], []
+    poses, sweeps, offsets = [], [], np.zeros(len(scans))
     for i in tqdm(range(len(scans)), disable=not progress, desc="KISS-ICP odometry", unit="scan"):
         times = np.zeros(0) if point_times is None else np.asarray(point_times[i], np.float64)
+        offsets[i] = float(np.max(times)) if len(times) else 0.0  # the instant its pose refers to
         before = tracker.motion()
         sweep, source = tracker.kiss.register_frame(np.asarray(scans[i], np.float64), times)
         overlap = tracker.overlap(source, tracker.kiss.last_pose)
@@ -97,7 +100,6 @@ def kiss_icp_odometry(scans: list[np.ndarray], point_times: list[np.ndarray] | N
         poses.append(np.array(tracker.kiss.last_pose, np.float64))
         if keep_sweeps:
             sweeps.append(np.asarray(sweep, np.float64))
-    offsets = np.zeros(len(scans)) if point_times is None else last_point_offsets(point_times)
     return np.stack(poses), (sweeps if keep_sweeps else None), offsets
 
 
@@ -275,27 +277,67 @@ def warn_about_gaps(timestamps: np.ndarray, labels: list[str]) -> np.ndarray:
 def with_kiss_icp_poses(seq: Sequence, min_range_m: float, max_range_m: float, progress: bool = True) -> Sequence:
     """seq with KISS-ICP's poses (poses_from "kiss_icp"): raw sweeps (point_times set) deskewed and moved into the
     frame at their stamps, and the poses interpolated to the stamps; every scan cropped to the ranges as KISS-ICP
-    reads it. Logs that it ran and how long it took."""
+    reads it. Logs that it ran and how long it took.
+
+    The sweeps are read one at a time and KISS-ICP keeps nothing of them but its poses (and its local map); the
+    returned scans are a view (data.scan_source) that deskews and crops each sweep again when it is used."""
     labels = [seq.scan_label(i) for i in range(seq.num_scans)]
     if seq.timestamps is not None:
         if np.any(np.diff(seq.timestamps) <= 0):
             raise DataError(f"{seq.source or seq.name}: the scans' stamps must increase for odometry (first out of "
                             f"order: {labels[int(np.argmax(np.diff(seq.timestamps) <= 0)) + 1]})")
         warn_about_gaps(seq.timestamps, labels)
-    point_times = seq.point_times
+    point_times = None if seq.point_times is None else checked_point_times(seq, labels)
     logger.info("%s: making the initial poses from the %d scans with KISS-ICP (%s)", seq.source or seq.name,
                 seq.num_scans, "deskewing by the points' own times" if point_times is not None else "rigid scans")
     if point_times is not None and seq.timestamps is None:
         logger.warning("%s: the scans have per-point times but no stamps: each pose and deskewed scan is the "
-                       "sensor's at its sweep's last point", seq.source or seq.name)
+                       "sensor's at its sweep's last point (KISS-ICP's deskewed sweeps are kept in memory)",
+                       seq.source or seq.name)
     started = time.perf_counter()
     along_trajectory = point_times is not None and seq.timestamps is not None and seq.num_scans >= 2
     poses, sweeps, offsets = kiss_icp_odometry(seq.scans, point_times, labels, min_range_m, max_range_m,
-                                               keep_sweeps=not along_trajectory, progress=progress)
+                                               keep_sweeps=point_times is not None and not along_trajectory,
+                                               progress=progress)
     if along_trajectory:  # from the sweeps' last instants to their stamps, deskewed along the trajectory
-        sweeps = [deskewed_along(seq.timestamps + offsets, poses, stamp, scan, times, min_range_m, max_range_m)
-                  for stamp, scan, times in zip(seq.timestamps, seq.scans, point_times)]
+        sweeps = deskewed_sweeps(seq.scans, point_times, seq.timestamps, offsets, poses, (min_range_m, max_range_m))
         poses = poses_at_stamps(seq.timestamps, offsets, poses)
+    elif sweeps is None:  # rigid scans: cropped as KISS-ICP crops them, when used
+        sweeps = lazy(seq.scans).map(kiss_icp_crop(min_range_m, max_range_m))
     logger.info("KISS-ICP odometry: %d scans in %.1f s (ranges %.1f-%.1f m, voxel %.2f m)", seq.num_scans,
                 time.perf_counter() - started, min_range_m, max_range_m, VOXELS_PER_RANGE * max_range_m)
-    return dataclasses.replace(seq, scans=sweeps, poses=poses, point_times=None, poses_from="kiss_icp")
+    return dataclasses.replace(seq, scans=sweeps, point_times=None, poses=poses, poses_from="kiss_icp")
+
+
+def checked_point_times(seq: Sequence, labels: list[str]) -> LazyScans:
+    """seq.point_times as a LazyScans whose item i is a DataError naming scan i when its length is not the scan's
+    point count (checked when the two are read together)."""
+    def checked(i: int, scan: np.ndarray, times: np.ndarray) -> np.ndarray:
+        if len(times) != len(scan):
+            raise DataError(f"{seq.source or seq.name}: {labels[i]} has {len(scan)} points and {len(times)} point "
+                            "times")
+        return times
+
+    return lazy(seq.scans).map(checked, lazy(seq.point_times))
+
+
+def deskewed_sweeps(scans, point_times, stamps: np.ndarray, offsets: np.ndarray, poses: np.ndarray,
+                    ranges: tuple[float, float]) -> LazyScans:
+    """The raw sweeps scans [S] x [N_i, 3] with point_times [S] x [N_i] (lists or LazyScans) moved into the frame at
+    their stamps [S] along KISS-ICP's trajectory (poses [S, 4, 4] at stamps + offsets [S]) and cropped to ranges
+    (min, max) m: deskewed_along for each sweep when it is used."""
+    trajectory_times = stamps + offsets
+    return lazy(scans).map(lambda i, scan, times: deskewed_along(trajectory_times, poses, stamps[i], scan, times,
+                                                                 *ranges), lazy(point_times))
+
+
+def kiss_icp_crop(min_range_m: float, max_range_m: float):
+    """transform(i, scan [N, 3]) -> the scan's points within the ranges as KISS-ICP's preprocessor keeps them
+    (without deskewing): what it returns for a rigid scan."""
+    from kiss_icp.config import KISSConfig
+    from kiss_icp.preprocess import get_preprocessor
+
+    config = KISSConfig()
+    config.data.min_range, config.data.max_range, config.data.deskew = float(min_range_m), float(max_range_m), False
+    preprocessor = get_preprocessor(config)
+    return lambda _, scan: preprocessor.preprocess(np.asarray(scan, np.float64), np.zeros(0), np.eye(4))

@@ -90,56 +90,89 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     return np.asarray(cloud.voxel_down_sample(voxel_size).points, dtype=np.float64)
 
 
-def preprocess(
-    seq: Sequence,
-    keyframe_interval_s: float = 3.0,
-    min_range: float = 0.5,
-    max_range: float = 80.0,
-    voxel_size: float = 0.05,
-    max_scans: int | None = None,
-    keyframe_distance_m: float = 0.0,
-    keyframe_angle_deg: float = 0.0,
-    first_scan: int = 0,
-) -> Sequence:
-    """Select keyframes (select_keyframes' caps), crop each scan by range and voxel-downsample it.
+@dataclasses.dataclass(frozen=True)
+class KeyframeSettings:
+    """Which scans are keyframes and how their points are prepared (config.data; the caps as select_keyframes'
+    takes them: keyframe_caps fills a distance or angle cap left 0 under a time cap).
 
-    Returns a new Sequence whose `source_index` names each kept scan's index in `seq`, so that results can
-    be carried back to every input scan. max_scans (if set) keeps only the first max_scans keyframes. A scan
-    left empty raises DataError naming its file."""
-    keep = select_keyframes(seq.timestamps, keyframe_interval_s, num_scans=seq.num_scans, poses=seq.poses,
-                            distance_m=keyframe_distance_m, angle_deg=keyframe_angle_deg)
-    keep = keep[keep >= first_scan]
-    if max_scans is not None and max_scans > 0:
-        keep = keep[:max_scans]
+    keyframe_interval_s, keyframe_distance_m, keyframe_angle_deg: the caps (<= 0: off)
+    min_range, max_range: metres, the range crop; voxel_size: metres, the voxel grid (<= 0: none)
+    max_scans: keep only the first max_scans keyframes (None or <= 0: all); first_scan: none before this scan
+    """
+
+    keyframe_interval_s: float = 3.0
+    min_range: float = 0.5
+    max_range: float = 80.0
+    voxel_size: float = 0.05
+    max_scans: int | None = None
+    keyframe_distance_m: float = 0.0
+    keyframe_angle_deg: float = 0.0
+    first_scan: int = 0
+
+    @classmethod
+    def from_config(cls, data_cfg) -> "KeyframeSettings":
+        """config.data's settings, the caps completed by keyframe_caps."""
+        distance_m, angle_deg = keyframe_caps(data_cfg.keyframe_interval_s, data_cfg.get("keyframe_distance_m", 0.0),
+                                              data_cfg.get("keyframe_angle_deg", 0.0), data_cfg.max_range_m)
+        return cls(keyframe_interval_s=data_cfg.keyframe_interval_s, min_range=data_cfg.min_range_m,
+                   max_range=data_cfg.max_range_m, voxel_size=data_cfg.voxel_size_m,
+                   max_scans=(data_cfg.max_scans or None), keyframe_distance_m=distance_m,
+                   keyframe_angle_deg=angle_deg, first_scan=int(data_cfg.get("first_scan", 0)))
+
+
+def keyframe_indices(seq: Sequence, settings: KeyframeSettings) -> np.ndarray:
+    """The keyframes [K] int64 of seq (select_keyframes on its stamps and poses, from first_scan on, at most
+    max_scans); a DataError when none is left."""
+    keep = select_keyframes(seq.timestamps, settings.keyframe_interval_s, num_scans=seq.num_scans, poses=seq.poses,
+                            distance_m=settings.keyframe_distance_m, angle_deg=settings.keyframe_angle_deg)
+    keep = keep[keep >= settings.first_scan]
+    if settings.max_scans is not None and settings.max_scans > 0:
+        keep = keep[:settings.max_scans]
     if len(keep) == 0:
-        raise DataError(f"{seq.source or seq.name}: no keyframes from scan {first_scan} on "
+        raise DataError(f"{seq.source or seq.name}: no keyframes from scan {settings.first_scan} on "
                         f"(the sequence has {seq.num_scans} scans)")
-    logger.info(
-        "keyframes: kept %d of %d scans (at most %.3g s, %.3g m, %.3g deg apart; max_scans %s)",
-        len(keep), seq.num_scans, keyframe_interval_s, keyframe_distance_m, keyframe_angle_deg, max_scans,
-    )
+    logger.info("keyframes: kept %d of %d scans (at most %.3g s, %.3g m, %.3g deg apart; max_scans %s)", len(keep),
+                seq.num_scans, settings.keyframe_interval_s, settings.keyframe_distance_m,
+                settings.keyframe_angle_deg, settings.max_scans)
+    return keep
 
+
+def keyframe_points(seq: Sequence, index: int, settings: KeyframeSettings) -> tuple[np.ndarray, tuple[int, int]]:
+    """Scan `index` of seq (read now, when seq's scans are read when used) cropped by range and on the voxel grid:
+    (points [N', 3] float32, (raw, in-range) point counts). float32: a sensor-frame point within 80 m keeps ~5 um,
+    and training casts to float32 anyway. A scan left empty is a DataError naming its file."""
+    raw = seq.scans[index]
+    cropped = crop_range(raw, settings.min_range, settings.max_range)
+    downsampled = voxel_downsample(cropped, settings.voxel_size)
+    logger.debug("%s: %d points -> %d in range -> %d after voxel grid", seq.scan_label(index), len(raw), len(cropped),
+                 len(downsampled))
+    if downsampled.shape[0] == 0:
+        distances = np.linalg.norm(raw, axis=1)
+        raise DataError(
+            f"{seq.source or seq.name}: {seq.scan_label(index)} has no points left within "
+            f"{settings.min_range}-{settings.max_range} m (it had {len(raw)} points, "
+            f"{distances.min():.3g}-{distances.max():.3g} m from the sensor; check the units or "
+            "data.min_range_m / data.max_range_m)"
+        )
+    return np.asarray(downsampled, dtype=np.float32), (len(raw), len(cropped))
+
+
+def preprocess(seq: Sequence, settings: KeyframeSettings = KeyframeSettings()) -> Sequence:
+    """Select keyframes (keyframe_indices), crop each by range and voxel-downsample it (keyframe_points).
+
+    Only the keyframes' points are read (seq's scans may be read from disk when used: data.scan_source) and kept,
+    as float32. Returns a new Sequence whose `source_index` names each kept scan's index in `seq`, so that results
+    can be carried back to every input scan. A scan left empty raises DataError naming its file."""
+    keep = keyframe_indices(seq, settings)
     scans = []
     totals = np.zeros(3, dtype=np.int64)  # raw, after range crop, after voxel grid
     for index in keep:
-        raw = seq.scans[index]
-        cropped = crop_range(raw, min_range, max_range)
-        downsampled = voxel_downsample(cropped, voxel_size)
-        logger.debug("%s: %d points -> %d in range -> %d after voxel grid",
-                     seq.scan_label(index), len(raw), len(cropped), len(downsampled))
-        if downsampled.shape[0] == 0:
-            distances = np.linalg.norm(raw, axis=1)
-            raise DataError(
-                f"{seq.source or seq.name}: {seq.scan_label(index)} has no points left within "
-                f"{min_range}-{max_range} m (it had {len(raw)} points, "
-                f"{distances.min():.3g}-{distances.max():.3g} m from the sensor; check the units or "
-                "data.min_range_m / data.max_range_m)"
-            )
-        totals += (len(raw), len(cropped), len(downsampled))
-        scans.append(downsampled)
+        points, (num_raw, num_cropped) = keyframe_points(seq, int(index), settings)
+        totals += (num_raw, num_cropped, len(points))
+        scans.append(points)
     logger.info(
-        "points: %d raw -> %d within %.3g-%.3g m -> %d after %.3g m voxel grid (%.0f per scan)",
-        totals[0], totals[1], min_range, max_range, totals[2], voxel_size, totals[2] / max(len(keep), 1),
+        "points: %d raw -> %d within %.3g-%.3g m -> %d after %.3g m voxel grid (%.0f per scan)", totals[0], totals[1],
+        settings.min_range, settings.max_range, totals[2], settings.voxel_size, totals[2] / max(len(keep), 1),
     )
     return dataclasses.replace(
         seq,
@@ -156,18 +189,12 @@ def preprocess(
 def load_keyframes(data_cfg) -> tuple[Sequence, Sequence]:
     """Load the sequence that `data_cfg` (config.data) names and preprocess it with the config's settings.
 
-    Returns (loaded, keyframes): every input scan as read, and the preprocessed keyframes that training
-    uses (`keyframes.source_index` indexes `loaded`). The one place where bin/train.py and bin/baseline.py
-    turn a config into the scans they work on.
+    Returns (loaded, keyframes): every input scan (of a recording on disk, read again from disk when used:
+    data.scan_source) and the preprocessed keyframes that training uses, held in memory
+    (`keyframes.source_index` indexes `loaded`). The one place where bin/train.py and bin/baseline.py turn a config
+    into the scans they work on.
     """
     from neld_jax.data.formats import load_sequence
 
     loaded = load_sequence(data_cfg)
-    distance_m, angle_deg = keyframe_caps(data_cfg.keyframe_interval_s, data_cfg.get("keyframe_distance_m", 0.0),
-                                          data_cfg.get("keyframe_angle_deg", 0.0), data_cfg.max_range_m)
-    keyframes = preprocess(loaded, keyframe_interval_s=data_cfg.keyframe_interval_s,
-                           min_range=data_cfg.min_range_m, max_range=data_cfg.max_range_m,
-                           voxel_size=data_cfg.voxel_size_m, max_scans=(data_cfg.max_scans or None),
-                           keyframe_distance_m=distance_m, keyframe_angle_deg=angle_deg,
-                           first_scan=int(data_cfg.get("first_scan", 0)))
-    return loaded, keyframes
+    return loaded, preprocess(loaded, KeyframeSettings.from_config(data_cfg))

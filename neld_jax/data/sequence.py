@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from neld_jax.data.scan_source import LazyScans, is_lazy
 from neld_jax.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -22,7 +23,9 @@ logger = logging.getLogger(__name__)
 class Sequence:
     """S scans with their initial poses and optional ground truth.
 
-    scans:      list of S arrays [N_i, 3] float64, points in the SENSOR frame
+    scans:      S arrays [N_i, 3] float64 (float32 where given so: the keyframes), points in the SENSOR frame: a
+                list held in memory, or a LazyScans read from disk when used (data.scan_source: a recording's
+                sweeps, which do not fit in memory)
     poses:      [S, 4, 4] float64 initial poses (sensor -> world), e.g. odometry output; None only between a
                 loader that found no poses and load_sequence, which makes them from the scans (odometry.py)
     timestamps: [S] float64 seconds, or None
@@ -34,12 +37,12 @@ class Sequence:
                 (synthetic); carried through keyframe selection so messages can name the file
     source_index: [S] int64 index of each scan in the sequence as loaded (set by keyframe selection), or
                 None when these are the loaded scans themselves
-    point_times: S arrays [N_i] float64, each point's time in seconds after its scan's timestamp (raw
-                full-rate scans: the sweep's motion is still in them), or None (the scans are rigid)
+    point_times: S arrays [N_i] float64 (a list, or a LazyScans), each point's time in seconds after its scan's
+                timestamp (raw full-rate scans: the sweep's motion is still in them), or None (the scans are rigid)
     poses_from: "kiss_icp" when load_sequence made the poses from the scans, else "" (the layout's poses)
     """
 
-    scans: list[np.ndarray]
+    scans: list[np.ndarray] | LazyScans
     poses: np.ndarray | None
     timestamps: np.ndarray | None = None
     gt_poses: np.ndarray | None = None
@@ -48,20 +51,22 @@ class Sequence:
     source: str = ""
     files: list[str] | None = None
     source_index: np.ndarray | None = None
-    point_times: list[np.ndarray] | None = None
+    point_times: list[np.ndarray] | LazyScans | None = None
     poses_from: str = ""
 
     def __post_init__(self) -> None:
         where = f"sequence '{self.name}' ({self.source or 'no source'})"
-        self.scans = [np.asarray(scan, dtype=np.float64) for scan in self.scans]
+        if not is_lazy(self.scans):
+            self.scans = [_points_array(scan) for scan in self.scans]
         num_scans = len(self.scans)
         if self.files is not None:
             self.files = [str(f) for f in self.files]
             if len(self.files) != num_scans:
                 raise DataError(f"{where}: {len(self.files)} file names for {num_scans} scans")
-        for i, scan in enumerate(self.scans):
-            if scan.ndim != 2 or scan.shape[1] != 3:
-                raise DataError(f"{where}: {self.scan_label(i)} must have shape [N, 3], got {scan.shape}")
+        if not is_lazy(self.scans):  # lazy scans are checked as they are read (scans.read_scan)
+            for i, scan in enumerate(self.scans):
+                if scan.ndim != 2 or scan.shape[1] != 3:
+                    raise DataError(f"{where}: {self.scan_label(i)} must have shape [N, 3], got {scan.shape}")
         if self.poses is not None:
             self.poses = np.asarray(self.poses, dtype=np.float64)
             if self.poses.ndim != 3 or self.poses.shape[1:] != (4, 4):
@@ -69,13 +74,25 @@ class Sequence:
             if self.poses.shape[0] != num_scans:
                 raise DataError(f"{where}: {self.poses.shape[0]} poses for {num_scans} scans")
         if self.point_times is not None:
+            self._check_point_times(where)
+        self._check_per_scan_arrays(where)
+
+    def _check_point_times(self, where: str) -> None:
+        """point_times: one [N_i] per scan; held in memory, each as long as its scan (lazy: when read)."""
+        if not is_lazy(self.point_times):
             self.point_times = [np.asarray(t, dtype=np.float64).reshape(-1) for t in self.point_times]
-            if len(self.point_times) != num_scans:
-                raise DataError(f"{where}: per-point times for {len(self.point_times)} of {num_scans} scans")
-            for i, (scan, times) in enumerate(zip(self.scans, self.point_times)):
-                if times.shape[0] != scan.shape[0]:
-                    raise DataError(f"{where}: {self.scan_label(i)} has {scan.shape[0]} points and "
-                                    f"{times.shape[0]} point times")
+        if len(self.point_times) != len(self.scans):
+            raise DataError(f"{where}: per-point times for {len(self.point_times)} of {len(self.scans)} scans")
+        if is_lazy(self.point_times) or is_lazy(self.scans):
+            return
+        for i, (scan, times) in enumerate(zip(self.scans, self.point_times)):
+            if times.shape[0] != scan.shape[0]:
+                raise DataError(f"{where}: {self.scan_label(i)} has {scan.shape[0]} points and "
+                                f"{times.shape[0]} point times")
+
+    def _check_per_scan_arrays(self, where: str) -> None:
+        """timestamps, gt_poses, source_index: one per scan; gt_map [M, 3]."""
+        num_scans = len(self.scans)
         if self.timestamps is not None:
             self.timestamps = np.asarray(self.timestamps, dtype=np.float64).reshape(-1)
             if self.timestamps.shape[0] != num_scans:
@@ -114,8 +131,14 @@ class Sequence:
 
     @property
     def num_points(self) -> int:
-        """Total number of points over all scans."""
+        """Total number of points over all scans (reads every scan of lazy scans once)."""
         return int(sum(scan.shape[0] for scan in self.scans))
+
+
+def _points_array(scan) -> np.ndarray:
+    """A scan held in memory as an array: float32 stays float32 (keyframes: data.preprocess), else float64."""
+    scan = np.asarray(scan)
+    return scan if scan.dtype in (np.float32, np.float64) else scan.astype(np.float64)
 
 
 # A step is a jump when it is JUMP_FACTOR times the 90th-percentile step, and at least MIN_JUMP_M.

@@ -25,6 +25,7 @@ import logging
 
 import numpy as np
 
+from neld_jax.data.scan_source import lazy
 from neld_jax.data.sequence import Sequence
 
 logger = logging.getLogger(__name__)
@@ -36,6 +37,7 @@ MIN_PERIOD_S, MAX_PERIOD_S = 1.0 / 40.0, 1.0 / 5.0
 # A sweep spans a full turn when no azimuth sector this wide is empty (a street or a room leaves none; a sensor
 # looking through a window, or scans cropped to a camera's view, do).
 MAX_AZIMUTH_GAP_DEG = 20.0
+MAX_SCANS_LOOKED_AT = 200  # evenly spaced scans whose median gap decides: enough, and a long recording is not read
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,7 +98,8 @@ def sweep_period(timestamps: np.ndarray | None) -> float | None:
 def with_azimuth_times(seq: Sequence, convention: SweepConvention = VELODYNE) -> Sequence:
     """seq with point_times derived from the azimuths (azimuth_times) when it has none, its stamps are consecutive
     sweeps' (sweep_period) and its median scan spans a full turn (largest_azimuth_gap_deg at most
-    MAX_AZIMUTH_GAP_DEG); else seq as it is. Either way one log line says which and why."""
+    MAX_AZIMUTH_GAP_DEG, over at most MAX_SCANS_LOOKED_AT scans evenly spaced); else seq as it is. Either way one log
+    line says which and why. The times are derived from each scan when it is used (data.scan_source)."""
     where = seq.source or seq.name
     if seq.point_times is not None or not seq.scans:
         return seq
@@ -105,7 +108,8 @@ def with_azimuth_times(seq: Sequence, convention: SweepConvention = VELODYNE) ->
         logger.info("%s: the scans carry no per-point times and are %.2f s apart, not consecutive sweeps: they are "
                     "registered as they are", where, float(np.median(np.diff(seq.timestamps))))
         return seq
-    gap = float(np.median([largest_azimuth_gap_deg(scan) for scan in seq.scans]))
+    picked = np.unique(np.linspace(0, seq.num_scans - 1, min(seq.num_scans, MAX_SCANS_LOOKED_AT)).round().astype(int))
+    gap = float(np.median([largest_azimuth_gap_deg(seq.scans[i]) for i in picked]))
     if gap > MAX_AZIMUTH_GAP_DEG:
         logger.info("%s: the scans carry no per-point times and leave %.0f deg of azimuth empty (a median scan), not "
                     "a spinning LiDAR's full turn: they are registered as they are", where, gap)
@@ -113,5 +117,5 @@ def with_azimuth_times(seq: Sequence, convention: SweepConvention = VELODYNE) ->
     source = "from the stamps" if seq.timestamps is not None and len(seq.timestamps) > 1 else "assumed: no stamps"
     logger.info("%s: the scans carry no per-point times: each point's time is derived from its azimuth, a sweep of "
                 "%.3f s (%s) %s (sensor frame x forward, z up)", where, period, source, convention.describe())
-    times = [azimuth_times(scan, period, convention) for scan in seq.scans]
+    times = lazy(seq.scans).map(lambda _, scan: azimuth_times(scan, period, convention))
     return dataclasses.replace(seq, point_times=times)

@@ -1,5 +1,7 @@
-"""Shared fixtures: a tiny configuration that trains in seconds on a CPU."""
+"""Shared fixtures: a tiny configuration that trains in seconds on a CPU, and whole runs made once for every test
+that only reads their output folder."""
 
+import fcntl
 import os
 import subprocess
 import sys
@@ -85,6 +87,34 @@ def tiny_synthetic_sequence(num_scans: int = 4):
     return make_sequence(cfg)
 
 
+def first_sweeps_of_the_loop(num_sweeps: int, loop_sweeps: int = 300, seed: int = 0, rate_hz: float = 10.0):
+    """The first num_sweeps raw sweeps of make_sequence(SWEEPS, rate_hz) with SWEEPS = {"num_scans": loop_sweeps,
+    "trajectory_radius_m": 10.0, "max_range_m": 40.0, "gt_map_points": 0, "seed": seed}, equal to them point for
+    point, without casting the loop's other sweeps: a Sequence of raw sweeps (point_times, no poses) with ground truth.
+    At the defaults 2.1 m/s round a 10 m loop (0.2 m a sweep), 32 beams x 512 columns."""
+    import numpy as np
+
+    from neld_jax.data.sequence import Sequence
+    from neld_jax.data.synthetic import (FOV_DEG, cast_sweep, loop_poses, make_scene, spinning_lidar_directions,
+                                         synthetic_defaults)
+
+    cfg = synthetic_defaults()
+    cfg.update({"trajectory_radius_m": 10.0, "max_range_m": 40.0, "seed": seed})
+    scene, _ = make_scene(seed, cfg.scene_size_m, path_radius_m=cfg.trajectory_radius_m)
+    directions = spinning_lidar_directions(cfg.num_beams, FOV_DEG[1], FOV_DEG[0], cfg.num_columns)
+    rng = np.random.default_rng(seed + 2)  # make_sequence's stream: each sweep draws its noise in turn
+    column_fraction = np.arange(cfg.num_columns) / cfg.num_columns
+    scans, point_times = [], []
+    for i in range(num_sweeps):
+        column_poses = loop_poses((i + column_fraction) / loop_sweeps, cfg.trajectory_radius_m, seed)
+        points, column = cast_sweep(scene, column_poses, directions, cfg.max_range_m, cfg.range_noise_m, rng)
+        scans.append(points)
+        point_times.append(column_fraction[column] / rate_hz)
+    return Sequence(scans=scans, poses=None, timestamps=np.arange(num_sweeps) / rate_hz,
+                    gt_poses=loop_poses(np.arange(num_sweeps) / loop_sweeps, cfg.trajectory_radius_m, seed),
+                    name=f"synthetic_seed{seed}_{rate_hz:g}hz", source="synthetic", point_times=point_times)
+
+
 def similarity_scale(T_moved, T_start) -> float:
     """The Umeyama (similarity-alignment) scale of T_moved's positions [S, 4, 4] against T_start's, minus 1
     (float64): how much a pose update scales the route."""
@@ -98,6 +128,38 @@ def similarity_scale(T_moved, T_start) -> float:
 @pytest.fixture
 def tiny_config(tmp_path):
     return make_tiny_config(str(tmp_path / "run"))
+
+
+def made_once(tmp_path_factory, name: str, make) -> Path:
+    """The folder <suite's temporary folder>/<name>, filled by make(folder) once for the whole test run: the
+    pytest-xdist workers share it (a file lock; the first worker to ask makes it, the others wait and read it).
+    Tests read the folder and never write into it."""
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # the workers' folders sit side by side in the run's own folder
+    folder, done = base / name, base / f"{name}.done"
+    with open(base / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            make(folder)
+            done.touch()
+    return folder
+
+
+def free_gauge_config(output_dir: str, steps: int = 12):
+    """The tiny configuration with every pose free (no fixed scan: the field holds the frame)."""
+    config = make_tiny_config(output_dir, steps=steps)
+    config.train.fixed_scans = ()
+    return config
+
+
+@pytest.fixture(scope="session")
+def free_gauge_run(tmp_path_factory) -> Path:
+    """The output folder of one whole run (run.run) of free_gauge_config, 12 steps, the Rerun recording included."""
+    from neld_jax import run
+
+    return made_once(tmp_path_factory, "free_gauge_run",
+                     lambda folder: run.run(free_gauge_config(str(folder)), progress=False))
 
 
 def sphere_plan(num_scans: int = 3, per_scan: int = 64, seed: int = 0, window: int = 0, overlap: int = 1,

@@ -7,7 +7,7 @@ import logging
 
 import numpy as np
 import pytest
-from conftest import make_tiny_config, train_a_download_briefly
+from conftest import first_sweeps_of_the_loop, make_tiny_config, train_a_download_briefly
 
 from neld_jax import metrics, run
 from neld_jax.data import odometry
@@ -27,10 +27,8 @@ NUM_SWEEPS, RATE_HZ = 40, 10.0
 
 
 def _sweeps(seed: int = 0):
-    seq = make_sequence({**SWEEPS, "seed": seed}, rate_hz=RATE_HZ)  # the first 40 of a 300-sweep loop
-    keep = slice(0, NUM_SWEEPS)
-    return dataclasses.replace(seq, scans=seq.scans[:NUM_SWEEPS], point_times=seq.point_times[:NUM_SWEEPS],
-                               timestamps=seq.timestamps[keep], gt_poses=seq.gt_poses[keep])
+    """The first 40 sweeps of make_sequence({**SWEEPS, "seed": seed}, rate_hz=RATE_HZ), the 300-sweep loop."""
+    return first_sweeps_of_the_loop(NUM_SWEEPS, SWEEPS["num_scans"], seed, RATE_HZ)
 
 
 @pytest.fixture(scope="module")

@@ -9,14 +9,14 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import make_tiny_config
+from conftest import first_sweeps_of_the_loop, make_tiny_config
 
 from neld_jax import metrics
 from neld_jax.data import sweep_times
 from neld_jax.data.formats import load_sequence
 from neld_jax.data.generic import POINT_TIMES_FOLDER
 from neld_jax.data.sweep_times import VELODYNE, SweepConvention, azimuth_times, turn_fractions, with_azimuth_times
-from neld_jax.data.synthetic import make_sequence, write_generic
+from neld_jax.data.synthetic import write_generic
 
 # 20 raw sweeps at 10 Hz, 2.1 m/s round a 10 m loop (0.2 m a sweep), 32 beams x 512 columns, 40 m range
 SWEEPS = {"num_scans": 300, "trajectory_radius_m": 10.0, "max_range_m": 40.0, "gt_map_points": 0}
@@ -30,10 +30,8 @@ TIME_TOLERANCE_S = 1e-9
 
 @pytest.fixture(scope="module")
 def sweeps():
-    seq = make_sequence(SWEEPS, rate_hz=RATE_HZ)
-    keep = slice(0, NUM_SWEEPS)
-    return dataclasses.replace(seq, scans=seq.scans[keep], point_times=seq.point_times[keep],
-                               timestamps=seq.timestamps[keep], gt_poses=seq.gt_poses[keep])
+    """The first 20 sweeps of make_sequence(SWEEPS, rate_hz=RATE_HZ), the 300-sweep loop."""
+    return first_sweeps_of_the_loop(NUM_SWEEPS, SWEEPS["num_scans"], rate_hz=RATE_HZ)
 
 
 @pytest.fixture(scope="module")

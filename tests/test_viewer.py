@@ -26,12 +26,8 @@ def read_recording(path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def recorded_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("viewer") / "run"
-    config = make_tiny_config(str(out), steps=12)
-    config.train.fixed_scans = ()
-    run.run(config, progress=False)
-    return out, read_recording(out / viewer.RECORDING)
+def recorded_run(free_gauge_run):
+    return free_gauge_run, read_recording(free_gauge_run / viewer.RECORDING)
 
 
 def test_the_recording_holds_the_runs_entities(recorded_run):

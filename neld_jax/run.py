@@ -74,7 +74,7 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     made = outputs.RunSteps(loaded, keyframes, begin, refined, render, registration)
     written = outputs.write_outputs(out_dir, config, made)
     T_all = written.trajectories["optimized"].poses
-    viewer.log_outputs(keyframes, refined, T_all)
+    viewer.log_outputs(keyframes, refined, T_all, recordings)
 
     # 6. Judge: crispness before and after, how sure, the per-scan report; ground truth where it exists; metrics.json;
     #    several recordings: each one's share there and in sessions/<k>_<name>/ (neld_jax.session_outputs).

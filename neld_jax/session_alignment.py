@@ -22,7 +22,10 @@ from neld_jax.geometry import invert_poses
 
 logger = logging.getLogger(__name__)
 
-LOCAL_MAP_HALF_WINDOW = 2  # a local map: a keyframe with the 2 before and after it, in its frame
+LOCAL_MAP_SPACING_M = 1.0  # local maps are centred on keyframes at least this far apart along the route ...
+LOCAL_MAP_HALF_WINDOW = 2  # ... each holds its keyframe with the 2 before and after it, in its frame ...
+LOCAL_MAP_HALF_PATH_M = 5.0  # ... or with those within 5 m of route either side where they are more ...
+MAX_LOCAL_MAP_HALF = 20  # ... but at most 20 either side
 CANDIDATES_PER_MAP = 5  # MapClosures' best matches asked for per local map of a later recording ...
 MAX_VERIFIED = 6  # ... of which the most inliers are registered, at most this many
 ENOUGH_CLOSURES = 2  # verification stops once this many overlap enough
@@ -37,38 +40,64 @@ ICP = BaselineSettings(voxel_size_m=0.2)
 class Closure:
     """A place seen by two recordings: keyframe `query` of the later one and keyframe `reference` of the first;
     transform [4, 4] maps the query keyframe's frame into the reference's; overlap: the share of the query's local
-    map within OVERLAP_DISTANCE_M of the reference's after registration; inliers: MapClosures' feature matches."""
+    map (or whole map) within OVERLAP_DISTANCE_M of the reference's after registration; inliers: MapClosures'
+    feature matches."""
 
     query: int
     reference: int
     transform: np.ndarray
     overlap: float
-    inliers: int
+    inliers: int  # 0: the whole maps registered (whole_map_closure)
 
     def record(self) -> dict:
         return {"keyframe": self.query, "first_keyframe": self.reference, "overlap": round(self.overlap, 4),
-                "map_closures_inliers": self.inliers}
+                "map_closures_inliers": self.inliers, "by": "local maps" if self.inliers else "whole maps"}
 
 
-def local_maps(scans: list[np.ndarray], poses: np.ndarray, half_window: int = LOCAL_MAP_HALF_WINDOW
-               ) -> list[np.ndarray]:
-    """Each keyframe's local map: scans (K arrays [N_i, 3], sensor frames) of the keyframes within half_window of
-    it under poses [K, 4, 4], in its own frame -> K arrays [M_k, 3]."""
-    maps = []
-    for centre in range(len(scans)):
+def local_map_centres(poses: np.ndarray, spacing_m: float = LOCAL_MAP_SPACING_M) -> np.ndarray:
+    """[C] int64: the keyframes (poses [K, 4, 4], in order) whose local maps are matched: the first, then each
+    one at least spacing_m of route after the last chosen."""
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    path = np.concatenate([[0.0], np.cumsum(steps)])
+    centres = [0]
+    for k in range(1, len(poses)):
+        if path[k] - path[centres[-1]] >= spacing_m:
+            centres.append(k)
+    return np.asarray(centres, np.int64)
+
+
+def local_map_members(poses: np.ndarray, centre: int, half_window: int = LOCAL_MAP_HALF_WINDOW,
+                      half_path_m: float = LOCAL_MAP_HALF_PATH_M) -> range:
+    """Which keyframes make keyframe centre's local map (poses [K, 4, 4], in order): those within half_window of
+    it, or within half_path_m of route of it where that holds more (dense keyframes), at most MAX_LOCAL_MAP_HALF
+    either side."""
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    path = np.concatenate([[0.0], np.cumsum(steps)])
+    near = np.flatnonzero(np.abs(path - path[centre]) <= half_path_m)
+    first = max(0, centre - MAX_LOCAL_MAP_HALF, min(centre - half_window, int(near[0])))
+    last = min(len(poses) - 1, centre + MAX_LOCAL_MAP_HALF, max(centre + half_window, int(near[-1])))
+    return range(first, last + 1)
+
+
+def local_maps(scans: list[np.ndarray], poses: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The local maps of a recording's keyframes (scans: K arrays [N_i, 3], sensor frames; poses [K, 4, 4]) ->
+    (their centres [C] (local_map_centres), C arrays [M_c, 3]: each centre's local_map_members in its frame)."""
+    centres, maps = local_map_centres(poses), []
+    for centre in centres:
         into_centre = invert_poses(poses[centre])
         parts = []
-        for k in range(max(0, centre - half_window), min(len(scans), centre + half_window + 1)):
+        for k in local_map_members(poses, int(centre)):
             relative = into_centre @ poses[k]
             parts.append(scans[k] @ relative[:3, :3].T + relative[:3, 3])
         maps.append(np.concatenate(parts))
-    return maps
+    return centres, maps
 
 
 def place_candidates(reference_maps: list[np.ndarray], query_maps: list[np.ndarray],
                      per_map: int = CANDIDATES_PER_MAP) -> list[tuple[int, int, int]]:
-    """MapClosures' matches of each query local map among the reference ones -> [(query k, reference j, inliers)],
-    most inliers first."""
+    """MapClosures' matches of each query local map among the reference ones -> [(query k, reference j, inliers)]
+    (indices into the lists; at most per_map per query map), most inliers first. Every match is asked for: the
+    query's own neighbours in its recording, added before it, match best and would fill a top k."""
     from map_closures.map_closures import MapClosures
 
     closures = MapClosures()
@@ -76,10 +105,10 @@ def place_candidates(reference_maps: list[np.ndarray], query_maps: list[np.ndarr
         closures.get_best_closure(j, points)  # adds map j to the database
     found, first = [], len(reference_maps)
     for k, points in enumerate(query_maps):
-        for candidate in closures.get_top_k_closures(first + k, points, per_map):
-            reference = min(candidate.source_id, candidate.target_id)
-            if reference < first and max(candidate.source_id, candidate.target_id) == first + k:
-                found.append((k, reference, int(candidate.number_of_inliers)))
+        matches = [(min(c.source_id, c.target_id), int(c.number_of_inliers))
+                   for c in closures.get_top_k_closures(first + k, points, first + k)]
+        across = sorted(((j, inliers) for j, inliers in matches if j < first), key=lambda m: -m[1])
+        found.extend((k, j, inliers) for j, inliers in across[:per_map])
     return sorted(found, key=lambda c: -c[2])
 
 
@@ -98,18 +127,34 @@ def verify(query_map: np.ndarray, reference_map: np.ndarray) -> tuple[np.ndarray
 def find_closures(reference: tuple[list, np.ndarray], query: tuple[list, np.ndarray]) -> list[Closure]:
     """The places a later recording shares with the first: reference and query are (keyframe scans, their poses
     [K, 4, 4] in the recording's own frame). MapClosures' candidates verified (verify) in order of inliers, at most
-    MAX_VERIFIED, until ENOUGH_CLOSURES overlap MIN_OVERLAP -> every one verified, best overlap first (an empty
-    list where MapClosures finds no candidate)."""
-    reference_maps, query_maps = local_maps(*reference), local_maps(*query)
+    MAX_VERIFIED, until ENOUGH_CLOSURES overlap MIN_OVERLAP, and where none does the whole maps
+    (whole_map_closure) -> every closure tried, best overlap first."""
+    (reference_centres, reference_maps), (query_centres, query_maps) = local_maps(*reference), local_maps(*query)
     candidates = place_candidates(reference_maps, query_maps)
-    logger.info("place recognition (MapClosures): %d candidate places between the recordings", len(candidates))
+    logger.info("place recognition (MapClosures): %d candidate places between the recordings' %d and %d local "
+                "maps", len(candidates), len(reference_maps), len(query_maps))
     closures = []
     for k, j, inliers in candidates[:MAX_VERIFIED]:
         transform, overlap = verify(query_maps[k], reference_maps[j])
-        closures.append(Closure(k, j, transform, overlap, inliers))
+        closures.append(Closure(int(query_centres[k]), int(reference_centres[j]), transform, overlap, inliers))
         if sum(c.overlap >= MIN_OVERLAP for c in closures) >= ENOUGH_CLOSURES:
             break
+    if not any(c.overlap >= MIN_OVERLAP for c in closures):
+        closures.append(whole_map_closure(reference, query))
     return sorted(closures, key=lambda c: -c.overlap)
+
+
+def whole_map_closure(reference: tuple[list, np.ndarray], query: tuple[list, np.ndarray]) -> Closure:
+    """Where no local maps match (MapClosures found HKU_2's two halves no candidate): the later recording's whole
+    raw map registered to the first one's (verify), each in its keyframe 0's frame; a Closure between the two
+    keyframes 0. Fits recordings whose own poses hold over their route (a LiDAR-inertial odometry's)."""
+    maps = []
+    for scans, poses in (reference, query):
+        into_first = invert_poses(poses[0]) @ poses
+        maps.append(np.concatenate([scan @ pose[:3, :3].T + pose[:3, 3] for scan, pose in zip(scans, into_first)]))
+    transform, overlap = verify(maps[1], maps[0])
+    logger.info("whole maps registered: overlap %.0f%%", 100 * overlap)
+    return Closure(0, 0, transform, overlap, 0)
 
 
 def frame_to_first(closure: Closure, reference_poses: np.ndarray, query_poses: np.ndarray) -> np.ndarray:

@@ -1,8 +1,9 @@
 """Recordings of one place put in one frame: each recording after the first is placed in the first one's frame by
 place recognition between the recordings' local maps (MapClosures, the loop detector of KISS-SLAM: BEV density
 maps matched by ORB features), each candidate registered from no guess (FPFH + RANSAC, then ICP: MapClosures' own
-2-D alignment was metres off on the synthetic courtyard) and kept by its overlap. A recording that matches no place of the first stops the
-run with one line naming it and the best overlap found: a merged map is never written with a recording misplaced.
+2-D alignment was metres off on the synthetic courtyard) and kept by its overlap; where no local maps match, the
+whole maps are registered so. A recording that matches no place of the first stops the run with one line naming it
+and the best overlap found: a merged map is never written with a recording misplaced.
 
 `load_sessions` is step 1 of a run for `data.root` naming several folders (neld_jax.data.sessions): each recording
 loaded as one sequence would be, aligned, and joined into the one sequence the run trains on.

@@ -4,7 +4,6 @@ unoccluded, so that the map covers what the scans observed without the gaps betw
 
 from __future__ import annotations
 
-import logging
 from typing import TYPE_CHECKING
 
 import numpy as np

@@ -104,11 +104,11 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, made: RunStep
 
 
 def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, written: RunArtifacts,
-              budget: TimeBudget, progress: bool = True) -> tuple[dict, list[dict]]:
-    """The verdict of a run: metrics.json (run, scans_report, crispness; evaluation where ground truth exists),
-    built here and written once, whole (a rerun into the folder inherits nothing of an earlier metrics.json),
-    history.json, scans_report.csv / .png, map_topdown.png and the evaluation's plots. Returns (metrics.json's
-    content, the per-scan report's rows)."""
+              budget: TimeBudget, progress: bool = True, sections: dict | None = None) -> tuple[dict, list[dict]]:
+    """The verdict of a run: metrics.json (run, scans_report, crispness; evaluation where ground truth exists; and
+    the caller's `sections`, e.g. a run over several recordings' "sessions"), built here and written once, whole (a
+    rerun into the folder inherits nothing of an earlier metrics.json), history.json, scans_report.csv / .png,
+    map_topdown.png and the evaluation's plots. Returns (metrics.json's content, the per-scan report's rows)."""
     keyframes, refined = made.keyframes, made.refined
     crisp, per_scan_entropy, margins = judge_crispness(config, made, budget, progress)
     rows = write_scan_report(out_dir, made, written.trajectories["optimized"].poses, per_scan_entropy,
@@ -123,6 +123,7 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, w
                     "gt_map": None if written.gt_map is None else os.path.join(out_dir, "map_gt.ply")}
         summary["evaluation"] = evaluation_record(out_dir, written, EvalSettings(map_icp_m=float(config.eval.map_icp_m)),
                                                   gt_files)
+    summary.update(sections or {})
     write_json(os.path.join(out_dir, "metrics.json"), summary, merge=False)
     with open(os.path.join(out_dir, "history.json"), "w") as f:
         json.dump(refined.result.history, f)

@@ -16,9 +16,9 @@ import logging
 import jax
 import ml_collections
 
-from neld_jax import mapping, output_folder, outputs, refine, register_scans, start, train
+from neld_jax import mapping, output_folder, outputs, refine, register_scans, session_outputs, start, train
 from neld_jax.budget import TimeBudget
-from neld_jax.data.preprocess import load_keyframes
+from neld_jax.session_alignment import load_sessions
 from neld_jax.viewer import RunViewer
 
 logger = logging.getLogger(__name__)
@@ -39,8 +39,8 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     """The steps of `run` in its prepared output folder."""
     config_hash = outputs.config_hash(config)
 
-    # 1. Load every input scan, and the preprocessed keyframes training works on (neld_jax.data.preprocess).
-    loaded, keyframes = load_keyframes(config.data)
+    # 1. Load every input scan and the keyframes trained on; several recordings joined (neld_jax.session_alignment).
+    loaded, keyframes, recordings = load_sessions(config.data)
     budget = budget.reserving_registration(loaded.num_scans - keyframes.num_scans)  # step 5's share of the clock
     logger.info("budget %s on jax's %s backend: %s", config.budget, jax.default_backend(), budget.describe())
     viewer.log_input(loaded, keyframes)
@@ -74,9 +74,12 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     made = outputs.RunSteps(loaded, keyframes, begin, refined, render, registration)
     written = outputs.write_outputs(out_dir, config, made)
     T_all = written.trajectories["optimized"].poses
-    viewer.log_outputs(keyframes, refined, T_all)
+    viewer.log_outputs(keyframes, refined, T_all, recordings)
 
-    # 6. Judge: crispness before and after, how sure, the per-scan report; ground truth where it exists; metrics.json.
-    summary, scan_rows = outputs.judge_run(out_dir, config, made, written, budget, progress)
+    # 6. Judge: crispness before and after, how sure, the per-scan report; ground truth where it exists; metrics.json;
+    #    several recordings: each one's share there and in sessions/<k>_<name>/ (neld_jax.session_outputs).
+    sections = session_outputs.sections(recordings, keyframes, refined.poses, written, config.eval)
+    summary, scan_rows = outputs.judge_run(out_dir, config, made, written, budget, progress, sections)
+    session_outputs.write_session_files(out_dir, recordings, written, scan_rows)
     viewer.log_verdict(scan_rows, loaded, T_all)
     return summary

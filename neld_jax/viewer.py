@@ -47,6 +47,7 @@ FLAG_COLOUR = (230, 40, 40)
 SCAN_COLOUR = (200, 200, 200)
 TRAJECTORY_COLOURS = {"input": (150, 150, 150), "baseline": (60, 130, 230), "refined": (40, 200, 90),
                       "gt": (240, 180, 20), "training": (200, 90, 220)}
+SESSION_COLOURS = ((40, 200, 90), (230, 120, 30), (60, 130, 230), (200, 90, 220), (240, 180, 20), (30, 190, 190))
 SCALARS = {"loss": "loss", "range_err_m": "range_err_m", "alpha": "frequency", "field_lr": "lr/field",
            "pose_lr_trans": "lr/pose_trans", "pose_lr_rot": "lr/pose_rot"}
 
@@ -151,14 +152,32 @@ class RunViewer:
             self._map("rendered", render.points)
 
     @_timed
-    def log_outputs(self, keyframes, refined, T_all: np.ndarray) -> None:
+    def log_outputs(self, keyframes, refined, T_all: np.ndarray, recordings=None) -> None:
         """Step 5: the refined trajectory (every input scan, as poses_optimized.txt), its markers and raw map, and
-        the training curves a resumed run's earlier part logged before this process."""
+        the training curves a resumed run's earlier part logged before this process; several recordings
+        (recordings: neld_jax.data.sessions.Sessions): each one's trajectory and raw map in its own colour."""
         for entry in refined.result.history:
             if int(entry["step"]) not in self._logged_steps:
                 self._log_training_entry(entry, None)
         self._trajectory("refined", T_all, refined.poses)
         self._map("raw_refined", register_scans(keyframes.scans, refined.poses))
+        if recordings is not None:
+            self._recordings(recordings, keyframes, refined.poses, T_all)
+
+    def _recordings(self, recordings, keyframes, keyframe_poses: np.ndarray, T_all: np.ndarray) -> None:
+        """world/sessions/<name>/trajectory and .../map: each recording's refined trajectory (T_all [S, 4, 4], every
+        joined input scan) and its keyframes' raw map (keyframe_poses [K, 4, 4]) in SESSION_COLOURS."""
+        import rerun as rr
+
+        for r, name in enumerate(recordings.names):
+            colour = SESSION_COLOURS[r % len(SESSION_COLOURS)]
+            part = recordings.keyframes_of(r)
+            points = thin_for_viewing(register_scans(keyframes.scans[part], keyframe_poses[part]),
+                                      MAX_MAP_POINTS // recordings.count)
+            self._stream.log(f"world/sessions/{name}/trajectory",
+                             rr.LineStrips3D([T_all[recordings.scans_of(r), :3, 3]], colors=[colour]), static=True)
+            self._stream.log(f"world/sessions/{name}/map", rr.Points3D(points, colors=[colour], radii=0.02),
+                             static=True)
 
     @_timed
     def log_verdict(self, rows: list[dict], loaded, T_all: np.ndarray) -> None:

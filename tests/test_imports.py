@@ -16,10 +16,11 @@ LAYERS = [
     ("model", {"field", "model"}),
     ("trainer", {"train", "checkpoint"}),
     ("data", {"data"}),
-    ("library", {"config", "submaps", "crispness", "metrics", "trajectory", "report", "judge", "baseline", "budget"}),
+    ("library", {"config", "submaps", "crispness", "metrics", "trajectory", "report", "judge", "baseline", "budget",
+                 "session_alignment"}),
     ("steps", {"refine", "mapping", "start", "register_scans"}),
     ("edge", {"run", "outputs", "output_folder", "export", "evaluate", "plots", "viewer", "cli", "hugepages",
-              "commands"}),
+              "commands", "session_outputs"}),
 ]
 
 

@@ -19,6 +19,14 @@ and no poses: a car's 10 Hz scans along the courtyards' route (num_scans over ro
     neld-make-synthetic --config=configs/demo.py --root=/tmp/car --config.data.synthetic.route=car \
         --config.data.synthetic.num_beams=64 --config.data.synthetic.num_scans=400 \
         --config.data.synthetic.route_length_m=320 --config.data.synthetic.max_range_m=80
+
+--session=K writes the K-th visit of the same courtyard (K = 0, 1, ...: another loop each, its own drift and noise,
+the initial poses in its own frame with its first scan at the identity, the ground truth in the scene's frame shared
+by every visit); several visits make one run (docs/sessions.md):
+
+    neld-make-synthetic --config=configs/demo.py --root=/tmp/visit0 --session=0
+    neld-make-synthetic --config=configs/demo.py --root=/tmp/visit1 --session=1
+    neld-train --config=configs/generic.py:cpu --config.data.root=/tmp/visit0,/tmp/visit1
 """
 
 from absl import flags
@@ -29,12 +37,14 @@ ROOT = flags.DEFINE_string("root", None, "Folder to write the sequence to (scans
 flags.mark_flag_as_required("root")
 RATE_HZ = flags.DEFINE_float("rate_hz", 0.0, "Raw sweeps at this rate (0: one rigid scan every 3 s, with drifted "
                              "initial poses).")
+SESSION = flags.DEFINE_integer("session", None, "Write the K-th visit of the scene (K >= 0): its own loop, drift "
+                               "and frame; ground truth in the scene's frame.")
 
 
 def job(config) -> None:
     from neld_jax.data.synthetic import make_sequence, write_generic
 
-    seq = make_sequence(config.data.synthetic, rate_hz=RATE_HZ.value)
+    seq = make_sequence(config.data.synthetic, rate_hz=RATE_HZ.value, session=SESSION.value)
     write_generic(seq, ROOT.value)
     if seq.point_times is not None:
         kind = f"raw {RATE_HZ.value:g} Hz sweeps (no poses)"

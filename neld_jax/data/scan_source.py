@@ -111,6 +111,19 @@ class HeldScans(LazyScans):
         return self.items[i]
 
 
+class Joined(LazyScans):
+    """The items of several sources one after another (as one list would hold them), made on access."""
+
+    def __init__(self, sources: list):
+        self.sources = [lazy(source) for source in sources]
+        self.offsets = np.cumsum([0] + [len(source) for source in self.sources])
+        super().__init__(int(self.offsets[-1]))
+
+    def _make(self, i: int):
+        part = int(np.searchsorted(self.offsets, i, side="right")) - 1
+        return self.sources[part][i - int(self.offsets[part])]
+
+
 def lazy(items) -> LazyScans:
     """items as a LazyScans: itself when it is one, else a HeldScans of the list."""
     return items if isinstance(items, LazyScans) else HeldScans(list(items))

@@ -15,6 +15,7 @@ import os
 
 import numpy as np
 
+from neld_jax.data.scan_source import Joined, is_lazy
 from neld_jax.data.sequence import Sequence
 
 logger = logging.getLogger(__name__)
@@ -97,13 +98,21 @@ def _joined(parts: list, shifts: np.ndarray, to_first: np.ndarray, names: list[s
     index = None if index_offsets is None else np.concatenate(
         [seq.loaded_index + offset for seq, offset in zip(parts, index_offsets)])
     return Sequence(
-        scans=[scan for seq in parts for scan in seq.scans],
+        scans=_joined_items([seq.scans for seq in parts]),
         poses=np.concatenate([transform @ seq.poses for seq, transform in zip(parts, to_first)]),
         timestamps=np.concatenate(stamps), gt_poses=None if gt_poses is None else np.concatenate(gt_poses),
         gt_map=None if gt_map is None else np.concatenate(gt_map), name="+".join(seq.name for seq in parts),
         source=",".join(seq.source for seq in parts), files=files, source_index=index,
-        point_times=None if times is None else [t for seq_times in times for t in seq_times],
+        point_times=None if times is None else _joined_items(times),
         poses_from="kiss_icp" if all(seq.poses_from == "kiss_icp" for seq in parts) else "")
+
+
+def _joined_items(parts: list) -> list | Joined:
+    """The recordings' scans (or point times) one after another: read when used where any recording's are (so a
+    long recording is not read into memory by joining it), else one list of the held arrays."""
+    if any(is_lazy(items) for items in parts):
+        return Joined(parts)
+    return [item for items in parts for item in items]
 
 
 def concatenate(loaded: list[Sequence], keyframes: list[Sequence], to_first: np.ndarray, names: list[str]

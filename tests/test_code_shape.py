@@ -9,11 +9,6 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "neld_jax"
 MAX_LINES = 60
 MAX_PARAMETERS = 8
 EXEMPT = {"config.defaults"}  # one line a field: longer as the config grows, by design
-# Functions over a limit today, still being reshaped: each is named here until it is within the limits, and then
-# must leave the list (test_every_allowed_function_is_still_over_a_limit).
-ALLOWED = {
-    "data/synthetic.make_scene_meshes",
-}
 
 
 def parameter_count(function: ast.FunctionDef | ast.AsyncFunctionDef, in_class: bool) -> int:
@@ -60,14 +55,8 @@ def package_oversized() -> list[tuple[str, str, int, str]]:
 
 def test_no_function_is_over_the_limits():
     over = [f"{file}:{line} {name}: {what}" for name, file, line, what in package_oversized()
-            if name not in EXEMPT | ALLOWED]
+            if name not in EXEMPT]
     assert not over, "functions over the limits (split them; group what travels together):\n" + "\n".join(over)
-
-
-def test_every_allowed_function_is_still_over_a_limit():
-    still_over = {name for name, *_ in package_oversized()}
-    fixed = sorted(ALLOWED - still_over)
-    assert not fixed, f"within the limits now, remove from tests/test_code_shape.py's ALLOWED: {', '.join(fixed)}"
 
 
 def test_the_check_names_the_line_the_function_and_the_count():

@@ -113,16 +113,17 @@ def run_config(root: str, out_dir: str, synthetic: bool):
 
 @contextlib.contextmanager
 def watching_the_run(seen: dict):
-    """Within: neld_jax.run's load_keyframes and the odometry it calls are wrapped, so that `seen` gets the loaded
+    """Within: neld_jax.run's load_sessions and the odometry it calls are wrapped, so that `seen` gets the loaded
     sequence and keyframes ("loaded", "keyframes"), the raw sweeps KISS-ICP read ("raw": the layout's Sequence) and
     KISS-ICP's wall time ("odometry_s"), without loading or registering the scans twice."""
     from neld_jax import run as run_module
     from neld_jax.data import odometry
 
-    real_load, real_odometry = run_module.load_keyframes, odometry.with_kiss_icp_poses
+    real_load, real_odometry = run_module.load_sessions, odometry.with_kiss_icp_poses
 
-    def load_keyframes(*args, **kwargs):
-        seen["loaded"], seen["keyframes"] = out = real_load(*args, **kwargs)
+    def load_sessions(*args, **kwargs):
+        out = real_load(*args, **kwargs)
+        seen["loaded"], seen["keyframes"] = out[:2]
         return out
 
     def with_kiss_icp_poses(seq, *args, **kwargs):
@@ -132,11 +133,11 @@ def watching_the_run(seen: dict):
         seen["odometry_s"] = time.perf_counter() - t0
         return out
 
-    run_module.load_keyframes, odometry.with_kiss_icp_poses = load_keyframes, with_kiss_icp_poses
+    run_module.load_sessions, odometry.with_kiss_icp_poses = load_sessions, with_kiss_icp_poses
     try:
         yield seen
     finally:
-        run_module.load_keyframes, odometry.with_kiss_icp_poses = real_load, real_odometry
+        run_module.load_sessions, odometry.with_kiss_icp_poses = real_load, real_odometry
 
 
 @contextlib.contextmanager

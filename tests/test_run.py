@@ -77,21 +77,21 @@ def test_run_writes_outputs_and_resumes_after_a_kill(free_gauge_run, tmp_path, m
 
     # Data that changed under the same configuration (here: every initial pose shifted by 1 m, which moves the
     # cube; then one scan fewer) must not resume silently in another frame.
-    real_load = run.load_keyframes
+    real_load = run.load_sessions
 
     def load_changed(data_cfg, shift=1.0, drop=0):
-        _, seq = real_load(data_cfg)
+        _, seq, _ = real_load(data_cfg)
         keep = slice(0, seq.num_scans - drop)
         poses = seq.poses[keep].copy()
         poses[:, 0, 3] += shift
         seq = dataclasses.replace(seq, scans=seq.scans[keep], poses=poses, timestamps=None, gt_poses=None,
                                   source_index=None)
-        return seq, seq
+        return seq, seq, None
 
-    monkeypatch.setattr(run, "load_keyframes", load_changed)
+    monkeypatch.setattr(run, "load_sessions", load_changed)
     with pytest.raises(DataError, match=r"checkpoints was written for other data \(another plan of cubes"):
         run.run(free_gauge_config(str(out)), progress=False)
-    monkeypatch.setattr(run, "load_keyframes", lambda data_cfg: load_changed(data_cfg, shift=0.0, drop=1))
+    monkeypatch.setattr(run, "load_sessions", lambda data_cfg: load_changed(data_cfg, shift=0.0, drop=1))
     with pytest.raises(DataError, match=r"checkpoints was written for other data \(4 keyframes, now 3"):
         run.run(free_gauge_config(str(out)), progress=False)
     # config.json holds the settings as given, once: the resumed run wrote the same

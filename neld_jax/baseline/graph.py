@@ -77,13 +77,16 @@ def global_registration(source, target, source_features, target_features, settin
 
 class LoopClosures(NamedTuple):
     """What loop_closed_graph did: candidates registered by ICP, closures kept (all), pairs registered globally
-    and closures kept of those; links between recordings added as they were measured (Segments.links)."""
+    and closures kept of those; links between recordings added as they were measured (Segments.links), and the
+    candidates (ICP's) and closures kept (all) that join two recordings."""
 
     tried: int
     kept: int
     global_tried: int
     global_kept: int
     linked: int = 0
+    across_tried: int = 0
+    across_kept: int = 0
 
 
 def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineSettings, progress: bool = False,
@@ -118,8 +121,15 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
         _reg.global_optimization(graph, _reg.GlobalOptimizationLevenbergMarquardt(),
                                  _reg.GlobalOptimizationConvergenceCriteria(), option)
     optimized = np.stack([np.asarray(node.pose) for node in graph.nodes])
+    kept_pairs = [(edge.source_node_id, edge.target_node_id) for edge in closures + global_closures]
     return optimized, LoopClosures(len(loop_pairs), len(closures) + len(global_closures), len(global_pairs),
-                                   len(global_closures), len(linked))
+                                   len(global_closures), len(linked), _across(loop_pairs, segments),
+                                   _across(kept_pairs, segments))
+
+
+def _across(pairs: list[tuple[int, int]], segments: Segments) -> int:
+    """How many of the scan pairs join two recordings."""
+    return sum(segments.first_of(i) != segments.first_of(j) for i, j in pairs)
 
 
 def _chain_edges(clouds: list, chain_poses: np.ndarray, pairs: list[tuple[int, int]],

@@ -99,7 +99,7 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
             logger.info("baseline: pose graph with %d of %d loop-closure candidates (overlap >= %.0f%%), %d of them "
                         "from %d global registrations%s, in %.1f s", loops.kept, loops.tried,
                         100 * settings.min_loop_fitness, loops.global_kept, loops.global_tried,
-                        f", and {loops.linked} links between recordings" if segments.starts else "", seconds["graph"])
+                        _between_recordings(loops) if segments.starts else "", seconds["graph"])
         if settings.map_rounds > 0:
             t2 = time.perf_counter()
             optimized = _refined(clouds, scans, optimized, chain, settings, (on_round, deadline, progress), decided)
@@ -151,6 +151,12 @@ def _refined(clouds: list, scans: list[np.ndarray], optimized: np.ndarray, chain
                 "rejected by the gates)", refinement.rounds_done, time.perf_counter() - t0, 100 * refinement.rejected)
     decided.update(map_rounds_done=refinement.rounds_done, stopped_at_deadline=refinement.stopped)
     return optimized
+
+
+def _between_recordings(loops) -> str:
+    """The pose graph's joins between recordings, for the log (loops: graph.LoopClosures)."""
+    return (f"; between recordings {loops.across_kept} of {loops.across_tried} ICP candidates kept (with the global "
+            f"closures) and {loops.linked} links from the placing")
 
 
 def _entropy_text(entropy: dict) -> str:

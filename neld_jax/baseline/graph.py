@@ -96,35 +96,46 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
     Returns (poses [S, 4, 4] with poses[0] = chain_poses[0], what the loop closures did). progress: a progress bar
     over the loop-closure candidates. segments: recordings joined in one sequence: the chain's step into each later
     recording's first scan is no measurement (the chain restarted there) and joins the graph only weakly; the
-    placing's links join the recordings as certain edges (segments.links)."""
-    graph = _reg.PoseGraph()
-    for pose in chain_poses:
-        graph.nodes.append(_reg.PoseGraphNode(pose))
-    positions = chain_poses[:, :3, 3]
-    odometry_pairs, loop_pairs = candidate_pairs(positions, settings.loop_radius_m, settings.max_loops_per_scan,
-                                                 min_index_gap=settings.window)
-    graph.edges.extend(_chain_edges(clouds, chain_poses, odometry_pairs, settings, segments.starts))
+    placing's links join the recordings as certain edges (segments.links), and the loop closures are looked for
+    and registered once the chain and the links alone have brought the recordings together."""
+    chain_edges = _chain_edges(clouds, chain_poses, [(s, s + 1) for s in range(len(chain_poses) - 1)], settings,
+                               segments.starts)
+    linked = _link_edges(clouds, segments.links, settings)
+    # A later recording was placed against the first one's input poses, and the chain moved those: joined by the
+    # links first, the recordings lie within the loop gates' reach of each other.
+    start = _optimized(chain_poses, chain_edges + linked, settings) if linked else chain_poses
+    positions = start[:, :3, 3]
+    _, loop_pairs = candidate_pairs(positions, settings.loop_radius_m, settings.max_loops_per_scan,
+                                    min_index_gap=settings.window)
     # The chain's path length up to each scan: a global loop closure may correct loop_drift_fraction of the path.
     path_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
-    closures, drifted = _icp_closures(clouds, chain_poses, progress_bar("loop closures", progress, loop_pairs),
-                                      path_m, settings)
+    closures, drifted = _icp_closures(clouds, start, progress_bar("loop closures", progress, loop_pairs), path_m,
+                                      settings)
     closed = [(edge.source_node_id, edge.target_node_id) for edge in closures]
     global_pairs = _nearest_per_scan(_unexplained(drifted, closed, settings.window), positions,
                                      settings.global_loops_per_scan)
-    global_closures = _global_closures(clouds, chain_poses, global_pairs, path_m, settings)
-    linked = _link_edges(clouds, segments.links, settings)
-    graph.edges.extend(closures + global_closures + linked)
+    global_closures = _global_closures(clouds, start, global_pairs, path_m, settings)
+    optimized = _optimized(start, chain_edges + closures + global_closures + linked, settings)
+    kept_pairs = [(edge.source_node_id, edge.target_node_id) for edge in closures + global_closures]
+    return optimized, LoopClosures(len(loop_pairs), len(closures) + len(global_closures), len(global_pairs),
+                                   len(global_closures), len(linked), _across(loop_pairs, segments),
+                                   _across(kept_pairs, segments))
+
+
+def _optimized(poses: np.ndarray, edges: list, settings: BaselineSettings) -> np.ndarray:
+    """The pose graph of nodes at poses [S, 4, 4] and these edges, optimised by Levenberg-Marquardt with node 0 fixed
+    -> its poses [S, 4, 4]."""
+    graph = _reg.PoseGraph()
+    for pose in poses:
+        graph.nodes.append(_reg.PoseGraphNode(pose))
+    graph.edges.extend(edges)
     option = _reg.GlobalOptimizationOption(max_correspondence_distance=settings.information_distance_m,
                                            edge_prune_threshold=settings.edge_prune_threshold,
                                            preference_loop_closure=1.0, reference_node=0)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         _reg.global_optimization(graph, _reg.GlobalOptimizationLevenbergMarquardt(),
                                  _reg.GlobalOptimizationConvergenceCriteria(), option)
-    optimized = np.stack([np.asarray(node.pose) for node in graph.nodes])
-    kept_pairs = [(edge.source_node_id, edge.target_node_id) for edge in closures + global_closures]
-    return optimized, LoopClosures(len(loop_pairs), len(closures) + len(global_closures), len(global_pairs),
-                                   len(global_closures), len(linked), _across(loop_pairs, segments),
-                                   _across(kept_pairs, segments))
+    return np.stack([np.asarray(node.pose) for node in graph.nodes])
 
 
 def _across(pairs: list[tuple[int, int]], segments: Segments) -> int:

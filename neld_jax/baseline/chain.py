@@ -47,8 +47,8 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
         if s in segments.starts:  # a later recording: placed in the first one's frame, not linked to the one before
             poses.append(np.asarray(init_poses[s], np.float64))
             continue
-        pose, fitness[s], reason = _link(clouds, poses, init_poses, (segments.first_of(s), s), settings,
-                                         keep_input_tilt)
+        pose, fitness[s], reason = _link(clouds, poses, init_poses, s, settings, keep_input_tilt,
+                                         segments.first_of(s))
         if reason is not None:
             kept[reason[0]].append(reason[1])
         poses.append(pose)
@@ -77,12 +77,11 @@ def _given_up(s: int, num_scans: int, fitness: np.ndarray, settings: BaselineSet
     return False
 
 
-def _link(clouds: list, poses: list, init_poses: np.ndarray, first_and_s: tuple[int, int], settings: BaselineSettings,
-          keep_input_tilt: bool) -> tuple[np.ndarray, float, tuple[str, str] | None]:
-    """Scan s registered to the local map of the scans before it at poses (s of them, [4, 4]), from the first scan of
-    its recording on -> (its pose [4, 4], the link's fitness, None or (why it kept the odometry's increment: "overlap"
-    | "slide", the scan for the log))."""
-    first, s = first_and_s
+def _link(clouds: list, poses: list, init_poses: np.ndarray, s: int, settings: BaselineSettings,
+          keep_input_tilt: bool, first: int = 0) -> tuple[np.ndarray, float, tuple[str, str] | None]:
+    """Scan s registered to the local map of the scans before it at poses (s of them, [4, 4]), from scan `first` (its
+    recording's first) on -> (its pose [4, 4], the link's fitness, None or (why it kept the odometry's increment:
+    "overlap" | "slide", the scan for the log))."""
     guess = poses[s - 1] @ np.linalg.inv(init_poses[s - 1]) @ init_poses[s]  # the odometry's increment
     if keep_input_tilt:
         guess = with_up_axis_of(guess, init_poses[s])

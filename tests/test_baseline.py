@@ -373,6 +373,14 @@ def test_the_placings_links_join_the_recordings_in_the_pose_graph(drifted_sequen
     assert np.linalg.norm(unlinked[3:, :3, 3] - truth[3:, :3, 3], axis=1).min() > 0.1
 
 
+def test_over_joined_recordings_the_refinement_starts_from_the_graph(drifted_sequence):
+    seq = drifted_sequence
+    init, _ = _two_recordings(seq)
+    result = register_sequence(seq.scans, init, dataclasses.replace(SETTINGS, map_rounds=1),
+                               segments=Segments(starts=(3,)))
+    assert result.refined_from == "graph" and result.start_entropy is None
+
+
 def test_one_recording_gives_the_baselines_poses_bit_for_bit(drifted_sequence, registered):
     seq = drifted_sequence
     one = register_sequence(seq.scans, seq.poses, SETTINGS, segments=Segments())

@@ -102,7 +102,13 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
                         _between_recordings(loops) if segments.starts else "", seconds["graph"])
         if settings.map_rounds > 0:
             t2 = time.perf_counter()
-            optimized = _refined(clouds, scans, optimized, chain, settings, (on_round, deadline, progress), decided)
+            # Joined recordings: from the graph, since the chain leaves each later one where its placing put it, and two
+            # copies of a place further apart than the crispness radius look crisp (synthetic visits: docs/sessions.md).
+            compared = None if segments.starts and chain is not None else chain
+            if compared is None and chain is not None:
+                decided["refined_from"] = "graph"
+            optimized = _refined(clouds, scans, optimized, compared, settings, (on_round, deadline, progress),
+                                 decided)
             seconds["refinement"] = time.perf_counter() - t2
     # Re-anchor exactly on scan 0 (the gauge), whatever the optimiser did with the reference node.
     return BaselineResult(anchored(optimized, init_poses[0]), seconds=seconds, **decided)

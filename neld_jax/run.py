@@ -49,7 +49,7 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     #    (neld_jax.start); a resumed run keeps the start its first run chose.
     begin = start.Start.resumed(out_dir, config_hash, keyframes.poses)
     if begin is None:
-        begin = start.choose_start(config, keyframes, budget.baseline_deadline(), progress)
+        begin = start.choose_start(config, keyframes, budget.baseline_deadline(), progress, recordings)
         begin.save(out_dir, config_hash, keyframes.poses)
     viewer.log_start(loaded, keyframes, begin)
 

@@ -206,4 +206,6 @@ def load_sessions(data_cfg):
         closures.append(found)
     joined_loaded, joined_keyframes, sessions = data_sessions.concatenate(loaded, keyframes, np.stack(to_first), names)
     records = [[closure.record() for closure in found] for found in closures]
-    return joined_loaded, joined_keyframes, dataclasses.replace(sessions, closures=records)
+    transforms = [[closure.transform for closure in found] for found in closures]
+    return joined_loaded, joined_keyframes, dataclasses.replace(sessions, closures=records,
+                                                                closure_transforms=transforms)

@@ -28,7 +28,7 @@ import ml_collections
 import numpy as np
 
 from neld_jax import judge, metrics
-from neld_jax.baseline import BaselineSettings, register_sequence
+from neld_jax.baseline import BaselineSettings, Segments, register_sequence
 from neld_jax.errors import ConfigError, DataError
 from neld_jax.train import PoseSteps, fixed_rows
 
@@ -106,9 +106,11 @@ def _plain(report: dict) -> dict:
 
 
 def choose_start(config: ml_collections.ConfigDict, keyframes, deadline: float | None = None,
-                 progress: bool = False) -> Start:
+                 progress: bool = False, recordings=None) -> Start:
     """The start of training on `keyframes` (config.start.poses; module docstring). deadline: a time.perf_counter()
-    value after which the baseline's multi-view refinement registers no more scans (neld_jax.budget)."""
+    value after which the baseline's multi-view refinement registers no more scans (neld_jax.budget). recordings:
+    neld_jax.data.sessions.Sessions where keyframes joins several recordings (None: one): the baseline's chain
+    restarts at each later one's first keyframe, and the closures that placed it join its pose graph."""
     how = str(config.start.poses).lower()
     if how not in CHOICES:
         raise ConfigError(f"start.poses: unknown value {config.start.poses!r} ({' | '.join(CHOICES)})")
@@ -117,7 +119,7 @@ def choose_start(config: ml_collections.ConfigDict, keyframes, deadline: float |
         return Start(keyframes.poses, "input", PoseSteps.from_config(config))
     t0 = time.perf_counter()
     result = register_sequence(keyframes.scans, keyframes.poses, BaselineSettings.from_config(config),
-                               deadline=deadline, progress=progress)
+                               deadline=deadline, progress=progress, segments=segments_of(recordings))
     seconds = time.perf_counter() - t0
     baseline, report = result.poses, result.report()
     if report.get("stopped_at_deadline"):
@@ -141,6 +143,14 @@ def choose_start(config: ml_collections.ConfigDict, keyframes, deadline: float |
                   else PoseSteps.from_config(config))
     return Start(baseline if chosen == "baseline" else keyframes.poses, chosen, pose_steps, baseline, seconds, report,
                  departure_m, judged)
+
+
+def segments_of(recordings) -> Segments:
+    """The baseline's view of joined recordings (neld_jax.data.sessions.Sessions; None: one recording): where each
+    later one's keyframes begin, and the closures that placed it as links between keyframes."""
+    if recordings is None or recordings.count < 2:
+        return Segments()
+    return Segments(tuple(int(k) for k in recordings.keyframe_bounds[1:-1]), tuple(recordings.keyframe_links()))
 
 
 def pose_steps_from_baseline(config: ml_collections.ConfigDict, thickness_m: float | None) -> PoseSteps:

@@ -16,8 +16,9 @@ import open3d as o3d
 import pytest
 
 from neld_jax import baseline
-from neld_jax.baseline import (BaselineSettings, TargetIndex, candidate_pairs, loop_closed_graph, multiscale_icp,
-                              point_to_plane_icp, prepare_clouds, refine_against_map, register_sequence)
+from neld_jax.baseline import (BaselineSettings, Segments, TargetIndex, anchored, candidate_pairs, loop_closed_graph,
+                              multiscale_icp, point_to_plane_icp, prepare_clouds, refine_against_map,
+                              register_sequence)
 from neld_jax.data.preprocess import KeyframeSettings, preprocess
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.synthetic import make_sequence
@@ -326,6 +327,68 @@ def test_a_chain_still_running_at_the_deadline_is_given_up(drifted_sequence, mon
     assert result.map_rounds_done == 0 and result.stopped_at_deadline
 
 
+def _two_recordings(seq):
+    """The drifted sequence as two recordings joined: scans 0-2 under the input's drift, scans 3-5 placed in the first
+    one's frame 0.36 m off the truth (as a placing against the first recording's drifted input puts them), their
+    own steps exact -> (the joined input poses [6, 4, 4], the truth in the input's frame [6, 4, 4])."""
+    truth = anchored(seq.gt_poses, seq.poses[0])
+    off = np.eye(4)
+    off[:3, 3] = [0.3, -0.2, 0.0]
+    return np.concatenate([seq.poses[:3], off @ truth[3:]]), truth
+
+
+def test_the_chain_restarts_at_a_later_recordings_first_scan(drifted_sequence):
+    # Run on, the chain places scan 3 from scan 2 by the input's step and registers it to the first recording's
+    # map: the second recording takes on the first one's correction. Restarted, scan 3 keeps its input pose, and
+    # scans 4 and 5 register to the second recording's own scans only.
+    seq = drifted_sequence
+    init, _ = _two_recordings(seq)
+    clouds = prepare_clouds(seq.scans, SETTINGS)
+    restarted, fitness = baseline.scan_to_map_chain(clouds, init, SETTINGS, segments=Segments(starts=(3,)))
+    run_on, _ = baseline.scan_to_map_chain(clouds, init, SETTINGS)
+    np.testing.assert_array_equal(restarted[3], init[3])
+    np.testing.assert_array_equal(restarted[:3], run_on[:3])  # the first recording's chain as before
+    assert fitness[3] == 1.0
+    departure_m = np.linalg.norm(restarted[3:, :3, 3] - init[3:, :3, 3], axis=1)
+    assert departure_m.max() < 0.02  # its own steps, not the first recording's correction
+    angles = rotation_angles_deg(np.einsum("sji,sjk->sik", init[3:, :3, :3], restarted[3:, :3, :3]))
+    assert angles.max() < 0.2
+    carried_m = np.linalg.norm(run_on[3:, :3, 3] - init[3:, :3, 3], axis=1)
+    assert carried_m.min() > 0.1  # what the restart prevents
+
+
+def test_the_placings_links_join_the_recordings_in_the_pose_graph(drifted_sequence):
+    # The chain restarted in the second recording, 0.36 m off the first's: beyond the loop gates (0.2 m), so no
+    # loop closure joins them, but the placing's links (the true relative poses here) pull the second recording
+    # onto the first, and the chain's step into scan 3 (no measurement) does not hold it back.
+    seq = drifted_sequence
+    chain, truth = _two_recordings(seq)
+    chain[:3] = truth[:3]
+    clouds = prepare_clouds(seq.scans, SETTINGS)
+    links = tuple((i, j, np.linalg.inv(truth[j]) @ truth[i]) for i, j in ((3, 1), (5, 0)))
+    linked, loops = loop_closed_graph(clouds, chain, SETTINGS, segments=Segments((3,), links))
+    unlinked, _ = loop_closed_graph(clouds, chain, SETTINGS)
+    assert loops.linked == 2
+    assert np.linalg.norm(linked[:, :3, 3] - truth[:, :3, 3], axis=1).max() < 0.03
+    assert np.linalg.norm(unlinked[3:, :3, 3] - truth[3:, :3, 3], axis=1).min() > 0.1
+
+
+def test_over_joined_recordings_the_refinement_starts_from_the_graph(drifted_sequence):
+    seq = drifted_sequence
+    init, _ = _two_recordings(seq)
+    result = register_sequence(seq.scans, init, dataclasses.replace(SETTINGS, map_rounds=1),
+                               segments=Segments(starts=(3,)))
+    assert result.refined_from == "graph" and result.start_entropy is None
+
+
+def test_one_recording_gives_the_baselines_poses_bit_for_bit(drifted_sequence, registered):
+    seq = drifted_sequence
+    one = register_sequence(seq.scans, seq.poses, SETTINGS, segments=Segments())
+    np.testing.assert_array_equal(one.poses, registered.poses)
+    with pytest.raises(ValueError, match="segment starts must ascend"):
+        register_sequence(seq.scans, seq.poses, SETTINGS, segments=Segments(starts=(0,)))
+
+
 def test_multi_view_refinement_pulls_a_scan_onto_the_others_map_and_gates_a_far_one(drifted_sequence):
     # The scans lie where they were taken, but scan 2 is pushed off by 10 cm and 0.6 degrees and scan 3 by 1 m
     # (beyond max_loop_correction_m): the rounds bring scan 2 back onto the others' map, leave scan 3 where it
@@ -457,6 +520,26 @@ def test_global_registration_closes_a_loop_beyond_icps_reach(short_courtyard_rou
     poses, loops = loop_closed_graph(clouds, chain, dataclasses.replace(settings, global_loops_per_scan=0))
     assert loops.global_tried == loops.global_kept == 0
     assert ate(poses, seq.gt_poses)["translation_rmse_m"] > 0.5 * drifted
+
+
+def test_loop_closures_between_linked_recordings_pass_the_loop_gates(short_courtyard_route):
+    # The route's second half a recording of its own, restarted 0.85 m off the first: the closures
+    # where the route comes back to its start join the two recordings but lie beyond the loop gates; once the
+    # placing's links (two true relative poses at the join) have brought the recordings together, they pass them.
+    seq = short_courtyard_route
+    half = seq.num_scans // 2
+    off = np.eye(4)
+    off[:3, 3] = [0.6, 0.6, 0.0]
+    chain = np.concatenate([seq.gt_poses[:half], off @ seq.gt_poses[half:]])
+    settings = BaselineSettings(window=10, map_rounds=0, min_loop_fitness=0.2, global_loops_per_scan=0)
+    clouds = prepare_clouds(seq.scans, settings)
+    links = tuple((i, j, np.linalg.inv(seq.gt_poses[j]) @ seq.gt_poses[i]) for i, j in ((half, half - 1),
+                                                                                       (half + 1, half - 2)))
+    _, unlinked = loop_closed_graph(clouds, chain, settings, segments=Segments((half,)))
+    poses, linked = loop_closed_graph(clouds, chain, settings, segments=Segments((half,), links))
+    assert unlinked.across_tried > 0 and unlinked.across_kept == 0
+    assert linked.across_kept >= 1 and linked.linked == 2
+    assert ate(poses, seq.gt_poses)["translation_rmse_m"] < 0.005
 
 
 @pytest.mark.parametrize("num_targets, max_distance", [(2_000, 0.5), (2_000, 1.0), (20_000, 0.5)])

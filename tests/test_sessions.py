@@ -2,6 +2,7 @@
 recognition, global registration, overlap check), a recording of another place refused, the joined sequence, each
 recording's outputs and its ATE under one alignment shared by all."""
 
+import dataclasses
 import json
 import os
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 from conftest import make_tiny_config
-from neld_jax import run, session_alignment
+from neld_jax import baseline, run, session_alignment, start
 from neld_jax.data import sessions as data_sessions
 from neld_jax.data.preprocess import KeyframeSettings, preprocess
 from neld_jax.data.poses import read_tum
@@ -72,6 +73,24 @@ def test_joined_recordings_keep_their_frames_stamps_and_which_scans_are_whose():
     assert joined.files[5] == os.path.join("1_b", "0.pcd")
     assert data_sessions.session_roots(" /a/x , /b/y,") == ["/a/x", "/b/y"]
     assert data_sessions.session_names(["/a/x", "/b/y/"]) == ["0_x", "1_y"]
+
+
+def test_the_baseline_sees_where_each_later_recording_begins_and_the_closures_that_placed_it():
+    loaded = [_sequence(5, 100.0), _sequence(4, 0.0)]
+    every_scan = KeyframeSettings(keyframe_interval_s=2.0, voxel_size=0.0, min_range=0.0)
+    keyframes = [preprocess(seq, every_scan) for seq in loaded]
+    _, _, sessions = data_sessions.concatenate(loaded, keyframes, np.stack([np.eye(4), np.eye(4)]), ["0_a", "1_b"])
+    assert start.segments_of(None) == baseline.Segments()  # one recording: no restart, no link
+    assert start.segments_of(sessions).links == ()  # no closures recorded
+    place = _yaw_pose(10.0, (0.5, 0.0, 0.0))
+    closure = {"keyframe": 1, "first_keyframe": 2, "overlap": 0.8, "map_closures_inliers": 5, "by": "local maps"}
+    records = [[], [closure]]
+    sessions = dataclasses.replace(sessions, closures=records, closure_transforms=[[], [place]])
+    segments = start.segments_of(sessions)
+    first_of_second = int(sessions.keyframe_bounds[1])
+    assert first_of_second == keyframes[0].num_scans and segments.starts == (first_of_second,)
+    (i, j, transform), = segments.links
+    assert (i, j) == (first_of_second + 1, 2) and np.array_equal(transform, place)
 
 
 def test_one_shared_alignment_shows_a_misplaced_recording_that_its_own_would_hide():

@@ -40,7 +40,8 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
 The modules, one step each: `settings` (BaselineSettings), `icp` (the ICP kernels: prepared scans, the target
 index, point-to-plane ICP and its step, the information matrix; their sums in a fixed order, so that the same input
 gives the same poses bit for bit), `chain` (step 1), `graph` (steps 2 and 3, the global registration among them),
-`refine` (step 4) and `sequence` (`register_sequence`: arrays in, a BaselineResult out). Its command-line edge is
+`refine` (step 4), `segments` (recordings joined in one sequence: where the chain restarts, the links between
+them) and `sequence` (`register_sequence`: arrays in, a BaselineResult out). Its command-line edge is
 neld_jax.commands.baseline.
 """
 
@@ -50,10 +51,11 @@ from neld_jax.baseline.graph import (LoopClosures, candidate_pairs, fpfh_feature
 from neld_jax.baseline.icp import (IcpResult, TargetIndex, correction_m, information, multiscale_icp,
                                    point_to_plane_icp, point_to_plane_step, prepare_clouds, prepare_scan)
 from neld_jax.baseline.refine import Refinement, choose_refinement_start, refine_against_map
+from neld_jax.baseline.segments import Segments
 from neld_jax.baseline.sequence import BaselineResult, anchored, register_sequence
 from neld_jax.baseline.settings import BaselineSettings
 
-__all__ = ["TILT_MARGIN", "BaselineResult", "BaselineSettings", "IcpResult", "LoopClosures", "Refinement",
+__all__ = ["TILT_MARGIN", "BaselineResult", "BaselineSettings", "IcpResult", "LoopClosures", "Refinement", "Segments",
            "TargetIndex", "anchored", "candidate_pairs", "choose_chain", "choose_refinement_start", "correction_m",
            "fpfh_features", "global_registration", "information", "loop_closed_graph", "multiscale_icp",
            "point_to_plane_icp", "point_to_plane_step", "prepare_clouds", "prepare_scan", "refine_against_map",

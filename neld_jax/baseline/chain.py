@@ -12,6 +12,7 @@ import open3d as o3d
 
 from neld_jax import judge
 from neld_jax.baseline.icp import correction_m, multiscale_icp
+from neld_jax.baseline.segments import Segments
 from neld_jax.baseline.settings import BaselineSettings, first_items, progress_bar
 from neld_jax.geometry import with_up_axis_of
 
@@ -19,7 +20,8 @@ logger = logging.getLogger(__name__)
 
 
 def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSettings, keep_input_tilt: bool = False,
-                      deadline: float | None = None, progress: bool = False) -> tuple[np.ndarray | None, np.ndarray]:
+                      deadline: float | None = None, progress: bool = False, segments: Segments = Segments()
+                      ) -> tuple[np.ndarray | None, np.ndarray]:
     """Register each scan to the local map of the `settings.window` scans before it.
 
     clouds: S Open3D clouds (sensor frame, with normals); init_poses: [S, 4, 4] sensor -> world.
@@ -29,7 +31,9 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
     settings.max_link_correction_m, keeps the odometry's increment; one warning per reason lists those scans.
     poses is None when the chain was given up (settings.chain_min_median_overlap, or the time.perf_counter() value
     `deadline` passed before its last link; one warning says which); fitness then holds the links registered
-    before, NaN after. progress: a progress bar over the links.
+    before, NaN after. progress: a progress bar over the links. segments: recordings joined in one sequence; the
+    chain restarts at each one's first scan (it keeps its input pose, fitness 1) and the local maps of a recording's
+    scans hold only its own (neld_jax.baseline.segments).
     """
     poses = [np.asarray(init_poses[0], np.float64)]
     fitness = np.ones(len(clouds))
@@ -40,7 +44,11 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
         if _given_up(s, len(clouds), fitness, settings, deadline):
             fitness[s:] = np.nan
             break
-        pose, fitness[s], reason = _link(clouds, poses, init_poses, s, settings, keep_input_tilt)
+        if s in segments.starts:  # a later recording: placed in the first one's frame, not linked to the one before
+            poses.append(np.asarray(init_poses[s], np.float64))
+            continue
+        pose, fitness[s], reason = _link(clouds, poses, init_poses, s, settings, keep_input_tilt,
+                                         segments.first_of(s))
         if reason is not None:
             kept[reason[0]].append(reason[1])
         poses.append(pose)
@@ -70,14 +78,15 @@ def _given_up(s: int, num_scans: int, fitness: np.ndarray, settings: BaselineSet
 
 
 def _link(clouds: list, poses: list, init_poses: np.ndarray, s: int, settings: BaselineSettings,
-          keep_input_tilt: bool) -> tuple[np.ndarray, float, tuple[str, str] | None]:
-    """Scan s registered to the local map of the scans before it at poses (s of them, [4, 4]) -> (its pose [4, 4], the
-    link's fitness, None or (why it kept the odometry's increment: "overlap" | "slide", the scan for the log))."""
+          keep_input_tilt: bool, first: int = 0) -> tuple[np.ndarray, float, tuple[str, str] | None]:
+    """Scan s registered to the local map of the scans before it at poses (s of them, [4, 4]), from scan `first` (its
+    recording's first) on -> (its pose [4, 4], the link's fitness, None or (why it kept the odometry's increment:
+    "overlap" | "slide", the scan for the log))."""
     guess = poses[s - 1] @ np.linalg.inv(init_poses[s - 1]) @ init_poses[s]  # the odometry's increment
     if keep_input_tilt:
         guess = with_up_axis_of(guess, init_poses[s])
     local_map = o3d.geometry.PointCloud()
-    for k in range(max(0, s - settings.window), s):
+    for k in range(max(first, s - settings.window), s):
         local_map += o3d.geometry.PointCloud(clouds[k]).transform(poses[k])  # normals rotate along
     transform, result = multiscale_icp(clouds[s], local_map, guess, settings)
     moved_m = correction_m(guess, transform)

@@ -15,6 +15,7 @@ import numpy as np
 import open3d as o3d
 
 from neld_jax.baseline.icp import IcpResult, correction_m, information, multiscale_icp
+from neld_jax.baseline.segments import Segments
 from neld_jax.baseline.settings import BaselineSettings, progress_bar
 from neld_jax.data import feature_registration
 
@@ -76,58 +77,96 @@ def global_registration(source, target, source_features, target_features, settin
 
 class LoopClosures(NamedTuple):
     """What loop_closed_graph did: candidates registered by ICP, closures kept (all), pairs registered globally
-    and closures kept of those."""
+    and closures kept of those; links between recordings added as they were measured (Segments.links), and the
+    candidates (ICP's) and closures kept (all) that join two recordings."""
 
     tried: int
     kept: int
     global_tried: int
     global_kept: int
+    linked: int = 0
+    across_tried: int = 0
+    across_kept: int = 0
 
 
-
-def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineSettings, progress: bool = False
-                      ) -> tuple[np.ndarray, LoopClosures]:
+def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineSettings, progress: bool = False,
+                      segments: Segments = Segments()) -> tuple[np.ndarray, LoopClosures]:
     """The pose graph of the chain plus loop closures, optimised (scan 0 fixed).
 
     Returns (poses [S, 4, 4] with poses[0] = chain_poses[0], what the loop closures did). progress: a progress bar
-    over the loop-closure candidates."""
-    graph = _reg.PoseGraph()
-    for pose in chain_poses:
-        graph.nodes.append(_reg.PoseGraphNode(pose))
-    positions = chain_poses[:, :3, 3]
-    odometry_pairs, loop_pairs = candidate_pairs(positions, settings.loop_radius_m, settings.max_loops_per_scan,
-                                                 min_index_gap=settings.window)
-    graph.edges.extend(_chain_edges(clouds, chain_poses, odometry_pairs, settings))
+    over the loop-closure candidates. segments: recordings joined in one sequence: the chain's step into each later
+    recording's first scan is no measurement (the chain restarted there) and joins the graph only weakly; the
+    placing's links join the recordings as certain edges (segments.links), and the loop closures are looked for
+    and registered once the chain and the links alone have brought the recordings together."""
+    chain_edges = _chain_edges(clouds, chain_poses, [(s, s + 1) for s in range(len(chain_poses) - 1)], settings,
+                               segments.starts)
+    linked = _link_edges(clouds, segments.links, settings)
+    # A later recording was placed against the first one's input poses, and the chain moved those: joined by the
+    # links first, the recordings lie within the loop gates' reach of each other.
+    start = _optimized(chain_poses, chain_edges + linked, settings) if linked else chain_poses
+    positions = start[:, :3, 3]
+    _, loop_pairs = candidate_pairs(positions, settings.loop_radius_m, settings.max_loops_per_scan,
+                                    min_index_gap=settings.window)
     # The chain's path length up to each scan: a global loop closure may correct loop_drift_fraction of the path.
     path_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
-    closures, drifted = _icp_closures(clouds, chain_poses, progress_bar("loop closures", progress, loop_pairs),
-                                      path_m, settings)
+    closures, drifted = _icp_closures(clouds, start, progress_bar("loop closures", progress, loop_pairs), path_m,
+                                      settings)
     closed = [(edge.source_node_id, edge.target_node_id) for edge in closures]
     global_pairs = _nearest_per_scan(_unexplained(drifted, closed, settings.window), positions,
                                      settings.global_loops_per_scan)
-    global_closures = _global_closures(clouds, chain_poses, global_pairs, path_m, settings)
-    graph.edges.extend(closures + global_closures)
+    global_closures = _global_closures(clouds, start, global_pairs, path_m, settings)
+    optimized = _optimized(start, chain_edges + closures + global_closures + linked, settings)
+    kept_pairs = [(edge.source_node_id, edge.target_node_id) for edge in closures + global_closures]
+    return optimized, LoopClosures(len(loop_pairs), len(closures) + len(global_closures), len(global_pairs),
+                                   len(global_closures), len(linked), _across(loop_pairs, segments),
+                                   _across(kept_pairs, segments))
+
+
+def _optimized(poses: np.ndarray, edges: list, settings: BaselineSettings) -> np.ndarray:
+    """The pose graph of nodes at poses [S, 4, 4] and these edges, optimised by Levenberg-Marquardt with node 0 fixed
+    -> its poses [S, 4, 4]."""
+    graph = _reg.PoseGraph()
+    for pose in poses:
+        graph.nodes.append(_reg.PoseGraphNode(pose))
+    graph.edges.extend(edges)
     option = _reg.GlobalOptimizationOption(max_correspondence_distance=settings.information_distance_m,
                                            edge_prune_threshold=settings.edge_prune_threshold,
                                            preference_loop_closure=1.0, reference_node=0)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         _reg.global_optimization(graph, _reg.GlobalOptimizationLevenbergMarquardt(),
                                  _reg.GlobalOptimizationConvergenceCriteria(), option)
-    optimized = np.stack([np.asarray(node.pose) for node in graph.nodes])
-    return optimized, LoopClosures(len(loop_pairs), len(closures) + len(global_closures), len(global_pairs),
-                                   len(global_closures))
+    return np.stack([np.asarray(node.pose) for node in graph.nodes])
+
+
+def _across(pairs: list[tuple[int, int]], segments: Segments) -> int:
+    """How many of the scan pairs join two recordings."""
+    return sum(segments.first_of(i) != segments.first_of(j) for i, j in pairs)
 
 
 def _chain_edges(clouds: list, chain_poses: np.ndarray, pairs: list[tuple[int, int]],
-                 settings: BaselineSettings) -> list:
-    """The chain's links [(s, s + 1)] as certain edges (source s + 1, target s) mapping s + 1 into s."""
+                 settings: BaselineSettings, starts: tuple = ()) -> list:
+    """The chain's links [(s, s + 1)] as certain edges (source s + 1, target s) mapping s + 1 into s; into a
+    recording's first scan (starts) weakly, as one correspondence would: the chain restarted there."""
     edges = []
     for s, following in pairs:
         relative = np.linalg.inv(chain_poses[s]) @ chain_poses[following]
-        weight = information(clouds[following], clouds[s], relative, settings)
+        weight = np.eye(6) if following in starts else information(clouds[following], clouds[s], relative, settings)
         if weight[5, 5] <= 0:  # no correspondences at all: keep the link, weakly, so the graph stays connected
             weight = np.eye(6)
         edges.append(_reg.PoseGraphEdge(following, s, relative, weight, uncertain=False))
+    return edges
+
+
+def _link_edges(clouds: list, links: tuple, settings: BaselineSettings) -> list:
+    """Links between recordings ((i, j, transform [4, 4]) mapping scan i into scan j, Segments.links) as certain
+    edges, weighted by the scans' overlap at that transform: the placing registered and checked them on local maps,
+    and the chain may lie further from them than the loop gates allow (the first recording's drift correction)."""
+    edges = []
+    for i, j, transform in links:
+        weight = information(clouds[i], clouds[j], np.asarray(transform, np.float64), settings)
+        if weight[5, 5] <= 0:
+            weight = np.eye(6)
+        edges.append(_reg.PoseGraphEdge(int(i), int(j), np.asarray(transform, np.float64), weight, uncertain=False))
     return edges
 
 

@@ -15,6 +15,7 @@ from neld_jax.baseline.chain import choose_chain, scan_to_map_chain
 from neld_jax.baseline.graph import loop_closed_graph
 from neld_jax.baseline.icp import prepare_clouds
 from neld_jax.baseline.refine import choose_refinement_start, refine_against_map
+from neld_jax.baseline.segments import Segments
 from neld_jax.baseline.settings import BaselineSettings
 from neld_jax.geometry import anchored_on_first, nearest_rotations
 
@@ -54,7 +55,8 @@ class BaselineResult:
 def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
                       settings: BaselineSettings = BaselineSettings(),
                       on_round: Callable[[int, np.ndarray], None] | None = None,
-                      deadline: float | None = None, progress: bool = False) -> BaselineResult:
+                      deadline: float | None = None, progress: bool = False,
+                      segments: Segments = Segments()) -> BaselineResult:
     """The baseline: the scan-to-map chains (the input's tilt kept and free; the crisper goes on), the loop-closed
     pose graph, then the multi-view refinement from the crisper of the graph and the chain (neld_jax.baseline).
 
@@ -63,7 +65,9 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
     from too; they are the poses returned up to the final re-anchoring on scan 0 (one rigid transform).
     deadline: a time.perf_counter() value after which the multi-view refinement registers no more scans
     (`refine_against_map`) and a chain not yet finished is given up (`scan_to_map_chain`); the pose graph always
-    runs to the end. progress: progress bars over each step's registrations.
+    runs to the end. progress: progress bars over each step's registrations. segments: recordings joined in one
+    sequence (neld_jax.baseline.segments): the chains restart at each later one's first scan, and the placing's links
+    join the pose graph; none (one recording) changes nothing.
     """
     init_poses = np.asarray(init_poses, dtype=np.float64)
     if init_poses.ndim != 3 or init_poses.shape[1:] != (4, 4):
@@ -72,11 +76,17 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
         raise ValueError(f"{len(scans)} scans but {len(init_poses)} initial poses")
     if len(scans) < 2:
         return BaselineResult(init_poses.copy())
+    segments.check(len(scans))
+    if segments.starts:
+        logger.info("baseline: %d recordings joined: the chain restarts from the input pose at scan(s) %s (each later "
+                    "recording's first, placed in the first one's frame), and %d links from the placing join them in "
+                    "the pose graph", len(segments.starts) + 1, ", ".join(map(str, segments.starts)),
+                    len(segments.links))
     clouds = prepare_clouds(scans, settings)
     seconds = {}
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         t0 = time.perf_counter()
-        chain, decided = _chosen_chain(clouds, scans, init_poses, settings, deadline, progress)
+        chain, decided = _chosen_chain(clouds, scans, init_poses, settings, deadline, progress, segments)
         seconds["chains"] = time.perf_counter() - t0
         if chain is None:  # given up (scan_to_map_chain warned): no graph, the refinement starts from the input
             optimized = init_poses
@@ -84,27 +94,35 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
             logger.info("baseline: scan-to-map chain given up after %.1f s", seconds["chains"])
         else:
             t1 = time.perf_counter()
-            optimized, loops = loop_closed_graph(clouds, chain, settings, progress)
+            optimized, loops = loop_closed_graph(clouds, chain, settings, progress, segments)
             seconds["graph"] = time.perf_counter() - t1
             logger.info("baseline: pose graph with %d of %d loop-closure candidates (overlap >= %.0f%%), %d of them "
-                        "from %d global registrations, in %.1f s", loops.kept, loops.tried,
-                        100 * settings.min_loop_fitness, loops.global_kept, loops.global_tried, seconds["graph"])
+                        "from %d global registrations%s, in %.1f s", loops.kept, loops.tried,
+                        100 * settings.min_loop_fitness, loops.global_kept, loops.global_tried,
+                        _between_recordings(loops) if segments.starts else "", seconds["graph"])
         if settings.map_rounds > 0:
             t2 = time.perf_counter()
-            optimized = _refined(clouds, scans, optimized, chain, settings, (on_round, deadline, progress), decided)
+            # Joined recordings: from the graph, since the chain leaves each later one where its placing put it, and two
+            # copies of a place further apart than the crispness radius look crisp (synthetic visits: docs/sessions.md).
+            compared = None if segments.starts and chain is not None else chain
+            if compared is None and chain is not None:
+                decided["refined_from"] = "graph"
+            optimized = _refined(clouds, scans, optimized, compared, settings, (on_round, deadline, progress),
+                                 decided)
             seconds["refinement"] = time.perf_counter() - t2
     # Re-anchor exactly on scan 0 (the gauge), whatever the optimiser did with the reference node.
     return BaselineResult(anchored(optimized, init_poses[0]), seconds=seconds, **decided)
 
 
 def _chosen_chain(clouds: list, scans: list[np.ndarray], init_poses: np.ndarray, settings: BaselineSettings,
-                  deadline: float | None, progress: bool) -> tuple[np.ndarray | None, dict]:
+                  deadline: float | None, progress: bool, segments: Segments) -> tuple[np.ndarray | None, dict]:
     """Both chains (the input's tilt kept, free) and the one that goes on -> (its poses [S, 4, 4], None when given
     up; {"tilt", "chain_entropy", "chain_given_up"} for BaselineResult)."""
     t0 = time.perf_counter()
     chains, fitness = {}, {}
     for name, keep_tilt in (("input tilt", True), ("free", False)):
-        chains[name], fitness[name] = scan_to_map_chain(clouds, init_poses, settings, keep_tilt, deadline, progress)
+        chains[name], fitness[name] = scan_to_map_chain(clouds, init_poses, settings, keep_tilt, deadline, progress,
+                                                        segments)
     chosen, entropy = choose_chain(chains, scans, settings)
     chain = chains[chosen]
     if chain is not None:
@@ -139,6 +157,12 @@ def _refined(clouds: list, scans: list[np.ndarray], optimized: np.ndarray, chain
                 "rejected by the gates)", refinement.rounds_done, time.perf_counter() - t0, 100 * refinement.rejected)
     decided.update(map_rounds_done=refinement.rounds_done, stopped_at_deadline=refinement.stopped)
     return optimized
+
+
+def _between_recordings(loops) -> str:
+    """The pose graph's joins between recordings, for the log (loops: graph.LoopClosures)."""
+    return (f"; between recordings {loops.across_kept} of {loops.across_tried} ICP candidates kept (with the global "
+            f"closures) and {loops.linked} links from the placing")
 
 
 def _entropy_text(entropy: dict) -> str:

@@ -39,7 +39,8 @@ class Sessions:
     recording r holds the joined input scans scan_bounds[r]:scan_bounds[r + 1] (and keyframes likewise);
     time_shift_s [R]: what was added to its stamps; to_first [R, 4, 4]: its frame -> the first one's
     (to_first[0] the identity); closures [R]: each recording's places shared with the first, as metrics.json records
-    them ([] for the first)."""
+    them ([] for the first); closure_transforms [R]: each one's transforms [4, 4] in that order, mapping its keyframe
+    into the first recording's (`keyframe_links`)."""
 
     names: list
     scan_bounds: np.ndarray
@@ -47,6 +48,7 @@ class Sessions:
     time_shift_s: np.ndarray
     to_first: np.ndarray
     closures: list = dataclasses.field(default_factory=list)
+    closure_transforms: list = dataclasses.field(default_factory=list)
 
     @property
     def count(self) -> int:
@@ -65,6 +67,14 @@ class Sessions:
     def scan_labels(self) -> np.ndarray:
         """[S] int64: the recording of each joined input scan."""
         return np.repeat(np.arange(self.count), np.diff(self.scan_bounds))
+
+    def keyframe_links(self) -> list[tuple[int, int, np.ndarray]]:
+        """The closures as joined keyframes: [(keyframe i of a later recording, keyframe j of the first, transform
+        [4, 4] mapping keyframe i's frame into keyframe j's)]."""
+        return [(int(self.keyframe_bounds[r]) + closure["keyframe"], closure["first_keyframe"],
+                 np.asarray(transform, np.float64))
+                for r, (closures, transforms) in enumerate(zip(self.closures, self.closure_transforms))
+                for closure, transform in zip(closures, transforms)]
 
     def stamps(self, r: int, joined_stamps: np.ndarray) -> np.ndarray:
         """Recording r's own stamps [S_r] from the joined ones [S]."""

@@ -3,10 +3,11 @@ long its classical baseline or its map took (docs/design.md, "One run, top to bo
 
 The budget runs from the run's start. After training it keeps back `mapping.max_seconds` for the rendered map,
 REGISTRATION_S_PER_SCAN for each input scan that is not a keyframe (registered to the result after training; at
-most MAX_REGISTRATION_SHARE of the budget) and JUDGING_S for the crispness margins; training ends where that reserve begins, but always gets at least
-MIN_SHARE of its share of the budget, however long the baseline took before it; the baseline's multi-view
-refinement stops where only that floor would be left. A step that overran its share is paid back by the next
-(the render gets its seconds less the overrun, at least MIN_SHARE of them). A budget of 0 minutes has no limits.
+most MAX_REGISTRATION_SHARE of the budget) and JUDGING_S for the crispness margins and the last files; training
+ends where that reserve begins, but always gets at least MIN_SHARE of its share of the budget, however long the
+baseline took before it; the baseline's multi-view refinement stops where only that floor would be left. A step
+that overran its share is paid back by the next (the render gets its seconds less the overrun, at least MIN_SHARE
+of them). A budget of 0 minutes has no limits.
 """
 
 from __future__ import annotations
@@ -15,8 +16,10 @@ import dataclasses
 import time
 
 # Kept back at the end of the run for the crispness margins' query draws (a 1.5 M-point map: 15 s a draw of three
-# maps)
-JUDGING_S = 30.0
+# maps) and, after them, WRITING_S for the figures and files written last (map_topdown.png of two 400k-point maps
+# took 14 s on 2 cores)
+JUDGING_S = 45.0
+WRITING_S = 15.0
 # The floor of training's and of the render's share, whatever the steps before them took
 MIN_SHARE = 0.25
 # Kept back for each input scan registered to the result after training (neld_jax.register_scans), and the most of
@@ -90,13 +93,14 @@ class TimeBudget:
         return max(self.started + self.total_s - JUDGING_S, time.perf_counter() + MIN_SHARE * self.registration_s)
 
     def judging_deadline(self) -> float | None:
-        """A time.perf_counter() value after which no more query draws start (None: no limit)."""
-        return self.started + self.total_s if self.limited else None
+        """A time.perf_counter() value by which the query draws end, WRITING_S before the budget's end (None: no
+        limit)."""
+        return self.started + self.total_s - WRITING_S if self.limited else None
 
     def describe(self) -> str:
         if not self.limited:
             return "no time limit (max_minutes=0)"
         return (f"{self.total_s / 60:g} minutes: training until {self.training_share_s / 60:.1f} min, then "
                 f"{self.render_s:g} s for the rendered map, {self.registration_s:.0f} s for registering every other "
-                f"scan and {JUDGING_S:g} s for the crispness draws")
+                f"scan and {JUDGING_S:g} s for the crispness draws and the last files")
 

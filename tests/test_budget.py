@@ -3,7 +3,7 @@ seconds, the crispness draws' deadline, and no limit at 0 minutes."""
 
 import pytest
 
-from neld_jax.budget import JUDGING_S, TimeBudget
+from neld_jax.budget import JUDGING_S, WRITING_S, TimeBudget
 from neld_jax.config import defaults, with_budget
 
 
@@ -15,18 +15,18 @@ def _at(budget: TimeBudget, elapsed: float, monkeypatch) -> TimeBudget:
     return budget
 
 
-def test_the_cpu_budget_trains_until_eight_minutes_then_renders_and_judges(monkeypatch):
+def test_the_cpu_budget_trains_until_its_share_then_renders_and_judges(monkeypatch):
     config = with_budget(defaults(), "cpu")
     b = TimeBudget(60.0 * config.max_minutes, config.mapping.max_seconds, 100.0)
-    assert b.training_share_s == 60.0 * 9.5 - 60.0 - JUDGING_S == 480.0
-    assert _at(b, 0.0, monkeypatch).training_seconds() == 480.0
-    assert _at(b, 200.0, monkeypatch).training_seconds() == 280.0  # a 200 s baseline counts
-    assert _at(b, 400.0, monkeypatch).training_seconds() == 120.0  # but training gets at least a quarter
-    assert b.baseline_deadline() == 100.0 + 360.0  # where only training's floor is left
-    assert _at(b, 470.0, monkeypatch).render_seconds() == 60.0  # training ended on time: the map's whole share
-    assert _at(b, 500.0, monkeypatch).render_seconds() == 40.0  # 20 s late: given back from the map
-    assert _at(b, 560.0, monkeypatch).render_seconds() == 15.0  # at least a quarter of it
-    assert b.judging_deadline() == pytest.approx(100.0 + 570.0)
+    assert b.training_share_s == 60.0 * 9.5 - 60.0 - JUDGING_S == 465.0
+    assert _at(b, 0.0, monkeypatch).training_seconds() == 465.0
+    assert _at(b, 200.0, monkeypatch).training_seconds() == 265.0  # a 200 s baseline counts
+    assert _at(b, 400.0, monkeypatch).training_seconds() == 0.25 * 465.0  # but training gets at least a quarter
+    assert b.baseline_deadline() == 100.0 + 0.75 * 465.0  # where only training's floor is left
+    assert _at(b, 460.0, monkeypatch).render_seconds() == 60.0  # training ended on time: the map's whole share
+    assert _at(b, 485.0, monkeypatch).render_seconds() == 40.0  # 20 s late: given back from the map
+    assert _at(b, 545.0, monkeypatch).render_seconds() == 15.0  # at least a quarter of it
+    assert b.judging_deadline() == pytest.approx(100.0 + 570.0 - WRITING_S)  # the last files get their seconds
 
 
 def test_zero_minutes_is_no_limit(monkeypatch):

@@ -123,6 +123,22 @@ def test_the_margins_stop_drawing_at_the_runs_deadline(caplog):
     assert len(margins["initial"]["per_draw"]) == 4
 
 
+def test_no_draw_starts_that_would_end_past_the_deadline(monkeypatch):
+    """Each draw is timed; the next starts only if one as long would end by the deadline (a fake clock: 5 s a
+    reading, so a draw takes 5 s and the second would start at 10 s and end at 15 s)."""
+    import types
+
+    from neld_jax import crispness as crispness_module
+
+    readings = iter(np.arange(0.0, 100.0, 5.0))
+    monkeypatch.setattr(crispness_module, "time", types.SimpleNamespace(perf_counter=lambda: float(next(readings))))
+    rng = np.random.default_rng(7)
+    wall = np.c_[rng.uniform(0, 4, (600, 2)), rng.normal(0, 0.005, 600)]
+    drawn = entropy_over_query_draws({"a": wall}, [0, 1, 2], 100, deadline=12.0)
+    assert len(drawn["a"]) == 1
+    assert len(entropy_over_query_draws({"a": wall}, [0, 1, 2], 100, deadline=60.0)["a"]) == 3
+
+
 def test_each_maps_tree_is_built_once_for_all_draws(monkeypatch):
     from neld_jax import crispness as crispness_module
 

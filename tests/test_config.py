@@ -88,7 +88,7 @@ def test_gpu_budget_is_the_cpu_recipe_run_longer():
     assert (gpu.mapping.num_coarse, gpu.mapping.num_fine) == (128, 128)  # the paper's map
     assert gpu.mapping.max_seconds == 0 and cpu.mapping.max_seconds > 0  # every ray; on 2 cores, a time limit
     assert cpu.submaps.max_submaps == 32 and gpu.submaps.max_submaps == 0  # the cpu budget's step stays small
-    assert cpu.max_minutes == 9.5  # training until 7.75 minutes, a minute for the map, 45 s for the crispness draws and the last files
+    assert cpu.max_minutes == 9.5  # training until 7.75 minutes, a minute for the map, 45 s for the draws and files
 
 
 def test_the_recipe_follows_the_data_not_the_layout():

@@ -104,8 +104,8 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
             t2 = time.perf_counter()
             # Joined recordings: from the graph, since the chain leaves each later one where its placing put it, and two
             # copies of a place further apart than the crispness radius look crisp (synthetic visits: docs/sessions.md).
-            compared = None if segments.starts and chain is not None else chain
-            if compared is None and chain is not None:
+            compared = None if segments.starts else chain
+            if segments.starts and chain is not None:
                 decided["refined_from"] = "graph"
             optimized = _refined(clouds, scans, optimized, compared, settings, (on_round, deadline, progress),
                                  decided)

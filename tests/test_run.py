@@ -159,9 +159,9 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     real_chain = baseline.scan_to_map_chain
 
     def chain_without_deadline(clouds, init_poses, settings, keep_input_tilt=False, deadline=None, progress=False,
-                               *segments):
+                               segments=baseline.Segments()):
         chain_deadlines.append(deadline)
-        return real_chain(clouds, init_poses, settings, keep_input_tilt, None, progress, *segments)
+        return real_chain(clouds, init_poses, settings, keep_input_tilt, None, progress, segments)
 
     monkeypatch.setattr(baseline.sequence, "scan_to_map_chain", chain_without_deadline)
     verdicts = []  # the margins the run's crispest verdict is given, and the verdict

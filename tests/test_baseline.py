@@ -14,6 +14,7 @@ from unittest import mock
 import numpy as np
 import open3d as o3d
 import pytest
+from scipy.spatial.transform import Rotation
 
 from neld_jax import baseline
 from neld_jax.baseline import (BaselineSettings, Segments, TargetIndex, anchored, candidate_pairs, loop_closed_graph,
@@ -525,7 +526,9 @@ def test_global_registration_closes_a_loop_beyond_icps_reach(short_courtyard_rou
 def test_loop_closures_between_linked_recordings_pass_the_loop_gates(short_courtyard_route):
     # The route's second half a recording of its own, restarted 0.85 m off the first: the closures
     # where the route comes back to its start join the two recordings but lie beyond the loop gates; once the
-    # placing's links (two true relative poses at the join) have brought the recordings together, they pass them.
+    # placing's links (two relative poses at the join, 3 cm and 0.3 degree off, as a placing on local maps errs)
+    # have brought the recordings together, they pass them, and the graph keeps the closures, not the links
+    # (with the links kept too: 9 mm).
     seq = short_courtyard_route
     half = seq.num_scans // 2
     off = np.eye(4)
@@ -533,8 +536,11 @@ def test_loop_closures_between_linked_recordings_pass_the_loop_gates(short_court
     chain = np.concatenate([seq.gt_poses[:half], off @ seq.gt_poses[half:]])
     settings = BaselineSettings(window=10, map_rounds=0, min_loop_fitness=0.2, global_loops_per_scan=0)
     clouds = prepare_clouds(seq.scans, settings)
-    links = tuple((i, j, np.linalg.inv(seq.gt_poses[j]) @ seq.gt_poses[i]) for i, j in ((half, half - 1),
-                                                                                       (half + 1, half - 2)))
+    link_error = np.eye(4)
+    link_error[:3, :3] = Rotation.from_euler("z", 0.3, degrees=True).as_matrix()
+    link_error[:3, 3] = [0.018, -0.024, 0.0]
+    links = tuple((i, j, link_error @ np.linalg.inv(seq.gt_poses[j]) @ seq.gt_poses[i])
+                  for i, j in ((half, half - 1), (half + 1, half - 2)))
     _, unlinked = loop_closed_graph(clouds, chain, settings, segments=Segments((half,)))
     poses, linked = loop_closed_graph(clouds, chain, settings, segments=Segments((half,), links))
     assert unlinked.across_tried > 0 and unlinked.across_kept == 0

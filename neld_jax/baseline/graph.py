@@ -97,7 +97,8 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
     over the loop-closure candidates. segments: recordings joined in one sequence: the chain's step into each later
     recording's first scan is no measurement (the chain restarted there) and joins the graph only weakly; the
     placing's links join the recordings as certain edges (segments.links), and the loop closures are looked for
-    and registered once the chain and the links alone have brought the recordings together."""
+    and registered once the chain and the links alone have brought the recordings together; a recording that a
+    closure joins to an earlier one keeps the closures only (the finer measurement)."""
     chain_edges = _chain_edges(clouds, chain_poses, [(s, s + 1) for s in range(len(chain_poses) - 1)], settings,
                                segments.starts)
     linked = _link_edges(clouds, segments.links, settings)
@@ -115,11 +116,22 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
     global_pairs = _nearest_per_scan(_unexplained(drifted, closed, settings.window), positions,
                                      settings.global_loops_per_scan)
     global_closures = _global_closures(clouds, start, global_pairs, path_m, settings)
-    optimized = _optimized(start, chain_edges + closures + global_closures + linked, settings)
+    optimized = _optimized(start, chain_edges + closures + global_closures
+                           + _links_still_needed(linked, closures + global_closures, segments), settings)
     kept_pairs = [(edge.source_node_id, edge.target_node_id) for edge in closures + global_closures]
     return optimized, LoopClosures(len(loop_pairs), len(closures) + len(global_closures), len(global_pairs),
                                    len(global_closures), len(linked), _across(loop_pairs, segments),
                                    _across(kept_pairs, segments))
+
+
+def _links_still_needed(links: list, closures: list, segments: Segments) -> list:
+    """The placing's link edges of the recordings that no kept closure joins to an earlier one. The links were
+    measured between local maps built on the input poses (synthetic visits: 3-8 cm and 0.7-1.2 degrees off), the
+    closures scan to scan once the links had brought the recordings together (a few mm): as certain edges beside the
+    closures, the links would bend the graph (visit 0's ATE 1.7 mm after the chain, 11.6 mm after the graph)."""
+    joined = {segments.first_of(max(edge.source_node_id, edge.target_node_id)) for edge in closures
+              if segments.first_of(edge.source_node_id) != segments.first_of(edge.target_node_id)}
+    return [edge for edge in links if segments.first_of(edge.source_node_id) not in joined]
 
 
 def _optimized(poses: np.ndarray, edges: list, settings: BaselineSettings) -> np.ndarray:

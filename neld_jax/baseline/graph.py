@@ -77,8 +77,8 @@ def global_registration(source, target, source_features, target_features, settin
 
 class LoopClosures(NamedTuple):
     """What loop_closed_graph did: candidates registered by ICP, closures kept (all), pairs registered globally
-    and closures kept of those; links between recordings added as they were measured (Segments.links), and the
-    candidates (ICP's) and closures kept (all) that join two recordings."""
+    and closures kept of those; links between recordings added as they were measured (Segments.links), the
+    candidates (ICP's) and closures kept (all) that join two recordings, and the links left in the final graph."""
 
     tried: int
     kept: int
@@ -87,6 +87,7 @@ class LoopClosures(NamedTuple):
     linked: int = 0
     across_tried: int = 0
     across_kept: int = 0
+    links_in_final_graph: int = 0
 
 
 def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineSettings, progress: bool = False,
@@ -116,12 +117,12 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
     global_pairs = _nearest_per_scan(_unexplained(drifted, closed, settings.window), positions,
                                      settings.global_loops_per_scan)
     global_closures = _global_closures(clouds, start, global_pairs, path_m, settings)
-    optimized = _optimized(start, chain_edges + closures + global_closures
-                           + _links_still_needed(linked, closures + global_closures, segments), settings)
+    still_linked = _links_still_needed(linked, closures + global_closures, segments)
+    optimized = _optimized(start, chain_edges + closures + global_closures + still_linked, settings)
     kept_pairs = [(edge.source_node_id, edge.target_node_id) for edge in closures + global_closures]
     return optimized, LoopClosures(len(loop_pairs), len(closures) + len(global_closures), len(global_pairs),
                                    len(global_closures), len(linked), _across(loop_pairs, segments),
-                                   _across(kept_pairs, segments))
+                                   _across(kept_pairs, segments), len(still_linked))
 
 
 def _links_still_needed(links: list, closures: list, segments: Segments) -> list:

@@ -162,7 +162,8 @@ def _refined(clouds: list, scans: list[np.ndarray], optimized: np.ndarray, chain
 def _between_recordings(loops) -> str:
     """The pose graph's joins between recordings, for the log (loops: graph.LoopClosures)."""
     return (f"; between recordings {loops.across_kept} of {loops.across_tried} ICP candidates kept (with the global "
-            f"closures) and {loops.linked} links from the placing")
+            f"closures) and {loops.linked} links from the placing ({loops.links_in_final_graph} of them left in the "
+            "final graph: a recording joined by a closure keeps the closures)")
 
 
 def _entropy_text(entropy: dict) -> str:

@@ -117,21 +117,21 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
     global_pairs = _nearest_per_scan(_unexplained(drifted, closed, settings.window), positions,
                                      settings.global_loops_per_scan)
     global_closures = _global_closures(clouds, start, global_pairs, path_m, settings)
-    still_linked = _links_still_needed(linked, closures + global_closures, segments)
-    optimized = _optimized(start, chain_edges + closures + global_closures + still_linked, settings)
     kept_pairs = [(edge.source_node_id, edge.target_node_id) for edge in closures + global_closures]
+    still_linked = _links_still_needed(linked, kept_pairs, segments)
+    optimized = _optimized(start, chain_edges + closures + global_closures + still_linked, settings)
     return optimized, LoopClosures(len(loop_pairs), len(closures) + len(global_closures), len(global_pairs),
                                    len(global_closures), len(linked), _across(loop_pairs, segments),
                                    _across(kept_pairs, segments), len(still_linked))
 
 
-def _links_still_needed(links: list, closures: list, segments: Segments) -> list:
-    """The placing's link edges of the recordings that no kept closure joins to an earlier one. The links were
-    measured between local maps built on the input poses (synthetic visits: 3-8 cm and 0.7-1.2 degrees off), the
-    closures scan to scan once the links had brought the recordings together (a few mm): as certain edges beside the
-    closures, the links would bend the graph (visit 0's ATE 1.7 mm after the chain, 11.6 mm after the graph)."""
-    joined = {segments.first_of(max(edge.source_node_id, edge.target_node_id)) for edge in closures
-              if segments.first_of(edge.source_node_id) != segments.first_of(edge.target_node_id)}
+def _links_still_needed(links: list, kept_pairs: list[tuple[int, int]], segments: Segments) -> list:
+    """The placing's link edges of the recordings that no kept closure (kept_pairs: its scans (i, j)) joins to an
+    earlier one. The links were measured between local maps built on the input poses (synthetic visits: 3-8 cm and
+    0.7-1.2 degrees off), the closures scan to scan once the links had brought the recordings together (a few mm): as
+    certain edges beside the closures, the links would bend the graph (visit 0's ATE 1.7 mm after the chain, 11.6 mm
+    after the graph)."""
+    joined = {segments.first_of(max(i, j)) for i, j in kept_pairs if segments.first_of(i) != segments.first_of(j)}
     return [edge for edge in links if segments.first_of(edge.source_node_id) not in joined]
 
 

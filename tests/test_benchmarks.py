@@ -15,6 +15,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import pytest
+from conftest import COARSE_REGISTRATION_GRID_M
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "train_step.py"
@@ -354,7 +355,8 @@ def test_peers_compares_the_four_methods_on_the_same_sweeps(tmp_path):
     out = tmp_path / "peers.json"
     tiny = ["data.keyframe_interval_s=0.5", "data.max_rays_per_scan=256", "train.steps=2", "train.batch_rays=32",
             "model.width=16", "model.depth=2", "model.skip_layers=(1,)", "mapping.enabled=False", "viz.record=False",
-            "eval.crispness_queries=2000", "eval.crispness_draws=3", "baseline.voxel_size_m=0.4"]
+            "eval.crispness_queries=2000", "eval.crispness_draws=3",
+            f"baseline.voxel_size_m={COARSE_REGISTRATION_GRID_M}"]
     result = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "peers.py"), "--sequences=synthetic10hz:0", "--num_scans=30",
          "--gt_map_points=2000", f"--work={tmp_path / 'work'}", f"--out={out}", *[f"--set={s}" for s in tiny]],

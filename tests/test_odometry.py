@@ -7,7 +7,7 @@ import logging
 
 import numpy as np
 import pytest
-from conftest import first_sweeps_of_the_loop, make_tiny_config, train_a_download_briefly
+from conftest import COARSE_REGISTRATION_GRID_M, first_sweeps_of_the_loop, make_tiny_config, train_a_download_briefly
 
 from neld_jax import metrics, run
 from neld_jax.data import odometry
@@ -173,7 +173,7 @@ def test_a_run_from_scans_alone_writes_the_odometry(folder_of_sweeps, tmp_path):
     config.data = _data(folder_of_sweeps, max_scans=4, keyframe_interval_s=1.0)
     config.mapping.enabled = False
     config.viz.record = False
-    config.baseline.voxel_size_m = 0.4  # the other 36 scans registered on a coarse grid (37 -> 25 s)
+    config.baseline.voxel_size_m = COARSE_REGISTRATION_GRID_M  # the other 36 scans: 37 -> 25 s
     run.run(config, progress=False)
     _, odometry_poses = read_tum(tmp_path / "run" / "poses_odometry.txt")
     _, initial = read_tum(tmp_path / "run" / "poses_initial.txt")

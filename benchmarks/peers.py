@@ -20,12 +20,16 @@ input sweep (TUM, at the sweeps' stamps). Columns:
   scans) registered with each trajectory at the keyframes, on the same query points for every method
   (neld_jax.judge, as neld-crispness), and NeLD-BA's margin to each peer over eval.crispness_draws draws of the query
   points: "every draw" (crisper on each), "a tie" (the draws disagree in sign) or "blurrier" (blurrier on each);
+- the same for the raw map of EVERY input sweep (judge.EVERY_SCAN_POINTS random points of each, the sweeps as the
+  run registers them) under each method's poses of every sweep;
 - wall time [s]: KISS-ICP's odometry, KISS-SLAM's whole run, the baseline's registration, and NeLD-BA's whole run end
   to end (loading with the odometry, the baseline, training, rendering, judging).
-Targets, printed at the end: NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's, its raw map crisper than both on every
-draw, and the whole run within --minutes_limit minutes.
+Targets, printed at the end: NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's, its raw maps (the keyframes', every
+sweep's) crisper than both on every draw, and the whole run within --minutes_limit minutes.
 
-Sequences: `synthetic10hz:SEED[:RADIUS_M]` generates raw 10 Hz sweeps with per-point times and ground truth
+Sequences: `car:SEED` generates a car's 10 Hz scans along the synthetic courtyards' route (--num_scans over 320 m
+with turns, 64 beams x 1024 columns, 80 m range; rigid scans, as a front-end writes them) with ground truth;
+`synthetic10hz:SEED[:RADIUS_M]` generates raw 10 Hz sweeps with per-point times and ground truth
 (neld_jax.data.synthetic.make_sequence, rate_hz=10; --loop_scans sweeps round one loop of RADIUS_M (10 m: 63 m at
 2.1 m/s; 20 m: 126 m at 4.2 m/s, longer than KISS-SLAM's 100 m local maps, so it can close the loop) at 40 m range,
 the first --num_scans of them kept) into WORK/<name>/data in the generic layout without poses; `--roots` are
@@ -42,6 +46,7 @@ import sys
 import time
 import traceback
 
+import numpy as np
 import real_targets  # this folder's benchmarks/real_targets.py: the targets' table
 from absl import app, flags
 
@@ -49,8 +54,9 @@ from neld_jax.hugepages import reexec_with_huge_page_malloc
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-SEQUENCES = flags.DEFINE_list("sequences", ["synthetic10hz:0"], "Synthetic raw-sweep sequences, "
-                              "synthetic10hz:SEED[:RADIUS_M] (the loop's radius, default 10 m: a 63 m loop).")
+SEQUENCES = flags.DEFINE_list("sequences", ["synthetic10hz:0"], "Synthetic sequences: raw sweeps "
+                              "synthetic10hz:SEED[:RADIUS_M] (the loop's radius, default 10 m: a 63 m loop), or a "
+                              "car's scans car:SEED.")
 ROOTS = flags.DEFINE_list("roots", [], "Folders of real raw full-rate sweeps (the layout --config reads).")
 NUM_SCANS = flags.DEFINE_integer("num_scans", 300, "Synthetic: sweeps kept (the first of the loop's).")
 LOOP_SCANS = flags.DEFINE_integer("loop_scans", 300, "Synthetic: sweeps round the whole loop (300: 2.1 m/s).")
@@ -66,6 +72,7 @@ SLAM_SPLITTING = flags.DEFINE_float("slam_splitting_m", 0.0, "KISS-SLAM's local_
 MINUTES_LIMIT = flags.DEFINE_float("minutes_limit", 10.0, "The target for NeLD-BA's whole run [min].")
 
 SYNTHETIC = {"trajectory_radius_m": 10.0, "max_range_m": 40.0}  # a 63 m loop by default; KISS-ICP's voxel 0.4 m
+CAR = {"route": "car", "route_length_m": 320.0, "num_beams": 64, "num_columns": 1024, "max_range_m": 80.0}
 RATE_HZ = 10.0
 METHODS = ("kiss_icp", "kiss_slam", "baseline", "neld_ba")
 NOT_INSTALLED = "not installed (pip install neld-jax[peers])"
@@ -95,8 +102,26 @@ def make_synthetic(seed: int, radius_m: float, root: str) -> None:
         json.dump(spec, f)
 
 
-def run_config(root: str, out_dir: str, synthetic: bool):
-    """--config for one sequence: the scans' own KISS-ICP odometry as the input, the range, --set last."""
+def make_car(seed: int, root: str) -> None:
+    """NUM_SCANS of a car's 10 Hz scans along the courtyards' route (CAR), in the generic layout (no poses.txt); kept
+    when root already holds the same sequence."""
+    from neld_jax.data.synthetic import make_sequence, write_generic
+
+    spec = {**CAR, "num_scans": NUM_SCANS.value, "gt_map_points": GT_MAP_POINTS.value, "seed": seed}
+    marker = os.path.join(root, "peers_sequence.json")
+    if os.path.exists(marker):
+        with open(marker) as f:
+            if json.load(f) == spec:
+                return
+    shutil.rmtree(root, ignore_errors=True)
+    write_generic(make_sequence(spec), root)
+    with open(marker, "w") as f:
+        json.dump(spec, f)
+
+
+def run_config(root: str, out_dir: str, range_m: float | None):
+    """--config for one sequence: the scans' own KISS-ICP odometry as the input, the range (a synthetic sequence's
+    range_m, or --max_range_m), --set last."""
     from neld_jax.config import apply_overrides, from_file
 
     path = CONFIG.value if os.path.isabs(CONFIG.value) else os.path.join(REPO, CONFIG.value)
@@ -104,8 +129,8 @@ def run_config(root: str, out_dir: str, synthetic: bool):
     c.data.root = root
     c.output_dir = out_dir
     c.data.initial_poses = "kiss_icp"
-    if synthetic:
-        c.data.max_range_m = SYNTHETIC["max_range_m"]
+    if range_m is not None:
+        c.data.max_range_m = range_m
     elif MAX_RANGE.value > 0:
         c.data.max_range_m = MAX_RANGE.value
     return apply_overrides(c, OVERRIDES.value)
@@ -211,7 +236,7 @@ def run_baseline_here(config, loaded, keyframes, path_dir: str):
     return seconds
 
 
-def run_sequence(name: str, root: str, synthetic: bool) -> dict:
+def run_sequence(name: str, root: str, range_m: float | None) -> dict:
     from neld_jax import judge
     from neld_jax.data.poses import read_tum
     from neld_jax.evaluate import match_poses, trajectory_at_keyframes
@@ -222,7 +247,7 @@ def run_sequence(name: str, root: str, synthetic: bool) -> dict:
     out = os.path.join(WORK.value, name)
     run_dir = os.path.join(out, "neld_ba")
     shutil.rmtree(run_dir, ignore_errors=True)  # a fresh run, not a resumed one
-    config = run_config(root, run_dir, synthetic)
+    config = run_config(root, run_dir, range_m)
     seen = {}
     t0 = time.perf_counter()
     with watching_the_run(seen):
@@ -276,6 +301,9 @@ def run_sequence(name: str, root: str, synthetic: bool) -> dict:
                     for m in methods}
     crisp, _ = judge.map_crispness(keyframes, at_keyframes, config.eval)
     margins = judge.crispness_margins(keyframes, at_keyframes, config.eval, against="neld_ba", first_draw=crisp)
+    every = every_sweep_crispness(loaded, {m: poses_of_every_sweep(files[m], loaded) for m in methods}, config.eval)
+    for m in methods:
+        rows[m]["every_sweep_map"] = every[m]
     for m in methods:
         s = crisp[m]
         rows[m].update(entropy=None if s["mean_map_entropy"] is None else round(s["mean_map_entropy"], 4),
@@ -288,6 +316,40 @@ def run_sequence(name: str, root: str, synthetic: bool) -> dict:
     entry["methods"] = rows
     entry["targets"] = {"peers": target_verdicts(entry, MINUTES_LIMIT.value)}
     return entry
+
+
+def poses_of_every_sweep(path: str, loaded):
+    """The poses [S, 4, 4] a TUM file gives every input sweep of `loaded`: by stamp where both have stamps (each
+    sweep's nearest within 0.01 s), else one pose a sweep in order; a sweep without one is a DataError."""
+    from neld_jax.data.poses import read_tum
+    from neld_jax.errors import DataError
+    from neld_jax.evaluate import match_poses
+
+    stamps, poses = read_tum(path)
+    est, at, _ = match_poses(stamps, loaded.timestamps, len(poses), loaded.num_scans, path, 0.01)
+    if len(at) != loaded.num_scans:
+        raise DataError(f"{path}: poses for {len(at)} of the {loaded.num_scans} input sweeps")
+    out = np.empty((loaded.num_scans, 4, 4))
+    out[at] = poses[est]
+    return out
+
+
+def every_sweep_crispness(loaded, methods: dict, eval_cfg) -> dict:
+    """The raw map of EVERY input sweep (as the run registers them: deskewed along its odometry; judge.
+    every_scan_crispness's points of each) under each method's poses [S, 4, 4]: {method: {"entropy",
+    "thickness_cm", and beside NeLD-BA's: "neld_ba_margin" (its paired margin over eval.crispness_draws draws,
+    negative: NeLD-BA crisper), "neld_ba_margin_per_draw", "neld_ba_verdict"}}."""
+    from neld_jax import judge
+
+    crisp, margins = judge.every_scan_crispness(loaded.scans, methods, eval_cfg, against="neld_ba")
+    out = {}
+    for m, summary in crisp.items():
+        out[m] = {"entropy": summary["mean_map_entropy"], "thickness_cm": None if summary["mean_plane_thickness_m"]
+                  is None else round(100 * summary["mean_plane_thickness_m"], 3)}
+        if m in margins:
+            out[m].update(neld_ba_margin=margins[m]["mean"], neld_ba_margin_per_draw=margins[m]["per_draw"],
+                          neld_ba_verdict=real_targets.margin_verdict(margins[m]))
+    return out
 
 
 def target_verdicts(entry: dict, minutes_limit: float = 10.0) -> dict:
@@ -303,6 +365,9 @@ def target_verdicts(entry: dict, minutes_limit: float = 10.0) -> dict:
     return {"ate_below_kiss_icp": below("kiss_icp"), "ate_below_kiss_slam": below("kiss_slam"),
             "crisper_than_kiss_icp": rows["kiss_icp"].get("neld_ba_verdict"),
             "crisper_than_kiss_slam": rows["kiss_slam"].get("neld_ba_verdict"),
+            "every_sweep_map_crisper_than_kiss_icp": rows["kiss_icp"].get("every_sweep_map", {}).get("neld_ba_verdict"),
+            "every_sweep_map_crisper_than_kiss_slam": rows["kiss_slam"].get("every_sweep_map", {}).get(
+                "neld_ba_verdict"),
             "within_minutes": None if neld.get("wall_s") is None else neld["wall_s"] <= 60 * minutes_limit}
 
 
@@ -311,32 +376,40 @@ def format_table(entry: dict) -> str:
     def cell(value, fmt):
         return "-" if value is None else format(value, fmt)
 
+    def margin(row):
+        return "" if "neld_ba_margin" not in row else f"{row['neld_ba_margin']:+.4f} {row['neld_ba_verdict']}"
+
     lines = [f"{entry['sequence']}: {entry['input_scans']} sweeps, {entry['keyframes']} keyframes",
              (f"{'method':<10} {'ATE m':>8} {'ATE deg':>8} {'entropy':>8} {'thick cm':>8} {'NeLD-BA margin':>22} "
-              f"{'wall s':>7}")]
+              f"{'wall s':>7} {'every sweep: entropy':>20} {'NeLD-BA margin':>22}")]
     for m in METHODS:
         row = entry["methods"][m]
         if "status" in row:
             lines.append(f"{m:<10} {row['status']}")
             continue
-        margin = ("" if "neld_ba_margin" not in row
-                  else f"{row['neld_ba_margin']:+.4f} {row['neld_ba_verdict']}")
+        every = row.get("every_sweep_map", {})
         lines.append(f"{m:<10} {cell(row.get('ate_m'), '8.4f')} {cell(row.get('ate_rot_deg'), '8.3f')} "
-                     f"{cell(row.get('entropy'), '8.4f')} {cell(row.get('thickness_cm'), '8.3f')} {margin:>22} "
-                     f"{cell(row.get('wall_s'), '7.1f')}")
+                     f"{cell(row.get('entropy'), '8.4f')} {cell(row.get('thickness_cm'), '8.3f')} {margin(row):>22} "
+                     f"{cell(row.get('wall_s'), '7.1f')} {cell(every.get('entropy'), '20.4f')} {margin(every):>22}")
     return "\n".join(lines)
 
 
 def sequences() -> list[tuple[str, str, tuple | None]]:
-    """(name, root, (seed, loop radius) of a synthetic sequence or None) of every --sequences and --roots item."""
+    """(name, root, how to make it: (make_synthetic | make_car, its arguments, data.max_range_m) or None for a real
+    root) of every --sequences and --roots item."""
     out = []
     for item in SEQUENCES.value:
         kind, seed, radius = (item.split(":") + [""])[:3]
+        if kind == "car" and seed.isdigit() and radius == "":
+            name = f"car_{seed}_{NUM_SCANS.value}"
+            out.append((name, os.path.join(WORK.value, name, "data"), (make_car, (int(seed),), CAR["max_range_m"])))
+            continue
         if kind != "synthetic10hz" or not seed.isdigit() or not (radius == "" or radius.replace(".", "", 1).isdigit()):
-            raise app.UsageError(f"--sequences item {item!r}: expected synthetic10hz:SEED[:RADIUS_M]")
+            raise app.UsageError(f"--sequences item {item!r}: expected synthetic10hz:SEED[:RADIUS_M] or car:SEED")
         radius_m = float(radius or SYNTHETIC["trajectory_radius_m"])
         name = f"synthetic10hz_{seed}_r{radius_m:g}_{NUM_SCANS.value}"
-        out.append((name, os.path.join(WORK.value, name, "data"), (int(seed), radius_m)))
+        out.append((name, os.path.join(WORK.value, name, "data"),
+                    (make_synthetic, (int(seed), radius_m), SYNTHETIC["max_range_m"])))
     for root in ROOTS.value:
         out.append((os.path.basename(os.path.normpath(root)), root, None))
     return out
@@ -350,8 +423,9 @@ def main(argv):
     for name, root, synthetic in todo:
         try:
             if synthetic:
-                make_synthetic(*synthetic, root)
-            entry = run_sequence(name, root, synthetic is not None)
+                make, arguments, _ = synthetic
+                make(*arguments, root)
+            entry = run_sequence(name, root, None if synthetic is None else synthetic[2])
             print(format_table(entry), flush=True)
         except Exception as e:  # one line per failed sequence; the others still run
             entry = {"sequence": name, "error": f"{type(e).__name__}: {e}"}

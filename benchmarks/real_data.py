@@ -20,6 +20,10 @@ Per sequence (one JSON object each, also printed as a line):
   the drifted input, and how far the baseline's and NeLD-BA's answers lie from the same configuration's answers
   from the recorded odometry (ATE between the two, SE(3)-aligned), and the split of NeLD-BA's ATE change from the
   baseline's (benchmarks/ate_change.py: its move off the baseline and how it correlates with the baseline's error).
+  --drift_recipe=generic runs it with configs/generic.py instead, as a user's own data is run: keyframes by the caps
+  (HKU_2: 49 of 266), every other scan registered to the result.
+- "every_scan_map" in each: the raw map of EVERY input scan, not only the keyframes trained on, under the input's,
+  the baseline's and NeLD-BA's poses of every scan, and NeLD-BA's margins (neld_jax.judge.every_scan_crispness).
 - "targets": the targets for real recordings read off the two (benchmarks/real_targets.py): the recorded run within --minutes_limit
   minutes end to end, one line per input scan in poses_optimized.txt, its map crisper than the odometry's and than
   the baseline's ("every draw", "a tie" or "blurrier" over the run's query draws); from drift, NeLD-BA's answer
@@ -57,17 +61,21 @@ SEED = flags.DEFINE_integer("seed", 0, "Seed of the injected drift.")
 KEEP_TILT = flags.DEFINE_bool("keep_tilt", False, "The drift of an IMU-aided odometry: position and heading only "
                               "(bin/perturb.py --keep_tilt); without it the drift turns all three axes.")
 OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. train.steps=2000.")
+DRIFT_RECIPE = flags.DEFINE_enum("drift_recipe", "lio_keyframes", ["lio_keyframes", "generic"],
+                                 "The drift run's config: lio_keyframes (every scan a keyframe) or generic (the "
+                                 "own-data recipe: keyframes by the caps, the other scans registered to the result).")
 MINUTES_LIMIT = flags.DEFINE_float("minutes_limit", 10.0, "The end-to-end time target of a recorded run [min] "
                                    "(10 on the cpu budget's 2 cores).")
 flags.mark_flag_as_required("root")
 
 
-def _config(fmt_config: str, root: str, out_dir: str):
-    """configs/lio_keyframes.py's settings (every keyframe, the recording recipe), for the drifted copy in the
-    generic layout too, with this script's overrides."""
+def _config(fmt_config: str, root: str, out_dir: str, recipe: str = "lio_keyframes"):
+    """configs/<recipe>.py's settings at --budget with this script's overrides: lio_keyframes (every keyframe, the
+    recording recipe), for the drifted copy in the generic layout too; or generic (the own-data recipe: keyframes by
+    the caps, every other scan registered to the result)."""
     from neld_jax.config import apply_overrides, from_file
 
-    c = from_file(os.path.join(REPO, "configs", "lio_keyframes.py"), BUDGET.value)
+    c = from_file(os.path.join(REPO, "configs", f"{recipe}.py"), BUDGET.value)
     c.data.format = fmt_config
     c.data.root = root
     c.output_dir = out_dir
@@ -84,6 +92,26 @@ def _crisp(summary: dict) -> dict:
 def _ate(evaluation: dict, method: str):
     m = evaluation["methods"].get(method, {})
     return None if "ate" not in m else round(m["ate"]["translation_rmse_m"], 6)  # hundredths of a mm matter
+
+
+def every_scan_map(config, run_dir: str) -> dict:
+    """The raw map of EVERY input scan of a finished run (config: its config) under its poses of every input scan
+    (poses_{initial,baseline,optimized}.txt, where written): {"crispness": {method: entropy, thickness},
+    "margin": {other: NeLD-BA's paired margin over the query draws}} (neld_jax.judge.every_scan_crispness)."""
+    from neld_jax import judge
+    from neld_jax.data.formats import load_sequence
+    from neld_jax.data.poses import read_tum
+
+    loaded = load_sequence(config.data)
+    methods = {}
+    for m in ("initial", "baseline", "optimized"):
+        path = os.path.join(run_dir, f"poses_{m}.txt")
+        if os.path.exists(path):
+            methods[m] = read_tum(path)[1]
+            if len(methods[m]) != loaded.num_scans:
+                raise ValueError(f"{path}: {len(methods[m])} poses for {loaded.num_scans} input scans")
+    crisp, margins = judge.every_scan_crispness(loaded.scans, methods, config.eval, against="optimized")
+    return {"crispness": _crisp(crisp), "margin": margins}
 
 
 def run_sequence(name: str, root: str) -> dict:
@@ -114,7 +142,8 @@ def run_sequence(name: str, root: str) -> dict:
             "crispness": _crisp(summary["crispness"]), "crispness_margin": r["crispness_margin"],
             "pose_lines": len(read_tum(os.path.join(out, f"recorded_{start}", "poses_optimized.txt"))[0]),
             "final_range_err_m": round(r["final"].get("range_err_m", float("nan")), 4),
-            "final_range_residual_median_m": round(r["final"].get("range_residual_median_m", float("nan")), 4)}
+            "final_range_residual_median_m": round(r["final"].get("range_residual_median_m", float("nan")), 4),
+            "every_scan_map": every_scan_map(config, os.path.join(out, f"recorded_{start}"))}
         print(json.dumps(entry), flush=True)
     if SKIP_DRIFT.value:
         return entry
@@ -122,7 +151,7 @@ def run_sequence(name: str, root: str) -> dict:
     drift_root = os.path.join(out, "drifted_input")
     seq = with_drift(load_sequence(recorded.data), DRIFT_TRANS.value, DRIFT_ROT.value, SEED.value, KEEP_TILT.value)
     write_generic(seq, drift_root)
-    config = _config("generic", drift_root, os.path.join(out, "drift"))
+    config = _config("generic", drift_root, os.path.join(out, "drift"), DRIFT_RECIPE.value)
     drift_start = RECORDED_STARTS.value[0]
     config.start.poses = drift_start
     t0 = time.perf_counter()
@@ -137,9 +166,11 @@ def run_sequence(name: str, root: str) -> dict:
         "neld_wall_s": round(t_neld, 1), "baseline_wall_s": r.get("baseline_seconds"),
         "map_rays": r["map_rays"], "map_rays_rendered": r["map_rays_rendered"],
         "steps": r["steps"], "schedule_steps": r["schedule_steps"], "start": drift_start,
+        "recipe": DRIFT_RECIPE.value, "scans": r["num_input_scans"], "keyframes": r["num_scans"],
         "started_from": r["started_from"], "baseline_tilt": r.get("baseline_tilt"),
         "baseline_refined_from": r.get("baseline_refined_from"), "baseline_rounds_done": r.get("baseline_rounds_done"),
         "baseline_departure_m": r.get("baseline_departure_m"),
+        "every_scan_map": every_scan_map(config, os.path.join(out, "drift")),
     }
     def apart(method: str, recorded_run: str) -> float:
         _, T_rec = read_tum(os.path.join(out, recorded_run, f"poses_{method}.txt"))

@@ -55,6 +55,10 @@ def target_verdicts(entry: dict, start: str, minutes_limit: float = 10.0) -> dic
             "ate_at_or_below_baseline": below(ate.get("optimized"), ate.get("baseline")),
             "crisper_than_baseline": margin_verdict((drift.get("crispness_margin") or {}).get("baseline")),
         }
+        if "every_scan_map" in drift:  # every input scan's map, not only the keyframes'
+            margin = drift["every_scan_map"]["margin"]
+            out["drift"].update(every_scan_map_crisper_than_odometry=margin_verdict(margin.get("initial")),
+                                every_scan_map_crisper_than_baseline=margin_verdict(margin.get("baseline")))
     return out
 
 

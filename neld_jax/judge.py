@@ -43,6 +43,27 @@ def map_crispness(keyframes, methods: dict[str, np.ndarray], eval_cfg) -> tuple[
     return compare_maps(keyframes.scans, methods, float(eval_cfg["crispness_radius_m"]), int(eval_cfg["crispness_queries"]))
 
 
+EVERY_SCAN_POINTS = 4096  # of each scan in the map of every scan: 300 sweeps about as many points as 30 keyframes
+
+
+def every_scan_crispness(scans, methods: dict[str, np.ndarray], eval_cfg, against: str,
+                         points_per_scan: int = EVERY_SCAN_POINTS) -> tuple[dict, dict]:
+    """The raw map of EVERY input scan, not only the keyframes': `points_per_scan` random points of each of the S
+    scans (scans: S arrays [N_i, 3], sensor frames, read once each; the same points for every method, seeded by
+    the scan's index) under each method's poses [S, 4, 4]. Returns (map_crispness's summaries, crispness_margins
+    against `against`), as the keyframes' map gets them."""
+    from types import SimpleNamespace
+
+    kept = []
+    for i in range(len(scans)):
+        points = np.asarray(scans[i], np.float64)
+        keep = np.random.default_rng(i).permutation(len(points))[:points_per_scan]
+        kept.append(points[np.sort(keep)])
+    every = SimpleNamespace(scans=kept)
+    crisp, _ = map_crispness(every, methods, eval_cfg)
+    return crisp, crispness_margins(every, methods, eval_cfg, against=against, first_draw=crisp)
+
+
 def crispness_margins(keyframes, methods: dict[str, np.ndarray], eval_cfg, against: str = "optimized",
                       first_draw: dict | None = None, deadline: float | None = None, progress: bool = False) -> dict:
     """How sure the crispness verdict is: the paired difference of the `against` method's mean map entropy from

@@ -342,6 +342,10 @@ def test_real_targets_read_the_targets_off_an_entry():
     got = targets.target_verdicts(entry, "crisper")
     assert got["drift"]["within_2cm_of_recorded_answer"] is None and got["drift"]["crisper_than_baseline"] is None
     assert targets.target_verdicts(entry, "input").keys() == {"drift"}  # no recorded run from that start
+    entry["drift"]["every_scan_map"] = {"margin": {"initial": _margin(-0.3, -0.2), "baseline": _margin(0.01, -0.01)}}
+    got = targets.target_verdicts(entry, "crisper")
+    assert got["drift"]["every_scan_map_crisper_than_odometry"] == "every draw"
+    assert got["drift"]["every_scan_map_crisper_than_baseline"] == "a tie"
     entry["targets"] = got
     table = targets.format_targets([entry, {"sequence": "big", "error": "DataError: too wide"}])
     assert "seq (recorded): within_minutes NO, every_scan_a_pose NO" in table
@@ -375,11 +379,15 @@ def test_peers_compares_the_four_methods_on_the_same_sweeps(tmp_path):
         row = rows[name]
         assert row["ate_poses"] == 30 and 0 <= row["ate_m"] < 1.0 and row["ate_rot_deg"] >= 0, (name, row)
         assert math.isfinite(row["entropy"]) and row["thickness_cm"] > 0 and row["wall_s"] >= 0, (name, row)
+        every = row["every_sweep_map"]  # every sweep's points, not only the keyframes'
+        assert math.isfinite(every["entropy"]) and every["thickness_cm"] > 0, (name, every)
         if name != "neld_ba":
-            assert len(row["neld_ba_margin_per_draw"]) == 3
-            assert row["neld_ba_verdict"] in ("every draw", "a tie", "blurrier")
+            for verdict in (row, every):
+                assert len(verdict["neld_ba_margin_per_draw"]) == 3
+                assert verdict["neld_ba_verdict"] in ("every draw", "a tie", "blurrier")
     assert rows["neld_ba"]["wall_s"] >= rows["kiss_icp"]["wall_s"]  # the whole run holds its odometry
-    assert set(entry["targets"]["peers"]) == {"ate_below_kiss_icp", "ate_below_kiss_slam", "crisper_than_kiss_icp",
-                                              "crisper_than_kiss_slam", "within_minutes"}
+    assert set(entry["targets"]["peers"]) == {
+        "ate_below_kiss_icp", "ate_below_kiss_slam", "crisper_than_kiss_icp", "crisper_than_kiss_slam",
+        "every_sweep_map_crisper_than_kiss_icp", "every_sweep_map_crisper_than_kiss_slam", "within_minutes"}
     assert entry["targets"]["peers"]["within_minutes"] is True
     assert "kiss_icp" in result.stdout and "targets" in result.stdout and "iteration=" not in result.stdout

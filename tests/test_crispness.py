@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from neld_jax.crispness import crispness, entropy_over_query_draws, per_scan_means, sample_queries
-from neld_jax.judge import (crispest, crispest_over_draws, crispness_margins, describe_margin, map_crispness,
-                               margin_over_draws, warn_if_not_crispest)
+from neld_jax.judge import (crispest, crispest_over_draws, crispness_margins, describe_margin,
+                            every_scan_crispness, map_crispness, margin_over_draws, warn_if_not_crispest)
 
 
 def _brute_force(points, radius, min_neighbors):
@@ -101,6 +101,25 @@ def test_crispness_margins_compare_the_answer_with_each_method_on_every_draw():
     assert reused["per_draw"] == pytest.approx(margin["per_draw"], abs=1e-6)
     tie = {"per_draw": [0.001, -0.002], "mean": -0.0005, "std": 0.002, "all_draws_agree": False}
     assert "a tie: the 2 draws disagree in sign" in describe_margin("baseline", tie)
+
+
+def test_the_map_of_every_scan_keeps_the_same_points_of_each_scan_for_every_method():
+    # Six scans of one wall, the fourth 3 cm off under "odometry": the map of every scan sees it, on the same
+    # `points_per_scan` points of each scan whichever poses register them.
+    rng = np.random.default_rng(2)
+    scans = [np.c_[rng.uniform(0, 4, (800, 2)), rng.normal(0, 0.004, 800)] for _ in range(6)]
+    good = np.tile(np.eye(4), (6, 1, 1))
+    off = good.copy()
+    off[3, 2, 3] = 0.03
+    eval_cfg = {"crispness_draws": 3, "crispness_queries": 500, "crispness_radius_m": 0.3}
+    crisp, margins = every_scan_crispness(scans, {"odometry": off, "refined": good}, eval_cfg, against="refined",
+                                          points_per_scan=300)
+    assert crisp["refined"]["mean_map_entropy"] < crisp["odometry"]["mean_map_entropy"]
+    assert margins["odometry"]["all_draws_agree"] and margins["odometry"]["mean"] < 0
+    # the same points: a map of the scans cut to those 300 points by hand scores the same
+    cut = [s[np.sort(np.random.default_rng(i).permutation(len(s))[:300])] for i, s in enumerate(scans)]
+    by_hand, _ = map_crispness(type("Scans", (), {"scans": cut}), {"refined": good}, eval_cfg)
+    assert by_hand["refined"]["mean_map_entropy"] == pytest.approx(crisp["refined"]["mean_map_entropy"], abs=1e-9)
 
 
 def test_the_margins_stop_drawing_at_the_runs_deadline(caplog):

@@ -215,7 +215,7 @@ def main(argv):
         os.makedirs(os.path.dirname(os.path.abspath(OUT.value)), exist_ok=True)
         with open(OUT.value, "w") as f:
             json.dump({"budget": BUDGET.value, "overrides": OVERRIDES.value, "keep_tilt": KEEP_TILT.value,
-                       "sequences": results}, f, indent=1)
+                       "drift_recipe": DRIFT_RECIPE.value, "sequences": results}, f, indent=1)
     print("targets for real recordings (benchmarks/RESULTS.md):\n" + real_targets.format_targets(results), flush=True)
 
 

@@ -21,7 +21,7 @@ Per sequence (one JSON object each, also printed as a line):
   from the recorded odometry (ATE between the two, SE(3)-aligned), and the split of NeLD-BA's ATE change from the
   baseline's (benchmarks/ate_change.py: its move off the baseline and how it correlates with the baseline's error).
   --drift_recipe=generic runs it with configs/generic.py instead, as a user's own data is run: keyframes by the caps
-  (HKU_2: 49 of 266), every other scan registered to the result.
+  (HKU_2's drifted copy: 50 of 266), every other scan registered to the result.
 - "every_scan_map" in each: the raw map of EVERY input scan, not only the keyframes trained on, under the input's,
   the baseline's and NeLD-BA's poses of every scan, and NeLD-BA's margins (neld_jax.judge.every_scan_crispness).
 - "targets": the targets for real recordings read off the two (benchmarks/real_targets.py): the recorded run within --minutes_limit
@@ -101,6 +101,7 @@ def every_scan_map(config, run_dir: str) -> dict:
     from neld_jax import judge
     from neld_jax.data.formats import load_sequence
     from neld_jax.data.poses import read_tum
+    from neld_jax.errors import DataError
 
     loaded = load_sequence(config.data)
     methods = {}
@@ -109,7 +110,7 @@ def every_scan_map(config, run_dir: str) -> dict:
         if os.path.exists(path):
             methods[m] = read_tum(path)[1]
             if len(methods[m]) != loaded.num_scans:
-                raise ValueError(f"{path}: {len(methods[m])} poses for {loaded.num_scans} input scans")
+                raise DataError(f"{path}: {len(methods[m])} poses for {loaded.num_scans} input scans")
     crisp, margins = judge.every_scan_crispness(loaded.scans, methods, config.eval, against="optimized")
     return {"crispness": _crisp(crisp), "margin": margins}
 

@@ -154,9 +154,9 @@ def visit_keyframes(root: str):
     return load_keyframes(run_config(root, "").data)
 
 
-def placed_rigidly(moving: np.ndarray, fixed: np.ndarray, guess: np.ndarray) -> np.ndarray:
-    """The rigid transform [4, 4] that best lays the point cloud `moving` [N, 3] on `fixed` [M, 3]: Open3D's
-    point-to-plane ICP from `guess`, at PLACING_ICP_M's correspondence distances in turn."""
+def placed_rigidly(moving: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+    """The rigid transform [4, 4] that best lays the point cloud `moving` [N, 3] on `fixed` [M, 3], which it nearly
+    fits already: Open3D's point-to-plane ICP from the identity, at PLACING_ICP_M's correspondence distances in turn."""
     import open3d as o3d
 
     def cloud(points):
@@ -164,7 +164,7 @@ def placed_rigidly(moving: np.ndarray, fixed: np.ndarray, guess: np.ndarray) -> 
         c.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=0.5, max_nn=30))
         return c
 
-    source, target, transform = cloud(moving), cloud(fixed), guess
+    source, target, transform = cloud(moving), cloud(fixed), np.eye(4)
     for distance in PLACING_ICP_M:
         transform = o3d.pipelines.registration.registration_icp(
             source, target, distance, transform,
@@ -197,10 +197,10 @@ def same_points_crispness(roots: list[str], work: str, merged_metrics: dict) -> 
         margin = judge.crispness_margins(kf, poses, eval_cfg, against="merged", first_draw=crisp).get("alone")
         per_visit.append({"merged_entropy": crisp["merged"]["mean_map_entropy"],
                           "alone_entropy": crisp["alone"]["mean_map_entropy"], "merged_margin": margin})
-        placing = np.asarray(entry["to_first"])  # placed the visit's input: lay its alone map on the first's
+        placing = np.asarray(entry["to_first"])  # placed the visit's input; then its map alone on the first's
         if k:
-            placing = placed_rigidly(register_scans(kf.scans, placing @ own), register_scans(scans[0], alone[0]),
-                                     np.eye(4)) @ placing
+            own_map, first_map = register_scans(kf.scans, placing @ own), register_scans(scans[0], alone[0])
+            placing = placed_rigidly(own_map, first_map) @ placing
         scans.append(list(kf.scans))
         merged.append(ours)
         alone.append(placing @ own)
@@ -229,8 +229,9 @@ def targets(result: dict) -> dict:
     merged, alone = result["merged"]["visits"], result["alone"]
     if any(v["ate_shared_alignment_m"] is None for v in merged):  # no ground truth: the crispness is the measure
         same = result.get("same_points")  # None without the runs alone
+        parts = [] if same is None else same["per_visit"] + [same["together"]]
         return {"merged_as_crisp_as_alone": None if same is None else [
-                    real_targets.margin_verdict(part["merged_margin"]) for part in same["per_visit"] + [same["together"]]],
+                    real_targets.margin_verdict(part["merged_margin"]) for part in parts],
                 "within_minutes": result["merged"]["wall_s"] <= 60 * MINUTES_LIMIT.value}
     return {"shared_ate_at_most_m": all(v["ate_shared_alignment_m"] <= MAX_ATE_M.value for v in merged),
             "merged_no_worse_than_alone": (None if not alone else all(

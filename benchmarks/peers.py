@@ -78,6 +78,20 @@ METHODS = ("kiss_icp", "kiss_slam", "baseline", "neld_ba")
 NOT_INSTALLED = "not installed (pip install neld-jax[peers])"
 
 
+def written_once(spec: dict, root: str, write) -> None:
+    """write(root) makes the sequence that `spec` describes in root, unless root already holds it (its
+    peers_sequence.json equals spec); otherwise root is emptied first and the spec recorded after."""
+    marker = os.path.join(root, "peers_sequence.json")
+    if os.path.exists(marker):
+        with open(marker) as f:
+            if json.load(f) == spec:
+                return
+    shutil.rmtree(root, ignore_errors=True)
+    write(root)
+    with open(marker, "w") as f:
+        json.dump(spec, f)
+
+
 def make_synthetic(seed: int, radius_m: float, root: str) -> None:
     """The first NUM_SCANS of LOOP_SCANS raw 10 Hz sweeps round the loop of radius_m, in the generic layout (no
     poses.txt); kept when root already holds the same sequence."""
@@ -85,21 +99,17 @@ def make_synthetic(seed: int, radius_m: float, root: str) -> None:
 
     from neld_jax.data.synthetic import make_sequence, write_generic
 
-    spec = {**SYNTHETIC, "trajectory_radius_m": radius_m, "num_scans": LOOP_SCANS.value, "gt_map_points": GT_MAP_POINTS.value, "seed": seed,
-            "kept": NUM_SCANS.value, "rate_hz": RATE_HZ}
-    marker = os.path.join(root, "peers_sequence.json")
-    if os.path.exists(marker):
-        with open(marker) as f:
-            if json.load(f) == spec:
-                return
-    shutil.rmtree(root, ignore_errors=True)
-    seq = make_sequence({k: v for k, v in spec.items() if k not in ("kept", "rate_hz")}, rate_hz=RATE_HZ)
-    n = min(NUM_SCANS.value, seq.num_scans)
-    seq = dataclasses.replace(seq, scans=seq.scans[:n], point_times=seq.point_times[:n],
-                              timestamps=seq.timestamps[:n], gt_poses=seq.gt_poses[:n])
-    write_generic(seq, root)
-    with open(marker, "w") as f:
-        json.dump(spec, f)
+    spec = {**SYNTHETIC, "trajectory_radius_m": radius_m, "num_scans": LOOP_SCANS.value,
+            "gt_map_points": GT_MAP_POINTS.value, "seed": seed, "kept": NUM_SCANS.value, "rate_hz": RATE_HZ}
+
+    def write(folder):
+        seq = make_sequence({k: v for k, v in spec.items() if k not in ("kept", "rate_hz")}, rate_hz=RATE_HZ)
+        n = min(NUM_SCANS.value, seq.num_scans)
+        seq = dataclasses.replace(seq, scans=seq.scans[:n], point_times=seq.point_times[:n],
+                                  timestamps=seq.timestamps[:n], gt_poses=seq.gt_poses[:n])
+        write_generic(seq, folder)
+
+    written_once(spec, root, write)
 
 
 def make_car(seed: int, root: str) -> None:
@@ -108,15 +118,7 @@ def make_car(seed: int, root: str) -> None:
     from neld_jax.data.synthetic import make_sequence, write_generic
 
     spec = {**CAR, "num_scans": NUM_SCANS.value, "gt_map_points": GT_MAP_POINTS.value, "seed": seed}
-    marker = os.path.join(root, "peers_sequence.json")
-    if os.path.exists(marker):
-        with open(marker) as f:
-            if json.load(f) == spec:
-                return
-    shutil.rmtree(root, ignore_errors=True)
-    write_generic(make_sequence(spec), root)
-    with open(marker, "w") as f:
-        json.dump(spec, f)
+    written_once(spec, root, lambda folder: write_generic(make_sequence(spec), folder))
 
 
 def run_config(root: str, out_dir: str, range_m: float | None):

@@ -272,6 +272,23 @@ def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence
                                atol=1e-9)  # under a looser bound the slide is taken
 
 
+def test_a_link_icp_moves_far_is_kept_where_the_features_find_the_same_pose(drifted_sequence, monkeypatch):
+    # The odometry's first increment 0.8 m wrong (every later pose moved with it: an odometry's first second at
+    # speed): ICP from it finds the true link, past max_link_correction_m (0.5 m), and the global registration, from
+    # no start, lands on the same pose, so the link is ICP's. Where the features disagree, the increment stays.
+    seq = drifted_sequence
+    clouds = prepare_clouds(seq.scans, SETTINGS)
+    start = seq.gt_poses.copy()
+    start[1:, 0, 3] += 0.8
+    chain, _ = baseline.scan_to_map_chain(clouds, start, SETTINGS)
+    link = np.linalg.inv(chain[0]) @ chain[1]
+    truth = np.linalg.inv(seq.gt_poses[0]) @ seq.gt_poses[1]
+    assert np.linalg.norm(link[:3, 3] - truth[:3, 3]) < 0.05
+    monkeypatch.setattr(baseline.chain, "_features_agree", lambda *args: False)
+    kept, _ = baseline.scan_to_map_chain(clouds, start, SETTINGS)
+    np.testing.assert_allclose(np.linalg.inv(kept[0]) @ kept[1], np.linalg.inv(start[0]) @ start[1], atol=1e-9)
+
+
 def test_a_chain_whose_links_overlap_too_little_is_given_up(drifted_sequence, monkeypatch, caplog):
     # Keyframes too far apart for ICP (MulRan Riverside02): once the links' median overlap falls below
     # chain_min_median_overlap, the chain stops, the pose graph is skipped and the refinement starts from the input.
@@ -521,6 +538,39 @@ def test_global_registration_closes_a_loop_beyond_icps_reach(short_courtyard_rou
     poses, loops = loop_closed_graph(clouds, chain, dataclasses.replace(settings, global_loops_per_scan=0))
     assert loops.global_tried == loops.global_kept == 0
     assert ate(poses, seq.gt_poses)["translation_rmse_m"] > 0.5 * drifted
+
+
+def test_a_loop_icp_moves_past_its_gate_closes_where_the_features_find_the_same_pose(short_courtyard_route):
+    # A chain that drifted linearly to 0.6 m at the loop's end (0.6 % of the path, within the 1 % allowance): ICP from
+    # it finds the first scans again with a good overlap but moves the last ones past max_loop_correction_m (0.2 m).
+    # The global registration, from no guess, finds the same poses: those closures are kept and pull the graph back.
+    # Where ICP had landed elsewhere (a slide: here ICP's poses moved by 0.5 m), the same closures are refused.
+    from neld_jax.baseline import graph
+
+    seq = short_courtyard_route
+    chain = seq.gt_poses.copy()
+    chain[:, :3, 3] += np.linspace(0.0, 1.0, seq.num_scans)[:, None] * np.array([0.48, 0.36, 0.0])
+    settings = BaselineSettings(window=10, map_rounds=0, min_loop_fitness=0.2)
+    clouds = prepare_clouds(seq.scans, settings)
+    poses, loops = loop_closed_graph(clouds, chain, settings)
+    drifted = ate(chain, seq.gt_poses)["translation_rmse_m"]
+    assert drifted > 0.1 and loops.global_tried >= loops.global_kept >= 1, loops
+    assert ate(poses, seq.gt_poses)["translation_rmse_m"] < 0.3 * drifted
+
+    positions = chain[:, :3, 3]
+    path_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
+    _, pairs = candidate_pairs(positions, settings.loop_radius_m, settings.max_loops_per_scan, settings.window)
+    _, _, moved = graph._icp_closures(clouds, chain, pairs, path_m, settings)
+    assert moved, "no ICP closure moved past the gate with a good overlap"
+    agreed = graph._global_closures(clouds, chain, list(moved), path_m, settings, moved)
+    slid = {pair: transform @ _shifted(0.5) for pair, transform in moved.items()}
+    assert agreed and not graph._global_closures(clouds, chain, list(moved), path_m, settings, slid)
+
+
+def _shifted(metres: float) -> np.ndarray:
+    shift = np.eye(4)
+    shift[0, 3] = metres
+    return shift
 
 
 def test_loop_closures_between_linked_recordings_pass_the_loop_gates(short_courtyard_route):

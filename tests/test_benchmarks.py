@@ -352,8 +352,9 @@ def test_real_targets_read_the_targets_off_an_entry():
     assert "big: failed: DataError: too wide" in table.splitlines()[-1]
 
 
-def test_peers_compares_the_four_methods_on_the_same_sweeps(tmp_path):
-    # benchmarks/peers.py on 30 raw 10 Hz sweeps with a tiny model: a row per method with its ATE, crispness and wall
+def test_peers_compares_the_methods_on_the_same_sweeps(tmp_path):
+    # benchmarks/peers.py on 30 raw 10 Hz sweeps with a tiny model: a row per method (KISS-ICP and KISS-SLAM as their
+    # own pipelines run them, the run's own odometry, the baseline, NeLD-BA) with its ATE, crispness and wall
     # time, NeLD-BA's margin to each peer, and the targets. KISS-SLAM is an optional extra (neld-jax[peers]): where it
     # is missing its row says so and the others still compare.
     out = tmp_path / "peers.json"
@@ -370,9 +371,9 @@ def test_peers_compares_the_four_methods_on_the_same_sweeps(tmp_path):
     assert "error" not in entry, entry.get("error")
     assert entry["input_scans"] == 30 and entry["keyframes"] == 6
     rows = entry["methods"]
-    assert set(rows) == {"kiss_icp", "kiss_slam", "baseline", "neld_ba"}
+    assert set(rows) == {"kiss_icp", "kiss_slam", "odometry", "baseline", "neld_ba"}
     slam_installed = importlib.util.find_spec("kiss_slam") is not None
-    measured = ["kiss_icp", "baseline", "neld_ba"] + (["kiss_slam"] if slam_installed else [])
+    measured = ["kiss_icp", "odometry", "baseline", "neld_ba"] + (["kiss_slam"] if slam_installed else [])
     if not slam_installed:
         assert rows["kiss_slam"]["status"] == "not installed (pip install neld-jax[peers])"
     for name in measured:
@@ -385,9 +386,12 @@ def test_peers_compares_the_four_methods_on_the_same_sweeps(tmp_path):
             for verdict in (row, every):
                 assert len(verdict["neld_ba_margin_per_draw"]) == 3
                 assert verdict["neld_ba_verdict"] in ("every draw", "a tie", "blurrier")
-    assert rows["neld_ba"]["wall_s"] >= rows["kiss_icp"]["wall_s"]  # the whole run holds its odometry
-    assert set(entry["targets"]["peers"]) == {
-        "ate_below_kiss_icp", "ate_below_kiss_slam", "crisper_than_kiss_icp", "crisper_than_kiss_slam",
+    assert rows["neld_ba"]["wall_s"] >= rows["odometry"]["wall_s"]  # the whole run holds its odometry
+    assert rows["kiss_icp"]["poses"] != rows["odometry"]["poses"]  # KISS-ICP alone, not the run's two passes
+    peers = entry["targets"]["peers"]
+    assert peers["ate_over_kiss_icp"] == pytest.approx(rows["neld_ba"]["ate_m"] / rows["kiss_icp"]["ate_m"], rel=1e-3)
+    assert set(peers) == {
+        "ate_below_kiss_icp", "ate_below_kiss_slam", "ate_over_kiss_icp", "crisper_than_kiss_icp", "crisper_than_kiss_slam",
         "every_sweep_map_crisper_than_kiss_icp", "every_sweep_map_crisper_than_kiss_slam", "within_minutes"}
     assert entry["targets"]["peers"]["within_minutes"] is True
     assert "kiss_icp" in result.stdout and "targets" in result.stdout and "iteration=" not in result.stdout

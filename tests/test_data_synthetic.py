@@ -10,6 +10,7 @@ from neld_jax.data.generic import load_generic
 from neld_jax.data.preprocess import select_keyframes
 from neld_jax.data.synthetic import (
     add_odometry_drift,
+    car_drive,
     cast_scan,
     make_scene,
     make_scene_meshes,
@@ -216,8 +217,15 @@ def test_a_car_route_is_long_with_turns_at_10_hz(tmp_path):
     assert path[:5].sum() < 0.3 and path[40:].min() > 0.75  # from rest, at speed after 4 s
     heading = np.unwrap(np.arctan2(seq.gt_poses[:, 1, 0], seq.gt_poses[:, 0, 0]))
     assert abs(heading[-1] - heading[0]) > np.deg2rad(340)  # four corners round a closed route
-    write_generic(seq, tmp_path)  # no poses.txt: the scans carry their stamps in their names
+    # raw sweeps: each point's time within its sweep, the car's motion while the head turns in them
+    assert all(0.0 <= t.min() and t.max() < 0.1 for t in seq.point_times)
+    columns, _ = car_drive(400, 320.0, 0, 10.0, np.array([0.0, 0.999]))
+    within = np.linalg.norm(columns[:, 1, :3, 3] - columns[:, 0, :3, 3], axis=1)
+    assert within[0] < 0.02 and within[60:].min() > 0.7  # from rest, then ~0.8 m within each sweep
+    np.testing.assert_allclose(columns[:, 0], seq.gt_poses, atol=1e-12)  # the ground truth at the sweeps' stamps
+    write_generic(seq, tmp_path)  # no poses.txt: the scans carry their stamps in their names, point_times/ beside
     back = load_generic(tmp_path)
     assert back.poses is None and back.num_scans == 400 and not (tmp_path / "poses.txt").exists()
+    np.testing.assert_allclose(back.point_times[7], seq.point_times[7], atol=1e-6)
     np.testing.assert_allclose(back.timestamps, seq.timestamps, atol=1e-6)
     np.testing.assert_allclose(back.gt_poses, seq.gt_poses, atol=1e-6)

@@ -53,7 +53,7 @@ DEMO_TABLE = [
     ("**NeLD-BA from", 5, "accuracy_easy_from_baseline_cpu.json", "result.neld_ba.rendered_map_f1", "percent1"),
 ]
 NUMBER_WORDS = {5: "five", 6: "six"}
-ORDINALS = {5: "fifth", 12: "twelfth"}
+ORDINALS = {5: "fifth", 6: "sixth", 12: "twelfth"}
 
 
 def _result(file: str, path: str):

@@ -22,10 +22,11 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
    (`loop_icp_distances_m`, without the chain's coarsest scale) and kept only when its fitness (overlap
    fraction) reaches `min_loop_fitness` and it moves the scan by at most `max_loop_correction_m` from where the
    chain puts it; loop edges are "uncertain", so the line process may prune them. Where ICP found too little
-   overlap and no closure joins the same two stretches of the route, the chain may have drifted beyond ICP's
-   reach: the nearest such pair per scan is registered again from FPFH features + RANSAC (`global_registration`)
-   and kept, as a certain edge, within the drift a LiDAR odometry can build up over the path between the two
-   scans (`loop_drift_fraction`);
+   overlap, or moved the scan further than that, and no closure joins the same two stretches of the route, the
+   chain may have drifted beyond ICP's reach or its gate: the nearest such pair per scan is registered again from
+   FPFH features + RANSAC (`global_registration`) and kept, as a certain edge, within the drift a LiDAR odometry can
+   build up over the path between the two scans (`loop_drift_fraction`), and, where ICP had moved the scan, only
+   where both registrations agree (a slide along a corridor depends on where ICP started);
 3. Levenberg-Marquardt `global_optimization`, scan 0 held fixed;
 4. `map_rounds` rounds of multi-view refinement: each scan is registered again, by point-to-plane ICP at
    `map_icp_distances_m`, to the map of the OTHER scans (voxel-downsampled, normals re-estimated). A round has two

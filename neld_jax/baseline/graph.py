@@ -111,12 +111,12 @@ def loop_closed_graph(clouds: list, chain_poses: np.ndarray, settings: BaselineS
                                     min_index_gap=settings.window)
     # The chain's path length up to each scan: a global loop closure may correct loop_drift_fraction of the path.
     path_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
-    closures, drifted = _icp_closures(clouds, start, progress_bar("loop closures", progress, loop_pairs), path_m,
-                                      settings)
+    closures, drifted, moved = _icp_closures(clouds, start, progress_bar("loop closures", progress, loop_pairs),
+                                             path_m, settings)
     closed = [(edge.source_node_id, edge.target_node_id) for edge in closures]
     global_pairs = _nearest_per_scan(_unexplained(drifted, closed, settings.window), positions,
                                      settings.global_loops_per_scan)
-    global_closures = _global_closures(clouds, start, global_pairs, path_m, settings)
+    global_closures = _global_closures(clouds, start, global_pairs, path_m, settings, moved)
     kept_pairs = [(edge.source_node_id, edge.target_node_id) for edge in closures + global_closures]
     still_linked = _links_still_needed(linked, kept_pairs, segments)
     optimized = _optimized(start, chain_edges + closures + global_closures + still_linked, settings)
@@ -190,25 +190,28 @@ def _drift_allowance_m(path_m: np.ndarray, i: int, j: int, settings: BaselineSet
 
 
 def _icp_closures(clouds: list, chain_poses: np.ndarray, loop_pairs, path_m: np.ndarray,
-                  settings: BaselineSettings) -> tuple[list, list[tuple[int, int]]]:
+                  settings: BaselineSettings) -> tuple[list, list[tuple[int, int]], dict]:
     """Each loop pair (i, j) registered by ICP from the chain -> (the uncertain edges of those the gates keep, the
-    pairs whose ICP overlapped too little over a path long enough to have drifted: cases for the global
-    registration)."""
-    edges, drifted = [], []
+    pairs the gates refused over a path long enough to have drifted: cases for the global registration, {pair: ICP's
+    transform [4, 4]} of those among them that overlapped well but moved the scan too far)."""
+    edges, drifted, moved = [], [], {}
     loop_icp = dataclasses.replace(settings, icp_distances_m=settings.loop_icp_distances_m)
     for i, j in loop_pairs:
         guess = np.linalg.inv(chain_poses[j]) @ chain_poses[i]
         transform, result = multiscale_icp(clouds[i], clouds[j], guess, loop_icp)
         if not passes_loop_gates(result, correction_m(guess, transform), settings):
-            # Too little overlap where the chain can have drifted further than ICP's closures may move a scan: a
-            # case for the global registration. Over a short path a failed ICP means the scans share too little.
-            if (result.fitness < settings.min_loop_fitness
-                    and _drift_allowance_m(path_m, i, j, settings) > settings.max_loop_correction_m):
+            # Where the chain can have drifted further than ICP's closures may move a scan, too little overlap or a
+            # large move is a case for the global registration; a large move (ICP's, from the chain) is kept only
+            # where the global registration, from no guess, finds the same pose: a slide along a corridor depends on
+            # where ICP started. Over a short path a refused ICP means the scans share too little, or a slide.
+            if _drift_allowance_m(path_m, i, j, settings) > settings.max_loop_correction_m:
                 drifted.append((i, j))
+                if result.fitness >= settings.min_loop_fitness:
+                    moved[(i, j)] = transform
             continue
         edges.append(_reg.PoseGraphEdge(i, j, transform, information(clouds[i], clouds[j], transform, settings),
                                         uncertain=True))
-    return edges, drifted
+    return edges, drifted, moved
 
 
 def _unexplained(drifted: list[tuple[int, int]], closed: list[tuple[int, int]], window: int) -> list[tuple[int, int]]:
@@ -221,10 +224,12 @@ def _unexplained(drifted: list[tuple[int, int]], closed: list[tuple[int, int]], 
 
 
 def _global_closures(clouds: list, chain_poses: np.ndarray, pairs: list[tuple[int, int]], path_m: np.ndarray,
-                     settings: BaselineSettings) -> list:
+                     settings: BaselineSettings, icp_moved: dict | None = None) -> list:
     """Each pair (i, j) registered globally (global_registration) -> the certain edges of those the gates keep,
     within the drift allowance: the line process would prune a closure this far from the chain (its residual is
-    the whole drift), and the gates are what vouch for it."""
+    the whole drift), and the gates are what vouch for it. icp_moved: {pair: transform [4, 4]} where ICP from the
+    chain overlapped well but moved the scan past the gate; such a pair is kept only where the global registration
+    lands within max_loop_correction_m of ICP's pose."""
     features, edges = {}, []
     for i, j in pairs:
         for k in (i, j):
@@ -235,6 +240,9 @@ def _global_closures(clouds: list, chain_poses: np.ndarray, pairs: list[tuple[in
         if not passes_loop_gates(result, correction_m(guess, transform), settings,
                                  _drift_allowance_m(path_m, i, j, settings)):
             continue
+        icp = (icp_moved or {}).get((i, j))
+        if icp is not None and correction_m(icp, transform) > settings.max_loop_correction_m:
+            continue  # ICP slid where the features put the scan elsewhere
         edges.append(_reg.PoseGraphEdge(i, j, transform, information(clouds[i], clouds[j], transform, settings),
                                         uncertain=False))
     return edges

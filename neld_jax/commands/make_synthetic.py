@@ -12,9 +12,9 @@ KISS-ICP), as a recording holds them:
     neld-make-synthetic --config=configs/demo.py --root=/tmp/sweeps --rate_hz=10 --config.data.synthetic.num_scans=300 \
         --config.data.synthetic.trajectory_radius_m=10 --config.data.synthetic.max_range_m=40
 
-The routes "car" and "handheld" (data.synthetic.route) write rigid scans named by their stamps, with ground truth
-and no poses: a car's 10 Hz scans along the courtyards' route (num_scans over route_length_m), a handheld sensor's
-2 Hz scans turned 40-50 degrees from one to the next (--rate_hz sets another rate):
+The routes "car" and "handheld" (data.synthetic.route) write scans named by their stamps, with ground truth and no
+poses: a car's raw 10 Hz sweeps along the courtyards' route (num_scans over route_length_m; per-point times beside),
+a handheld sensor's rigid 2 Hz scans turned 40-50 degrees from one to the next (--rate_hz sets another rate):
 
     neld-make-synthetic --config=configs/demo.py --root=/tmp/car --config.data.synthetic.route=car \
         --config.data.synthetic.num_beams=64 --config.data.synthetic.num_scans=400 \

@@ -111,21 +111,18 @@ def _resolve_config(cfg) -> ml_collections.ConfigDict:
 def make_sequence(cfg=None, rate_hz: float = 0.0, session: int | None = None) -> Sequence:
     """A synthetic Sequence: scans cast from the ground-truth poses, drifted initial poses, GT poses and map.
 
-    cfg: ConfigDict or dict with any of the fields of synthetic_defaults() (missing ones take the
-    defaults, unknown ones raise ConfigError). Timestamps are SCAN_INTERVAL_S (3 s) apart, so keyframe
-    selection at 3 s keeps every scan.
+    cfg: ConfigDict or dict with any of the fields of synthetic_defaults() (missing ones take the defaults, unknown
+    ones raise ConfigError). Timestamps are SCAN_INTERVAL_S (3 s) apart, so keyframe selection at 3 s keeps every scan.
 
     rate_hz > 0: the raw sweeps of a LiDAR spinning at that rate instead, as a recording holds them (the loop
     route only): num_scans sweeps 1 / rate_hz apart, each point cast from where the sensor was at its column's
     instant, `point_times` [N_i] seconds after the sweep's stamp, ground truth at the sweeps' stamps (their
     starts), and no initial poses (poses None: a run makes them from the scans, data/odometry.py).
-
-    The routes "handheld" (handheld_walk round the loop, HANDHELD_RATE_HZ unless rate_hz is given) and "car"
-    (car_drive along the courtyards' route at CAR_RATE_HZ unless rate_hz is given: num_scans over route_length_m,
-    from rest) are rigid scans
-    (deskewed, as a front-end writes them) 1 / rate_hz apart, with ground truth and no initial poses.
-
-    session K (loop route, rigid scans): make_visit's K-th visit of the scene instead."""
+    The route "handheld" (handheld_walk round the loop, HANDHELD_RATE_HZ unless rate_hz is given) is rigid scans
+    (deskewed, as a front-end writes them) 1 / rate_hz apart; the route "car" (car_drive along the courtyards' route
+    at CAR_RATE_HZ unless rate_hz is given: num_scans over route_length_m, from rest) is raw sweeps as above (a car
+    moves about a metre within a sweep). Both come with ground truth and no initial poses. session K (loop route,
+    rigid scans): make_visit's K-th visit of the scene instead."""
     if session is not None:
         return make_visit(cfg, session)
     cfg = _resolve_config(cfg)
@@ -136,10 +133,13 @@ def make_sequence(cfg=None, rate_hz: float = 0.0, session: int | None = None) ->
     directions = spinning_lidar_directions(cfg.num_beams, FOV_DEG[1], FOV_DEG[0], cfg.num_columns)
     rng = np.random.default_rng(cfg.seed + 2)
     point_times, init_poses = None, None
-    if cfg.route in ("handheld", "car"):
-        rate_hz = rate_hz or (HANDHELD_RATE_HZ if cfg.route == "handheld" else CAR_RATE_HZ)
+    if cfg.route == "handheld":
+        rate_hz = rate_hz or HANDHELD_RATE_HZ
         timestamps = np.arange(cfg.num_scans) / rate_hz
         scans = [cast_scan(scene, pose, directions, cfg.max_range_m, cfg.range_noise_m, rng) for pose in gt_poses]
+    elif cfg.route == "car":
+        rate_hz = rate_hz or CAR_RATE_HZ
+        timestamps, scans, point_times = _car_sweeps(cfg, rate_hz, scene, directions, rng)
     elif rate_hz > 0:
         timestamps, scans, point_times = _raw_sweeps(cfg, rate_hz, scene, directions, rng)
     else:
@@ -200,6 +200,7 @@ def _scene_and_route(cfg, rate_hz: float):
     """(RaycastingScene, meshes, ground-truth poses [S, 4, 4]) of the resolved cfg's route."""
     if cfg.route == "car":
         gt_poses, route_xy = car_drive(cfg.num_scans, cfg.route_length_m, cfg.seed, rate_hz or CAR_RATE_HZ)
+        gt_poses = gt_poses[:, 0]
         meshes = make_courtyards_meshes(cfg.seed, route_xy)
         return raycasting_scene(meshes), meshes, gt_poses
     if cfg.route == "courtyards":
@@ -224,6 +225,19 @@ def _raw_sweeps(cfg, rate_hz: float, scene, directions: np.ndarray, rng: np.rand
         scans.append(points)
         point_times.append(column_fraction[column] / rate_hz)
     return timestamps, scans, point_times
+
+
+def _car_sweeps(cfg, rate_hz: float, scene, directions: np.ndarray, rng: np.random.Generator):
+    """(stamps [S], sweeps [S] x [N_i, 3], per-point times [S] x [N_i]) of the car's LiDAR spinning at rate_hz along
+    car_drive: each column cast from where the car is at its instant (at 11 m/s a sweep spans 1.1 m)."""
+    column_fraction = np.arange(cfg.num_columns) / cfg.num_columns
+    column_poses, _ = car_drive(cfg.num_scans, cfg.route_length_m, cfg.seed, rate_hz, column_fraction)
+    scans, point_times = [], []
+    for poses in column_poses:
+        points, column = cast_sweep(scene, poses, directions, cfg.max_range_m, cfg.range_noise_m, rng)
+        scans.append(points)
+        point_times.append(column_fraction[column] / rate_hz)
+    return np.arange(cfg.num_scans) / rate_hz, scans, point_times
 
 
 def load(data_cfg) -> Sequence:

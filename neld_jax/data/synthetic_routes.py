@@ -17,7 +17,6 @@ HANDHELD_TURN_DEG = (40.0, 50.0)  # the turn between consecutive handheld scans,
 HANDHELD_STEADY_SCANS = 8  # the handheld walk's first scans look ahead (an odometry learns the sensor's overlap)
 CAR_RATE_HZ = 10.0  # the car route's scans, when make_sequence is given no rate
 CAR_START_S = 4.0  # the car speeds up from rest over this long
-CAR_ROUTE_SAMPLES_PER_SCAN = 20  # the car's poses are the route's nearest samples, this many a scan apart
 
 
 def smooth_trajectory(num_scans: int, radius_m: float, seed: int) -> np.ndarray:
@@ -152,33 +151,52 @@ def courtyard_route(num_scans: int, length_m: float, seed: int) -> tuple[np.ndar
     """Ground-truth poses [S, 4, 4] evenly along a closed route of length_m (a rounded rectangle, so that it
     passes a ring of courtyards), and the dense route [N, 2] for placing the scene. Yaw follows the route;
     height, roll and pitch wobble a little as in smooth_trajectory."""
+    dense = _rounded_rectangle(length_m)
+    idx = (np.arange(num_scans) * len(dense)) // num_scans
+    return _route_poses(dense, idx, idx + 1, np.zeros(num_scans), np.arange(num_scans) / num_scans, seed), dense
+
+
+def _route_poses(dense: np.ndarray, before: np.ndarray, after: np.ndarray, blend: np.ndarray, fraction: np.ndarray,
+                 seed: int) -> np.ndarray:
+    """Poses [N, 4, 4] on the dense closed route [D, 2]: at blend [N] of the way from its point `before` [N] to
+    `after` [N] (indices, wrapped), the yaw along the route there, and the wobble of height, roll and pitch at
+    fraction [N] of the way round."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(seed)
     z_phase, roll_phase, pitch_phase = rng.uniform(0.0, 2 * np.pi, size=3)
-    dense = _rounded_rectangle(length_m)
     n = len(dense)
-    idx = (np.arange(num_scans) * n) // num_scans
-    xy = dense[idx]
-    tangent = dense[(idx + 1) % n] - dense[(idx - 1) % n]
+    w = blend[:, None]
+    xy = (1 - w) * dense[before % n] + w * dense[after % n]
+    tangent = (1 - w) * (dense[(before + 1) % n] - dense[(before - 1) % n]) + w * (
+        dense[(after + 1) % n] - dense[(after - 1) % n])
     yaw = np.arctan2(tangent[:, 1], tangent[:, 0])
-    theta = 2 * np.pi * np.arange(num_scans) / num_scans
+    theta = 2 * np.pi * fraction
     pitch = np.deg2rad(1.5) * np.sin(7 * theta + pitch_phase)
     roll = np.deg2rad(2.0) * np.sin(5 * theta + roll_phase)
-    poses = np.tile(np.eye(4), (num_scans, 1, 1))
+    poses = np.tile(np.eye(4), (len(fraction), 1, 1))
     poses[:, :3, :3] = Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], axis=1)).as_matrix()
     poses[:, :3, 3] = np.stack([xy[:, 0], xy[:, 1], SENSOR_HEIGHT_M + 0.1 * np.sin(3 * theta + z_phase)], axis=1)
-    return poses, dense
+    return poses
 
 
-def car_drive(num_scans: int, length_m: float, seed: int, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
-    """courtyard_route's poses [S, 4, 4] and dense route [N, 2] for a car that starts from rest: one scan each
-    1 / rate_hz s, speeding up evenly over CAR_START_S, then at the speed that brings it round the closed route of
-    length_m by the time of scan S (the ground truth of the route's samples nearest each scan's distance)."""
-    samples = CAR_ROUTE_SAMPLES_PER_SCAN * num_scans
-    poses, dense = courtyard_route(samples, length_m, seed)
-    times = np.arange(num_scans + 1) / rate_hz
-    travelled = np.where(times < CAR_START_S, times ** 2 / (2 * CAR_START_S), times - CAR_START_S / 2)  # x speed
-    index = np.rint(travelled[:-1] / travelled[-1] * samples).astype(np.int64) % samples
-    return poses[index], dense
+def car_drive(num_scans: int, length_m: float, seed: int, rate_hz: float,
+              sweep_fractions: np.ndarray = np.zeros(1)) -> tuple[np.ndarray, np.ndarray]:
+    """The poses of a car that starts from rest on courtyard_route's closed route of length_m, and the dense route
+    [N, 2]: one sweep each 1 / rate_hz s, speeding up evenly over CAR_START_S, then at the speed that brings it
+    round the route by the time of sweep S. Returns poses [S, F, 4, 4] at sweep_fractions [F] of each sweep's
+    period after its stamp (the default [0.0]: at the stamps), between the route's samples where they fall."""
+    dense = _rounded_rectangle(length_m)
+    times = (np.arange(num_scans)[:, None] + np.asarray(sweep_fractions, np.float64)[None, :]) / rate_hz
+    fraction = np.mod(_car_travelled(times) / _car_travelled(num_scans / rate_hz), 1.0).ravel()
+    at = fraction * len(dense)
+    before = np.floor(at).astype(np.int64)
+    poses = _route_poses(dense, before, before + 1, at - before, fraction, seed)
+    return poses.reshape(*times.shape, 4, 4), dense
 
+
+def _car_travelled(times_s):
+    """How far the car has gone at times_s (in seconds of driving at its cruising speed): it speeds up evenly from
+    rest over CAR_START_S."""
+    times_s = np.asarray(times_s, np.float64)
+    return np.where(times_s < CAR_START_S, times_s ** 2 / (2 * CAR_START_S), times_s - CAR_START_S / 2)

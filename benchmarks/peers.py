@@ -392,8 +392,9 @@ def every_sweep_crispness(loaded, methods: dict, eval_cfg) -> dict:
 
 
 def target_verdicts(entry: dict, minutes_limit: float = 10.0) -> dict:
-    """NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's (and over KISS-ICP's), its raw map crisper than both on every draw (the verdict:
-    "every draw", "a tie", "blurrier"), its whole run within minutes_limit; None where a figure is missing."""
+    """NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's (and over KISS-ICP's), its raw map crisper than both on every
+    draw (the verdict: "every draw", "a tie", "blurrier"), its whole run within minutes_limit; None where a figure is
+    missing."""
     rows = entry["methods"]
     neld = rows["neld_ba"]
 

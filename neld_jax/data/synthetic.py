@@ -139,7 +139,7 @@ def make_sequence(cfg=None, rate_hz: float = 0.0, session: int | None = None) ->
         scans = [cast_scan(scene, pose, directions, cfg.max_range_m, cfg.range_noise_m, rng) for pose in gt_poses]
     elif cfg.route == "car":
         rate_hz = rate_hz or CAR_RATE_HZ
-        timestamps, scans, point_times = _car_sweeps(cfg, rate_hz, scene, directions, rng)
+        timestamps, scans, point_times = _raw_sweeps(cfg, rate_hz, scene, directions, rng)
     elif rate_hz > 0:
         timestamps, scans, point_times = _raw_sweeps(cfg, rate_hz, scene, directions, rng)
     else:
@@ -216,28 +216,19 @@ def _scene_and_route(cfg, rate_hz: float):
 
 def _raw_sweeps(cfg, rate_hz: float, scene, directions: np.ndarray, rng: np.random.Generator):
     """(stamps [S], sweeps [S] x [N_i, 3], per-point times [S] x [N_i]) of a LiDAR spinning at rate_hz round the
-    loop: each column cast from where the sensor is at its instant."""
+    loop, or along car_drive for the route "car" (at 11 m/s a sweep spans 1.1 m): each column cast from where the
+    sensor is at its instant."""
     timestamps, scans, point_times = np.arange(cfg.num_scans) / rate_hz, [], []
     column_fraction = np.arange(cfg.num_columns) / cfg.num_columns
+    if cfg.route == "car":
+        car_columns, _ = car_drive(cfg.num_scans, cfg.route_length_m, cfg.seed, rate_hz, column_fraction)
     for i in range(cfg.num_scans):
-        column_poses = loop_poses((i + column_fraction) / cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
+        column_poses = (car_columns[i] if cfg.route == "car" else
+                        loop_poses((i + column_fraction) / cfg.num_scans, cfg.trajectory_radius_m, cfg.seed))
         points, column = cast_sweep(scene, column_poses, directions, cfg.max_range_m, cfg.range_noise_m, rng)
         scans.append(points)
         point_times.append(column_fraction[column] / rate_hz)
     return timestamps, scans, point_times
-
-
-def _car_sweeps(cfg, rate_hz: float, scene, directions: np.ndarray, rng: np.random.Generator):
-    """(stamps [S], sweeps [S] x [N_i, 3], per-point times [S] x [N_i]) of the car's LiDAR spinning at rate_hz along
-    car_drive: each column cast from where the car is at its instant (at 11 m/s a sweep spans 1.1 m)."""
-    column_fraction = np.arange(cfg.num_columns) / cfg.num_columns
-    column_poses, _ = car_drive(cfg.num_scans, cfg.route_length_m, cfg.seed, rate_hz, column_fraction)
-    scans, point_times = [], []
-    for poses in column_poses:
-        points, column = cast_sweep(scene, poses, directions, cfg.max_range_m, cfg.range_noise_m, rng)
-        scans.append(points)
-        point_times.append(column_fraction[column] / rate_hz)
-    return np.arange(cfg.num_scans) / rate_hz, scans, point_times
 
 
 def load(data_cfg) -> Sequence:

@@ -51,7 +51,8 @@ def config_hash(config: ml_collections.ConfigDict) -> str:
 class RunSteps:
     """What a run's steps made: every input scan (`loaded`) and the keyframes (step 1), the start (2), the refined
     poses and fields (3), the rendered map (4; None with mapping off) and every other input scan registered to the
-    result (5; neld_jax.register_scans.ScanRegistration, None where nothing was registered)."""
+    result (5; neld_jax.register_scans.ScanRegistration, None where nothing was registered); neld_ba: NeLD-BA's
+    poses of every input scan [S, 4, 4] where the start's poses are the answer instead (neld_jax.answer), else None."""
 
     loaded: Any
     keyframes: Any
@@ -59,17 +60,25 @@ class RunSteps:
     refined: Any
     render: Any = None
     registration: Any = None
+    neld_ba: np.ndarray | None = None
+
+    def every_scan_poses(self) -> np.ndarray:
+        """The answer's poses of every input scan [S, 4, 4]: the scans between keyframes registered to the result,
+        or, where nothing was registered (or a scan was refused), their keyframes' interpolated correction."""
+        if self.registration is not None:
+            return self.registration.poses
+        return propagate_corrections(self.loaded.poses, self.keyframes.loaded_index, self.refined.poses,
+                                     self.loaded.timestamps)
 
 
 def write_outputs(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps) -> RunArtifacts:
-    """poses_initial / poses_optimized (TUM .txt and KITTI .kitti, one line per input scan: the scans between
-    keyframes registered to the result (made.registration), or where it is
-    None or refused a scan, their keyframes' interpolated correction), poses_baseline when the baseline ran, poses_gt
-    where ground truth exists, poses_odometry when the input poses were made from the scans (KISS-ICP; the same poses as
-    poses_initial, under the name that says where they came from); map_raw.ply (the keyframes registered with the
-    optimised poses), map_raw_initial.ply, map_rendered.ply, map_gt.ply. Returns what it wrote, as arrays (the
-    evaluation measures them without reading the files back); trajectories["optimized"]: every input scan's
-    poses [S, 4, 4]."""
+    """poses_initial / poses_optimized (TUM .txt and KITTI .kitti, one line per input scan: the answer,
+    made.every_scan_poses), poses_neld_ba where the start's poses are the answer (neld_jax.answer), poses_baseline
+    when the baseline ran, poses_gt where ground truth exists, poses_odometry when the input poses were made from
+    the scans (KISS-ICP; the same poses as poses_initial, under the name that says where they came from);
+    map_raw.ply (the keyframes registered with the answer's poses), map_raw_initial.ply, map_rendered.ply,
+    map_gt.ply. Returns what it wrote, as arrays (the evaluation measures them without reading the files back);
+    trajectories["optimized"]: every input scan's poses [S, 4, 4]."""
     loaded, keyframes, refined, render = made.loaded, made.keyframes, made.refined, made.render
     index = keyframes.loaded_index
     stamps = loaded.timestamps if loaded.timestamps is not None else np.arange(loaded.num_scans, dtype=np.float64)
@@ -77,8 +86,9 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, made: RunStep
     if made.start.baseline_poses is not None:
         trajectories["baseline"] = propagate_corrections(loaded.poses, index, made.start.baseline_poses,
                                                          loaded.timestamps)
-    trajectories["optimized"] = (propagate_corrections(loaded.poses, index, refined.poses, loaded.timestamps)
-                                 if made.registration is None else made.registration.poses)
+    trajectories["optimized"] = made.every_scan_poses()
+    if made.neld_ba is not None:
+        trajectories["neld_ba"] = made.neld_ba
     if loaded.poses_from == "kiss_icp":
         trajectories["odometry"] = loaded.poses
     for name, poses in trajectories.items():
@@ -104,18 +114,19 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, made: RunStep
 
 
 def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, written: RunArtifacts,
-              budget: TimeBudget, progress: bool = True, sections: dict | None = None) -> tuple[dict, list[dict]]:
-    """The verdict of a run: metrics.json (run, scans_report, crispness; evaluation where ground truth exists; and
-    the caller's `sections`, e.g. a run over several recordings' "sessions"), built here and written once, whole (a
-    rerun into the folder inherits nothing of an earlier metrics.json), history.json, scans_report.csv / .png,
-    map_topdown.png and the evaluation's plots. Returns (metrics.json's content, the per-scan report's rows)."""
+              budget: TimeBudget, judged: tuple, sections: dict | None = None) -> tuple[dict, list[dict]]:
+    """The verdict of a run (judged: judge_crispness' answer for `made`): metrics.json (run, scans_report,
+    crispness; evaluation where ground truth exists; and the caller's `sections`, e.g. a run over several
+    recordings' "sessions"), built here and written once, whole (a rerun into the folder inherits nothing of an
+    earlier metrics.json), history.json, scans_report.csv / .png, map_topdown.png and the evaluation's plots. Returns (metrics.json's content, the per-scan report's rows)."""
     keyframes, refined = made.keyframes, made.refined
-    crisp, per_scan_entropy, margins = judge_crispness(config, made, budget, progress)
+    crisp, per_scan_entropy, margins = judged
     rows = write_scan_report(out_dir, made, written.trajectories["optimized"].poses, per_scan_entropy,
                              float(config.mapping.min_opacity))
     plots.plot_map_topdown(os.path.join(out_dir, "map_topdown.png"),
                            {"input poses": register_scans(keyframes.scans, keyframes.poses),
-                            "after NeLD-BA": register_scans(keyframes.scans, refined.poses)})
+                            ("after NeLD-BA" if made.neld_ba is None else f"kept: the {made.start.chosen} poses"):
+                            register_scans(keyframes.scans, refined.poses)})
     summary = {"run": run_record(config, made, budget, margins, judge.warn_if_not_crispest(crisp, margins)),
                "scans_report": report.summarize(rows), "crispness": crisp}
     if written.gt is not None or written.gt_map is not None:
@@ -169,6 +180,7 @@ def run_record(config: ml_collections.ConfigDict, made: RunSteps, budget: TimeBu
         "map_rays_rendered": None if render is None else render.num_rendered,
         "final": result.history[-1] if result.history else {},
         **made.start.record(),
+        "answer": "neld_ba" if made.neld_ba is None else made.start.chosen,  # whose poses poses_optimized holds
         "crispest": crispest,
         "crispness_margin": margins,  # {other method: NeLD-BA's entropy minus its, per draw and mean}
     }

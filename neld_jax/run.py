@@ -1,5 +1,5 @@
 """One bundle-adjustment run, read top to bottom: load, choose the start, train, render, register every scan,
-write, judge.
+judge (the answer: NeLD-BA's poses or, where they blurred it, the start's), write.
 
 Each step is a function in the module of its idea; `bin/train.py` (neld-train) calls `run`. The viewer
 (neld_jax.viewer) records what each step made to run.rrd, and streams it with viz.live. The config is the
@@ -16,7 +16,7 @@ import logging
 import jax
 import ml_collections
 
-from neld_jax import mapping, output_folder, outputs, refine, register_scans, session_outputs, start, train
+from neld_jax import answer, mapping, output_folder, outputs, refine, register_scans, session_outputs, start, train
 from neld_jax.budget import TimeBudget
 from neld_jax.session_alignment import load_sessions
 from neld_jax.viewer import RunViewer
@@ -66,20 +66,20 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
                                     budget.render_seconds(), config.seed + 1, progress)
         viewer.log_rendered(render)
 
-    # 5. Register every input scan that was not a keyframe to the keyframes' refined map, from its interpolated
-    #    correction (neld_jax.register_scans); write the poses of every input scan and the maps (neld_jax.outputs).
+    # 5. Register every other input scan to the keyframes' refined map, from its interpolated correction.
     registration = register_scans.register_every_scan(loaded, keyframes, refined.poses,
                                                       register_scans.RegistrationSettings.from_config(config), progress,
                                                       budget.registration_deadline())
     made = outputs.RunSteps(loaded, keyframes, begin, refined, render, registration)
+
+    # 6. Judge the crispness; the answer: NeLD-BA's poses unless they blurred the start's (neld_jax.answer); write
+    #    poses, maps, per-scan report, metrics.json (neld_jax.outputs), each recording's (neld_jax.session_outputs).
+    made, judged = answer.keep_the_better(made, outputs.judge_crispness(config, made, budget, progress))
     written = outputs.write_outputs(out_dir, config, made)
     T_all = written.trajectories["optimized"].poses
-    viewer.log_outputs(keyframes, refined, T_all, recordings)
-
-    # 6. Judge: crispness before and after, how sure, the per-scan report; ground truth where it exists; metrics.json;
-    #    several recordings: each one's share there and in sessions/<k>_<name>/ (neld_jax.session_outputs).
-    sections = session_outputs.sections(recordings, keyframes, refined.poses, written, config.eval)
-    summary, scan_rows = outputs.judge_run(out_dir, config, made, written, budget, progress, sections)
+    viewer.log_outputs(keyframes, made.refined, T_all, recordings)
+    sections = session_outputs.sections(recordings, keyframes, made.refined.poses, written, config.eval)
+    summary, scan_rows = outputs.judge_run(out_dir, config, made, written, budget, judged, sections)
     session_outputs.write_session_files(out_dir, recordings, written, scan_rows)
     viewer.log_verdict(scan_rows, loaded, T_all)
     return summary

@@ -18,7 +18,7 @@ LAYERS = [
     ("data", {"data"}),
     ("library", {"config", "submaps", "crispness", "metrics", "trajectory", "report", "judge", "baseline", "budget",
                  "session_alignment"}),
-    ("steps", {"refine", "mapping", "start", "register_scans"}),
+    ("steps", {"refine", "mapping", "start", "register_scans", "answer"}),
     ("edge", {"run", "outputs", "output_folder", "export", "evaluate", "plots", "viewer", "cli", "hugepages",
               "commands", "session_outputs"}),
 ]

@@ -199,10 +199,13 @@ def test_train_on_the_layout_writes_every_input_scan_and_quality(tmp_path):
     np.testing.assert_allclose(stamps, np.arange(6) * 1.0)
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["run"]["num_input_scans"] == 6 and metrics["run"]["num_scans"] == 3
-    assert set(metrics["crispness"]) == {"initial", "optimized"}
+    # twelve steps of a tiny field may blur the input's map: the input's poses are then the answer (test_answer.py)
+    kept_start = {"neld_ba"} if metrics["run"]["answer"] == "input" else set()
+    assert metrics["run"]["answer"] in ("neld_ba", "input")
+    assert set(metrics["crispness"]) == {"initial", "optimized"} | kept_start
     assert metrics["crispness"]["optimized"]["mean_map_entropy"] is not None
     margin = metrics["run"]["crispness_margin"]  # eval.crispness_draws (5) draws of the query points
-    assert set(margin) == {"initial"} and len(margin["initial"]["per_draw"]) == 5
+    assert set(margin) == {"initial"} | kept_start and len(margin["initial"]["per_draw"]) == 5
     assert metrics["evaluation"]["methods"]["optimized"]["num_poses"] == 6
     lines = (out / "scans_report.csv").read_text().strip().splitlines()
     assert lines[0].startswith("scan,file,timestamp,keyframe") and len(lines) == 7

@@ -179,7 +179,9 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     assert len(chain_deadlines) == 2 and all(d < time.perf_counter() for d in chain_deadlines)  # two chains: tilt
     assert config.baseline.map_rounds > 0 and r["baseline_rounds_done"] == 0
     assert {"initial", "baseline", "optimized"} <= set(summary["crispness"])
-    assert set(r["crispness_margin"]) == {"initial", "baseline"}
+    # four steps of a tiny field may blur the baseline's map: the baseline's poses are then the answer (test_answer)
+    kept_start = {"neld_ba"} if r["answer"] == "baseline" else set()
+    assert r["answer"] in ("neld_ba", "baseline") and set(r["crispness_margin"]) == {"initial", "baseline"} | kept_start
     assert verdicts == [(r["crispness_margin"], r["crispest"])]  # judged over the query draws
     _, T_baseline = read_tum(tmp_path / "run" / "poses_baseline.txt")
     _, T_initial = read_tum(tmp_path / "run" / "poses_initial.txt")
@@ -239,8 +241,8 @@ def test_the_run_renders_its_map_within_the_time_its_budget_gives(tmp_path, monk
 
 
 def test_run_reads_as_its_named_steps():
-    # run.run_steps is the pipeline: load, choose the start, train, render, register every scan, write, judge,
-    # each a call into its module.
+    # run.run_steps is the pipeline: load, choose the start, train, render, register every scan, judge and keep the
+    # better answer, write, each a call into its module.
     import ast
     import inspect
 
@@ -248,7 +250,8 @@ def test_run_reads_as_its_named_steps():
     calls = [ast.unparse(node.func) for node in sorted((n for n in ast.walk(tree) if isinstance(n, ast.Call)),
                                                         key=lambda n: (n.lineno, n.col_offset))]
     order = ["load_sessions", "start.choose_start", "refine.refine_keyframes", "mapping.render_map",
-             "register_scans.register_every_scan", "outputs.write_outputs", "outputs.judge_run"]
+             "register_scans.register_every_scan", "answer.keep_the_better", "outputs.judge_crispness",
+             "outputs.write_outputs", "outputs.judge_run"]
     positions = [calls.index(name) for name in order]
     assert positions == sorted(positions), calls
     assert len(inspect.getsource(run.run_steps).splitlines()) < 50

@@ -15,8 +15,9 @@ from where the sensor is at its instant (neld_jax.data.synthetic's per-sweep fun
 
 in a subprocess (from --repo, its code on PYTHONPATH) and polls the resident memory of it and its children every
 POLL_S: the peak of their sum over the run and over its load (step 1: the sweeps read, KISS-ICP, the keyframes),
-the wall time, and what the log reports (KISS-ICP's seconds, the keyframes). One JSON object on stdout (and in
---out).
+the wall time, what the log reports (KISS-ICP's seconds, the keyframes) and what the run answered (its
+metrics.json: steps, start, whose poses the answer holds, the crispness margins, every sweep's ATE per method). One
+JSON object on stdout (and in --out).
 """
 
 import json
@@ -118,6 +119,18 @@ def load_peak_gb(samples: list[tuple[float, int]], log: str) -> float | None:
     return round(max((rss for t, rss in samples if t <= until), default=0) / 1e9, 3)
 
 
+def run_outcome(out_dir: Path) -> dict:
+    """What the run's metrics.json says it did: steps, start, answer, the margins (its answer's mean map entropy
+    minus each other method's, mean and whether every draw agrees) and every sweep's ATE [m] per method."""
+    metrics = json.loads((out_dir / "metrics.json").read_text())
+    r = metrics["run"]
+    methods = metrics.get("evaluation", {}).get("methods", {})
+    return {"steps": r["steps"], "started_from": r["started_from"], "answer": r.get("answer"),
+            "crispness_margin": {other: {"mean": m["mean"], "all_draws_agree": m["all_draws_agree"]}
+                                 for other, m in r["crispness_margin"].items()},
+            "ate_m": {name: round(m["ate"]["translation_rmse_m"], 5) for name, m in methods.items() if "ate" in m}}
+
+
 def run_command(root: Path, out_dir: Path, repo: str, max_minutes: float) -> dict:
     """Run the own-data command on root; its peak resident memory (GB, the process tree's sum), wall time and
     stages."""
@@ -140,7 +153,7 @@ def run_command(root: Path, out_dir: Path, repo: str, max_minutes: float) -> dic
     if child.returncode != 0:
         raise RuntimeError(f"{' '.join(command)} failed ({child.returncode}); its log: {log_path}\n{text[-2000:]}")
     return {"peak_rss_gb": round(peak / 1e9, 3), "load_peak_rss_gb": load_peak_gb(samples, text),
-            "wall_s": round(wall, 1), **stage_times(text),
+            "wall_s": round(wall, 1), **stage_times(text), "run": run_outcome(out_dir),
             "command": " ".join(command), "log": str(log_path)}
 
 

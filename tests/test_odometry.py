@@ -90,6 +90,9 @@ def test_two_passes_hold_fast_sweeps_that_kiss_icps_own_deskewing_lets_swing():
     labels = [f"sweep {i}" for i in range(NUM_SWEEPS)]
     two_passes = odometry.two_pass_odometry(fast.scans, fast.point_times, fast.timestamps, labels, (0.5, 40.0))
     np.testing.assert_allclose(two_passes[0], np.eye(4), atol=1e-9)
+    # and a second run gives the same poses bit for bit (odometry.POSE_DECIMALS)
+    again = odometry.two_pass_odometry(fast.scans, fast.point_times, fast.timestamps, labels, (0.5, 40.0))
+    assert np.array_equal(again, two_passes), np.abs(again - two_passes).max()
     poses, _, offsets = odometry.kiss_icp_odometry(fast.scans, fast.point_times, labels, 0.5, 40.0, keep_sweeps=False)
     its_own = odometry.poses_at_stamps(fast.timestamps, offsets, poses)
     errors = [metrics.ate(p, fast.gt_poses)["translation_rmse_m"] for p in (two_passes, its_own)]

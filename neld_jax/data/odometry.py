@@ -66,6 +66,10 @@ RECOVERY_ICP_VOXELS = 3.0  # ICP from RANSAC's pose pairs points this far apart 
 # as good (13.96 against 14.12 cm there; 14.5 against 15.7 cm on the car's 300); at 1 cm the car's 16.4 cm.
 FIRST_PASS_CONVERGENCE = 1e-3
 RANSAC_ITERATIONS = 20_000  # at most, per recovery (the classical baseline's)
+# KISS-ICP's poses of the same sweeps differ in their last bits from run to run (about 5e-15 m), and a second pass over
+# sweeps deskewed along the first turned that into centimetres (3.6-4.2 cm over 80 sweeps of the 10 m loop: a point
+# on a voxel's edge goes to the other voxel). Rounded to a nanometre, two runs agree to KISS-ICP's last bits.
+POSE_DECIMALS = 9
 
 
 def kiss_icp_odometry(scans, point_times, labels: list[str], min_range_m: float, max_range_m: float,
@@ -77,10 +81,10 @@ def kiss_icp_odometry(scans, point_times, labels: list[str], min_range_m: float,
     labels [S] name the scans in the logs and in the error of a track that could not be recovered. convergence:
     KISS-ICP's ICP stops once an iteration moves the pose less than this (None: KISS-ICP's own criterion).
 
-    Returns (poses [S, 4, 4] sensor -> world at each sweep's reference instant (scan 0's at the identity),
-    the sweeps [S] x [M_i, 3] deskewed into the frame at that instant and cropped to the ranges (None unless
-    keep_sweeps: a caller that deskews again need not hold a second copy of every sweep), offsets [S] seconds from
-    each stamp to that instant: the last point's time, 0 without point times)."""
+    Returns (poses [S, 4, 4] sensor -> world at each sweep's reference instant (scan 0's at the identity; rounded to
+    POSE_DECIMALS), the sweeps [S] x [M_i, 3] deskewed into the frame at that instant and cropped to the ranges (None
+    unless keep_sweeps: a caller that deskews again need not hold a second copy of every sweep), offsets [S] seconds
+    from each stamp to that instant: the last point's time, 0 without point times)."""
     from tqdm.auto import tqdm
 
     tracker = Tracker(min_range_m, max_range_m, deskew=point_times is not None, convergence=convergence)
@@ -110,7 +114,7 @@ def kiss_icp_odometry(scans, point_times, labels: list[str], min_range_m: float,
         poses.append(np.array(tracker.kiss.last_pose, np.float64))
         if keep_sweeps:
             sweeps.append(np.asarray(sweep, np.float64))
-    return np.stack(poses), (sweeps if keep_sweeps else None), offsets
+    return np.round(np.stack(poses), POSE_DECIMALS), (sweeps if keep_sweeps else None), offsets
 
 
 class Tracker:

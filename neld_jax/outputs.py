@@ -118,7 +118,8 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, w
     """The verdict of a run (judged: judge_crispness' answer for `made`): metrics.json (run, scans_report,
     crispness; evaluation where ground truth exists; and the caller's `sections`, e.g. a run over several
     recordings' "sessions"), built here and written once, whole (a rerun into the folder inherits nothing of an
-    earlier metrics.json), history.json, scans_report.csv / .png, map_topdown.png and the evaluation's plots. Returns (metrics.json's content, the per-scan report's rows)."""
+    earlier metrics.json), history.json, scans_report.csv / .png, map_topdown.png and the evaluation's plots.
+    Returns (metrics.json's content, the per-scan report's rows)."""
     keyframes, refined = made.keyframes, made.refined
     crisp, per_scan_entropy, margins = judged
     rows = write_scan_report(out_dir, made, written.trajectories["optimized"].poses, per_scan_entropy,
@@ -182,7 +183,7 @@ def run_record(config: ml_collections.ConfigDict, made: RunSteps, budget: TimeBu
         **made.start.record(),
         "answer": "neld_ba" if made.neld_ba is None else made.start.chosen,  # whose poses poses_optimized holds
         "crispest": crispest,
-        "crispness_margin": margins,  # {other method: NeLD-BA's entropy minus its, per draw and mean}
+        "crispness_margin": margins,  # {other method: the answer's entropy minus its, per draw and mean}
     }
 
 

@@ -74,26 +74,29 @@ POSE_DECIMALS = 9
 
 def kiss_icp_odometry(scans, point_times, labels: list[str], min_range_m: float, max_range_m: float,
                       keep_sweeps: bool = True, progress: bool = False,
-                      convergence: float | None = None) -> tuple[np.ndarray, list[np.ndarray] | None, np.ndarray]:
+                      first_pass: bool = False) -> tuple[np.ndarray, list[np.ndarray] | None, np.ndarray]:
     """KISS-ICP over scans [S] x [N_i, 3] (sensor frame, time order; a list or a LazyScans, read one at a time),
     deskewing where point_times [S] x [N_i] (seconds after each scan's stamp) are given; a scan that lost track is
     registered again (Tracker.recover). Of the scans it keeps only its poses (and its bounded local map).
-    labels [S] name the scans in the logs and in the error of a track that could not be recovered. convergence:
-    KISS-ICP's ICP stops once an iteration moves the pose less than this (None: KISS-ICP's own criterion).
+    labels [S] name the scans in the logs and in the error of a track that could not be recovered. first_pass:
+    two_pass_odometry's first pass: each sweep registered as it is (not deskewed; its pose the sensor's at about its
+    points' mean time, which offsets then hold, read with the sweep) and ICP stopping at FIRST_PASS_CONVERGENCE.
 
     Returns (poses [S, 4, 4] sensor -> world at each sweep's reference instant (scan 0's at the identity; rounded to
     POSE_DECIMALS), the sweeps [S] x [M_i, 3] deskewed into the frame at that instant and cropped to the ranges (None
     unless keep_sweeps: a caller that deskews again need not hold a second copy of every sweep), offsets [S] seconds
-    from each stamp to that instant: the last point's time, 0 without point times)."""
+    from each stamp to that instant: the last point's time (the mean with first_pass), 0 without point times)."""
     from tqdm.auto import tqdm
 
-    tracker = Tracker(min_range_m, max_range_m, deskew=point_times is not None, convergence=convergence)
+    deskew = point_times is not None and not first_pass
+    tracker = Tracker(min_range_m, max_range_m, deskew, FIRST_PASS_CONVERGENCE if first_pass else None)
     poses, sweeps, offsets = [], [], np.zeros(len(scans))
     for i in tqdm(range(len(scans)), disable=not progress, desc="KISS-ICP odometry", unit="scan"):
         times = np.zeros(0) if point_times is None else np.asarray(point_times[i], np.float64)
-        offsets[i] = float(np.max(times)) if len(times) else 0.0  # the instant its pose refers to
+        if len(times):  # the instant its pose refers to
+            offsets[i] = float(np.mean(times)) if first_pass else float(np.max(times))
         before = tracker.motion()
-        sweep, source = tracker.kiss.register_frame(np.asarray(scans[i], np.float64), times)
+        sweep, source = tracker.kiss.register_frame(np.asarray(scans[i], np.float64), times if deskew else np.zeros(0))
         overlap = tracker.overlap(source, tracker.kiss.last_pose)
         if overlap is not None and lost_track(tracker.overlaps, overlap):
             recovered = tracker.recover(sweep, source, before)
@@ -338,9 +341,8 @@ def two_pass_odometry(scans, point_times, stamps: np.ndarray, labels: list[str],
     identity (module docstring, "Time"). The first pass registers each sweep as it is, its pose the sensor's at
     about the mean instant of its points; the second registers each sweep deskewed along that trajectory into the
     frame at its stamp."""
-    first, _, _ = kiss_icp_odometry(scans, None, labels, *ranges, keep_sweeps=False, progress=progress,
-                                    convergence=FIRST_PASS_CONVERGENCE)
-    mean_offsets = np.array([float(np.mean(times)) if len(times) else 0.0 for times in point_times])
+    first, _, mean_offsets = kiss_icp_odometry(scans, point_times, labels, *ranges, keep_sweeps=False,
+                                               progress=progress, first_pass=True)
     deskewed = deskewed_sweeps(scans, point_times, stamps, mean_offsets, first, ranges)
     poses, _, _ = kiss_icp_odometry(deskewed, None, labels, *ranges, keep_sweeps=False, progress=progress)
     return np.linalg.inv(poses[0]) @ poses

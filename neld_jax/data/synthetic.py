@@ -137,10 +137,8 @@ def make_sequence(cfg=None, rate_hz: float = 0.0, session: int | None = None) ->
         rate_hz = rate_hz or HANDHELD_RATE_HZ
         timestamps = np.arange(cfg.num_scans) / rate_hz
         scans = [cast_scan(scene, pose, directions, cfg.max_range_m, cfg.range_noise_m, rng) for pose in gt_poses]
-    elif cfg.route == "car":
+    elif cfg.route == "car" or rate_hz > 0:  # raw sweeps; the car's at CAR_RATE_HZ unless given a rate
         rate_hz = rate_hz or CAR_RATE_HZ
-        timestamps, scans, point_times = _raw_sweeps(cfg, rate_hz, scene, directions, rng)
-    elif rate_hz > 0:
         timestamps, scans, point_times = _raw_sweeps(cfg, rate_hz, scene, directions, rng)
     else:
         init_poses = add_odometry_drift(gt_poses, cfg.drift_trans_m, cfg.drift_rot_deg, cfg.seed + 1)

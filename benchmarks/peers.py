@@ -188,26 +188,28 @@ def kiss_icp_poses(raw, min_range_m: float, max_range_m: float):
     """KISS-ICP alone (its KissICP as its own pipeline drives it: its deskewing by raw.point_times where there are,
     no check of the track) over the raw sweeps of Sequence `raw` (time order). Returns (poses [S, 4, 4] sensor ->
     world at the sweeps' stamps, scan 0 at the identity; seconds)."""
-    from kiss_icp.config import KISSConfig
     from kiss_icp.kiss_icp import KissICP
 
-    from neld_jax.data.odometry import VOXELS_PER_RANGE, last_point_offsets, poses_at_stamps
+    from neld_jax.data.odometry import kiss_icp_config
 
-    config = KISSConfig()
-    config.data.min_range, config.data.max_range = float(min_range_m), float(max_range_m)
-    config.data.deskew = raw.point_times is not None
-    config.mapping.voxel_size = VOXELS_PER_RANGE * float(max_range_m)
     t0 = time.perf_counter()
-    odometry, poses = KissICP(config), []
+    odometry, poses = KissICP(kiss_icp_config(min_range_m, max_range_m, deskew=raw.point_times is not None)), []
     for i, scan in enumerate(raw.scans):
         times = np.zeros(0) if raw.point_times is None else np.asarray(raw.point_times[i], np.float64)
         odometry.register_frame(np.asarray(scan, np.float64), times)
         poses.append(np.array(odometry.last_pose, np.float64))
     seconds = time.perf_counter() - t0
-    poses = np.stack(poses)
+    return at_the_stamps(raw, np.stack(poses)), seconds
+
+
+def at_the_stamps(raw, poses: np.ndarray) -> np.ndarray:
+    """KISS-ICP's (or KISS-SLAM's) poses [S, 4, 4] of the sweeps of Sequence `raw` moved to the sweeps' stamps (where
+    deskewed, a pose is the sensor's at its sweep's last point), scan 0 at the identity."""
+    from neld_jax.data.odometry import last_point_offsets, poses_at_stamps
+
     if raw.point_times is not None and raw.timestamps is not None and raw.num_scans >= 2:
         poses = poses_at_stamps(raw.timestamps, last_point_offsets(raw.point_times), poses)
-    return np.linalg.inv(poses[0]) @ poses, seconds
+    return np.linalg.inv(poses[0]) @ poses
 
 
 def kiss_slam_poses(raw, min_range_m: float, max_range_m: float, splitting_m: float = 0.0):
@@ -218,11 +220,7 @@ def kiss_slam_poses(raw, min_range_m: float, max_range_m: float, splitting_m: fl
     from kiss_slam.config import KissSLAMConfig
     from kiss_slam.slam import KissSLAM
 
-    from neld_jax.data.odometry import (
-        VOXELS_PER_RANGE,
-        last_point_offsets,
-        poses_at_stamps,
-    )
+    from neld_jax.data.odometry import VOXELS_PER_RANGE
 
     config = KissSLAMConfig()  # its defaults; the range-derived voxel as its load_config derives it
     config.odometry.preprocessing.min_range = float(min_range_m)
@@ -246,10 +244,7 @@ def kiss_slam_poses(raw, min_range_m: float, max_range_m: float, splitting_m: fl
     poses = np.array(poses, np.float64)
     if len(poses) != raw.num_scans:
         raise RuntimeError(f"KISS-SLAM gave {len(poses)} poses for {raw.num_scans} sweeps")
-    if raw.point_times is not None and raw.timestamps is not None and raw.num_scans >= 2:
-        # deskewed, KISS-ICP's pose is the sensor's at the sweep's last point: move it to the stamp
-        poses = poses_at_stamps(raw.timestamps, last_point_offsets(raw.point_times), poses)
-    poses = np.linalg.inv(poses[0]) @ poses
+    poses = at_the_stamps(raw, poses)
     info = {"local_maps": len(list(slam.local_map_graph.local_maps())), "closures": len(slam.closures)}
     return poses, seconds, info
 

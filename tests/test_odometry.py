@@ -121,13 +121,9 @@ def test_odometry_that_loses_track_for_good_names_the_scan(sweeps, tmp_path):
 
 def _kiss_icp_alone(scans: list, max_range_m: float) -> np.ndarray:
     """KISS-ICP's poses [S, 4, 4] of rigid scans with no check and no recovery: what it makes of them by itself."""
-    from kiss_icp.config import KISSConfig
     from kiss_icp.kiss_icp import KissICP
 
-    config = KISSConfig()
-    config.data.min_range, config.data.max_range, config.data.deskew = 0.5, max_range_m, False
-    config.mapping.voxel_size = odometry.VOXELS_PER_RANGE * max_range_m
-    kiss, poses = KissICP(config), []
+    kiss, poses = KissICP(odometry.kiss_icp_config(0.5, max_range_m, deskew=False)), []
     for scan in scans:
         kiss.register_frame(scan, np.zeros(0))
         poses.append(np.array(kiss.last_pose))

@@ -127,15 +127,12 @@ class Tracker:
     previous scan's registration points in the world."""
 
     def __init__(self, min_range_m: float, max_range_m: float, deskew: bool, convergence: float | None = None):
-        from kiss_icp.config import KISSConfig
         from kiss_icp.kiss_icp import KissICP
 
-        self.config = KISSConfig()
-        self.config.data.min_range, self.config.data.max_range = float(min_range_m), float(max_range_m)
-        self.config.data.deskew = deskew
+        self.config = kiss_icp_config(min_range_m, max_range_m, deskew)
         if convergence is not None:
             self.config.registration.convergence_criterion = float(convergence)
-        self.config.mapping.voxel_size = self.voxel = VOXELS_PER_RANGE * float(max_range_m)
+        self.voxel = self.config.mapping.voxel_size
         self.kiss = KissICP(self.config)
         self.frames = collections.deque(maxlen=RECENT_FRAMES)  # (map points [M, 3] sensor frame, pose [4, 4])
         self.deviations = []  # [4, 4] each: a kept scan's pose against KISS-ICP's guess of it
@@ -370,13 +367,22 @@ def deskewed_sweeps(scans, point_times, stamps: np.ndarray, offsets: np.ndarray,
                                                                  *ranges), lazy(point_times))
 
 
+def kiss_icp_config(min_range_m: float, max_range_m: float, deskew: bool):
+    """KISS-ICP's own configuration (KISSConfig) for the ranges [m], its voxel a hundredth of the maximum range
+    (VOXELS_PER_RANGE, as its own pipeline derives it), deskewing by the points' times or not."""
+    from kiss_icp.config import KISSConfig
+
+    config = KISSConfig()
+    config.data.min_range, config.data.max_range = float(min_range_m), float(max_range_m)
+    config.data.deskew = deskew
+    config.mapping.voxel_size = VOXELS_PER_RANGE * float(max_range_m)
+    return config
+
+
 def kiss_icp_crop(min_range_m: float, max_range_m: float):
     """transform(i, scan [N, 3]) -> the scan's points within the ranges as KISS-ICP's preprocessor keeps them
     (without deskewing): what it returns for a rigid scan."""
-    from kiss_icp.config import KISSConfig
     from kiss_icp.preprocess import get_preprocessor
 
-    config = KISSConfig()
-    config.data.min_range, config.data.max_range, config.data.deskew = float(min_range_m), float(max_range_m), False
-    preprocessor = get_preprocessor(config)
+    preprocessor = get_preprocessor(kiss_icp_config(min_range_m, max_range_m, deskew=False))
     return lambda _, scan: preprocessor.preprocess(np.asarray(scan, np.float64), np.zeros(0), np.eye(4))

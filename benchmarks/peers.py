@@ -10,24 +10,34 @@ the first pass; neld_jax.data.odometry), the classical baseline and NeLD-BA, in 
 
 Per sequence: one NeLD-BA run (neld_jax.run.run with --config and --set, fresh output folder), whose odometry
 (data.initial_poses=kiss_icp) is its input and the classical baseline's; KISS-ICP and KISS-SLAM run on the same raw
-sweeps with their own defaults for the run's range (KISS-ICP's voxel of a hundredth of data.max_range_m, deskewing by
-the points' times; their poses, at each sweep's last point's instant as KISS-ICP gives them, interpolated to the
-sweeps' stamps); the classical baseline from the run's poses_baseline.txt (start.poses "crisper" runs it), or run
-here from the keyframes' odometry poses where the run did not. Each method gives one pose per
-input sweep (TUM, at the sweeps' stamps). Columns:
-- ATE: translation RMSE [m] and rotation RMSE [deg] against the ground truth over every sweep, SE(3)-aligned (as
-  neld-evaluate), where the sequence has ground truth;
+sweeps as their own pipelines run them (deskewing by the points' times; their poses, at each sweep's last point's
+instant as KISS-ICP gives them, interpolated to the sweeps' stamps), with --peer_range=own (the default) KISS-ICP's
+own defaults (KISSConfig: 0-100 m, a 1 m voxel, a hundredth of the maximum range), with --peer_range=run the run's
+data.min_range_m and data.max_range_m (the voxel a hundredth of it); the classical baseline from the run's
+poses_baseline.txt (start.poses "crisper" runs it), or run here from the keyframes' odometry poses where the run did
+not. Each method gives one pose per input sweep (TUM, at the sweeps' stamps). Columns (JSON keys of each row):
+- the trajectory against the ground truth, where the sequence has it, over the input sweeps from --eval_from_scan on
+  (KITTI 00: 15; the JSON's gt_path_m is the ground truth's path there): ATE translation RMSE [m] and rotation RMSE
+  [deg] SE(3)-aligned as neld-evaluate aligns (ate_m, ate_rot_deg, ate_poses); the translation RMSE Sim(3)-aligned
+  (ate_sim3_m) with the scale found (sim3_scale: above 1 when the path is too short); the path-length ratio, the
+  estimate's path over the ground truth's (path_ratio, 1: the right length), which an aligned ATE hides; KITTI's
+  relative error over --segments_m segments (the odometry devkit's measure, every --segment_step-th first frame):
+  translation error over length [%] and rotation error over length [deg/m] averaged over the segments (kitti_t_pct,
+  kitti_r_deg_per_m, kitti_segments);
 - the raw map's crispness: mean map entropy and plane thickness of the run's keyframes (their KISS-ICP-deskewed
   scans) registered with each trajectory at the keyframes, on the same query points for every method
-  (neld_jax.judge, as neld-crispness), and NeLD-BA's margin to each peer over eval.crispness_draws draws of the query
-  points: "every draw" (crisper on each), "a tie" (the draws disagree in sign) or "blurrier" (blurrier on each);
-- the same for the raw map of EVERY input sweep (judge.EVERY_SCAN_POINTS random points of each, the sweeps as the
-  run registers them) under each method's poses of every sweep;
-- wall time [s]: KISS-ICP's and KISS-SLAM's whole runs, the run's odometry, the baseline's registration, and NeLD-BA's
-  whole run end to end (loading with the odometry, the baseline, training, rendering, judging).
-Targets, printed at the end: NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's (and its ratio to KISS-ICP's), its raw
-maps (the keyframes', every sweep's) crisper than both on every draw, and the whole run within --minutes_limit
-minutes.
+  (neld_jax.judge, as neld-crispness; entropy, thickness_cm), and NeLD-BA's margin to each peer over
+  eval.crispness_draws draws of the query points (neld_ba_margin, neld_ba_verdict): "every draw" (crisper on each),
+  "a tie" (the draws disagree in sign) or "blurrier" (blurrier on each);
+- the same for the raw map of EVERY input sweep (every_sweep_map: judge.EVERY_SCAN_POINTS random points of each, the
+  sweeps as the run registers them) under each method's poses of every sweep;
+- wall time [s] (wall_s): KISS-ICP's and KISS-SLAM's whole runs, the run's odometry, the baseline's registration,
+  and NeLD-BA's whole run end to end (loading with the odometry, the baseline, training, rendering, judging).
+Targets (entry["targets"]["peers"]), printed at the end: NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's; its ATE over
+KISS-ICP's (ate_over_kiss_icp), over the classical baseline's it started from (ate_over_baseline: what the neural part
+adds) and over its odometry's (ate_over_odometry), also under the table; its path length over the odometry's
+(path_scale_vs_odometry; path_scale_within_0.1pct: within 0.1 % of 1); its raw maps (the keyframes', every sweep's)
+crisper than both peers on every draw; and the whole run within --minutes_limit minutes.
 
 Sequences: `car:SEED` generates a car's 10 Hz scans along the synthetic courtyards' route (--num_scans over 320 m
 with turns, 64 beams x 1024 columns, 80 m range; raw sweeps with per-point times, about 1.1 m of motion in each)
@@ -73,8 +83,18 @@ MAX_RANGE = flags.DEFINE_float("max_range_m", 0.0, "data.max_range_m of real roo
 SLAM_SPLITTING = flags.DEFINE_float("slam_splitting_m", 0.0, "KISS-SLAM's local_mapper.splitting_distance [m] "
                                     "(0: its own default, 100 m).")
 MINUTES_LIMIT = flags.DEFINE_float("minutes_limit", 10.0, "The target for NeLD-BA's whole run [min].")
+EVAL_FROM_SCAN = flags.DEFINE_integer("eval_from_scan", 0, "The trajectory figures (ATE, path length, KITTI's "
+                                      "relative error) over the input sweeps from this index on (KITTI 00: 15, its "
+                                      "ground truth of the first frames is a constant-velocity fill).")
+PEER_RANGE = flags.DEFINE_enum("peer_range", "own", ["own", "run"], "The ranges KISS-ICP and KISS-SLAM crop to: "
+                               "own (KISS-ICP's KISSConfig defaults, voxel a hundredth of its maximum range) or run "
+                               "(the run's data.min_range_m and data.max_range_m).")
+SEGMENTS_M = flags.DEFINE_list("segments_m", ["10", "20", "30", "40", "50"], "KITTI's relative error: the segment "
+                               "lengths [m] (the devkit's 100, ..., 800 m for whole sequences).")
+SEGMENT_STEP = flags.DEFINE_integer("segment_step", 1, "KITTI's relative error: frames between a segment's first "
+                                    "frames (the devkit's 10).")
 
-SYNTHETIC = {"trajectory_radius_m": 10.0, "max_range_m": 40.0}  # a 63 m loop by default; KISS-ICP's voxel 0.4 m
+SYNTHETIC = {"trajectory_radius_m": 10.0, "max_range_m": 40.0}  # a 63 m loop by default
 CAR = {"route": "car", "route_length_m": 320.0, "num_beams": 64, "num_columns": 1024, "max_range_m": 80.0}
 RATE_HZ = 10.0
 METHODS = ("kiss_icp", "kiss_slam", "odometry", "baseline", "neld_ba")
@@ -262,12 +282,89 @@ def run_baseline_here(config, loaded, keyframes, path_dir: str):
     return seconds
 
 
-def run_sequence(name: str, root: str, range_m: float | None) -> dict:
-    from neld_jax import judge
-    from neld_jax.data.poses import read_tum
-    from neld_jax.evaluate import match_poses, trajectory_at_keyframes
+def peer_ranges(config, mode: str) -> dict:
+    """The ranges KISS-ICP and KISS-SLAM run with: mode "own", KISS-ICP's KISSConfig defaults (KISS-SLAM's odometry
+    has the same); "run", the run's data.min_range_m and data.max_range_m. Returns {"mode", "min_range_m",
+    "max_range_m", "voxel_m"} (the voxel a hundredth of the maximum range, as their pipelines derive it)."""
+    from neld_jax.data.odometry import VOXELS_PER_RANGE
+
+    if mode == "own":
+        from kiss_icp.config import KISSConfig
+
+        ranges = KISSConfig().data.min_range, KISSConfig().data.max_range
+    elif mode == "run":
+        ranges = config.data.min_range_m, config.data.max_range_m
+    else:
+        raise ValueError(f"peer range mode must be own or run, got {mode!r}")
+    return {"mode": mode, "min_range_m": float(ranges[0]), "max_range_m": float(ranges[1]),
+            "voxel_m": VOXELS_PER_RANGE * float(ranges[1])}
+
+
+def run_peers(seen: dict, ranges: dict, out: str, rows: dict, files: dict, name: str) -> None:
+    """KISS-ICP and KISS-SLAM over the raw sweeps the run read (seen["raw"]) with `ranges` (peer_ranges): their poses
+    written below out, their files into `files`, wall time (or why not) into their rows."""
     from neld_jax.export import write_poses
-    from neld_jax.metrics import ate
+
+    if "raw" not in seen:
+        rows["kiss_icp"]["status"] = "not run: the layout gave the run its poses"
+        rows["kiss_slam"]["status"] = "not run: the layout gave the run its poses"
+        return
+    limits = ranges["min_range_m"], ranges["max_range_m"]
+    poses, seconds = kiss_icp_poses(seen["raw"], *limits)
+    files["kiss_icp"] = str(write_poses(os.path.join(out, "kiss_icp"), "poses_kiss_icp", seen["raw"].timestamps,
+                                        poses)[0])
+    rows["kiss_icp"]["wall_s"] = round(seconds, 1)
+    try:
+        poses, seconds, info = kiss_slam_poses(seen["raw"], *limits, SLAM_SPLITTING.value)
+        files["kiss_slam"] = str(write_poses(os.path.join(out, "kiss_slam"), "poses_kiss_slam",
+                                             seen["raw"].timestamps, poses)[0])
+        rows["kiss_slam"].update(wall_s=round(seconds, 1), **info)
+    except ImportError:
+        rows["kiss_slam"]["status"] = NOT_INSTALLED
+    except Exception as e:  # its row says why; the others still compare
+        rows["kiss_slam"]["status"] = f"failed: {type(e).__name__}: {e}"
+        logging.error("KISS-SLAM failed on %s:\n%s", name, traceback.format_exc())
+
+
+def trajectory_figures(est: np.ndarray, gt: np.ndarray, lengths_m, step: int = 1) -> dict:
+    """One method's trajectory figures against the ground truth, est and gt: [S, 4, 4] matched poses in time order.
+    Returns ate_m / ate_rot_deg (translation / rotation RMSE, SE(3)-aligned), ate_poses, ate_sim3_m and sim3_scale
+    (Sim(3)-aligned, the scale that takes the estimate to the ground truth: above 1 for a shortened path),
+    path_ratio (the estimate's path length over the ground truth's), and KITTI's relative error over segments of
+    lengths_m [m] from every step-th frame: kitti_t_pct (%), kitti_r_deg_per_m, kitti_segments."""
+    from neld_jax import metrics
+
+    rigid, similar = metrics.ate(est, gt, align="se3"), metrics.ate(est, gt, align="sim3")
+    kitti = metrics.kitti_relative_error(est, gt, lengths_m, step)
+
+    def rounded(value, digits):  # NaN (no segment fits) is None in the JSON
+        return None if not np.isfinite(value) else round(float(value), digits)
+
+    return {"ate_m": round(rigid["translation_rmse_m"], 4), "ate_rot_deg": round(rigid["rotation_rmse_deg"], 3),
+            "ate_poses": len(est), "ate_sim3_m": round(similar["translation_rmse_m"], 4),
+            "sim3_scale": round(similar["scale"], 6), "path_ratio": rounded(metrics.path_length_ratio(est, gt), 6),
+            "kitti_t_pct": rounded(kitti["translation_pct"], 4),
+            "kitti_r_deg_per_m": rounded(kitti["rotation_deg_per_m"], 5), "kitti_segments": kitti["num_segments"]}
+
+
+def evaluated_poses(path: str, loaded, from_scan: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A TUM file's poses matched by stamp to the input sweeps of `loaded` that have ground truth, from sweep index
+    from_scan on, in time order: (est [K, 4, 4], gt [K, 4, 4]); a ValueError when fewer than 3 are left."""
+    from neld_jax.data.poses import read_tum
+    from neld_jax.evaluate import match_poses
+
+    stamps, poses = read_tum(path)
+    est, gt, _ = match_poses(stamps, loaded.timestamps, len(poses), len(loaded.gt_poses), path, 0.01)
+    keep = gt >= from_scan
+    order = np.argsort(gt[keep], kind="stable")
+    est, gt = est[keep][order], gt[keep][order]
+    if len(est) < 3:
+        raise ValueError(f"{path}: {len(est)} poses with ground truth from sweep {from_scan} on (at least 3)")
+    return poses[est], loaded.gt_poses[gt]
+
+
+def run_sequence(name: str, root: str, range_m: float | None) -> dict:
+    from neld_jax.metrics import path_length
     from neld_jax.run import run
 
     out = os.path.join(WORK.value, name)
@@ -281,8 +378,10 @@ def run_sequence(name: str, root: str, range_m: float | None) -> dict:
     neld_s = time.perf_counter() - t0
     r = summary["run"]
     loaded, keyframes = seen["loaded"], seen["keyframes"]
+    ranges = peer_ranges(config, PEER_RANGE.value)
     entry = {"sequence": name, "root": root, "input_scans": loaded.num_scans, "keyframes": keyframes.num_scans,
-             "steps": r["steps"], "started_from": r.get("started_from"), "methods": {}}
+             "steps": r["steps"], "started_from": r.get("started_from"), "peer_range": ranges,
+             "eval_from_scan": EVAL_FROM_SCAN.value, "methods": {}}
     rows = {m: {"method": m} for m in METHODS}
     files = {"odometry": os.path.join(run_dir, "poses_odometry.txt"), "neld_ba": os.path.join(run_dir,
                                                                                                 "poses_optimized.txt")}
@@ -291,26 +390,7 @@ def run_sequence(name: str, root: str, range_m: float | None) -> dict:
         rows["odometry"]["note"] = "the layout's poses, not the run's odometry"
     rows["odometry"]["wall_s"] = None if "odometry_s" not in seen else round(seen["odometry_s"], 1)
     rows["neld_ba"]["wall_s"] = round(neld_s, 1)
-
-    if "raw" in seen:
-        poses, seconds = kiss_icp_poses(seen["raw"], float(config.data.min_range_m), float(config.data.max_range_m))
-        files["kiss_icp"] = str(write_poses(os.path.join(out, "kiss_icp"), "poses_kiss_icp", seen["raw"].timestamps,
-                                            poses)[0])
-        rows["kiss_icp"]["wall_s"] = round(seconds, 1)
-    else:
-        rows["kiss_icp"]["status"] = "not run: the layout gave the run its poses"
-
-    try:
-        poses, seconds, info = kiss_slam_poses(seen["raw"], float(config.data.min_range_m),
-                                               float(config.data.max_range_m), SLAM_SPLITTING.value)
-        slam_dir = os.path.join(out, "kiss_slam")
-        files["kiss_slam"] = str(write_poses(slam_dir, "poses_kiss_slam", seen["raw"].timestamps, poses)[0])
-        rows["kiss_slam"].update(wall_s=round(seconds, 1), **info)
-    except ImportError:
-        rows["kiss_slam"]["status"] = NOT_INSTALLED
-    except Exception as e:  # its row says why; the others still compare
-        rows["kiss_slam"]["status"] = f"failed: {type(e).__name__}: {e}"
-        logging.error("KISS-SLAM failed on %s:\n%s", name, traceback.format_exc())
+    run_peers(seen, ranges, out, rows, files, name)
 
     files["baseline"] = os.path.join(run_dir, "poses_baseline.txt")
     if os.path.exists(files["baseline"]):
@@ -321,25 +401,33 @@ def run_sequence(name: str, root: str, range_m: float | None) -> dict:
         files["baseline"] = os.path.join(baseline_dir, "poses_baseline.txt")
         rows["baseline"]["note"] = "run by the benchmark (the run did not)"
 
-    # ATE over every sweep against the ground truth, matched by stamp as neld-evaluate matches them
     methods = [m for m in METHODS if m in files]
-    if loaded.gt_poses is not None:
+    if loaded.gt_poses is not None:  # every sweep's pose from --eval_from_scan on, matched as neld-evaluate does
+        lengths = [float(v) for v in SEGMENTS_M.value]
         for m in methods:
-            stamps, poses = read_tum(files[m])
-            est, gt, _ = match_poses(stamps, loaded.timestamps, len(poses), len(loaded.gt_poses), files[m], 0.01)
-            a = ate(poses[est], loaded.gt_poses[gt])
-            rows[m].update(ate_m=round(a["translation_rmse_m"], 4), ate_rot_deg=round(a["rotation_rmse_deg"], 3),
-                           ate_poses=len(est))
-    # The keyframes' raw map under each trajectory, on the same query draws
+            est, gt = evaluated_poses(files[m], loaded, EVAL_FROM_SCAN.value)
+            rows[m].update(trajectory_figures(est, gt, lengths, SEGMENT_STEP.value))
+        entry["gt_path_m"] = round(path_length(loaded.gt_poses[EVAL_FROM_SCAN.value:]), 3)
+    crispness_rows(config, loaded, keyframes, files, rows, methods)
+    entry["methods"] = rows
+    entry["targets"] = {"peers": real_targets.peer_target_verdicts(entry, MINUTES_LIMIT.value)}
+    return entry
+
+
+def crispness_rows(config, loaded, keyframes, files: dict, rows: dict, methods: list) -> None:
+    """Into each method's row: the keyframes' raw map under its trajectory (entropy, thickness_cm, NeLD-BA's margin
+    and verdict, on the same query draws), the raw map of every sweep (every_sweep_map) and its poses' file."""
+    from neld_jax import judge
+    from neld_jax.evaluate import trajectory_at_keyframes
+
     at_keyframes = {m: trajectory_at_keyframes(files[m], loaded, keyframes, tol=float(config.data.timestamp_tol_s))
                     for m in methods}
     crisp, _ = judge.map_crispness(keyframes, at_keyframes, config.eval)
     margins = judge.crispness_margins(keyframes, at_keyframes, config.eval, against="neld_ba", first_draw=crisp)
     every = every_sweep_crispness(loaded, {m: poses_of_every_sweep(files[m], loaded) for m in methods}, config.eval)
     for m in methods:
-        rows[m]["every_sweep_map"] = every[m]
-    for m in methods:
         s = crisp[m]
+        rows[m]["every_sweep_map"] = every[m]
         rows[m].update(entropy=None if s["mean_map_entropy"] is None else round(s["mean_map_entropy"], 4),
                        thickness_cm=None if s["mean_plane_thickness_m"] is None
                        else round(100 * s["mean_plane_thickness_m"], 3))
@@ -347,9 +435,6 @@ def run_sequence(name: str, root: str, range_m: float | None) -> dict:
             rows[m].update(neld_ba_margin=margins[m]["mean"], neld_ba_margin_per_draw=margins[m]["per_draw"],
                            neld_ba_verdict=real_targets.margin_verdict(margins[m]))
         rows[m]["poses"] = files[m]
-    entry["methods"] = rows
-    entry["targets"] = {"peers": target_verdicts(entry, MINUTES_LIMIT.value)}
-    return entry
 
 
 def poses_of_every_sweep(path: str, loaded):
@@ -386,49 +471,40 @@ def every_sweep_crispness(loaded, methods: dict, eval_cfg) -> dict:
     return out
 
 
-def target_verdicts(entry: dict, minutes_limit: float = 10.0) -> dict:
-    """NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's (and over KISS-ICP's), its raw map crisper than both on every
-    draw (the verdict: "every draw", "a tie", "blurrier"), its whole run within minutes_limit; None where a figure is
-    missing."""
-    rows = entry["methods"]
-    neld = rows["neld_ba"]
-
-    def below(peer):
-        a, b = neld.get("ate_m"), rows[peer].get("ate_m")
-        return None if a is None or b is None else a < b
-
-    ratio = None if neld.get("ate_m") is None or not rows["kiss_icp"].get("ate_m") else round(
-        neld["ate_m"] / rows["kiss_icp"]["ate_m"], 4)
-    return {"ate_below_kiss_icp": below("kiss_icp"), "ate_below_kiss_slam": below("kiss_slam"),
-            "ate_over_kiss_icp": ratio,
-            "crisper_than_kiss_icp": rows["kiss_icp"].get("neld_ba_verdict"),
-            "crisper_than_kiss_slam": rows["kiss_slam"].get("neld_ba_verdict"),
-            "every_sweep_map_crisper_than_kiss_icp": rows["kiss_icp"].get("every_sweep_map", {}).get("neld_ba_verdict"),
-            "every_sweep_map_crisper_than_kiss_slam": rows["kiss_slam"].get("every_sweep_map", {}).get(
-                "neld_ba_verdict"),
-            "within_minutes": None if neld.get("wall_s") is None else neld["wall_s"] <= 60 * minutes_limit}
+TABLE_COLUMNS = (  # (header, row key, format) of the trajectory's columns
+    ("ATE m", "ate_m", "8.4f"), ("ATE deg", "ate_rot_deg", "8.3f"), ("Sim3 m", "ate_sim3_m", "8.4f"),
+    ("scale", "sim3_scale", "8.5f"), ("path", "path_ratio", "8.5f"), ("KITTI %", "kitti_t_pct", "8.3f"),
+    ("deg/m", "kitti_r_deg_per_m", "8.5f"))
 
 
 def format_table(entry: dict) -> str:
-    """The sequence's rows: method, ATE, crispness, NeLD-BA's margin, wall time (or why a row is empty)."""
+    """The sequence's rows: method, the trajectory's figures (TABLE_COLUMNS), crispness, NeLD-BA's margin, wall time
+    (or why a row is empty); then NeLD-BA's ATE over each other method's and its path over the odometry's."""
     def cell(value, fmt):
         return "-" if value is None else format(value, fmt)
 
     def margin(row):
         return "" if "neld_ba_margin" not in row else f"{row['neld_ba_margin']:+.4f} {row['neld_ba_verdict']}"
 
-    lines = [f"{entry['sequence']}: {entry['input_scans']} sweeps, {entry['keyframes']} keyframes",
-             (f"{'method':<10} {'ATE m':>8} {'ATE deg':>8} {'entropy':>8} {'thick cm':>8} {'NeLD-BA margin':>22} "
-              f"{'wall s':>7} {'every sweep: entropy':>20} {'NeLD-BA margin':>22}")]
+    scored = "" if not entry.get("eval_from_scan") else f", scored from sweep {entry['eval_from_scan']}"
+    lines = [f"{entry['sequence']}: {entry['input_scans']} sweeps, {entry['keyframes']} keyframes{scored}",
+             (f"{'method':<10} " + " ".join(f"{h:>8}" for h, _, _ in TABLE_COLUMNS) + f" {'entropy':>8} "
+              f"{'thick cm':>8} {'NeLD-BA margin':>22} {'wall s':>7} {'every sweep: entropy':>20} "
+              f"{'NeLD-BA margin':>22}")]
     for m in METHODS:
         row = entry["methods"][m]
         if "status" in row:
             lines.append(f"{m:<10} {row['status']}")
             continue
         every = row.get("every_sweep_map", {})
-        lines.append(f"{m:<10} {cell(row.get('ate_m'), '8.4f')} {cell(row.get('ate_rot_deg'), '8.3f')} "
-                     f"{cell(row.get('entropy'), '8.4f')} {cell(row.get('thickness_cm'), '8.3f')} {margin(row):>22} "
-                     f"{cell(row.get('wall_s'), '7.1f')} {cell(every.get('entropy'), '20.4f')} {margin(every):>22}")
+        lines.append(f"{m:<10} " + " ".join(cell(row.get(key), fmt).rjust(8) for _, key, fmt in TABLE_COLUMNS)
+                     + f" {cell(row.get('entropy'), '8.4f')} {cell(row.get('thickness_cm'), '8.3f')} "
+                     f"{margin(row):>22} {cell(row.get('wall_s'), '7.1f')} {cell(every.get('entropy'), '20.4f')} "
+                     f"{margin(every):>22}")
+    targets = entry.get("targets", {}).get("peers", {})
+    over = ", ".join(f"{m} {cell(targets.get(f'ate_over_{m}'), '.4f')}" for m in ("kiss_icp", "odometry", "baseline"))
+    lines.append(f"NeLD-BA's ATE over: {over}; its path over the odometry's: "
+                 f"{cell(targets.get('path_scale_vs_odometry'), '.6f')}")
     return "\n".join(lines)
 
 
@@ -456,6 +532,12 @@ def sequences() -> list[tuple[str, str, tuple | None]]:
 def main(argv):
     del argv
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        lengths = [float(v) for v in SEGMENTS_M.value]
+    except ValueError as e:
+        raise app.UsageError(f"--segments_m: {e}") from e
+    if not lengths or min(lengths) <= 0 or SEGMENT_STEP.value < 1 or EVAL_FROM_SCAN.value < 0:
+        raise app.UsageError("--segments_m needs positive lengths, --segment_step >= 1, --eval_from_scan >= 0")
     todo = sequences()
     results = []
     for name, root, synthetic in todo:
@@ -472,8 +554,11 @@ def main(argv):
         os.makedirs(os.path.dirname(os.path.abspath(OUT.value)), exist_ok=True)
         with open(OUT.value, "w") as f:
             json.dump({"config": CONFIG.value, "overrides": OVERRIDES.value, "num_scans": NUM_SCANS.value,
-                       "slam_splitting_m": SLAM_SPLITTING.value or None, "sequences": results}, f, indent=1)
-    print(f"targets (NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's, its raw map crisper than both on every draw, "
+                       "slam_splitting_m": SLAM_SPLITTING.value or None, "peer_range": PEER_RANGE.value,
+                       "eval_from_scan": EVAL_FROM_SCAN.value, "segments_m": [float(v) for v in SEGMENTS_M.value],
+                       "segment_step": SEGMENT_STEP.value, "sequences": results}, f, indent=1)
+    print(f"targets (NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's and over theirs, the baseline's and the "
+          f"odometry's, its path within 0.1 % of the odometry's, its raw map crisper than both peers on every draw, "
           f"the whole run within {MINUTES_LIMIT.value:g} minutes):\n" + real_targets.format_targets(results),
           flush=True)
     print(f"written to {OUT.value}", flush=True)

@@ -1,9 +1,14 @@
-"""The targets for real recordings read off one sequence's entry of benchmarks/real_data.py (pure functions, no flags, so tests
-import them): the recorded run within the time limit, one pose line per input scan, its map crisper than the
-odometry's and than the classical baseline's; from injected drift, NeLD-BA within 2 cm of its answer from the
-recorded odometry, its map at least as crisp as the recorded odometry's, its ATE against the odometry at or below
-the baseline's. A margin's verdict is the run's own (run.crispness_margin over eval.crispness_draws query draws):
-"every draw" (crisper on each), "a tie" (the draws disagree in sign) or "blurrier" (blurrier on each).
+"""The targets read off one sequence's entry of a benchmark (pure functions, no flags, so tests import them).
+
+benchmarks/real_data.py's, for real recordings (target_verdicts): the recorded run within the time limit, one pose
+line per input scan, its map crisper than the odometry's and than the classical baseline's; from injected drift,
+NeLD-BA within 2 cm of its answer from the recorded odometry, its map at least as crisp as the recorded odometry's,
+its ATE against the odometry at or below the baseline's. A margin's verdict is the run's own (run.crispness_margin
+over eval.crispness_draws query draws): "every draw" (crisper on each), "a tie" (the draws disagree in sign) or
+"blurrier" (blurrier on each).
+
+benchmarks/peers.py's (peer_target_verdicts): NeLD-BA against KISS-ICP and KISS-SLAM, and its ATE and path length
+against its own classical start (the baseline) and its odometry.
 """
 
 from __future__ import annotations
@@ -60,6 +65,40 @@ def target_verdicts(entry: dict, start: str, minutes_limit: float = 10.0) -> dic
             out["drift"].update(every_scan_map_crisper_than_odometry=margin_verdict(margin.get("initial")),
                                 every_scan_map_crisper_than_baseline=margin_verdict(margin.get("baseline")))
     return out
+
+
+PATH_SCALE_TOLERANCE = 0.001  # NeLD-BA's path length within 0.1 % of its odometry's: the neural part keeps the scale
+
+
+def peer_target_verdicts(entry: dict, minutes_limit: float = 10.0) -> dict:
+    """The targets of one sequence's entry of benchmarks/peers.py: NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's;
+    its ATE over KISS-ICP's, over the classical baseline's it started from (what the neural part adds) and over its
+    odometry's (4 decimals); its path length over the odometry's (path_scale_vs_odometry: the ratio of their
+    path_ratio figures, 6 decimals) and whether that is within PATH_SCALE_TOLERANCE of 1; its raw maps (the
+    keyframes', every sweep's) crisper than both peers on every draw (the verdict: "every draw", "a tie",
+    "blurrier"); its whole run within minutes_limit. None where a figure is missing."""
+    rows = entry["methods"]
+    neld = rows["neld_ba"]
+
+    def below(peer):
+        a, b = neld.get("ate_m"), rows[peer].get("ate_m")
+        return None if a is None or b is None else a < b
+
+    def over(method, key="ate_m"):
+        a, b = neld.get(key), rows[method].get(key)
+        return None if a is None or not b else round(a / b, 4 if key == "ate_m" else 6)
+
+    scale = over("odometry", "path_ratio")
+    return {"ate_below_kiss_icp": below("kiss_icp"), "ate_below_kiss_slam": below("kiss_slam"),
+            "ate_over_kiss_icp": over("kiss_icp"), "ate_over_baseline": over("baseline"),
+            "ate_over_odometry": over("odometry"), "path_scale_vs_odometry": scale,
+            "path_scale_within_0.1pct": None if scale is None else abs(scale - 1.0) <= PATH_SCALE_TOLERANCE,
+            "crisper_than_kiss_icp": rows["kiss_icp"].get("neld_ba_verdict"),
+            "crisper_than_kiss_slam": rows["kiss_slam"].get("neld_ba_verdict"),
+            "every_sweep_map_crisper_than_kiss_icp": rows["kiss_icp"].get("every_sweep_map", {}).get("neld_ba_verdict"),
+            "every_sweep_map_crisper_than_kiss_slam": rows["kiss_slam"].get("every_sweep_map", {}).get(
+                "neld_ba_verdict"),
+            "within_minutes": None if neld.get("wall_s") is None else neld["wall_s"] <= 60 * minutes_limit}
 
 
 def format_targets(results: list[dict]) -> str:

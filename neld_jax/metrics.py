@@ -1,4 +1,5 @@
-"""Trajectory and map error metrics: ATE / RPE (as evo computes them) and Chamfer / F1 / inlier RMSE.
+"""Trajectory and map error metrics: ATE / RPE (as evo computes them), path length, KITTI's relative error over
+distance segments, and Chamfer / F1 / inlier RMSE.
 
 Pure numpy functions (nearest-neighbour queries go through Open3D's KD-tree). Poses are 4x4
 homogeneous matrices `T_world_sensor`: [S, 4, 4]. Distances are in metres, angles in degrees.
@@ -10,6 +11,11 @@ Trajectory conventions follow evo (`evo_ape tum gt.txt est.txt -a`):
   `R_gt[s]^T R_aligned[s]`.
 - RPE compares relative motions `T[i]^-1 T[i + delta]` of all overlapping pairs (evo's
   `--all_pairs`): `E = (G_i^-1 G_j)^-1 (P_i^-1 P_j)`.
+- The path length is the sum of the steps between consecutive positions (evo's `PosePath3D.path_length`); an
+  estimate's over the ground truth's shows a path stretched (> 1) or shortened (< 1), which an aligned ATE hides.
+- KITTI's relative error follows the odometry devkit (`evaluate_odometry.cpp`): from every `step`-th first frame i,
+  for each segment length L the last frame j is the first whose ground-truth path from i exceeds L, the error is
+  `E = (P_i^-1 P_j)^-1 (G_i^-1 G_j)`, and |t(E)| / L and angle(E) / L are averaged over all segments.
 """
 
 from __future__ import annotations
@@ -199,6 +205,88 @@ def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> dict[str, Any]:
         "delta": int(delta),
         "num_pairs": int(len(translation_errors)),
     }
+
+
+def path_length(poses: np.ndarray) -> float:
+    """Length [m] of the path through the positions of poses [S, 4, 4]: the sum of the S - 1 steps (0 for S < 2)."""
+    poses = _check_poses(poses, "poses")
+    return float(np.sum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)))
+
+
+def path_length_ratio(est: np.ndarray, gt: np.ndarray) -> float:
+    """The estimate's path length over the ground truth's, est and gt: [S, 4, 4] matched poses (1.0: the right
+    length, 0.99: 1 % short). NaN when the ground truth does not move. Jitter lengthens a path (a step's sideways
+    error adds to it), so a noisy estimate reads longer than its scale; Sim(3)'s scale (`ate(align="sim3")`) does
+    not."""
+    est, gt = _check_poses(est, "est"), _check_poses(gt, "gt")
+    if est.shape != gt.shape:
+        raise ValueError(f"the path-length ratio needs matched trajectories, got {est.shape} and {gt.shape}")
+    gt_length = path_length(gt)
+    return path_length(est) / gt_length if gt_length > 0 else float("nan")
+
+
+KITTI_LENGTHS_M = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)  # the devkit's segments
+KITTI_STEP = 10  # the devkit's step between first frames
+
+
+def kitti_segment_errors(est: np.ndarray, gt: np.ndarray, lengths_m=KITTI_LENGTHS_M, step: int = KITTI_STEP
+                         ) -> dict[str, np.ndarray]:
+    """Every segment of KITTI's relative error (the odometry devkit's calcSequenceErrors).
+
+    est, gt: [S, 4, 4] matched poses; lengths_m: [L] segment lengths [m]; step: frames between first frames.
+    For each first frame i = 0, step, 2 step, ... and length L, the last frame j is the first whose ground-truth
+    path from i exceeds L (segments that run past the end are left out); E = (P_i^-1 P_j)^-1 (G_i^-1 G_j).
+    Returns K segments: "first" [K], "last" [K] (frame indices), "length_m" [K], "translation_m" [K] (|t(E)|),
+    "rotation_deg" [K] (angle of E).
+    """
+    est, gt = _check_poses(est, "est"), _check_poses(gt, "gt")
+    if est.shape != gt.shape:
+        raise ValueError(f"KITTI's relative error needs matched trajectories, got {est.shape} and {gt.shape}")
+    if step < 1:
+        raise ValueError(f"step must be >= 1, got {step}")
+    lengths = np.asarray(lengths_m, dtype=np.float64).reshape(-1)
+    if np.any(lengths <= 0):
+        raise ValueError(f"segment lengths must be positive, got {lengths}")
+    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    first = np.repeat(np.arange(0, len(gt), step), len(lengths))
+    length = np.tile(lengths, len(np.arange(0, len(gt), step)))
+    last = np.searchsorted(travelled, travelled[first] + length, side="right")  # the first frame past L
+    keep = last < len(gt)
+    first, last, length = first[keep], last[keep], length[keep]
+    gt_motion = invert_poses(gt[first]) @ gt[last]
+    est_motion = invert_poses(est[first]) @ est[last]
+    error = invert_poses(est_motion) @ gt_motion
+    return {"first": first, "last": last, "length_m": length,
+            "translation_m": np.linalg.norm(error[:, :3, 3], axis=1),
+            "rotation_deg": rotation_angles_deg(error[:, :3, :3])}
+
+
+def kitti_relative_error(est: np.ndarray, gt: np.ndarray, lengths_m=KITTI_LENGTHS_M, step: int = KITTI_STEP
+                         ) -> dict[str, Any]:
+    """KITTI's relative error over distance segments (see `kitti_segment_errors`), averaged over all segments as the
+    devkit averages them.
+
+    est, gt: [S, 4, 4] matched poses; lengths_m: [L] segment lengths [m]; step: frames between first frames.
+    Returns translation_pct (mean |t(E)| / L, in percent), rotation_deg_per_m (mean angle(E) / L), num_segments,
+    lengths_m, step, and per_length {f"{L:g}": {translation_pct, rotation_deg_per_m, num_segments}}; the means are
+    NaN where no segment fits (the path shorter than the lengths).
+    """
+    segments = kitti_segment_errors(est, gt, lengths_m, step)
+
+    def summary(mask: np.ndarray) -> dict[str, Any]:
+        empty = not np.any(mask)
+        length = segments["length_m"][mask]
+        return {"translation_pct": float("nan") if empty else float(100 * np.mean(segments["translation_m"][mask]
+                                                                                  / length)),
+                "rotation_deg_per_m": float("nan") if empty else float(np.mean(segments["rotation_deg"][mask]
+                                                                               / length)),
+                "num_segments": int(np.sum(mask))}
+
+    lengths = [float(v) for v in np.asarray(lengths_m, dtype=np.float64).reshape(-1)]
+    out = summary(np.ones(len(segments["first"]), dtype=bool))
+    out.update(lengths_m=lengths, step=int(step),
+               per_length={f"{v:g}": summary(segments["length_m"] == v) for v in lengths})
+    return out
 
 
 def associate_timestamps(stamps_est: np.ndarray, stamps_gt: np.ndarray, max_diff: float = 0.01

@@ -352,6 +352,36 @@ def test_real_targets_read_the_targets_off_an_entry():
     assert "big: failed: DataError: too wide" in table.splitlines()[-1]
 
 
+def _peer_entry(**neld):
+    """An entry of benchmarks/peers.py with every method's figures; neld overrides NeLD-BA's row."""
+    rows = {m: {"ate_m": ate, "path_ratio": ratio, "wall_s": 10.0, "neld_ba_verdict": "every draw",
+                "every_sweep_map": {"neld_ba_verdict": "a tie"}}
+            for m, ate, ratio in (("kiss_icp", 0.20, 0.9950), ("kiss_slam", 0.25, 0.9940), ("odometry", 0.10, 0.9953),
+                                  ("baseline", 0.08, 0.9951), ("neld_ba", 0.06, 0.9945))}
+    rows["neld_ba"].update({"wall_s": 500.0, **neld})
+    return {"sequence": "kitti00", "methods": rows}
+
+
+def test_peer_targets_read_neld_ba_against_its_start_and_its_peers():
+    # NeLD-BA's ATE over each other method's, and its path length over its odometry's (the ratio of their path ratios)
+    # within 0.1 %: 0.9945 / 0.9953 is 0.08 % short; 0.9935 / 0.9953, 0.18 % short, misses it
+    targets = _real_targets_module()
+    got = targets.peer_target_verdicts(_peer_entry(), minutes_limit=10)
+    assert got["ate_over_kiss_icp"] == 0.3 and got["ate_over_baseline"] == 0.75 and got["ate_over_odometry"] == 0.6
+    assert got["path_scale_vs_odometry"] == pytest.approx(0.9945 / 0.9953, abs=1e-6)
+    assert got["path_scale_within_0.1pct"] is True and got["ate_below_kiss_icp"] and got["ate_below_kiss_slam"]
+    assert got["crisper_than_kiss_icp"] == "every draw" and got["every_sweep_map_crisper_than_kiss_slam"] == "a tie"
+    assert got["within_minutes"] is True
+    got = targets.peer_target_verdicts(_peer_entry(path_ratio=0.9935, ate_m=0.3, wall_s=601.0))
+    assert got["path_scale_within_0.1pct"] is False and got["ate_below_kiss_icp"] is False
+    assert got["ate_over_baseline"] == 3.75 and got["within_minutes"] is False
+    got = targets.peer_target_verdicts(_peer_entry(path_ratio=None, ate_m=None))  # no ground truth
+    assert got["path_scale_vs_odometry"] is None and got["path_scale_within_0.1pct"] is None
+    assert got["ate_over_baseline"] is None and got["ate_below_kiss_icp"] is None
+    assert "kitti00 (peers): ate_below_kiss_icp None" in targets.format_targets([{**_peer_entry(), "targets": {
+        "peers": got}}])
+
+
 def test_peers_compares_the_methods_on_the_same_sweeps(tmp_path):
     # benchmarks/peers.py on 30 raw 10 Hz sweeps with a tiny model: a row per method (KISS-ICP and KISS-SLAM as their
     # own pipelines run them, the run's own odometry, the baseline, NeLD-BA) with its ATE, crispness and wall
@@ -364,7 +394,8 @@ def test_peers_compares_the_methods_on_the_same_sweeps(tmp_path):
             f"baseline.voxel_size_m={COARSE_REGISTRATION_GRID_M}"]
     result = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "peers.py"), "--sequences=synthetic10hz:0", "--num_scans=30",
-         "--gt_map_points=2000", f"--work={tmp_path / 'work'}", f"--out={out}", *[f"--set={s}" for s in tiny]],
+         "--gt_map_points=2000", f"--work={tmp_path / 'work'}", f"--out={out}", "--eval_from_scan=5",
+         "--segments_m=1,2", *[f"--set={s}" for s in tiny]],
         cwd=ROOT, env=dict(os.environ, JAX_PLATFORMS="cpu"), capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     (entry,) = json.loads(out.read_text())["sequences"]
@@ -378,7 +409,11 @@ def test_peers_compares_the_methods_on_the_same_sweeps(tmp_path):
         assert rows["kiss_slam"]["status"] == "not installed (pip install neld-jax[peers])"
     for name in measured:
         row = rows[name]
-        assert row["ate_poses"] == 30 and 0 <= row["ate_m"] < 1.0 and row["ate_rot_deg"] >= 0, (name, row)
+        assert row["ate_poses"] == 25 and 0 <= row["ate_m"] < 1.0 and row["ate_rot_deg"] >= 0, (name, row)
+        # Sim(3) fits at least as well as SE(3); a path length and KITTI's relative error over 1 and 2 m segments
+        assert row["ate_sim3_m"] <= row["ate_m"] + 1e-4 and 0.5 < row["sim3_scale"] < 2.0, (name, row)
+        assert 0.5 < row["path_ratio"] < 2.0 and row["kitti_segments"] > 0, (name, row)
+        assert row["kitti_t_pct"] >= 0 and row["kitti_r_deg_per_m"] >= 0, (name, row)
         assert math.isfinite(row["entropy"]) and row["thickness_cm"] > 0 and row["wall_s"] >= 0, (name, row)
         every = row["every_sweep_map"]  # every sweep's points, not only the keyframes'
         assert math.isfinite(every["entropy"]) and every["thickness_cm"] > 0, (name, every)
@@ -388,10 +423,18 @@ def test_peers_compares_the_methods_on_the_same_sweeps(tmp_path):
                 assert verdict["neld_ba_verdict"] in ("every draw", "a tie", "blurrier")
     assert rows["neld_ba"]["wall_s"] >= rows["odometry"]["wall_s"]  # the whole run holds its odometry
     assert rows["kiss_icp"]["poses"] != rows["odometry"]["poses"]  # KISS-ICP alone, not the run's two passes
+    # KISS-ICP and KISS-SLAM with KISS-ICP's own defaults (--peer_range=own), not the run's 40 m
+    assert entry["peer_range"] == {"mode": "own", "min_range_m": 0.0, "max_range_m": 100.0, "voxel_m": 1.0}
+    assert entry["eval_from_scan"] == 5 and entry["gt_path_m"] > 2.0
     peers = entry["targets"]["peers"]
-    assert peers["ate_over_kiss_icp"] == pytest.approx(rows["neld_ba"]["ate_m"] / rows["kiss_icp"]["ate_m"], rel=1e-3)
+    for method in ("kiss_icp", "baseline", "odometry"):
+        assert peers[f"ate_over_{method}"] == pytest.approx(rows["neld_ba"]["ate_m"] / rows[method]["ate_m"], rel=1e-3)
+    assert peers["path_scale_vs_odometry"] == pytest.approx(
+        rows["neld_ba"]["path_ratio"] / rows["odometry"]["path_ratio"], abs=1e-6)
     assert set(peers) == {
-        "ate_below_kiss_icp", "ate_below_kiss_slam", "ate_over_kiss_icp", "crisper_than_kiss_icp", "crisper_than_kiss_slam",
+        "ate_below_kiss_icp", "ate_below_kiss_slam", "ate_over_kiss_icp", "ate_over_baseline", "ate_over_odometry",
+        "path_scale_vs_odometry", "path_scale_within_0.1pct", "crisper_than_kiss_icp", "crisper_than_kiss_slam",
         "every_sweep_map_crisper_than_kiss_icp", "every_sweep_map_crisper_than_kiss_slam", "within_minutes"}
     assert entry["targets"]["peers"]["within_minutes"] is True
     assert "kiss_icp" in result.stdout and "targets" in result.stdout and "iteration=" not in result.stdout
+    assert "Sim3 m" in result.stdout and "KITTI %" in result.stdout and "NeLD-BA's ATE over: kiss_icp" in result.stdout

@@ -128,6 +128,101 @@ def test_rpe_matches_evo_all_pairs(tum_pair):
         assert ours["translation_rmse_m"] == pytest.approx(rpe.get_statistic(evo_metrics.StatisticsType.rmse), abs=1e-6)
 
 
+def test_sim3_scale_matches_evo_on_a_shortened_path(tum_pair):
+    # A path 0.5 % short: Sim(3) finds the scale that stretches it back, as evo's alignment with correct_scale does
+    from evo.core.trajectory import PosePath3D
+
+    _, _, gt, est = tum_pair
+    est_short = est.copy()
+    est_short[:, :3, 3] *= 0.995
+    traj_est = PosePath3D(poses_se3=list(est_short))
+    _, _, evo_scale = traj_est.align(PosePath3D(poses_se3=list(gt)), correct_scale=True)
+    ours = metrics.ate(est_short, gt, align="sim3")
+    assert ours["scale"] == pytest.approx(evo_scale, rel=1e-9)
+    assert ours["scale"] == pytest.approx(1 / 0.995, rel=0.01)
+
+
+def test_path_length_matches_evo(tum_pair):
+    from evo.core.trajectory import PosePath3D
+
+    _, _, gt, est = tum_pair
+    assert metrics.path_length(gt) == pytest.approx(PosePath3D(poses_se3=list(gt)).path_length, rel=1e-12)
+    assert metrics.path_length_ratio(est, gt) == pytest.approx(
+        PosePath3D(poses_se3=list(est)).path_length / PosePath3D(poses_se3=list(gt)).path_length, rel=1e-12)
+    assert metrics.path_length(gt[:1]) == 0.0
+    assert np.isnan(metrics.path_length_ratio(gt[:1], gt[:1]))
+
+
+def _unit_step_trajectory(rng, num_poses=120):
+    """Positions 1 m apart in random directions, a wandering orientation, and a noisy copy: ([S, 4, 4], [S, 4, 4])."""
+    gt = np.tile(np.eye(4), (num_poses, 1, 1))
+    gt[:, :3, :3] = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.05, (num_poses, 3)), axis=0)).as_matrix()
+    steps = rng.normal(size=(num_poses - 1, 3))
+    gt[1:, :3, 3] = np.cumsum(steps / np.linalg.norm(steps, axis=1, keepdims=True), axis=0)
+    return gt, _perturb(rng, gt, trans_sigma=0.05, rot_sigma_rad=0.01)
+
+
+def test_kitti_relative_error_matches_evo_rpe_in_meters():
+    # With 1 m steps and lengths just under whole metres, the devkit's last frame (the first past L) is the one evo's
+    # all-pairs RPE in metres picks (the nearest to L on the reference's path); evo's E is the inverse of the
+    # devkit's, with the same translation norm and angle.
+    from evo.core import metrics as evo_metrics
+    from evo.core.trajectory import PosePath3D
+
+    gt, est = _unit_step_trajectory(np.random.default_rng(5))
+    lengths = (9.9, 19.9, 29.9)
+    ours = metrics.kitti_relative_error(est, gt, lengths, step=1)
+    for length in lengths:
+        mine = ours["per_length"][f"{length:g}"]
+        for relation, key, factor in ((evo_metrics.PoseRelation.translation_part, "translation_pct", 100.0),
+                                      (evo_metrics.PoseRelation.rotation_angle_deg, "rotation_deg_per_m", 1.0)):
+            rpe = evo_metrics.RPE(relation, delta=length, delta_unit=evo_metrics.Unit.meters, rel_delta_tol=0.02,
+                                  all_pairs=True, pairs_from_reference=True)
+            rpe.process_data((PosePath3D(poses_se3=list(gt)), PosePath3D(poses_se3=list(est))))
+            assert mine["num_segments"] == len(rpe.error) == len(gt) - int(np.ceil(length))
+            assert mine[key] == pytest.approx(factor * np.mean(rpe.error) / length, rel=1e-9)
+    assert ours["num_segments"] == sum(v["num_segments"] for v in ours["per_length"].values())
+    assert ours["translation_pct"] > 0.1 and ours["rotation_deg_per_m"] > 0.01  # the noise is really there
+
+
+def test_a_straight_path_one_percent_short():
+    # 0.99 of the ground truth's 60 m path in 1/64 m steps (exact in binary): the path-length ratio 0.99, KITTI's
+    # translation error 1 % (the segment runs to the first frame past L: at most a step longer), no rotation error;
+    # Sim(3) stretches it back
+    gt = np.tile(np.eye(4), (3841, 1, 1))
+    gt[:, 0, 3] = np.arange(3841) / 64
+    est = gt.copy()
+    est[:, :3, 3] *= 0.99
+    assert metrics.path_length_ratio(est, gt) == pytest.approx(0.99, rel=1e-12)
+    kitti = metrics.kitti_relative_error(est, gt, lengths_m=(10, 20, 30, 40, 50), step=10)
+    assert kitti["translation_pct"] == pytest.approx(1.0, rel=1e-3)
+    assert kitti["rotation_deg_per_m"] == pytest.approx(0.0, abs=1e-9)
+    # the first frames 0, 10, ..., 630: from 640 on (10 m), less than 50 m of path remain
+    assert kitti["per_length"]["50"]["num_segments"] == 64
+    assert metrics.ate(est, gt, align="sim3")["translation_rmse_m"] < 1e-9
+    assert metrics.ate(est, gt, align="se3")["translation_rmse_m"] > 0.05
+
+
+def test_kitti_segments_follow_the_devkit():
+    # 0.5 m steps: the last frame is the first whose path from the first exceeds L strictly (10.5 m for L = 10);
+    # first frames every `step`; a segment past the end is left out; a constant yaw drift gives angle / L.
+    num = 41
+    gt = np.tile(np.eye(4), (num, 1, 1))
+    gt[:, 0, 3] = 0.5 * np.arange(num)
+    est = gt.copy()
+    est[:, :3, :3] = Rotation.from_euler("z", 0.01 * np.arange(num)[:, None], degrees=True).as_matrix()
+    segments = metrics.kitti_segment_errors(est, gt, lengths_m=(10.0, 19.0), step=10)
+    np.testing.assert_array_equal(segments["first"], [0, 0, 10])
+    np.testing.assert_array_equal(segments["last"], [21, 39, 31])
+    np.testing.assert_allclose(segments["rotation_deg"], [0.21, 0.39, 0.21], atol=1e-9)
+    kitti = metrics.kitti_relative_error(est, gt, lengths_m=(10.0, 19.0), step=10)
+    assert kitti["rotation_deg_per_m"] == pytest.approx(np.mean([0.021, 0.39 / 19, 0.021]))
+    assert kitti["per_length"]["19"]["num_segments"] == 1
+    assert np.isnan(metrics.kitti_relative_error(est, gt, lengths_m=(100.0,))["translation_pct"])
+    with pytest.raises(ValueError, match="step"):
+        metrics.kitti_segment_errors(est, gt, step=0)
+
+
 def test_ate_zero_for_rigidly_moved_copy_only_with_alignment():
     rng = np.random.default_rng(1)
     gt = _random_trajectory(rng, 20)

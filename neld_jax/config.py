@@ -58,6 +58,8 @@ def defaults() -> ml_collections.ConfigDict:
     c.data.keyframe_angle_deg = 0.0  # ... and turned this far (0: 30 with the time cap, else off; all off: every scan)
     c.data.min_range_m = 0.5  # points nearer the sensor are dropped
     c.data.max_range_m = 80.0  # points further away are dropped
+    c.data.odometry_max_range_m = 0.0  # KISS-ICP registers within this (0: the sensor's range, measured on the scans)
+    c.data.deskew = "auto"  # scans without point times: auto (measured) | deskewed | raw | raw_<start>_<turning>
     c.data.voxel_size_m = 0.05  # each keyframe's points on this grid
     c.data.first_scan = 0  # keyframes from this input scan on ...
     c.data.max_scans = 0  # ... and at most this many (0: all): a long sequence in pieces
@@ -258,6 +260,9 @@ RULES = {
     "data.keyframe_angle_deg": _number(),
     "data.min_range_m": NON_NEGATIVE,
     "data.max_range_m": POSITIVE,
+    "data.odometry_max_range_m": NON_NEGATIVE,
+    "data.deskew": _choice("auto", "deskewed", "raw", "raw_behind_clockwise", "raw_behind_anticlockwise",
+                           "raw_front_clockwise", "raw_front_anticlockwise", any_case=True),  # sweep_times.DESKEW_CHOICES
     "data.voxel_size_m": NON_NEGATIVE,
     "data.first_scan": COUNT,
     "data.max_scans": COUNT,

@@ -1,6 +1,8 @@
 """Scans without poses (neld_jax.data.odometry): KISS-ICP makes the initial poses from raw 10 Hz sweeps, in two
-passes deskewed by their points' own times and put on the sweeps' stamps; a lost track is one clear error line naming the scan; a
-run from scans alone writes the odometry as poses_odometry.txt; the downloads' bags run through the command."""
+passes deskewed by their points' own times and put on the sweeps' stamps; it registers within the sensor's range
+measured on the scans (or data.odometry_max_range_m) while the scans it returns keep the field's crop; a lost track is
+one clear error line naming the scan; a run from scans alone writes the odometry as poses_odometry.txt; the
+downloads' bags run through the command."""
 
 import dataclasses
 import logging
@@ -97,6 +99,36 @@ def test_two_passes_hold_fast_sweeps_that_kiss_icps_own_deskewing_lets_swing():
     its_own = odometry.poses_at_stamps(fast.timestamps, offsets, poses)
     errors = [metrics.ate(p, fast.gt_poses)["translation_rmse_m"] for p in (two_passes, its_own)]
     assert errors[0] < 0.05 and errors[0] < 0.5 * errors[1], errors
+
+
+def test_kiss_icp_registers_within_the_sensors_range_and_the_scans_keep_the_fields_crop(sweeps, caplog):
+    assert odometry.kiss_icp_default_ranges() == (0.0, 100.0)  # KISS-ICP's own (KISSConfig)
+    rigid = dataclasses.replace(sweeps, point_times=None)
+    assert 39.5 < odometry.sensor_range_m(rigid.scans) <= 40.0  # the synthetic sensor's 40 m (measured 39.95)
+    assert odometry.sensor_range_m([4.0 * scan for scan in rigid.scans]) == 100.0  # at most KISS-ICP's default
+    with caplog.at_level(logging.INFO, logger="neld_jax.data.odometry"):
+        posed = odometry.with_kiss_icp_poses(rigid, 2.0, 20.0, progress=False)
+    assert "KISS-ICP registers the points within 39.9 m (measured: the 99.9th percentile of the point distances of 8 " \
+           "scans evenly spaced, at most KISS-ICP's default 100 m), voxel 0.40 m" in caplog.text
+    assert "registered within 0.0-39.9 m, voxel 0.40 m; scans kept within 2.0-20.0 m" in caplog.text
+    distances = np.linalg.norm(posed.scans[3], axis=1)
+    assert distances.min() >= 2.0 and distances.max() <= 20.0  # the field's crop, not KISS-ICP's range
+    assert metrics.ate(posed.poses, posed.gt_poses)["translation_rmse_m"] < 0.1
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="neld_jax.data.odometry"):
+        assert odometry.registration_range_m(rigid, 30.0) == 30.0
+    assert "within 30.0 m (data.odometry_max_range_m), voxel 0.30 m" in caplog.text
+
+
+def test_the_odometrys_range_and_the_deskew_decision_are_settings(sweeps, tmp_path, caplog):
+    first = dataclasses.replace(sweeps, scans=sweeps.scans[:10], timestamps=sweeps.timestamps[:10],
+                                gt_poses=sweeps.gt_poses[:10], point_times=None)
+    write_generic(first, tmp_path)  # no poses.txt, no point times
+    with caplog.at_level(logging.INFO):
+        loaded = load_sequence(_data(tmp_path, odometry_max_range_m=30.0, deskew="deskewed"))
+    assert loaded.poses_from == "kiss_icp" and loaded.num_scans == 10
+    assert "registered within 0.0-30.0 m, voxel 0.30 m; scans kept within 0.5-40.0 m" in caplog.text
+    assert "registered as they are (data.deskew=deskewed" in caplog.text
 
 
 def test_rigid_scans_and_a_layout_with_poses_can_ask_for_odometry(sweeps, tmp_path):

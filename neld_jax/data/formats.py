@@ -11,9 +11,11 @@ Each format is one module with a `load(data_cfg) -> Sequence` (config.data.forma
     synthetic       synthetic.py       a seeded synthetic sequence with exact ground truth (no files)
 
 load_sequence adds what every folder format gets: the scan and pose frames converted or checked (frames.py), and a
-warning naming what was looked for when no ground truth is found. Scans without poses get KISS-ICP's (odometry.py);
-those of a layout of raw sweeps (RAW_SWEEP_FORMATS) that carry no per-point times get times from their azimuths
-first (sweep_times.py), so that KISS-ICP and the trajectory deskew them.
+warning naming what was looked for when no ground truth is found. Scans without poses get KISS-ICP's (odometry.py),
+registered within the sensor's own range measured on the scans (data.odometry_max_range_m overrides), the scans
+kept within the field's crop afterwards. Those of a layout that may hold raw sweeps (RAW_SWEEP_FORMATS) and carry no
+per-point times are measured first: raw sweeps get times from their azimuths, so that KISS-ICP and the trajectory
+deskew them, and deskewed scans are registered as they are (sweep_times.py; data.deskew overrides, in any layout).
 """
 
 from __future__ import annotations
@@ -51,8 +53,9 @@ FORMATS = {
     "kitti": kitti.load,
     "synthetic": synthetic.load,
 }
-# Layouts whose scans may be raw sweeps with no time field: the generic folder (a driver's PCD export). KITTI's
-# odometry scans are compensated for the motion already (kitti.py); keyframe layouts hold deskewed scans.
+# Layouts whose scans may be raw sweeps with no time field, which the data decides (sweep_times.py): the generic
+# folder (a driver's PCD export, a LiDAR-inertial odometry's deskewed scans). KITTI's odometry scans are compensated
+# for the motion already (kitti.py); keyframe layouts hold deskewed scans.
 RAW_SWEEP_FORMATS = ("generic",)
 
 # Where each folder format looks for ground truth by itself (for the "evaluation is skipped" warning).
@@ -91,9 +94,7 @@ def load_sequence(data_cfg) -> Sequence:
         if data_cfg.get("scans_in_world_frame", False) or data_cfg.get("invert_poses", False):
             raise ConfigError(f"{root}: data.scans_in_world_frame / data.invert_poses need the layout's own poses, "
                               f"not data.initial_poses={KISS_ICP} or none")
-        if fmt in RAW_SWEEP_FORMATS:
-            seq = sweep_times.with_azimuth_times(seq)
-        seq = odometry.with_kiss_icp_poses(seq, data_cfg.min_range_m, data_cfg.max_range_m)
+        seq = _with_odometry(seq, data_cfg, fmt)
         return seq if fmt == "synthetic" else _report_missing_ground_truth(seq, data_cfg, fmt, root)
     if fmt == "synthetic":  # generated in the sensor frame with exact ground truth: nothing to convert or report
         return seq
@@ -109,6 +110,20 @@ def load_sequence(data_cfg) -> Sequence:
     if not invert:
         frames.check_pose_direction(seq, str(root))
     return _report_missing_ground_truth(seq, data_cfg, fmt, root)
+
+
+def _with_odometry(seq: Sequence, data_cfg, fmt: str) -> Sequence:
+    """seq with KISS-ICP's poses, registered within the sensor's range (data.odometry_max_range_m, 0: measured);
+    scans without per-point times are raw sweeps or deskewed as data.deskew says ("auto": measured, in the layouts
+    of RAW_SWEEP_FORMATS; the others' scans are deskewed by what the layout is)."""
+    range_m = odometry.registration_range_m(seq, float(data_cfg.get("odometry_max_range_m", 0.0)))
+    deskew = str(data_cfg.get("deskew", sweep_times.AUTO)).lower()
+    period = None
+    if seq.point_times is None and (fmt in RAW_SWEEP_FORMATS or deskew != sweep_times.AUTO):
+        seq = sweep_times.with_azimuth_times(seq, deskew, range_m)
+        period = sweep_times.DEFAULT_PERIOD_S if seq.point_times is not None else None  # used without stamps
+    return odometry.with_kiss_icp_poses(seq, data_cfg.min_range_m, data_cfg.max_range_m,
+                                        odometry_range_m=range_m, unstamped_period_s=period)
 
 
 def _report_missing_ground_truth(seq: Sequence, data_cfg, fmt: str, root) -> Sequence:

@@ -16,7 +16,7 @@ measurement, the step, the entropy, the last batch's range error (mean and media
 far. Nothing is written besides --out. A baseline's poses file is an input here; --as_baseline trains with the pose
 steps a run takes from the baseline's poses (neld_jax.start.pose_steps_from_baseline: learning rates capped at
 start.pose_lr_from_baseline, the prior of start.prior_from_baseline, heavier where the start's map is thinner
-than start.thin_map_m, and the start's scale kept) to measure what such a run does.
+than start.THIN_MAP_M, and the start's scale kept) to measure what such a run does.
 """
 
 import functools

@@ -96,7 +96,7 @@ def read_start(run_dir: str, input_poses: np.ndarray) -> tuple[np.ndarray, str, 
 
 def pose_steps_for(config, keyframes, chosen: str, start_poses: np.ndarray):
     """The pose steps a run takes from its start (neld_jax.start): the config's own from the input; from the
-    baseline's poses capped, with the prior (heavier where the start's map is thinner than start.thin_map_m) and
+    baseline's poses capped, with the prior (heavier where the start's map is thinner than start.THIN_MAP_M) and
     the start's scale kept."""
     from neld_jax import judge
     from neld_jax.start import pose_steps_from_baseline

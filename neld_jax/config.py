@@ -58,7 +58,6 @@ def defaults() -> ml_collections.ConfigDict:
     c.data.keyframe_angle_deg = 0.0  # ... and turned this far (0: 30 with the time cap, else off; all off: every scan)
     c.data.min_range_m = 0.5  # points nearer the sensor are dropped
     c.data.max_range_m = 80.0  # points further away are dropped
-    c.data.odometry_max_range_m = 0.0  # KISS-ICP registers within this (0: the sensor's range, measured on the scans)
     c.data.deskew = "auto"  # scans without point times: auto (measured) | deskewed | raw | raw_<start>_<turning>
     c.data.voxel_size_m = 0.05  # each keyframe's points on this grid
     c.data.first_scan = 0  # keyframes from this input scan on ...
@@ -115,7 +114,6 @@ def defaults() -> ml_collections.ConfigDict:
     c.start.poses = "input"  # input | baseline | crisper
     c.start.pose_lr_from_baseline = REFINE_POSE_LR  # from the baseline: pose learning rates at most these
     c.start.prior_from_baseline = 3000.0  # ... and a pull of each pose toward its start (0: none)
-    c.start.thin_map_m = 0.02  # ... heavier on the translations where the start's map is thinner than this
 
     # Submaps (neld_jax.submaps): a sequence larger than one cube is split into overlapping windows of keyframes.
     # The settings marked (M > 1) apply to a plan of several submaps only; one cube keeps the run's own.
@@ -260,7 +258,6 @@ RULES = {
     "data.keyframe_angle_deg": _number(),
     "data.min_range_m": NON_NEGATIVE,
     "data.max_range_m": POSITIVE,
-    "data.odometry_max_range_m": NON_NEGATIVE,
     "data.deskew": _choice("auto", "deskewed", "raw", "raw_behind_clockwise", "raw_behind_anticlockwise",
                            "raw_front_clockwise", "raw_front_anticlockwise", any_case=True),  # sweep_times.DESKEW_CHOICES
     "data.voxel_size_m": NON_NEGATIVE,
@@ -319,7 +316,6 @@ RULES = {
     "start.poses": _choice(*START_POSES, any_case=True),
     "start.pose_lr_from_baseline": Rule("floats", low=0, lengths=(0, 2)),
     "start.prior_from_baseline": NON_NEGATIVE,
-    "start.thin_map_m": NON_NEGATIVE,
     "submaps.enabled": _choice("auto", "on", "off", "true", "false", "1", "0", any_case=True),  # submaps_wanted
     "submaps.max_detail_m": POSITIVE,
     "submaps.keyframes": COUNT,

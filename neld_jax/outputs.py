@@ -23,7 +23,7 @@ from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.evaluate import GT_POSES_FILE, EvalSettings, RunArtifacts, Trajectory, evaluation_record
 from neld_jax.export import write_json, write_point_cloud, write_poses, write_raw_map
 from neld_jax.geometry import register_scans
-from neld_jax.trajectory import propagate_corrections
+from neld_jax.trajectory import cumulative_path, propagate_corrections, window_scales
 
 logger = logging.getLogger(__name__)
 
@@ -184,7 +184,18 @@ def run_record(config: ml_collections.ConfigDict, made: RunSteps, budget: TimeBu
         "answer": "neld_ba" if made.neld_ba is None else made.start.chosen,  # whose poses poses_optimized holds
         "crispest": crispest,
         "crispness_margin": margins,  # {other method: the answer's entropy minus its, per draw and mean}
+        "path_vs_input": path_vs_input(made.every_scan_poses(), made.loaded.poses),
     }
+
+
+def path_vs_input(answer: np.ndarray, input_poses: np.ndarray, window_m: float = 50.0) -> dict:
+    """How the answer's poses of every input scan [S, 4, 4] change the distance travelled against the input's
+    [S, 4, 4]: {"ratio": its whole path over the input's, "largest_window_change": the largest departure from 1 of
+    that ratio over a window_m window (trajectory.window_scales), "window_m"}."""
+    ratio = cumulative_path(answer)[-1] / max(cumulative_path(input_poses)[-1], 1e-12)
+    change = float(np.max(np.abs(1.0 / window_scales(answer, input_poses, window_m) - 1.0))) if len(answer) > 1 \
+        else 0.0
+    return {"ratio": round(float(ratio), 6), "largest_window_change": round(change, 6), "window_m": window_m}
 
 
 def write_scan_report(out_dir: str, made: RunSteps, T_all: np.ndarray, per_scan_entropy: dict,

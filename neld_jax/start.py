@@ -4,7 +4,7 @@
 - "baseline": the classical baseline's poses (neld_jax.baseline), for a start that drifted beyond the field's
   basin of convergence. They are registered to a few mm and the field only refines them, so the pose steps are
   capped (start.pose_lr_from_baseline), a prior holds each pose near its start (start.prior_from_baseline; heavier on
-  the translations where the start's raw map is thinner than start.thin_map_m) and the trajectory's scale is kept
+  the translations where the start's raw map is thinner than THIN_MAP_M) and the trajectory's scale is kept
   (docs/method.md, "Which start", "A prior on the pose corrections", "Keeping the start's scale").
 - "crisper": the baseline runs, and training starts from whichever of the two gives the crisper raw map (lower mean
   map entropy; a tie keeps the input). The field refines within a few cm and does not undo a blurrier start, and
@@ -153,10 +153,16 @@ def segments_of(recordings) -> Segments:
     return Segments(tuple(int(k) for k in recordings.keyframe_bounds[1:-1]), tuple(recordings.keyframe_links()))
 
 
+# From the baseline's poses, the translations' prior is (THIN_MAP_M / thickness)^2 heavier where the start's raw map is
+# thinner than this: dense precise scans (the synthetic baselines' maps 0.86-0.98 cm), where ICP's translations beat
+# what the field resolves; real keyframe maps (3.2-4.4 cm) keep the prior as set (docs/method.md, "A prior").
+THIN_MAP_M = 0.02
+
+
 def pose_steps_from_baseline(config: ml_collections.ConfigDict, thickness_m: float | None) -> PoseSteps:
     """The pose steps from the baseline's poses: the config's learning rates capped at start.pose_lr_from_baseline,
-    a prior of start.prior_from_baseline, (start.thin_map_m / thickness)^2 times heavier on the translations when the
-    start's raw map is thinner than start.thin_map_m (scans precise enough for ICP's translations to beat what the
+    a prior of start.prior_from_baseline, (THIN_MAP_M / thickness)^2 times heavier on the translations when the
+    start's raw map is thinner than THIN_MAP_M (scans precise enough for ICP's translations to beat what the
     field resolves), and the start's scale kept."""
     cap = tuple(config.start.pose_lr_from_baseline or ())
     if cap and len(cap) != 2:
@@ -167,7 +173,7 @@ def pose_steps_from_baseline(config: ml_collections.ConfigDict, thickness_m: flo
         return tuple(min(float(v), float(c)) for v, c in zip(pair, cap)) if cap else pair
 
     prior = float(config.start.prior_from_baseline)
-    thin_m = float(config.start.thin_map_m)
+    thin_m = THIN_MAP_M
     heavier = 1.0
     if prior > 0 and thin_m > 0 and thickness_m is not None and 0 < thickness_m < thin_m:
         heavier = (thin_m / thickness_m) ** 2
@@ -176,7 +182,7 @@ def pose_steps_from_baseline(config: ml_collections.ConfigDict, thickness_m: flo
                 "and %g on the rotations%s, the start's scale kept", " -> ".join(f"{v:g}" for v in steps.lr_trans),
                 steps.prior_trans, steps.prior_rot,
                 "" if heavier == 1.0 else f" (the start's map is {100 * thickness_m:.2f} cm thin, under "
-                                          f"start.thin_map_m={100 * thin_m:g} cm)")
+                                          f"{100 * thin_m:g} cm)")
     return steps
 
 

@@ -49,3 +49,35 @@ def propagate_corrections(T_input: np.ndarray, keyframe_index: np.ndarray, T_key
     refined = C @ T_input
     refined[keyframe_index] = T_keyframes  # exact, without the round trip through exp/log
     return refined
+
+
+def cumulative_path(poses: np.ndarray) -> np.ndarray:
+    """[S] metres travelled up to each pose of poses [S, 4, 4] (0 at the first)."""
+    steps = np.linalg.norm(np.diff(np.asarray(poses)[:, :3, 3], axis=0), axis=1)
+    return np.r_[0.0, np.cumsum(steps)]
+
+
+def window_scales(poses: np.ndarray, reference: np.ndarray, window_m: float) -> np.ndarray:
+    """[S - 1] for each step of poses [S, 4, 4]: the reference's [S, 4, 4] path length over the steps whose midpoints
+    lie within window_m / 2 of this step's (along the reference's path) divided by poses' over the same steps (1 where
+    poses do not move there)."""
+    along = cumulative_path(reference)
+    mid = 0.5 * (along[1:] + along[:-1])
+    reference_steps, steps = np.diff(along), np.diff(cumulative_path(poses))
+    lo = np.searchsorted(mid, mid - 0.5 * window_m, side="left")
+    hi = np.searchsorted(mid, mid + 0.5 * window_m, side="right")
+    reference_sums = np.r_[0.0, np.cumsum(reference_steps)]
+    sums = np.r_[0.0, np.cumsum(steps)]
+    own = sums[hi] - sums[lo]
+    return np.where(own > 0, (reference_sums[hi] - reference_sums[lo]) / np.where(own > 0, own, 1.0), 1.0)
+
+
+def with_distances_of(poses: np.ndarray, reference: np.ndarray, window_m: float) -> np.ndarray:
+    """poses [S, 4, 4] with each step's translation scaled by window_scales (the reference's [S, 4, 4] distance
+    travelled over a window_m window around it): the same rotations and directions of travel, the reference's
+    distances; pose 0 stays. Where a registration measures the shape of a path but a LiDAR odometry over
+    consecutive sweeps measures the distance travelled better (docs/evaluation.md, "Distance travelled")."""
+    poses = np.array(poses, np.float64)
+    steps = np.diff(poses[:, :3, 3], axis=0) * window_scales(poses, reference, window_m)[:, None]
+    poses[1:, :3, 3] = poses[0, :3, 3] + np.cumsum(steps, axis=0)
+    return poses

@@ -189,7 +189,7 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     assert np.abs(T_baseline[1:, :3, 3] - T_initial[1:, :3, 3]).max() > 1e-3  # the baseline did move the scans
     np.testing.assert_allclose(planned[-1], T_baseline, atol=1e-5)
     # From the baseline's poses the pose steps are capped, a prior set (heavier on the translations: the tiny
-    # synthetic map is thinner than start.thin_map_m) and the scale kept; the config is the user's.
+    # synthetic map is thinner than start.THIN_MAP_M) and the scale kept; the config is the user's.
     steps = r["pose_steps"]
     assert tuple(steps["lr_trans"]) == tuple(steps["lr_rot"]) == tuple(config.start.pose_lr_from_baseline)
     assert steps["prior_trans"] > steps["prior_rot"] == config.start.prior_from_baseline and steps["keep_scale"]

@@ -31,15 +31,14 @@ def test_pose_steps_from_the_baseline_are_capped_held_and_keep_the_scale():
 
 def test_the_translations_prior_is_heavier_from_a_thin_map():
     config = make_tiny_config("unused", steps=4)
-    config.start.prior_from_baseline, config.start.thin_map_m = 3000.0, 0.02
+    config.start.prior_from_baseline = 3000.0
+    assert start.THIN_MAP_M == 0.02
     thin = start.pose_steps_from_baseline(config, thickness_m=0.01)
     assert thin.prior_trans == pytest.approx(4 * 3000.0) and thin.prior_rot == 3000.0  # (2 cm / 1 cm)^2
     for thickness in (0.03, None):  # a real keyframe map, or none measured: the weight as set
         kept = start.pose_steps_from_baseline(config, thickness_m=thickness)
         assert kept.prior_trans == kept.prior_rot == 3000.0
-    config.start.thin_map_m = 0.0  # off
-    assert start.pose_steps_from_baseline(config, 0.01).prior_trans == 3000.0
-    config.start.thin_map_m, config.start.prior_from_baseline = 0.02, 0.0  # no prior to scale
+    config.start.prior_from_baseline = 0.0  # no prior to scale
     assert start.pose_steps_from_baseline(config, 0.01).prior_trans == 0.0
 
 

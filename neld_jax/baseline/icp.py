@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial.transform import Rotation
 
 from neld_jax.baseline.settings import BaselineSettings
 from neld_jax.geometry import transform_points
@@ -194,6 +195,12 @@ def multiscale_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCl
         result = point_to_plane_icp(scan, target, transform, distance, settings.icp_iterations,
                                     settings.min_normal_cos if check else None, oriented, indices[key])
         transform = result.transformation
+    if settings.min_direction_share > 0:
+        held = held_along_weak_directions(source, target, np.asarray(guess, np.float64), np.asarray(transform),
+                                          result, settings.min_direction_share, indices[key])
+        if held is not transform:
+            result = dataclasses.replace(result, transformation=held)
+            transform = held
     return np.asarray(transform), result
 
 
@@ -235,3 +242,83 @@ def information(source, target, transform, settings: BaselineSettings) -> np.nda
     information[3:, 3:] = np.eye(3) * points.shape[1]
     return information
 
+
+
+def direction_shares(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """How well point-to-plane pairs fix each of the six directions of a pose correction.
+
+    points [N, 3]: the source points moved onto the target; normals [N, 3]: their partners' normals. The Hessian
+    of the point-to-plane residuals, J^T J / N with J = [(p - c) x n, n] (a correction about the points' centroid c,
+    its rotation in metres of arc at the points' RMS distance L from c), so that each eigenvalue is the share of the
+    pairs' normal energy along its eigenvector: a translation that every normal faces has a share of about 1/3 in an
+    open scene; one that no normal faces (along a tunnel, a straight street between parallel walls) about 0.
+    Returns (shares [6] ascending, eigenvectors [6, 6] (columns; rotation [m], translation [m]), c [3], L)."""
+    centroid = points.mean(axis=0)
+    centred = points - centroid
+    lever = float(np.sqrt(np.mean(np.einsum("ij,ij->i", centred, centred)))) or 1.0
+    jacobians = np.hstack([np.cross(centred, normals) / lever, normals])  # [N, 6]
+    shares, vectors = np.linalg.eigh(jacobians.T @ jacobians / len(points))
+    return shares, vectors, centroid, lever
+
+
+def held_along_weak_directions(source, target, guess: np.ndarray, transform: np.ndarray, result: IcpResult,
+                               min_share: float, index: TargetIndex) -> np.ndarray:
+    """ICP's transform [4, 4] with its correction of the guess [4, 4] removed along every direction that its final
+    pairs fix with a share below min_share (direction_shares), then HELD_STEPS point-to-plane steps in the other
+    directions only: along a weak direction the geometry does not say where the scan is, and ICP's answer is where
+    its start, noise and the map's ends led it, so the guess (the odometry's motion, the chain's pose) stays. The
+    transform itself (the same object) where no direction is that weak.
+    source, target: the Open3D clouds ICP registered (target with normals); result: its finest scale's IcpResult;
+    index: a TargetIndex of target reaching that scale's distance."""
+    pairs = _pairs(source, target, transform, index)
+    if pairs is None:
+        return transform
+    shares, vectors, centroid, lever = direction_shares(pairs[0], pairs[2])
+    weak, strong = vectors[:, shares < min_share], vectors[:, shares >= min_share]
+    if not weak.shape[1]:
+        return transform
+    motion = _small_motion(transform @ np.linalg.inv(guess), centroid, lever)
+    held = _motion_matrix(motion - weak @ (weak.T @ motion), centroid, lever) @ guess
+    for _ in range(HELD_STEPS):  # the strong directions settle again with the weak ones held
+        pairs = _pairs(source, target, held, index)
+        if pairs is None:
+            break
+        points, partners, normals = pairs
+        jacobians = np.hstack([np.cross(points - centroid, normals) / lever, normals]) @ strong  # [N, 6 - W]
+        residuals = np.einsum("ij,ij->i", points - partners, normals)
+        step = -strong @ np.linalg.solve(jacobians.T @ jacobians, jacobians.T @ residuals)
+        held = _motion_matrix(step, centroid, lever) @ held
+    return held
+
+
+HELD_STEPS = 3  # Gauss-Newton steps in the strong directions after the weak ones are held
+
+
+def _pairs(source, target, transform: np.ndarray, index: TargetIndex):
+    """(source points moved by transform [N, 3], their nearest target points [N, 3] and normals [N, 3]) within the
+    index's reach, or None for fewer than six pairs."""
+    points = np.asarray(source.points) @ transform[:3, :3].T + transform[:3, 3]
+    nearest, _ = index.nearest(points, index.max_distance)
+    paired = nearest >= 0
+    if paired.sum() < 6:
+        return None
+    return points[paired], np.asarray(target.points)[nearest[paired]], np.asarray(target.normals)[nearest[paired]]
+
+
+def _small_motion(motion: np.ndarray, centroid: np.ndarray, lever: float) -> np.ndarray:
+    """A rigid motion [4, 4] (target frame) -> [6]: its rotation vector about centroid [3] in metres of arc at lever
+    [m], then its translation (direction_shares' coordinates)."""
+    about = np.eye(4)
+    about[:3, 3] = centroid
+    local = np.linalg.inv(about) @ motion @ about
+    return np.r_[Rotation.from_matrix(local[:3, :3]).as_rotvec() * lever, local[:3, 3]]
+
+
+def _motion_matrix(motion: np.ndarray, centroid: np.ndarray, lever: float) -> np.ndarray:
+    """_small_motion's inverse: [6] -> [4, 4]."""
+    local = np.eye(4)
+    local[:3, :3] = Rotation.from_rotvec(motion[:3] / lever).as_matrix()
+    local[:3, 3] = motion[3:]
+    about = np.eye(4)
+    about[:3, 3] = centroid
+    return about @ local @ np.linalg.inv(about)

@@ -12,6 +12,7 @@ import numpy as np
 import open3d as o3d
 
 from neld_jax.baseline.chain import choose_chain, scan_to_map_chain
+from neld_jax.baseline.distances import keep_input_distances
 from neld_jax.baseline.graph import loop_closed_graph
 from neld_jax.baseline.icp import prepare_clouds
 from neld_jax.baseline.refine import choose_refinement_start, refine_against_map
@@ -31,7 +32,8 @@ class BaselineResult:
     entropy of its raw map} ({} when fewer than two chains were held); chain_given_up; refined_from: where the
     multi-view refinement started, "graph" | "chain" | "input" (None: no rounds after a chain); start_entropy:
     {"graph" | "chain": entropy} when the two were compared; map_rounds_done: the rounds done (a fraction when the
-    deadline stopped them; None: no rounds); stopped_at_deadline; seconds: {step: seconds}."""
+    deadline stopped them; None: no rounds); stopped_at_deadline; distances: whose distances travelled the poses
+    keep (distances.keep_input_distances' record; None: not compared); seconds: {step: seconds}."""
 
     poses: np.ndarray
     tilt: str | None = None
@@ -41,6 +43,7 @@ class BaselineResult:
     start_entropy: dict | None = None
     map_rounds_done: float | None = None
     stopped_at_deadline: bool | None = None
+    distances: dict | None = None
     seconds: dict = dataclasses.field(default_factory=dict)
 
     def report(self) -> dict:
@@ -77,11 +80,7 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
     if len(scans) < 2:
         return BaselineResult(init_poses.copy())
     segments.check(len(scans))
-    if segments.starts:
-        logger.info("baseline: %d recordings joined: the chain restarts from the input pose at scan(s) %s (each later "
-                    "recording's first, placed in the first one's frame), and %d links from the placing join them in "
-                    "the pose graph", len(segments.starts) + 1, ", ".join(map(str, segments.starts)),
-                    len(segments.links))
+    _log_joined(segments)
     clouds = prepare_clouds(scans, settings)
     seconds = {}
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
@@ -111,7 +110,19 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
                                  decided)
             seconds["refinement"] = time.perf_counter() - t2
     # Re-anchor exactly on scan 0 (the gauge), whatever the optimiser did with the reference node.
-    return BaselineResult(anchored(optimized, init_poses[0]), seconds=seconds, **decided)
+    optimized = anchored(optimized, init_poses[0])
+    if not segments.starts:  # joined recordings: the input's distance across a join is no measurement
+        optimized, decided["distances"] = keep_input_distances(scans, optimized, init_poses, settings)
+    return BaselineResult(optimized, seconds=seconds, **decided)
+
+
+def _log_joined(segments: Segments) -> None:
+    """One log line for recordings joined in one sequence (none: nothing)."""
+    if segments.starts:
+        logger.info("baseline: %d recordings joined: the chain restarts from the input pose at scan(s) %s (each later "
+                    "recording's first, placed in the first one's frame), and %d links from the placing join them in "
+                    "the pose graph", len(segments.starts) + 1, ", ".join(map(str, segments.starts)),
+                    len(segments.links))
 
 
 def _chosen_chain(clouds: list, scans: list[np.ndarray], init_poses: np.ndarray, settings: BaselineSettings,

@@ -68,6 +68,15 @@ class BaselineSettings:
     # RANSAC stops at 99.9 % confidence or after this many draws: pairs that share no surface (most candidates that
     # failed ICP on real data: rooms either side of a wall) run to the cap.
     global_ransac_iterations: int = 20000
+    # A registration does not move a scan from its guess (the odometry's increment, the chain's pose) along a direction
+    # that its pairs fix with less than this share of their normal energy (icp.direction_shares). Measured: 0.008-0.014
+    # along a synthetic straight street between parallel walls; the weakest direction of KITTI 00's keyframes (the
+    # roll about the road) 0.038-0.09, the synthetic courtyard's 0.09, the long route's gates 0.10-0.23. 0: off.
+    min_direction_share: float = 0.02
+    # The baseline's poses keep the input's distance travelled over every window this long unless their own distances
+    # give a crisper raw map on every query draw (baseline/distances.py: registration shortened KITTI's straight road
+    # by 0.2 % where the odometry kept its length). 0 switches it off.
+    distance_window_m: float = 50.0
     information_distance_m: float = 0.25  # correspondence distance of the information matrices and the pruning
     edge_prune_threshold: float = 0.25
     # Multi-view refinement after the graph (module docstring, step 4); 0 switches it off. On HKU_2 the rounds took
@@ -82,6 +91,7 @@ class BaselineSettings:
     # radius over this many query points (the run's eval.crispness_radius_m / crispness_queries)
     crispness_radius_m: float = 0.3
     crispness_queries: int = 10_000
+    crispness_draws: int = 5
 
     @classmethod
     def from_config(cls, config) -> "BaselineSettings":
@@ -92,7 +102,8 @@ class BaselineSettings:
         if unknown:
             raise ValueError(f"config.baseline: unknown field(s) {sorted(unknown)}")
         return cls(**fields, crispness_radius_m=float(config.eval.crispness_radius_m),
-                   crispness_queries=int(config.eval.crispness_queries))
+                   crispness_queries=int(config.eval.crispness_queries),
+                   crispness_draws=int(config.eval.crispness_draws))
 
 
 def progress_bar(what: str, progress: bool, iterable=None, total: int | None = None):

@@ -12,7 +12,7 @@ Each format is one module with a `load(data_cfg) -> Sequence` (config.data.forma
 
 load_sequence adds what every folder format gets: the scan and pose frames converted or checked (frames.py), and a
 warning naming what was looked for when no ground truth is found. Scans without poses get KISS-ICP's (odometry.py),
-registered within the sensor's own range measured on the scans (data.odometry_max_range_m overrides), the scans
+registered within the sensor's own range measured on the scans, the scans
 kept within the field's crop afterwards. Those of a layout that may hold raw sweeps (RAW_SWEEP_FORMATS) and carry no
 per-point times are measured first: raw sweeps get times from their azimuths, so that KISS-ICP and the trajectory
 deskew them, and deskewed scans are registered as they are (sweep_times.py; data.deskew overrides, in any layout).
@@ -113,10 +113,10 @@ def load_sequence(data_cfg) -> Sequence:
 
 
 def _with_odometry(seq: Sequence, data_cfg, fmt: str) -> Sequence:
-    """seq with KISS-ICP's poses, registered within the sensor's range (data.odometry_max_range_m, 0: measured);
+    """seq with KISS-ICP's poses, registered within the sensor's range, measured (odometry.registration_range_m);
     scans without per-point times are raw sweeps or deskewed as data.deskew says ("auto": measured, in the layouts
     of RAW_SWEEP_FORMATS; the others' scans are deskewed by what the layout is)."""
-    range_m = odometry.registration_range_m(seq, float(data_cfg.get("odometry_max_range_m", 0.0)))
+    range_m = odometry.registration_range_m(seq)
     deskew = str(data_cfg.get("deskew", sweep_times.AUTO)).lower()
     period = None
     if seq.point_times is None and (fmt in RAW_SWEEP_FORMATS or deskew != sweep_times.AUTO):

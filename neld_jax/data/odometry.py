@@ -5,9 +5,8 @@ checks that it kept track (docs/datasets.md, "Scans without poses").
 
 Ranges. KISS-ICP registers with its own settings for the sensor, not the field's crop: its maximum range is the
 sensor's, measured on the data (registration_range_m: the RANGE_PERCENTILE-th percentile of the point distances of
-RANGE_SCANS scans evenly spaced over the recording, at most KISS-ICP's default 100 m; data.odometry_max_range_m
-replaces it), its voxel a hundredth of that (as its own pipeline derives it) and its minimum range its default
-(0 m). The field's crop (data.min_range_m..data.max_range_m, 40 m in the recording recipe) applies to the scans
+RANGE_SCANS scans evenly spaced over the recording, at most KISS-ICP's default 100 m), its voxel a hundredth of
+that (as its own pipeline derives it) and its minimum range its default (0 m). The field's crop (data.min_range_m..data.max_range_m, 40 m in the recording recipe) applies to the scans
 this module returns, deskewed or not: only the registration sees the full range. Measured on a real 2 Hz car drive
 (HDL-32E, sweeps 4.5 m apart): KISS-ICP at 40 m kept 57 % of the path length, at its own 100 m 96 %.
 
@@ -323,11 +322,11 @@ def sensor_range_m(scans) -> float:
 
 
 def registration_range_m(seq: Sequence, override_m: float = 0.0) -> float:
-    """The maximum range [m] KISS-ICP registers seq's scans with: override_m where > 0 (data.odometry_max_range_m),
+    """The maximum range [m] KISS-ICP registers seq's scans with: override_m where > 0 (a caller that knows it),
     else the sensor's, measured (sensor_range_m). Logs it, the voxel it gives and the evidence in one line."""
     where = seq.source or seq.name
     if override_m > 0:
-        range_m, evidence = float(override_m), "data.odometry_max_range_m"
+        range_m, evidence = float(override_m), "given"
     else:
         range_m = sensor_range_m(seq.scans)
         cap = kiss_icp_default_ranges()[1]

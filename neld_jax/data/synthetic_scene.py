@@ -242,3 +242,16 @@ def make_courtyards_meshes(seed: int, route_xy: np.ndarray) -> list[o3d.geometry
                 meshes.append(_blob(crown, (centre[0], centre[1], trunk + crown[2]), rng))
     return meshes
 
+
+
+def street_meshes(length_m: float = 400.0, width_m: float = 12.0, wall_height_m: float = 8.0
+                  ) -> list[o3d.geometry.TriangleMesh]:
+    """A straight street along x, centred at the origin: the ground and two long walls (house fronts) at y = +-
+    width_m / 2, and nothing across it, so that no surface faces along the street: a scan registered there is fixed
+    in every direction but the motion along x (the case where scan registration has to leave that motion to the
+    odometry)."""
+    thickness = 0.5
+    side = width_m / 2.0 + thickness / 2.0
+    return [_ground(length_m / 2.0 + 1.0),
+            _box((length_m, thickness, wall_height_m), (0.0, side)),
+            _box((length_m, thickness, wall_height_m), (0.0, -side))]

@@ -96,7 +96,8 @@ def test_two_passes_hold_fast_sweeps_that_kiss_icps_own_deskewing_lets_swing():
     # and a second run gives the same poses bit for bit (odometry.POSE_DECIMALS)
     again = odometry.two_pass_odometry(fast.scans, fast.point_times, fast.timestamps, labels, (0.5, 40.0))
     assert np.array_equal(again, two_passes), np.abs(again - two_passes).max()
-    poses, _, offsets = odometry.kiss_icp_odometry(fast.scans, fast.point_times, labels, 0.5, 40.0, keep_sweeps=False)
+    poses, _, offsets = odometry.kiss_icp_odometry(fast.scans, fast.point_times, labels, (0.5, 40.0),
+                                                   keep_sweeps=False)
     its_own = odometry.poses_at_stamps(fast.timestamps, offsets, poses)
     errors = [metrics.ate(p, fast.gt_poses)["translation_rmse_m"] for p in (two_passes, its_own)]
     assert errors[0] < 0.05 and errors[0] < 0.5 * errors[1], errors
@@ -168,7 +169,7 @@ def test_a_handheld_walk_that_kiss_icp_loses_is_registered_again(caplog):
     walk = make_sequence({"route": "handheld", "num_scans": 16, "max_range_m": 40.0, "gt_map_points": 0})
     labels = [f"s{i}" for i in range(walk.num_scans)]
     with caplog.at_level(logging.INFO, logger="neld_jax.data.odometry"):
-        poses, _, _ = odometry.kiss_icp_odometry(walk.scans, None, labels, 0.5, 40.0)
+        poses, _, _ = odometry.kiss_icp_odometry(walk.scans, None, labels, (0.5, 40.0))
     alone = metrics.ate(_kiss_icp_alone(walk.scans, 40.0), walk.gt_poses)["translation_rmse_m"]
     recovered = metrics.ate(poses, walk.gt_poses)["translation_rmse_m"]
     assert alone > 0.5, alone  # measured 1.6-1.7 m over 18 scans (two seeds)

@@ -1,7 +1,8 @@
 """Initial poses from the scans themselves, for a sequence that comes without any: KISS-ICP (Vizzo et al., RA-L
 2023; PyPI `kiss-icp`), the field's reference LiDAR-only odometry, over every input scan in time order. Nothing of
 its algorithm is rewritten here: this module feeds it the sweeps, puts its answer on the sweeps' own stamps and
-checks that it kept track (docs/datasets.md, "Scans without poses").
+checks that it kept track (docs/datasets.md, "Scans without poses"); odometry_check.py checks its steps against
+global registration of sampled pairs of scans, which does not slide with it.
 
 Ranges. KISS-ICP registers with its own settings for the sensor, not the field's crop: its maximum range is the
 sensor's, measured on the data (registration_range_m: the RANGE_PERCENTILE-th percentile of the point distances of
@@ -43,8 +44,9 @@ voxel 0.4 m) 0.61-0.69 in the median, and no tracked step below 0.71 of its medi
 0.5 would have stopped HKU_2 at a tracked step (0.49). What the share cannot see: ICP that slides along the scene
 and keeps the overlap (on those keyframes, which are not KISS-ICP's input, it went 0.5-2 m wrong on single steps
 with overlaps like the tracked steps'; the rule fired at that step on the main building, 60-200 keyframes later on
-the other three). A gap of GAP_WARNING_PERIODS sweep periods or more in the stamps is warned about, naming the
-scan: after a 1 s gap the synthetic overlap stays at 0.71 but the trajectory's error doubled.
+the other three): odometry_check.py sees it. A gap of GAP_WARNING_PERIODS sweep periods or more in the stamps is
+warned about, naming the scan: after a 1 s gap the synthetic overlap stays at 0.71 but the trajectory's error
+doubled.
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ import time
 
 import numpy as np
 
+from neld_jax.data import odometry_check
 from neld_jax.data.scan_source import LazyScans, lazy
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
@@ -85,12 +88,14 @@ RANSAC_ITERATIONS = 20_000  # at most, per recovery (the classical baseline's)
 POSE_DECIMALS = 9
 
 
-def kiss_icp_odometry(scans, point_times, labels: list[str], min_range_m: float, max_range_m: float,
-                      keep_sweeps: bool = True, progress: bool = False,
-                      first_pass: bool = False) -> tuple[np.ndarray, list[np.ndarray] | None, np.ndarray]:
+def kiss_icp_odometry(scans, point_times, labels: list[str], ranges: tuple[float, float], keep_sweeps: bool = True,
+                      progress: bool = False, first_pass: bool = False,
+                      motion_guesses: dict | None = None) -> tuple[np.ndarray, list[np.ndarray] | None, np.ndarray]:
     """KISS-ICP over scans [S] x [N_i, 3] (sensor frame, time order; a list or a LazyScans, read one at a time),
     deskewing where point_times [S] x [N_i] (seconds after each scan's stamp) are given; a scan that lost track is
     registered again (Tracker.recover). Of the scans it keeps only its poses (and its bounded local map).
+    ranges: (min, max) m of its registration. motion_guesses: {scan i: its motion [4, 4] from scan i - 1} that
+    replace KISS-ICP's constant-velocity guess for those scans (odometry_check.py: global registration's steps).
     labels [S] name the scans in the logs and in the error of a track that could not be recovered. first_pass:
     two_pass_odometry's first pass: each sweep registered as it is (not deskewed; its pose the sensor's at about its
     points' mean time, which offsets then hold, read with the sweep) and ICP stopping at FIRST_PASS_CONVERGENCE.
@@ -102,12 +107,14 @@ def kiss_icp_odometry(scans, point_times, labels: list[str], min_range_m: float,
     from tqdm.auto import tqdm
 
     deskew = point_times is not None and not first_pass
-    tracker = Tracker(min_range_m, max_range_m, deskew, FIRST_PASS_CONVERGENCE if first_pass else None)
+    tracker = Tracker(*ranges, deskew, FIRST_PASS_CONVERGENCE if first_pass else None)
     poses, sweeps, offsets = [], [], np.zeros(len(scans))
     for i in tqdm(range(len(scans)), disable=not progress, desc="KISS-ICP odometry", unit="scan"):
         times = np.zeros(0) if point_times is None else np.asarray(point_times[i], np.float64)
         if len(times):  # the instant its pose refers to
             offsets[i] = float(np.mean(times)) if first_pass else float(np.max(times))
+        if motion_guesses and i in motion_guesses:  # KISS-ICP starts its ICP (and deskews) by last_delta
+            tracker.kiss.last_delta = np.array(motion_guesses[i], np.float64)
         before = tracker.motion()
         sweep, source = tracker.kiss.register_frame(np.asarray(scans[i], np.float64), times if deskew else np.zeros(0))
         overlap = tracker.overlap(source, tracker.kiss.last_pose)
@@ -345,7 +352,9 @@ def with_kiss_icp_poses(seq: Sequence, min_range_m: float, max_range_m: float, p
     range and odometry_range_m (0: registration_range_m measures it), its voxel a hundredth of that (module
     docstring, "Ranges"). unstamped_period_s: sweeps with point times and no stamps are put this far apart for the
     two passes (their times derived from azimuths at that period: the poses do not depend on it); None: they are
-    registered once, with KISS-ICP's own deskewing. Logs that it ran and how long it took.
+    registered once, with KISS-ICP's own deskewing. The poses are checked against global registration of sampled
+    pairs of the scans, and made again from its steps where they disagree (odometry_check.checked_odometry: a
+    DataError where they still do). Logs that it ran and how long it took.
 
     The sweeps are read one at a time and KISS-ICP keeps nothing of them but its poses (and its local map); the
     returned scans are a view (data.scan_source) that deskews and crops each sweep again when it is used."""
@@ -361,12 +370,21 @@ def with_kiss_icp_poses(seq: Sequence, min_range_m: float, max_range_m: float, p
     started = time.perf_counter()
     crop = (min_range_m, max_range_m)
     registration = (kiss_icp_default_ranges()[0], odometry_range_m or registration_range_m(seq))
-    if point_times is not None and stamps is not None and seq.num_scans >= 2:
-        poses = two_pass_odometry(seq.scans, point_times, stamps, labels, registration, progress)
+    two_passes = point_times is not None and stamps is not None and seq.num_scans >= 2
+
+    def odometry(motion_guesses: dict) -> tuple:  # (poses [S, 4, 4], KISS-ICP's deskewed sweeps or None)
+        if two_passes:
+            return two_pass_odometry(seq.scans, point_times, stamps, labels, registration, progress,
+                                     motion_guesses), None
+        return kiss_icp_odometry(seq.scans, point_times, labels, registration, keep_sweeps=point_times is not None,
+                                 progress=progress, motion_guesses=motion_guesses)[:2]
+
+    # checked against global registration of sampled pairs of the scans as they came (odometry_check.py)
+    poses, sweeps = odometry_check.checked_odometry(seq.scans, odometry, labels, registration,
+                                                    VOXELS_PER_RANGE * registration[1], seq.source or seq.name)
+    if two_passes:
         sweeps = deskewed_sweeps(seq.scans, point_times, stamps, np.zeros(seq.num_scans), poses, crop)
         return _with_odometry(seq, sweeps, poses, started, registration, crop)
-    poses, sweeps, _ = kiss_icp_odometry(seq.scans, point_times, labels, *registration,
-                                         keep_sweeps=point_times is not None, progress=progress)
     cropped = kiss_icp_crop(*crop)  # KISS-ICP returns its own range: the field's crop from here on
     sweeps = lazy(seq.scans).map(cropped) if sweeps is None else [cropped(i, s) for i, s in enumerate(sweeps)]
     return _with_odometry(seq, sweeps, poses, started, registration, crop)
@@ -399,16 +417,18 @@ def _with_odometry(seq: Sequence, sweeps, poses: np.ndarray, started: float, reg
 
 
 def two_pass_odometry(scans, point_times, stamps: np.ndarray, labels: list[str], ranges: tuple[float, float],
-                      progress: bool = False) -> np.ndarray:
+                      progress: bool = False, motion_guesses: dict | None = None) -> np.ndarray:
     """KISS-ICP twice over raw sweeps scans [S] x [N_i, 3] with point_times [S] x [N_i] (seconds after their stamps
     [S]; lists or LazyScans), its own deskewing off both times -> poses [S, 4, 4] at the stamps, scan 0 at the
     identity (module docstring, "Time"). The first pass registers each sweep as it is, its pose the sensor's at
     about the mean instant of its points; the second registers each sweep deskewed along that trajectory into the
-    frame at its stamp. ranges: (min, max) m of KISS-ICP's registration."""
-    first, _, mean_offsets = kiss_icp_odometry(scans, point_times, labels, *ranges, keep_sweeps=False,
-                                               progress=progress, first_pass=True)
+    frame at its stamp. ranges: (min, max) m of KISS-ICP's registration; motion_guesses (kiss_icp_odometry) serve
+    both passes (a step between sweeps is about the same between their mean instants and between their stamps)."""
+    first, _, mean_offsets = kiss_icp_odometry(scans, point_times, labels, ranges, keep_sweeps=False,
+                                               progress=progress, first_pass=True, motion_guesses=motion_guesses)
     deskewed = deskewed_sweeps(scans, point_times, stamps, mean_offsets, first, ranges)
-    poses, _, _ = kiss_icp_odometry(deskewed, None, labels, *ranges, keep_sweeps=False, progress=progress)
+    poses, _, _ = kiss_icp_odometry(deskewed, None, labels, ranges, keep_sweeps=False, progress=progress,
+                                    motion_guesses=motion_guesses)
     return np.linalg.inv(poses[0]) @ poses
 
 

@@ -77,10 +77,11 @@ def test_a_path_that_slid_is_found_and_its_scans_named(loop):
     check = odometry_check.check_steps(sweeps.scans, slid, RANGES, VOXEL_M, registered=registered)
     assert not check.agrees and 0.55 < check.median_ratio < 0.68, check.median_ratio
     assert re.match(r"sweep \d{6} to sweep \d{6}: 0\.\d\d m against 0\.\d\d m", check.furthest(_labels(NUM_SWEEPS)))
-    # run again, it slides again: one line naming the recording and the scans
+    # run again, it slides again: one line naming the recording and the scans (along the path its 0.1 m steps fit
+    # the scans within a voxel as well as the global ones: there the median decides)
     with pytest.raises(DataError, match=r"^the loop: KISS-ICP's steps are [56]\d% of what global registration "
                                         r"\(FPFH features and RANSAC, then ICP, from no guess\) finds between "
-                                        r"consecutive scans in the median and its path [56]\d% of theirs over 7 pairs "
+                                        r"consecutive scans in the median and its path \d+% of theirs over 7 pairs "
                                         r"\(sweep 0000\d\d to sweep 0000\d\d: 0\.\d\d m against 0\.\d\d m; ") as error:
         odometry_check.checked_odometry(sweeps.scans[:8], lambda guesses: (slid[:8],), _labels(8), RANGES, VOXEL_M,
                                         "the loop")

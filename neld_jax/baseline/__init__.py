@@ -36,12 +36,17 @@ What a user reaches for before a neural method, built the way LiDAR odometry bac
    about a centimetre per link add up (measured on real keyframes: docs/evaluation.md). The rounds start from the
    crisper of the graph's and the chain's poses (a tie keeps the graph's), the input's only where the chain was
    given up: the rounds keep their start's route-long shape, and the input's is its drift (docs/evaluation.md,
-   "Where the refinement starts").
+   "Where the refinement starts");
+5. the distance travelled: the poses take the input's distances over every `distance_window_m` window (their own
+   rotations and directions of travel) unless their own give a crisper raw map on every query draw (`distances`).
+Every ICP of these steps leaves its guess's motion along a direction that its pairs fix with less than
+`min_direction_share` of their normal energy (along a straight street between parallel walls: icp.direction_shares,
+`held_along_weak_directions`; docs/evaluation.md, "Weak directions and the distance travelled").
 
 The modules, one step each: `settings` (BaselineSettings), `icp` (the ICP kernels: prepared scans, the target
 index, point-to-plane ICP and its step, the information matrix; their sums in a fixed order, so that the same input
 gives the same poses bit for bit), `chain` (step 1), `graph` (steps 2 and 3, the global registration among them),
-`refine` (step 4), `segments` (recordings joined in one sequence: where the chain restarts, the links between
+`refine` (step 4), `distances` (step 5), `segments` (recordings joined in one sequence: where the chain restarts, the links between
 them) and `sequence` (`register_sequence`: arrays in, a BaselineResult out). Its command-line edge is
 neld_jax.commands.baseline.
 """

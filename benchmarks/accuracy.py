@@ -31,7 +31,8 @@ SEQ = flags.DEFINE_list("sequences", list(SEQUENCES), f"Which of {list(SEQUENCES
 BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper).")
 OUTPUT_ROOT = flags.DEFINE_string("output_root", "outputs/accuracy", "One output_dir per sequence below this.")
 STEPS = flags.DEFINE_integer("steps", 0, "Override train.steps (0: the budget's).")
-OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. train.pose_lr_rot_init=1e-4.")
+OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. "
+                                      "train.pose_lr_rot_init=1e-4.")
 START = flags.DEFINE_enum("start", "input", ["input", "baseline", "crisper"],
                           "start.poses: start NeLD-BA from the drifted odometry, the baseline's poses or the crisper.")
 

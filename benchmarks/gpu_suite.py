@@ -37,10 +37,10 @@ import time
 import traceback
 from typing import NamedTuple
 
-from absl import app, flags
 import numpy as np
-
 import train_step as ts  # this folder's benchmarks/train_step.py (its flags are defined too; the suite sets sizes)
+from absl import app, flags
+
 from neld_jax.hugepages import reexec_with_huge_page_malloc
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -24,7 +24,8 @@ Per sequence (one JSON object each, also printed as a line):
   (HKU_2's drifted copy: 50 of 266), every other scan registered to the result.
 - "every_scan_map" in each: the raw map of EVERY input scan, not only the keyframes trained on, under the input's,
   the baseline's and NeLD-BA's poses of every scan, and NeLD-BA's margins (neld_jax.judge.every_scan_crispness).
-- "targets": the targets for real recordings read off the two (benchmarks/real_targets.py): the recorded run within --minutes_limit
+- "targets": the targets for real recordings read off the two (benchmarks/real_targets.py): the recorded run within
+  --minutes_limit
   minutes end to end, one line per input scan in poses_optimized.txt, its map crisper than the odometry's and than
   the baseline's ("every draw", "a tie" or "blurrier" over the run's query draws); from drift, NeLD-BA's answer
   within 2 cm of its answer from the recorded odometry, its map at least as crisp as the recorded odometry's, and
@@ -38,15 +39,16 @@ import os
 import time
 import traceback
 
+import real_targets  # this folder's benchmarks/real_targets.py
 from absl import app, flags
 
-import real_targets  # this folder's benchmarks/real_targets.py
 from neld_jax.hugepages import reexec_with_huge_page_malloc
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 ROOT = flags.DEFINE_string("root", None, "Folder holding one sub-folder per sequence (lio_keyframes layout).")
-SEQUENCES = flags.DEFINE_list("sequences", None, "Sub-folders of --root to run (default: every sub-folder with Scans/).")
+SEQUENCES = flags.DEFINE_list("sequences", None,
+                              "Sub-folders of --root to run (default: every sub-folder with Scans/).")
 WORK = flags.DEFINE_string("work", "outputs/real_data", "Output folders of the runs go below this.")
 OUT = flags.DEFINE_string("out", "outputs/real_data/real_data.json", "JSON file with one entry per sequence.")
 BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper).")
@@ -85,7 +87,8 @@ def _config(fmt_config: str, root: str, out_dir: str, recipe: str = "lio_keyfram
 
 
 def _crisp(summary: dict) -> dict:
-    return {name: {"entropy": round(s["mean_map_entropy"], 4), "thickness_cm": round(100 * s["mean_plane_thickness_m"], 3)}
+    return {name: {"entropy": round(s["mean_map_entropy"], 4),
+                   "thickness_cm": round(100 * s["mean_plane_thickness_m"], 3)}
             for name, s in summary.items() if s.get("mean_map_entropy") is not None}
 
 

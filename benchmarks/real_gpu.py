@@ -30,9 +30,8 @@ import pickle
 import tempfile
 import time
 
-from absl import app, flags
 import numpy as np
-
+from absl import app, flags
 from packed_points import pack_points, unpack_points  # this folder's benchmarks/packed_points.py
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -270,12 +269,14 @@ def main(argv):
         if not RUN_DIR.value:
             raise SystemExit("--prepare and --evaluate need --run_dir")
         if EVALUATE.value and not os.path.isfile(TRAINED.value):
-            raise SystemExit(f"--evaluate needs --trained, a <name>_trained.npz the training wrote (got {TRAINED.value!r})")
+            raise SystemExit(f"--evaluate needs --trained, a <name>_trained.npz the training wrote "
+                             f"(got {TRAINED.value!r})")
         name = NAME.value or os.path.basename(os.path.normpath(RUN_DIR.value))
         if PREPARE.value:
             print(json.dumps(prepare(RUN_DIR.value, name)))
         else:
-            print(json.dumps(evaluate(RUN_DIR.value, TRAINED.value, OUT_DIR.value or f"{RUN_DIR.value}_{BUDGET.value}")))
+            out_dir = OUT_DIR.value or f"{RUN_DIR.value}_{BUDGET.value}"
+            print(json.dumps(evaluate(RUN_DIR.value, TRAINED.value, out_dir)))
         return
     out_dir = OUT_DIR.value or os.environ.get("OUT") or os.path.join(REPO, "benchmarks", "results")
     os.makedirs(out_dir, exist_ok=True)

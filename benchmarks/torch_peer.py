@@ -30,10 +30,10 @@ import statistics
 import sys
 import time
 
-from absl import app, flags
 import numpy as np
-
 import train_step  # this folder's benchmarks/train_step.py: the size flags (--rays, --coarse, ...) and its runner
+from absl import app, flags
+
 from neld_jax.hugepages import reexec_with_huge_page_malloc
 
 logger = logging.getLogger(__name__)

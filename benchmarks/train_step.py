@@ -62,11 +62,11 @@ import sys
 import time
 from typing import Callable, NamedTuple
 
-from absl import app, flags
 import jax
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
+from absl import app, flags
 
 from neld_jax import submaps, train
 from neld_jax.config import defaults, with_budget
@@ -391,7 +391,8 @@ def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: 
         with jax.profiler.trace(profile_dir):
             runner.run(profile_steps)
         logger.info("profile of %d steps written under %s", profile_steps, profile_dir)
-        traces = sorted(glob.glob(os.path.join(profile_dir, "plugins", "profile", "*", "*.xplane.pb")), key=os.path.getmtime)
+        traces = sorted(glob.glob(os.path.join(profile_dir, "plugins", "profile", "*", "*.xplane.pb")),
+                        key=os.path.getmtime)
         if traces:
             profile = summarize_profile(traces[-1], runner.compiled.as_text(), profile_steps)
 

@@ -2,7 +2,8 @@
 ROOT/Scans/NNNNNN.pcd (sensor frame), ROOT/odom_poses.txt (KITTI), ROOT/times.txt. No ground truth needed.
 
     python bin/train.py --config=configs/lio_keyframes.py --config.data.root=/data/HKU_1_bag
-    python bin/train.py --config=configs/lio_keyframes.py --config.data.root=... --config.data.initial_poses=optimized_poses.txt
+    python bin/train.py --config=configs/lio_keyframes.py --config.data.root=... \\
+        --config.data.initial_poses=optimized_poses.txt
 
 The scans are keyframes already (the front-end chose them), so every one is trained on.
 """

@@ -55,7 +55,8 @@ class Checkpointer:
         step = self._manager.latest_step()
         if step is None:
             raise FileNotFoundError(f"no checkpoint in {self.directory}")
-        metadata = dict(self._manager.restore(step, args=ocp.args.Composite(metadata=ocp.args.JsonRestore()))["metadata"])
+        restored = self._manager.restore(step, args=ocp.args.Composite(metadata=ocp.args.JsonRestore()))
+        metadata = dict(restored["metadata"])
         if expected_config_hash is not None and metadata.get("config_hash") != expected_config_hash:
             raise ConfigError(
                 f"the checkpoint in {self.directory} was written with a different configuration "
@@ -66,7 +67,8 @@ class Checkpointer:
             self._check_data(metadata, expected_data)
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _as_tree(template_state))
         tree = self._manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))["state"]
-        state = template_state.replace(step=tree["step"], params=tree["params"], opt_state=tree["opt_state"], key=tree["key"])
+        state = template_state.replace(step=tree["step"], params=tree["params"], opt_state=tree["opt_state"],
+                                       key=tree["key"])
         logger.info("resumed from the checkpoint at step %d in %s", step, self.directory)
         return state, metadata
 

@@ -1,5 +1,5 @@
-"""Shared plumbing of the command-line entry points (neld_jax.commands, bin/): absl flags with an ml_collections config file,
-logging set-up, and one clear error line (no traceback) for bad input or a bad config.
+"""Shared plumbing of the command-line entry points (neld_jax.commands, bin/): absl flags with an ml_collections config
+file, logging set-up, and one clear error line (no traceback) for bad input or a bad config.
 
 The config is validated (neld_jax.config.validate) once its file and overrides are applied, before the command reads
 anything. An error inside the user's config file is one line naming the file and line. NELD_TRACEBACK=1 in the

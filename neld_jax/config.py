@@ -67,7 +67,7 @@ def defaults() -> ml_collections.ConfigDict:
     c.data.gt_poses_path = ""  # ground-truth trajectory (TUM, or Newer College .csv) in place of the layout's
     c.data.gt_map_path = ""  # ground-truth map (.pcd / .ply) in place of the layout's
     c.data.gt_from_scan = ()  # the scan frame's pose in the ground truth's body frame (tx ty tz qx qy qz qw)
-    c.data.scan_frame = ""  # which published extrinsic: fusionportable body_imu | ouster00; newer_college os_sensor | os_imu
+    c.data.scan_frame = ""  # published extrinsic: fusionportable body_imu | ouster00; newer_college os_sensor | os_imu
     c.data.gt_time_offset_s = 0.0  # added to the scan stamps when matching ground truth
     c.data.synthetic = synthetic_defaults()  # the generated sequence (data.format="synthetic")
 
@@ -164,7 +164,8 @@ def defaults() -> ml_collections.ConfigDict:
 # that they agree): the config imports neither the loaders (Open3D) nor the model (Flax).
 # ---------------------------------------------------------------------------------------------------------------
 
-FORMATS = ("generic", "fusionportable", "newer_college", "lio_keyframes", "hba", "kitti", "synthetic")  # data.formats.FORMATS
+# data.formats.FORMATS
+FORMATS = ("generic", "fusionportable", "newer_college", "lio_keyframes", "hba", "kitti", "synthetic")
 START_POSES = ("input", "baseline", "crisper")  # neld_jax.start.CHOICES
 # data.scan_frame: the published frames of each format's ground truth (data.ground_truth.PUBLISHED_GT_FROM_SCAN)
 SCAN_FRAMES = {"fusionportable": ("body_imu", "ouster00"), "newer_college": ("os_sensor", "os_imu")}
@@ -259,7 +260,8 @@ RULES = {
     "data.min_range_m": NON_NEGATIVE,
     "data.max_range_m": POSITIVE,
     "data.deskew": _choice("auto", "deskewed", "raw", "raw_behind_clockwise", "raw_behind_anticlockwise",
-                           "raw_front_clockwise", "raw_front_anticlockwise", any_case=True),  # sweep_times.DESKEW_CHOICES
+                           "raw_front_clockwise", "raw_front_anticlockwise",
+                           any_case=True),  # sweep_times.DESKEW_CHOICES
     "data.voxel_size_m": NON_NEGATIVE,
     "data.first_scan": COUNT,
     "data.max_scans": COUNT,

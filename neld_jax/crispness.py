@@ -150,7 +150,8 @@ def sample_queries(num_points: int, max_queries: int, seed: int = 0) -> np.ndarr
     return np.sort(np.random.default_rng(seed).choice(num_points, size=max_queries, replace=False))
 
 
-def per_scan_means(values: np.ndarray, query_index: np.ndarray, scan_of_point: np.ndarray, num_scans: int) -> np.ndarray:
+def per_scan_means(values: np.ndarray, query_index: np.ndarray, scan_of_point: np.ndarray,
+                   num_scans: int) -> np.ndarray:
     """Mean of per-query values [Q] over the queries that came from each scan (NaNs ignored) -> [S] (NaN if none).
 
     scan_of_point: [N] the scan each map point came from."""

@@ -21,7 +21,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-
 # Taylor coefficients of sin(theta) / theta in theta^2: float64-accurate on |theta| <= pi/2 (the last term
 # dropped, (pi/2)^25 / 25!, is ~1e-20).
 _SIN_COEFFS = tuple((-1) ** i / math.factorial(2 * i + 1) for i in range(12))

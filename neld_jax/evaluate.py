@@ -144,7 +144,8 @@ def read_artifacts(output_dir: str | os.PathLike, gt_poses_path: str | os.PathLi
                 gt_poses_path or "none", gt_map_file or "none")
     gt_map = read_scan(gt_map_file) if gt_map_file else None
     maps = {} if gt_map is None else {
-        name: {kind: read_scan(path) for kind, path in map_files(output_dir, name).items()} for name in trajectory_files}
+        name: {kind: read_scan(path) for kind, path in map_files(output_dir, name).items()}
+        for name in trajectory_files}
     artifacts = RunArtifacts({name: Trajectory(*read_tum(path)) for name, path in trajectory_files.items()}, maps,
                              Trajectory(*read_trajectory(gt_poses_path)) if gt_poses_path else None, gt_map)
     files = {"gt_poses": None if gt_poses_path is None else str(gt_poses_path),

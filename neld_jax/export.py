@@ -17,8 +17,8 @@ import numpy as np
 from neld_jax.data.poses import write_kitti, write_tum
 from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.errors import DataError
-from neld_jax.jsonable import to_jsonable  # noqa: F401  (re-exported: callers write JSON through export)
 from neld_jax.geometry import register_scans
+from neld_jax.jsonable import to_jsonable  # noqa: F401  (re-exported: callers write JSON through export)
 from neld_jax.trajectory import propagate_corrections
 
 logger = logging.getLogger(__name__)

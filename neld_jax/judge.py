@@ -40,7 +40,8 @@ def compare_maps(scans: list[np.ndarray], methods: dict[str, np.ndarray], radius
 
 def map_crispness(keyframes, methods: dict[str, np.ndarray], eval_cfg) -> tuple[dict, dict]:
     """`compare_maps` of a sequence's keyframes with config.eval's crispness settings."""
-    return compare_maps(keyframes.scans, methods, float(eval_cfg["crispness_radius_m"]), int(eval_cfg["crispness_queries"]))
+    return compare_maps(keyframes.scans, methods, float(eval_cfg["crispness_radius_m"]),
+                        int(eval_cfg["crispness_queries"]))
 
 
 EVERY_SCAN_POINTS = 4096  # of each scan in the map of every scan: 300 sweeps about as many points as 30 keyframes

@@ -133,8 +133,8 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, w
     if written.gt is not None or written.gt_map is not None:
         gt_files = {"gt_poses": None if written.gt is None else os.path.join(out_dir, GT_POSES_FILE),
                     "gt_map": None if written.gt_map is None else os.path.join(out_dir, "map_gt.ply")}
-        summary["evaluation"] = evaluation_record(out_dir, written, EvalSettings(map_icp_m=float(config.eval.map_icp_m)),
-                                                  gt_files)
+        settings = EvalSettings(map_icp_m=float(config.eval.map_icp_m))
+        summary["evaluation"] = evaluation_record(out_dir, written, settings, gt_files)
     summary.update(sections or {})
     write_json(os.path.join(out_dir, "metrics.json"), summary, merge=False)
     with open(os.path.join(out_dir, "history.json"), "w") as f:

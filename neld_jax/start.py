@@ -59,7 +59,8 @@ class Start:
         out = {"started_from": self.chosen, "pose_steps": self.pose_steps.to_dict()}
         if self.baseline_poses is not None:
             report = self.baseline_report
-            out.update(baseline_seconds=round(self.baseline_seconds, 2), baseline_departure_m=round(self.departure_m, 3),
+            out.update(baseline_seconds=round(self.baseline_seconds, 2),
+                       baseline_departure_m=round(self.departure_m, 3),
                        baseline_tilt=report.get("tilt"), baseline_refined_from=report.get("refined_from"),
                        baseline_rounds_done=report.get("map_rounds_done"))
         return out

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+
 import numpy as np
 
 from neld_jax.data.normalize import NORMALIZATION_MARGIN, Normalization, fit_normalization

@@ -34,13 +34,13 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 import optax
-from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from neld_jax import losses
 from neld_jax.errors import ConfigError
 from neld_jax.field import DensityField, field_from_config
-from neld_jax.model import (SamplerSettings, body_corrections, corrected_poses, in_units, render_rays,
-                            world_rays)
+from neld_jax.model import SamplerSettings, body_corrections, corrected_poses, in_units, render_rays, world_rays
 
 logger = logging.getLogger(__name__)
 

@@ -107,8 +107,14 @@ def first_sweeps_of_the_loop(num_sweeps: int, loop_sweeps: int = 300, seed: int 
     import numpy as np
 
     from neld_jax.data.sequence import Sequence
-    from neld_jax.data.synthetic import (FOV_DEG, cast_sweep, loop_poses, make_scene, spinning_lidar_directions,
-                                         synthetic_defaults)
+    from neld_jax.data.synthetic import (
+        FOV_DEG,
+        cast_sweep,
+        loop_poses,
+        make_scene,
+        spinning_lidar_directions,
+        synthetic_defaults,
+    )
 
     cfg = synthetic_defaults()
     cfg.update({"trajectory_radius_m": 10.0, "max_range_m": 40.0, "seed": seed})
@@ -179,7 +185,6 @@ def sphere_plan(num_scans: int = 3, per_scan: int = 64, seed: int = 0, window: i
     """The sphere scene (sensors within 0.2 of the origin looking at a sphere of radius 0.8; metres are the cube's
     units) as the trainer's data: one cube (window 0) or windows of `window` keyframes sharing `overlap`.
     Returns (rays, frames, plan, T [S, 4, 4]) with rays and frames on a mesh of the plan's size."""
-    import numpy as np
 
     from neld_jax import submaps, train
     from neld_jax.data.normalize import Normalization

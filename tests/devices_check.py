@@ -11,9 +11,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # conftest's hel
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from conftest import make_tiny_config, sphere_plan  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
-from conftest import make_tiny_config, sphere_plan  # noqa: E402
 from neld_jax import train  # noqa: E402
 from neld_jax.checkpoint import Checkpointer  # noqa: E402
 
@@ -44,7 +44,8 @@ def main(tmp: str) -> None:
         a, ma = step1(a, rays1, frames1, sampler)
         b, mb = step8(b, rays8, frames8, sampler)
     for (path, x), y in zip(jax.tree_util.tree_flatten_with_path(a.params)[0], jax.tree.leaves(b.params)):
-        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6, err_msg=jax.tree_util.keystr(path))
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6,
+                                   err_msg=jax.tree_util.keystr(path))
     np.testing.assert_allclose(float(ma["loss"]), float(mb["loss"]), rtol=1e-5)
     assert np.abs(np.asarray(a.params["poses"])).max() > 0  # the poses moved, so they were compared too
     field_leaf = jax.tree.leaves(b.params["fields"])[0]

@@ -7,12 +7,11 @@ import logging
 
 import numpy as np
 import pytest
+from conftest import make_tiny_config
 
 from neld_jax import answer, run
 from neld_jax.data.poses import read_tum
 from neld_jax.lie import se3_exp_float64
-
-from conftest import make_tiny_config
 
 
 def _margin(per_draw):

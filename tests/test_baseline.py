@@ -17,9 +17,19 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neld_jax import baseline
-from neld_jax.baseline import (BaselineSettings, Segments, TargetIndex, anchored, candidate_pairs, loop_closed_graph,
-                              multiscale_icp, point_to_plane_icp, prepare_clouds, refine_against_map,
-                              register_sequence)
+from neld_jax.baseline import (
+    BaselineSettings,
+    Segments,
+    TargetIndex,
+    anchored,
+    candidate_pairs,
+    loop_closed_graph,
+    multiscale_icp,
+    point_to_plane_icp,
+    prepare_clouds,
+    refine_against_map,
+    register_sequence,
+)
 from neld_jax.data.preprocess import KeyframeSettings, preprocess
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.synthetic import make_sequence
@@ -262,13 +272,15 @@ def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence
     class Result:
         fitness = 0.9
 
-    monkeypatch.setattr(baseline.chain, "multiscale_icp", lambda source, target, guess, settings: (guess @ slide, Result()))
+    monkeypatch.setattr(baseline.chain, "multiscale_icp",
+                        lambda source, target, guess, settings: (guess @ slide, Result()))
     chain, fitness = baseline.scan_to_map_chain(clouds, seq.poses, SETTINGS)
     np.testing.assert_allclose(chain, seq.poses, atol=1e-9)  # every link kept the odometry's increment
     warned = [r.getMessage() for r in caplog.records if "max_link_correction_m" in r.getMessage()]
     assert len(warned) == 1 and f"moved {len(clouds) - 1} scan(s)" in warned[0]  # one line for all of them
     chain, _ = baseline.scan_to_map_chain(clouds, seq.poses, dataclasses.replace(SETTINGS, max_link_correction_m=3.0))
-    np.testing.assert_allclose(np.linalg.inv(seq.poses[0]) @ chain[1], np.linalg.inv(seq.poses[0]) @ seq.poses[1] @ slide,
+    np.testing.assert_allclose(np.linalg.inv(seq.poses[0]) @ chain[1],
+                               np.linalg.inv(seq.poses[0]) @ seq.poses[1] @ slide,
                                atol=1e-9)  # under a looser bound the slide is taken
 
 
@@ -305,7 +317,8 @@ def test_a_chain_whose_links_overlap_too_little_is_given_up(drifted_sequence, mo
     warned = [r.getMessage() for r in caplog.records if "the first 2 chain links overlap" in r.getMessage()]
     assert len(warned) == 1 and "by 20.00%" in warned[0]
     assert "drift the input poses gather along the route stays in the answer" in warned[0]  # the user is told
-    kept_on, _ = baseline.scan_to_map_chain(clouds, seq.poses, dataclasses.replace(settings, chain_min_median_overlap=0))
+    switched_off = dataclasses.replace(settings, chain_min_median_overlap=0)
+    kept_on, _ = baseline.scan_to_map_chain(clouds, seq.poses, switched_off)
     np.testing.assert_allclose(kept_on, seq.poses, atol=1e-9)  # 0 switches the rule off
     Result.fitness = settings.chain_min_median_overlap
     assert baseline.scan_to_map_chain(clouds, seq.poses, settings)[0] is not None  # at the threshold: kept

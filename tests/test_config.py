@@ -252,5 +252,6 @@ def test_a_field_the_defaults_lack_and_fields_that_do_not_go_together_are_errors
         config_module.validate(c)
     c = _valid()
     c.data.initial_poses, c.data.invert_poses = "kiss_icp", True
-    with pytest.raises(ConfigError, match=r"^data.invert_poses = True: expected False with data.initial_poses=kiss_icp"):
+    with pytest.raises(ConfigError,
+                       match=r"^data.invert_poses = True: expected False with data.initial_poses=kiss_icp"):
         config_module.validate(c)

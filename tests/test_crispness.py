@@ -7,8 +7,16 @@ import numpy as np
 import pytest
 
 from neld_jax.crispness import crispness, entropy_over_query_draws, per_scan_means, sample_queries
-from neld_jax.judge import (crispest, crispest_over_draws, crispness_margins, describe_margin,
-                            every_scan_crispness, map_crispness, margin_over_draws, warn_if_not_crispest)
+from neld_jax.judge import (
+    crispest,
+    crispest_over_draws,
+    crispness_margins,
+    describe_margin,
+    every_scan_crispness,
+    map_crispness,
+    margin_over_draws,
+    warn_if_not_crispest,
+)
 
 
 def _brute_force(points, radius, min_neighbors):

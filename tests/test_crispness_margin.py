@@ -7,8 +7,8 @@ import subprocess
 import sys
 
 import numpy as np
-
 from conftest import tiny_synthetic_sequence
+
 from neld_jax.data.poses import write_kitti
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.scans import write_scan

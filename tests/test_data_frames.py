@@ -6,8 +6,8 @@ import dataclasses
 import ml_collections
 import numpy as np
 import pytest
-
 from conftest import tiny_synthetic_sequence
+
 from neld_jax.data import frames
 from neld_jax.data.formats import load_sequence
 from neld_jax.data.synthetic import write_generic

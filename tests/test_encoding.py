@@ -4,11 +4,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import encoded_dim
 from jax.test_util import check_grads
 
 from neld_jax.encoding import barf_window, fourier_encode
-
-from conftest import encoded_dim
 
 NUM_FREQS = 5
 

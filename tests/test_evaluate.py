@@ -13,8 +13,16 @@ from scipy.spatial.transform import Rotation
 from neld_jax import export
 from neld_jax.data.poses import write_kitti, write_tum
 from neld_jax.errors import DataError
-from neld_jax.evaluate import (RunArtifacts, Trajectory, evaluate, evaluate_run, find_trajectories, format_table,
-                               map_files, match_poses)
+from neld_jax.evaluate import (
+    RunArtifacts,
+    Trajectory,
+    evaluate,
+    evaluate_run,
+    find_trajectories,
+    format_table,
+    map_files,
+    match_poses,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -6,11 +6,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import encoded_dim
 
 from neld_jax.encoding import barf_window
 from neld_jax.field import DensityField
-
-from conftest import encoded_dim
 
 SMALL = dict(width=32, depth=3, skip_layers=(2,), pos_freqs=6, dir_freqs=2)
 

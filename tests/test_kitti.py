@@ -15,7 +15,6 @@ from neld_jax.data.poses import read_tum
 from neld_jax.errors import DataError
 
 
-
 @pytest.fixture(scope="module")
 def scans():
     return rigid_scans()

@@ -4,8 +4,8 @@ or several stitched, points in the world."""
 import dataclasses
 
 import numpy as np
-
 from conftest import make_tiny_config, sphere_plan
+
 from neld_jax import mapping, train
 from neld_jax.data.rays import sphere_scene_rays
 from neld_jax.mapping import render_map, render_order

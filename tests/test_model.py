@@ -3,13 +3,12 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+from conftest import encoded_dim
 
 from neld_jax import lie
-from neld_jax.field import DensityField
 from neld_jax import lie as _lie
+from neld_jax.field import DensityField
 from neld_jax.model import SamplerSettings, corrected_poses, render_rays, world_poses, world_rays
-
-from conftest import encoded_dim
 
 SAMPLER = SamplerSettings(num_coarse=16, num_fine=8, z_low=0.01, z_up=4.0)
 FIELD = DensityField(width=32, depth=2, skip_layers=(1,), pos_freqs=4, dir_freqs=4)

@@ -11,6 +11,10 @@ import re
 import numpy as np
 import pytest
 from conftest import COARSE_REGISTRATION_GRID_M, first_sweeps_of_the_loop, make_tiny_config, train_a_download_briefly
+from raw_bag_downloads import (
+    write_fusionportable_download,
+    write_newer_college_download,
+)
 
 from neld_jax import metrics, run
 from neld_jax.data import odometry
@@ -18,11 +22,6 @@ from neld_jax.data.formats import load_sequence
 from neld_jax.data.poses import read_tum
 from neld_jax.data.synthetic import loop_poses, make_sequence, write_generic
 from neld_jax.errors import DataError
-
-from raw_bag_downloads import (
-    write_fusionportable_download,
-    write_newer_college_download,
-)
 
 # 40 raw sweeps at 10 Hz, 2.1 m/s round a 10 m loop (0.2 m a sweep), 32 beams x 512 columns, 40 m range
 SWEEPS = {"num_scans": 300, "trajectory_radius_m": 10.0, "max_range_m": 40.0, "gt_map_points": 0}

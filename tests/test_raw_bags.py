@@ -3,17 +3,16 @@ and the FusionPortable / Newer College 2021 downloads (raw_bag_downloads) loaded
 
 import numpy as np
 import pytest
+from raw_bag_downloads import (
+    write_fusionportable_download,
+    write_newer_college_download,
+)
 from scipy.spatial.transform import Rotation
 
 from neld_jax.config import defaults
 from neld_jax.data import fusionportable, newer_college
 from neld_jax.data.raw_bags import read_lidar_bag, write_lidar_bag
 from neld_jax.errors import DataError
-
-from raw_bag_downloads import (
-    write_fusionportable_download,
-    write_newer_college_download,
-)
 
 T0 = 1_650_000_000.123456789
 ROWS, COLUMNS = 8, 64

@@ -11,8 +11,8 @@ import sys
 
 import numpy as np
 import pytest
-
 from conftest import tiny_synthetic_sequence
+
 from neld_jax.data.poses import read_kitti, write_kitti
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.scans import write_scan
@@ -83,11 +83,11 @@ def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
     assert summary["keyframes"] == 5 and summary["start"] == "input" and summary["rays"] == 5 * 64
 
     # The prepared points are the rays a run draws (the same seeded subset), to the packing's rounding.
+    from configs.lio_keyframes import get_config
     from neld_jax.config import apply_overrides
     from neld_jax.data.normalize import Normalization
     from neld_jax.data.preprocess import load_keyframes
     from neld_jax.data.rays import build_rays
-    from configs.lio_keyframes import get_config
 
     config = get_config("cpu")
     config.data.root = json.loads((run_dir / "config.json").read_text())["data"]["root"]

@@ -9,17 +9,17 @@ import sys
 import ml_collections
 import numpy as np
 import pytest
+from conftest import tiny_synthetic_sequence
 from scipy.spatial.transform import Rotation
 
-from conftest import tiny_synthetic_sequence
 from neld_jax import report
 from neld_jax.data.formats import load_sequence
 from neld_jax.data.lio_keyframes import load_lio_keyframes
-from neld_jax.data.timing import read_times
 from neld_jax.data.poses import read_tum, write_kitti
 from neld_jax.data.preprocess import select_keyframes
 from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.scans import write_scan
+from neld_jax.data.timing import read_times
 from neld_jax.errors import DataError
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -182,7 +182,8 @@ def test_train_on_the_layout_writes_every_input_scan_and_quality(tmp_path):
     assert perturbed.returncode == 0, perturbed.stderr[-2000:]
     assert "wrote 6 scans" in perturbed.stdout
     out = tmp_path / "out"
-    args = ["--config=configs/generic.py:paper", f"--config.data.root={tmp_path / 'drift'}", f"--config.output_dir={out}",
+    args = ["--config=configs/generic.py:paper", f"--config.data.root={tmp_path / 'drift'}",
+            f"--config.output_dir={out}",
             "--config.data.keyframe_interval_s=2.0", "--config.data.keyframe_angle_deg=360",  # 60 degrees a scan
             "--config.data.keyframe_distance_m=1000", "--config.model.width=16", "--config.model.depth=2",
             "--config.model.skip_layers=(1,)", "--config.model.pos_freqs=6", "--config.model.dir_freqs=2",
@@ -193,7 +194,8 @@ def test_train_on_the_layout_writes_every_input_scan_and_quality(tmp_path):
             "--config.eval.crispness_radius_m=3.0"]  # sparse 8-beam scans: a wide neighbourhood
     result = _cli("train.py", *args)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert "3 keyframes of 6 input scans" in result.stdout + result.stderr or "on 3 keyframes of 6 input" in result.stdout
+    said = result.stdout + result.stderr
+    assert "3 keyframes of 6 input scans" in said or "on 3 keyframes of 6 input" in result.stdout
     stamps, poses = read_tum(out / "poses_optimized.txt")
     assert len(poses) == 6 and np.all(np.isfinite(poses))
     np.testing.assert_allclose(stamps, np.arange(6) * 1.0)

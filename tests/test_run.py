@@ -10,12 +10,11 @@ import time
 
 import numpy as np
 import pytest
+from conftest import free_gauge_config, make_tiny_config
 
 from neld_jax import baseline, budget, checkpoint, judge, output_folder, run, start, submaps
 from neld_jax.data.poses import read_kitti, read_tum
 from neld_jax.errors import ConfigError, DataError
-
-from conftest import free_gauge_config, make_tiny_config
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -8,12 +8,12 @@ import os
 
 import numpy as np
 import pytest
-
 from conftest import make_tiny_config
+
 from neld_jax import baseline, run, session_alignment, start
 from neld_jax.data import sessions as data_sessions
-from neld_jax.data.preprocess import KeyframeSettings, preprocess
 from neld_jax.data.poses import read_tum
+from neld_jax.data.preprocess import KeyframeSettings, preprocess
 from neld_jax.data.sequence import Sequence
 from neld_jax.data.synthetic import make_sequence, write_generic
 from neld_jax.errors import DataError
@@ -61,7 +61,8 @@ def _sequence(num_scans: int, start_s: float, with_gt: bool = True) -> Sequence:
 
 def test_joined_recordings_keep_their_frames_stamps_and_which_scans_are_whose():
     loaded = [_sequence(5, 100.0), _sequence(4, 0.0)]
-    keyframes = [preprocess(seq, KeyframeSettings(keyframe_interval_s=2.0, voxel_size=0.0, min_range=0.0)) for seq in loaded]
+    every_two_seconds = KeyframeSettings(keyframe_interval_s=2.0, voxel_size=0.0, min_range=0.0)
+    keyframes = [preprocess(seq, every_two_seconds) for seq in loaded]
     to_first = np.stack([np.eye(4), _yaw_pose(90.0, (1.0, 2.0, 0.0))])
     joined, joined_keyframes, sessions = data_sessions.concatenate(loaded, keyframes, to_first, ["0_a", "1_b"])
     assert joined.num_scans == 9 and list(sessions.scan_labels()) == [0] * 5 + [1] * 4

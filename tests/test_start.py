@@ -3,14 +3,13 @@ baseline departs, and the record a resume reads."""
 
 import numpy as np
 import pytest
+from conftest import make_tiny_config, tiny_synthetic_sequence
 
 from neld_jax import start
 from neld_jax.baseline import BaselineResult
 from neld_jax.config import recording
 from neld_jax.errors import ConfigError
 from neld_jax.train import PoseSteps
-
-from conftest import make_tiny_config, tiny_synthetic_sequence
 
 
 def test_pose_steps_from_the_baseline_are_capped_held_and_keep_the_scale():

@@ -129,8 +129,8 @@ def test_submap_arrays_hold_each_window_s_rays_in_its_units():
     for m, (row, norm) in enumerate(zip(plan.members, plan.norms)):
         for slot, s in enumerate(row):
             mine = a.scan_index[m, : a.num_rays[m]] == slot
-            np.testing.assert_allclose(a.ranges[m, : a.num_rays[m]][mine], rays.ranges[rays.scan_index == s] * norm.scale,
-                                       rtol=1e-6)
+            np.testing.assert_allclose(a.ranges[m, : a.num_rays[m]][mine],
+                                       rays.ranges[rays.scan_index == s] * norm.scale, rtol=1e-6)
 
 
 def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_path, monkeypatch):
@@ -141,6 +141,7 @@ def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_pat
     import json
 
     from conftest import fake_training_clock, make_tiny_config
+
     from neld_jax import run
     from neld_jax.data.poses import read_tum
 

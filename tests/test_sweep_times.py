@@ -20,8 +20,15 @@ from neld_jax import metrics
 from neld_jax.data import odometry, sweep_times
 from neld_jax.data.formats import load_sequence
 from neld_jax.data.generic import POINT_TIMES_FOLDER
-from neld_jax.data.sweep_times import (CONVENTIONS, VELODYNE, SweepConvention, azimuth_times, measured_deskew,
-                                       turn_fractions, with_azimuth_times)
+from neld_jax.data.sweep_times import (
+    CONVENTIONS,
+    VELODYNE,
+    SweepConvention,
+    azimuth_times,
+    measured_deskew,
+    turn_fractions,
+    with_azimuth_times,
+)
 from neld_jax.data.synthetic import make_sequence, write_generic
 from neld_jax.errors import ConfigError
 

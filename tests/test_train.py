@@ -11,14 +11,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import fake_training_clock, make_tiny_config, similarity_scale, sphere_plan
 from scipy.spatial.transform import Rotation
 
 from neld_jax import train
 from neld_jax.config import defaults, with_budget
 from neld_jax.errors import ConfigError
 from neld_jax.model import world_poses
-
-from conftest import fake_training_clock, make_tiny_config, similarity_scale, sphere_plan
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

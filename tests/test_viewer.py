@@ -6,12 +6,11 @@ import json
 
 import numpy as np
 import pytest
+from conftest import make_tiny_config
 from rerun.chunk import RrdReader
 
 from neld_jax import run, viewer
 from neld_jax.data.poses import read_tum
-
-from conftest import make_tiny_config
 
 
 def read_recording(path) -> dict:

@@ -53,7 +53,7 @@ def keep_input_distances(scans: list[np.ndarray], poses: np.ndarray, input_poses
     ratio = float(cumulative_path(poses)[-1] / max(cumulative_path(input_poses)[-1], 1e-12))
     record = {"kept": "own" if own_crisper else "input", "path_ratio": round(ratio, 6),
               "largest_window_change": round(change, 6), "margin": None if margin is None else margin["mean"]}
-    logger.info("baseline: its path is %.3f%% %s than the input's (windows of %g m: up to %.3f%%); %s", 
+    logger.info("baseline: its path is %.3f%% %s than the input's (windows of %g m: up to %.3f%%); %s",
                 100 * abs(ratio - 1), "shorter" if ratio < 1 else "longer", settings.distance_window_m, 100 * change,
                 "its own distances give the crisper map on every draw: kept" if own_crisper else
                 "the input's distances travelled are kept (its own gave no crisper map on every draw"

@@ -27,7 +27,14 @@ def run_baseline(config, progress: bool = True) -> dict:
     from neld_jax.baseline import BaselineSettings, register_sequence
     from neld_jax.data.preprocess import load_keyframes
     from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
-    from neld_jax.export import read_json, write_json, write_keyframe_poses, write_point_cloud, write_poses, write_raw_map
+    from neld_jax.export import (
+        read_json,
+        write_json,
+        write_keyframe_poses,
+        write_point_cloud,
+        write_poses,
+        write_raw_map,
+    )
 
     loaded, keyframes = load_keyframes(config.data)
     settings = BaselineSettings.from_config(config)

@@ -63,7 +63,8 @@ def job(config) -> None:
         methods[name] = trajectory_at_keyframes(path, loaded, keyframes, tol=float(config.data.timestamp_tol_s),
                                                 invert=bool(config.data.invert_poses))
     verdict = judge.judge_trajectories(keyframes, methods, config.eval, progress=True)
-    print(f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans ({config.data.root or config.data.format})")
+    print(f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans "
+          f"({config.data.root or config.data.format})")
     print(judge.format_crispness_table(verdict["crispness"], ordered=True, digits=4))
     print(f"crispest: {verdict['crispest']}")
     for other, margin in verdict["margins"].items():

@@ -8,7 +8,8 @@ imports any other neld_jax module):
   `fusionportable`, `newer_college`, `lio_keyframes`, `hba`, `kitti`, `synthetic` (also the generator's defaults);
   `layout`: what the folder formats share; `ground_truth`: explicit paths and published frame offsets;
   `frames`: scans and poses in the expected frames; `sweep_times`: per-point times of raw sweeps from azimuths;
-- `preprocess`: keyframes, range crop, voxel grid, and `load_keyframes(config.data)`, what a run reads; `normalize`: the [-1, 1]^3 cube; `rays`: training rays;
+- `preprocess`: keyframes, range crop, voxel grid, and `load_keyframes(config.data)`, what a run reads;
+  `normalize`: the [-1, 1]^3 cube; `rays`: training rays;
 - `pseudo_gt`: drifted copies of real sequences; `rosbag_import`: rosbags into the generic layout.
 
 Most modules import Open3D or SciPy. The core (model, trainer, mapping, metrics, config) imports only

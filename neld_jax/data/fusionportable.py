@@ -35,13 +35,13 @@ import numpy as np
 
 from neld_jax.data import ground_truth, raw_bags
 from neld_jax.data.layout import (
+    LoadOptions,
     check_root,
     config_root,
     list_scans,
     load_options,
     sorted_by_name,
     timestamp_from_name,
-    LoadOptions,
     timestamped_sequence,
 )
 from neld_jax.data.sequence import Sequence

@@ -369,7 +369,8 @@ def build_sequence(root: Path, files: list[Path], poses: np.ndarray | None, time
     """Read the scans and the GT map (gt_map_file, else ROOT/gt_map.pcd|ply if present), build the Sequence
     (files relative to root), check for pose jumps.
 
-    files: [S] scan paths; poses: [S, 4, 4] or None (none in the layout); timestamps: [S] seconds or None; gt_poses: [S, 4, 4] or None;
+    files: [S] scan paths; poses: [S, 4, 4] or None (none in the layout); timestamps: [S] seconds or None;
+    gt_poses: [S, 4, 4] or None;
     pose_file names the pose source in the pose-jump warning."""
     seq = Sequence(
         scans=read_scans(files),

@@ -11,7 +11,8 @@ file is the initial trajectory (odom_poses.txt by default; optimized_poses.txt t
 result). There is no ground truth in this layout; `bin/perturb.py` makes a pseudo ground truth from it.
 
 A count mismatch (a recording cut short: 332 scans and stamps, 331 poses) is an error that says which side
-is short; `drop_unmatched_tail=True` drops up to MAX_UNMATCHED_TAIL trailing scans without a pose instead, with a warning.
+is short; `drop_unmatched_tail=True` drops up to MAX_UNMATCHED_TAIL trailing scans without a pose instead, with a
+warning.
 """
 
 from __future__ import annotations
@@ -66,7 +67,8 @@ def load_lio_keyframes(root: str | os.PathLike, pose_file: str = DEFAULT_POSE_FI
     pose_path = root / pose_file
     if not pose_path.is_file():
         present = sorted(p.name for p in root.glob("*poses*.txt"))
-        raise DataError(f"{pose_path}: pose file does not exist" + (f" (found: {', '.join(present)})" if present else ""))
+        found = f" (found: {', '.join(present)})" if present else ""
+        raise DataError(f"{pose_path}: pose file does not exist{found}")
     poses = read_kitti(pose_path)
     times_path = root / TIMES_FILE
     stamps = read_times(times_path) if times_path.is_file() else None

@@ -36,6 +36,7 @@ import numpy as np
 
 from neld_jax.data import ground_truth, raw_bags
 from neld_jax.data.layout import (
+    LoadOptions,
     align_poses,
     build_sequence,
     check_root,
@@ -45,7 +46,6 @@ from neld_jax.data.layout import (
     load_options,
     matched_ground_truth,
     sorted_by_name,
-    LoadOptions,
     timestamped_sequence,
 )
 from neld_jax.data.poses import read_tum

@@ -7,9 +7,10 @@ global registration of sampled pairs of scans, which does not slide with it.
 Ranges. KISS-ICP registers with its own settings for the sensor, not the field's crop: its maximum range is the
 sensor's, measured on the data (registration_range_m: the RANGE_PERCENTILE-th percentile of the point distances of
 RANGE_SCANS scans evenly spaced over the recording, at most KISS-ICP's default 100 m), its voxel a hundredth of
-that (as its own pipeline derives it) and its minimum range its default (0 m). The field's crop (data.min_range_m..data.max_range_m, 40 m in the recording recipe) applies to the scans
-this module returns, deskewed or not: only the registration sees the full range. Measured on a real 2 Hz car drive
-(HDL-32E, sweeps 4.5 m apart): KISS-ICP at 40 m kept 57 % of the path length, at its own 100 m 96 %.
+that (as its own pipeline derives it) and its minimum range its default (0 m). The field's crop
+(data.min_range_m..data.max_range_m, 40 m in the recording recipe) applies to the scans this module returns,
+deskewed or not: only the registration sees the full range. Measured on a real 2 Hz car drive (HDL-32E, sweeps 4.5 m
+apart): KISS-ICP at 40 m kept 57 % of the path length, at its own 100 m 96 %.
 
 Time. Where the points carry their own times (raw sweeps) and the sweeps their stamps, KISS-ICP runs twice, its own
 deskewing off both times (two_pass_odometry). The first pass registers each sweep as it is, and its pose is taken

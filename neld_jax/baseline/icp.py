@@ -197,7 +197,7 @@ def multiscale_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCl
         transform = result.transformation
     if settings.min_direction_share > 0:
         held = held_along_weak_directions(source, target, np.asarray(guess, np.float64), np.asarray(transform),
-                                          result, settings.min_direction_share, indices[key])
+                                          settings.min_direction_share, indices[key])
         if held is not transform:
             result = dataclasses.replace(result, transformation=held)
             transform = held
@@ -261,15 +261,15 @@ def direction_shares(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarra
     return shares, vectors, centroid, lever
 
 
-def held_along_weak_directions(source, target, guess: np.ndarray, transform: np.ndarray, result: IcpResult,
-                               min_share: float, index: TargetIndex) -> np.ndarray:
+def held_along_weak_directions(source, target, guess: np.ndarray, transform: np.ndarray, min_share: float,
+                               index: TargetIndex) -> np.ndarray:
     """ICP's transform [4, 4] with its correction of the guess [4, 4] removed along every direction that its final
     pairs fix with a share below min_share (direction_shares), then HELD_STEPS point-to-plane steps in the other
     directions only: along a weak direction the geometry does not say where the scan is, and ICP's answer is where
     its start, noise and the map's ends led it, so the guess (the odometry's motion, the chain's pose) stays. The
     transform itself (the same object) where no direction is that weak.
-    source, target: the Open3D clouds ICP registered (target with normals); result: its finest scale's IcpResult;
-    index: a TargetIndex of target reaching that scale's distance."""
+    source, target: the Open3D clouds ICP registered (target with normals); index: a TargetIndex of target reaching
+    its finest scales' distance."""
     pairs = _pairs(source, target, transform, index)
     if pairs is None:
         return transform

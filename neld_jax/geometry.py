@@ -22,6 +22,12 @@ def transform_points(points: np.ndarray, transform: np.ndarray) -> np.ndarray:
     return points @ transform[:3, :3].T + transform[:3, 3]
 
 
+def cumulative_path(poses: np.ndarray) -> np.ndarray:
+    """[S] metres travelled up to each pose of poses [S, 4, 4] (0 at the first)."""
+    steps = np.linalg.norm(np.diff(np.asarray(poses)[:, :3, 3], axis=0), axis=1)
+    return np.r_[0.0, np.cumsum(steps)]
+
+
 def invert_poses(poses: np.ndarray) -> np.ndarray:
     """Inverse of rigid transforms. poses: [..., 4, 4] -> [..., 4, 4]."""
     poses = np.asarray(poses, dtype=np.float64)

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from neld_jax.data.timing import nearest_times
-from neld_jax.geometry import invert_poses, rotation_angles_deg
+from neld_jax.geometry import cumulative_path, invert_poses, rotation_angles_deg
 
 logger = logging.getLogger(__name__)
 
@@ -209,8 +209,7 @@ def rpe(est: np.ndarray, gt: np.ndarray, delta: int = 1) -> dict[str, Any]:
 
 def path_length(poses: np.ndarray) -> float:
     """Length [m] of the path through the positions of poses [S, 4, 4]: the sum of the S - 1 steps (0 for S < 2)."""
-    poses = _check_poses(poses, "poses")
-    return float(np.sum(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)))
+    return float(cumulative_path(_check_poses(poses, "poses"))[-1])
 
 
 def path_length_ratio(est: np.ndarray, gt: np.ndarray) -> float:
@@ -247,7 +246,7 @@ def kitti_segment_errors(est: np.ndarray, gt: np.ndarray, lengths_m=KITTI_LENGTH
     lengths = np.asarray(lengths_m, dtype=np.float64).reshape(-1)
     if np.any(lengths <= 0):
         raise ValueError(f"segment lengths must be positive, got {lengths}")
-    travelled = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    travelled = cumulative_path(gt)
     first = np.repeat(np.arange(0, len(gt), step), len(lengths))
     length = np.tile(lengths, len(np.arange(0, len(gt), step)))
     last = np.searchsorted(travelled, travelled[first] + length, side="right")  # the first frame past L

@@ -23,7 +23,8 @@ from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.evaluate import GT_POSES_FILE, EvalSettings, RunArtifacts, Trajectory, evaluation_record
 from neld_jax.export import write_json, write_point_cloud, write_poses, write_raw_map
 from neld_jax.geometry import register_scans
-from neld_jax.trajectory import cumulative_path, propagate_corrections, window_scales
+from neld_jax.metrics import path_length_ratio
+from neld_jax.trajectory import propagate_corrections, window_scales
 
 logger = logging.getLogger(__name__)
 
@@ -192,10 +193,11 @@ def path_vs_input(answer: np.ndarray, input_poses: np.ndarray, window_m: float =
     """How the answer's poses of every input scan [S, 4, 4] change the distance travelled against the input's
     [S, 4, 4]: {"ratio": its whole path over the input's, "largest_window_change": the largest departure from 1 of
     that ratio over a window_m window (trajectory.window_scales), "window_m"}."""
-    ratio = cumulative_path(answer)[-1] / max(cumulative_path(input_poses)[-1], 1e-12)
+    ratio = path_length_ratio(answer, input_poses)  # NaN where the input does not move
     change = float(np.max(np.abs(1.0 / window_scales(answer, input_poses, window_m) - 1.0))) if len(answer) > 1 \
         else 0.0
-    return {"ratio": round(float(ratio), 6), "largest_window_change": round(change, 6), "window_m": window_m}
+    return {"ratio": round(ratio, 6) if np.isfinite(ratio) else None, "largest_window_change": round(change, 6),
+            "window_m": window_m}
 
 
 def write_scan_report(out_dir: str, made: RunSteps, T_all: np.ndarray, per_scan_entropy: dict,

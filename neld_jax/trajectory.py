@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from neld_jax import lie
-from neld_jax.geometry import invert_poses
+from neld_jax.geometry import cumulative_path, invert_poses
 
 
 def propagate_corrections(T_input: np.ndarray, keyframe_index: np.ndarray, T_keyframes: np.ndarray,
@@ -51,25 +51,16 @@ def propagate_corrections(T_input: np.ndarray, keyframe_index: np.ndarray, T_key
     return refined
 
 
-def cumulative_path(poses: np.ndarray) -> np.ndarray:
-    """[S] metres travelled up to each pose of poses [S, 4, 4] (0 at the first)."""
-    steps = np.linalg.norm(np.diff(np.asarray(poses)[:, :3, 3], axis=0), axis=1)
-    return np.r_[0.0, np.cumsum(steps)]
-
-
 def window_scales(poses: np.ndarray, reference: np.ndarray, window_m: float) -> np.ndarray:
     """[S - 1] for each step of poses [S, 4, 4]: the reference's [S, 4, 4] path length over the steps whose midpoints
     lie within window_m / 2 of this step's (along the reference's path) divided by poses' over the same steps (1 where
     poses do not move there)."""
-    along = cumulative_path(reference)
+    along, own_along = cumulative_path(reference), cumulative_path(poses)
     mid = 0.5 * (along[1:] + along[:-1])
-    reference_steps, steps = np.diff(along), np.diff(cumulative_path(poses))
     lo = np.searchsorted(mid, mid - 0.5 * window_m, side="left")
     hi = np.searchsorted(mid, mid + 0.5 * window_m, side="right")
-    reference_sums = np.r_[0.0, np.cumsum(reference_steps)]
-    sums = np.r_[0.0, np.cumsum(steps)]
-    own = sums[hi] - sums[lo]
-    return np.where(own > 0, (reference_sums[hi] - reference_sums[lo]) / np.where(own > 0, own, 1.0), 1.0)
+    own = own_along[hi] - own_along[lo]  # the steps lo..hi-1 of each window, summed
+    return np.where(own > 0, (along[hi] - along[lo]) / np.where(own > 0, own, 1.0), 1.0)
 
 
 def with_distances_of(poses: np.ndarray, reference: np.ndarray, window_m: float) -> np.ndarray:

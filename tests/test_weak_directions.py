@@ -13,7 +13,8 @@ from neld_jax.baseline.distances import keep_input_distances
 from neld_jax.baseline.icp import TargetIndex, direction_shares
 from neld_jax.data.synthetic_lidar import cast_scan, spinning_lidar_directions
 from neld_jax.data.synthetic_scene import make_scene, raycasting_scene, street_meshes
-from neld_jax.trajectory import cumulative_path, window_scales, with_distances_of
+from neld_jax.geometry import cumulative_path
+from neld_jax.trajectory import window_scales, with_distances_of
 
 HELD = BaselineSettings(voxel_size_m=0.2)
 FREE = dataclasses.replace(HELD, min_direction_share=0.0)

@@ -18,7 +18,8 @@ import numpy as np
 
 from neld_jax import judge
 from neld_jax.baseline.settings import BaselineSettings
-from neld_jax.trajectory import cumulative_path, window_scales, with_distances_of
+from neld_jax.metrics import path_length_ratio
+from neld_jax.trajectory import window_scales, with_distances_of
 
 logger = logging.getLogger(__name__)
 
@@ -50,7 +51,7 @@ def keep_input_distances(scans: list[np.ndarray], poses: np.ndarray, input_poses
                                       against="own", first_draw=first)
     margin = margins.get("input")
     own_crisper = margin is not None and margin["all_draws_agree"] and margin["mean"] < 0
-    ratio = float(cumulative_path(poses)[-1] / max(cumulative_path(input_poses)[-1], 1e-12))
+    ratio = path_length_ratio(poses, input_poses)  # the input moves: window_scales differ from 1
     record = {"kept": "own" if own_crisper else "input", "path_ratio": round(ratio, 6),
               "largest_window_change": round(change, 6), "margin": None if margin is None else margin["mean"]}
     logger.info("baseline: its path is %.3f%% %s than the input's (windows of %g m: up to %.3f%%); %s",

@@ -176,16 +176,12 @@ def _cloud(points: np.ndarray, voxel_m: float, normals: bool = False):
 
 
 def _icp(source, target, start: np.ndarray, distances: list[float]) -> np.ndarray:
-    """Point-to-plane ICP (Open3D) of the cloud source to target (with normals) from start [4, 4], pairing points
-    within each of distances [m] in turn: the pose [4, 4] of source's frame in target's."""
-    from open3d.pipelines import registration
+    """Point-to-plane ICP (feature_registration.refined_alignment) of the cloud source to target (with normals) from
+    start [4, 4], pairing points within each of distances [m] in turn: the pose [4, 4] of source's frame in
+    target's."""
+    from neld_jax.data.feature_registration import refined_alignment
 
-    pose = start
-    for distance in distances:
-        pose = registration.registration_icp(source, target, distance, pose,
-                                             registration.TransformationEstimationPointToPlane(),
-                                             registration.ICPConvergenceCriteria(max_iteration=30)).transformation
-    return np.asarray(pose, np.float64)
+    return refined_alignment(source, target, start, tuple(distances), normal_radius_m=0.0)[0]
 
 
 def _residual(source, target, pose: np.ndarray, voxel_m: float) -> tuple[float, float]:

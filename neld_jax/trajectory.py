@@ -67,7 +67,8 @@ def with_distances_of(poses: np.ndarray, reference: np.ndarray, window_m: float)
     """poses [S, 4, 4] with each step's translation scaled by window_scales (the reference's [S, 4, 4] distance
     travelled over a window_m window around it): the same rotations and directions of travel, the reference's
     distances; pose 0 stays. Where a registration measures the shape of a path but a LiDAR odometry over
-    consecutive sweeps measures the distance travelled better (docs/evaluation.md, "Distance travelled")."""
+    consecutive sweeps measures the distance travelled better (docs/evaluation.md, "Weak directions and the distance
+    travelled")."""
     poses = np.array(poses, np.float64)
     steps = np.diff(poses[:, :3, 3], axis=0) * window_scales(poses, reference, window_m)[:, None]
     poses[1:, :3, 3] = poses[0, :3, 3] + np.cumsum(steps, axis=0)

@@ -47,22 +47,22 @@ The modules, one step each: `settings` (BaselineSettings), `icp` (the ICP kernel
 index, point-to-plane ICP and its step, the information matrix; their sums in a fixed order, so that the same input
 gives the same poses bit for bit), `chain` (step 1), `graph` (steps 2 and 3, the global registration among them),
 `refine` (step 4), `distances` (step 5), `segments` (recordings joined in one sequence: where the chain restarts,
-the links between them) and `sequence` (`register_sequence`: arrays in, a BaselineResult out). Its command-line edge is
-neld_jax.commands.baseline.
+the links between them) and `sequence` (`register_sequence`: arrays in, a BaselineResult out). Its command-line
+edge is neld_jax.commands.baseline.
 """
 
 from neld_jax.baseline.chain import TILT_MARGIN, choose_chain, scan_to_map_chain
 from neld_jax.baseline.graph import LoopClosures, candidate_pairs, fpfh_features, global_registration, loop_closed_graph
 from neld_jax.baseline.icp import (
-                                     IcpResult,
-                                     TargetIndex,
-                                     correction_m,
-                                     information,
-                                     multiscale_icp,
-                                     point_to_plane_icp,
-                                     point_to_plane_step,
-                                     prepare_clouds,
-                                     prepare_scan,
+    IcpResult,
+    TargetIndex,
+    correction_m,
+    information,
+    multiscale_icp,
+    point_to_plane_icp,
+    point_to_plane_step,
+    prepare_clouds,
+    prepare_scan,
 )
 from neld_jax.baseline.refine import Refinement, choose_refinement_start, refine_against_map
 from neld_jax.baseline.segments import Segments

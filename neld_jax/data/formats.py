@@ -12,10 +12,10 @@ Each format is one module with a `load(data_cfg) -> Sequence` (config.data.forma
 
 load_sequence adds what every folder format gets: the scan and pose frames converted or checked (frames.py), and a
 warning naming what was looked for when no ground truth is found. Scans without poses get KISS-ICP's (odometry.py),
-registered within the sensor's own range measured on the scans, the scans
-kept within the field's crop afterwards. Those of a layout that may hold raw sweeps (RAW_SWEEP_FORMATS) and carry no
-per-point times are measured first: raw sweeps get times from their azimuths, so that KISS-ICP and the trajectory
-deskew them, and deskewed scans are registered as they are (sweep_times.py; data.deskew overrides, in any layout).
+registered within the sensor's own range measured on the scans, the scans kept within the field's crop afterwards.
+Those of a layout that may hold raw sweeps (RAW_SWEEP_FORMATS) and carry no per-point times are measured first: raw
+sweeps get times from their azimuths, so that KISS-ICP and the trajectory deskew them, and deskewed scans are
+registered as they are (sweep_times.py; data.deskew overrides, in any layout).
 """
 
 from __future__ import annotations

@@ -169,7 +169,9 @@ def _cloud(points: np.ndarray, voxel_m: float, normals: bool = False):
     """An Open3D cloud of points [N, 3] on a voxel_m grid (with normals within two voxels when asked)."""
     import open3d as o3d
 
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel_m)
+    from neld_jax.data.feature_registration import point_cloud
+
+    cloud = point_cloud(points).voxel_down_sample(voxel_m)
     if normals:
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2.0 * voxel_m, max_nn=30))
     return cloud

@@ -55,7 +55,7 @@ def main(argv):
     logging.basicConfig(level=logging.WARNING)
     from neld_jax.commands.baseline import run_baseline
     from neld_jax.config import apply_overrides, from_file
-    from neld_jax.evaluate import evaluate_run
+    from neld_jax.writing.evaluate import evaluate_run
     from neld_jax.run import run
 
     for name in SEQ.value:

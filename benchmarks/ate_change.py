@@ -56,7 +56,7 @@ def rotation_null(d: np.ndarray, x: np.ndarray, draws: int = 4000, seed: int = 0
 
 def _onto(T: np.ndarray, T_reference: np.ndarray) -> np.ndarray:
     """T's positions [N, 3] rigidly aligned onto T_reference's."""
-    from neld_jax.metrics import ate_errors
+    from neld_jax.judging.metrics import ate_errors
 
     A = ate_errors(T, T_reference, "se3")[2]
     return T[:, :3, 3] @ A[:3, :3].T + A[:3, 3]
@@ -67,7 +67,7 @@ def ate_change_terms(T_baseline: np.ndarray, T_optimized: np.ndarray, T_gt: np.n
     """The terms of the ATE change from T_baseline to T_optimized against T_gt (all [N, 4, 4], matched by
     index), in millimetres (mm^2 for the squared terms); with T_input (the poses both started from), also how
     the move correlates with the input's departure from T_gt. See the module docstring."""
-    from neld_jax.metrics import ate, ate_errors
+    from neld_jax.judging.metrics import ate, ate_errors
 
     to_gt = ate_errors(T_baseline, T_gt, "se3")[2]  # [4, 4]: the baseline's frame -> the ground truth's
     p_baseline = T_baseline[:, :3, 3] @ to_gt[:3, :3].T + to_gt[:3, 3]

@@ -85,10 +85,10 @@ def main(argv):
     del argv
     import numpy as np
 
-    from neld_jax import judge
-    from neld_jax.data.preprocess import load_keyframes
-    from neld_jax.data.pseudo_gt import with_drift
-    from neld_jax.metrics import ate
+    from neld_jax.judging import judge
+    from neld_jax.judging.metrics import ate
+    from neld_jax.steps.inputs import load_keyframes
+    from neld_jax.synthetic.pseudo_gt import with_drift
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     config = _config()

@@ -8,7 +8,7 @@ of the query points, and the paired differences between the run's methods.
 A run judges itself on one draw of 10,000 query points (eval.crispness_queries, seed 0). The draw alone moves a
 sequence's entropy by about 0.01 nats; the methods are measured on the same points, so most of that cancels in
 their difference, but not all. Every run also writes the margin over eval.crispness_draws
-(5) draws to metrics.json (run.crispness_margin, neld_jax.judge.crispness_margins); this script measures it
+(5) draws to metrics.json (run.crispness_margin, neld_jax.judging.judge.crispness_margins); this script measures it
 for a finished run, written before or with other draws. It reads the run's config.json (the sequence, its
 preprocessing, eval.crispness_radius_m) and its poses_<method>.kitti (initial, baseline when present, optimized),
 measures the entropy of the keyframes' raw map under each on --draws draws (seeds 0, 1, ...; draw 0 is the run's
@@ -87,8 +87,8 @@ def main(argv):
     import ml_collections
     import numpy as np
 
-    from neld_jax import crispness, judge
-    from neld_jax.data.preprocess import load_keyframes
+    from neld_jax.judging import crispness, judge
+    from neld_jax.steps.inputs import load_keyframes
 
     with open(os.path.join(RUN_DIR.value, "config.json")) as f:
         config = ml_collections.ConfigDict(json.load(f))

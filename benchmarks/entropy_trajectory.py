@@ -9,12 +9,12 @@
 
 Trains the lio_keyframes config (cpu budget) from the poses in --pose_file (KITTI, one line per scan of ROOT;
 default: the layout's odom_poses.txt) exactly as `bin/train.py` would from those poses (start.poses=input, no
-wall-clock budget: the same plan of cubes, rays, trainer and fit as neld_jax.refine), and every --every steps
+wall-clock budget: the same plan of cubes, rays, trainer and fit as neld_jax.steps.refine), and every --every steps
 measures the mean map entropy of the keyframes' raw map under the current poses (anchored on keyframe 0, as the
 run writes them; the same 10,000 query points each time). Writes one JSON object: the overrides and, per
 measurement, the step, the entropy, the last batch's range error (mean and median) and the mean pose correction so
 far. Nothing is written besides --out. A baseline's poses file is an input here; --as_baseline trains with the pose
-steps a run takes from the baseline's poses (neld_jax.start.pose_steps_from_baseline: learning rates capped at
+steps a run takes from the baseline's poses (neld_jax.steps.start.pose_steps_from_baseline: learning rates capped at
 start.pose_lr_from_baseline, the prior of start.prior_from_baseline, heavier where the start's map is thinner
 than start.THIN_MAP_M, and the start's scale kept) to measure what such a run does.
 """
@@ -42,13 +42,14 @@ def main(argv):
     import jax
     import numpy as np
 
-    from neld_jax import judge, submaps, train
     from neld_jax.config import apply_overrides, from_file
-    from neld_jax.data.normalize import Normalization
-    from neld_jax.data.preprocess import load_keyframes
-    from neld_jax.data.rays import build_rays
+    from neld_jax.field.model import world_poses
+    from neld_jax.field.normalize import Normalization
     from neld_jax.geometry import anchored_on_first
-    from neld_jax.model import world_poses
+    from neld_jax.judging import judge
+    from neld_jax.steps.inputs import load_keyframes
+    from neld_jax.training import submaps, train
+    from neld_jax.training.rays import build_rays
 
     config = from_file(os.path.join(REPO, "configs", "lio_keyframes.py"), "cpu")
     config.data.root, config.data.initial_poses = ROOT.value, POSE_FILE.value
@@ -57,13 +58,13 @@ def main(argv):
     _, keyframes = load_keyframes(config.data)
     start_poses, num_scans = keyframes.poses, keyframes.num_scans
     if AS_BASELINE.value:
-        from neld_jax.start import pose_steps_from_baseline
+        from neld_jax.steps.start import pose_steps_from_baseline
 
         judged, _ = judge.map_crispness(keyframes, {"start": start_poses}, config.eval)
         pose_steps = pose_steps_from_baseline(config, judged["start"].get("mean_plane_thickness_m"))
     else:
         pose_steps = train.PoseSteps.from_config(config)
-    # The training of a run (neld_jax.refine.refine_keyframes) without its checkpoints, the measurements in their place
+    # The training of a run (neld_jax.steps.refine.refine_keyframes) without its checkpoints, the measurements in their place
     devices = len(jax.devices())
     plan = submaps.plan_from_config(keyframes, config, num_devices=devices)
     rays_m = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),

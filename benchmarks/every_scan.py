@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""What registering every input scan to the result gains (neld_jax.register_scans): ATE against the ground truth
+"""What registering every input scan to the result gains (neld_jax.steps.registration): ATE against the ground truth
 over every sweep, over the keyframes and over the other sweeps, and the raw map of every sweep's crispness, for the
 odometry (the run's input), the keyframes' interpolated corrections (what every other sweep had before), and every
 sweep registered to the keyframes' refined map; and the registration's time.
@@ -24,15 +24,15 @@ from absl import app, flags
 
 
 def ate_cm(T: np.ndarray, gt: np.ndarray) -> float:
-    from neld_jax.metrics import ate
+    from neld_jax.judging.metrics import ate
 
     return round(100 * ate(T, gt)["translation_rmse_m"], 3)
 
 
 def figures(T: np.ndarray, loaded, keyframe: np.ndarray, radius_m: float) -> dict:
     """ATE [cm] over every sweep, the keyframes and the others; the raw map of every sweep's mean map entropy."""
-    from neld_jax.crispness import crispness
     from neld_jax.geometry import register_scans
+    from neld_jax.judging.crispness import crispness
 
     gt = loaded.gt_poses
     summary = crispness(register_scans(loaded.scans, T), radius=radius_m, max_queries=20_000, seed=0).summary()
@@ -45,11 +45,11 @@ def figures(T: np.ndarray, loaded, keyframe: np.ndarray, radius_m: float) -> dic
 def measure(run_dir: str) -> dict:
     import ml_collections
 
-    from neld_jax import register_scans
     from neld_jax.data.poses import read_tum
-    from neld_jax.data.preprocess import load_keyframes
-    from neld_jax.export import read_json
+    from neld_jax.steps import registration
+    from neld_jax.steps.inputs import load_keyframes
     from neld_jax.trajectory import propagate_corrections
+    from neld_jax.writing.export import read_json
 
     config = ml_collections.ConfigDict(read_json(f"{run_dir}/config.json"))
     loaded, keyframes = load_keyframes(config.data)
@@ -59,17 +59,17 @@ def measure(run_dir: str) -> dict:
     refined = written[keyframes.loaded_index]
     interpolated = propagate_corrections(loaded.poses, keyframes.loaded_index, refined, loaded.timestamps)
     t0 = time.perf_counter()
-    registration = register_scans.register_every_scan(loaded, keyframes, refined,
-                                                      register_scans.RegistrationSettings.from_config(config))
+    registered = registration.register_every_scan(loaded, keyframes, refined,
+                                                      registration.RegistrationSettings.from_config(config))
     seconds = time.perf_counter() - t0
     radius = float(config.eval.crispness_radius_m)
     entry = {"run": run_dir, "input_scans": loaded.num_scans, "keyframes": keyframes.num_scans,
-             "num_registered": int(registration.registered.sum()),
-             "num_refused": int(sum(map(bool, registration.flag))),
+             "num_registered": int(registered.registered.sum()),
+             "num_refused": int(sum(map(bool, registered.flag))),
              "registration_s": round(seconds, 1),
-             "median_residual_cm": round(100 * float(np.nanmedian(registration.residual_m)), 3)}
+             "median_residual_cm": round(100 * float(np.nanmedian(registered.residual_m)), 3)}
     for name, poses in (("odometry", loaded.poses), ("interpolated", interpolated),
-                        ("registered", registration.poses)):
+                        ("registered", registered.poses)):
         entry[name] = figures(poses, loaded, keyframe, radius)
     after = entry["registered"]
     entry["every_sweep_over_keyframes"] = round(after["ate_every_sweep_cm"] / after["ate_keyframes_cm"], 3)

@@ -7,7 +7,7 @@
 
 A GPU image may lack open3d (and ml-collections, which gpu_suite.sh installs from .whl/), so the demo sequence
 is generated here by `--prepare` into .gpu_data/demo.npz (the keyframes' rays in metres, initial and ground-truth
-poses, the normalisation of its one cube) and the suite trains on it with neld_jax.train alone, as a plan of one
+poses, the normalisation of its one cube) and the suite trains on it with neld_jax.training.train alone, as a plan of one
 cube (train.make_trainer, train.init_state, train.fit: the path a run takes).
 
 Sections, in order of priority (each is skipped once --budget_s is spent; a failing one records its error
@@ -73,10 +73,10 @@ def extrapolate_schedule(stage_starts: tuple, total: int, rates: list) -> dict:
 
 
 def ate_m(poses: np.ndarray, start_poses: np.ndarray, gt_poses: np.ndarray, ref_scale: float) -> dict:
-    """ATE (SE(3)-aligned, neld_jax.metrics) of the corrected poses: poses [S, 6] (rho in units of ref_scale per
+    """ATE (SE(3)-aligned, neld_jax.judging.metrics) of the corrected poses: poses [S, 6] (rho in units of ref_scale per
     metre) on the start poses [S, 4, 4] (metres), against the ground truth [S, 4, 4] (metres)."""
-    from neld_jax import metrics
-    from neld_jax.model import world_poses
+    from neld_jax.field.model import world_poses
+    from neld_jax.judging import metrics
 
     result = metrics.ate(world_poses(start_poses, np.asarray(poses), ref_scale), gt_poses)
     return {"ate_m": result["translation_rmse_m"], "rot_deg": result["rotation_rmse_deg"]}
@@ -96,9 +96,9 @@ def demo_config(budget: str):
 def prepare(path: str, smoke: bool) -> dict:
     """Generate the demo sequence (configs/demo.py, gpu budget's rays per scan) and save what training needs: the
     keyframes' rays in metres, their initial and ground-truth poses, and the normalisation of one cube around them."""
-    from neld_jax.data.normalize import NORMALIZATION_MARGIN, Normalization, fit_normalization
-    from neld_jax.data.preprocess import load_keyframes
-    from neld_jax.data.rays import build_rays
+    from neld_jax.field.normalize import NORMALIZATION_MARGIN, Normalization, fit_normalization
+    from neld_jax.steps.inputs import load_keyframes
+    from neld_jax.training.rays import build_rays
 
     config = demo_config("gpu")
     if smoke:
@@ -136,9 +136,9 @@ class Demo(NamedTuple):
 
 def load_demo(path: str) -> Demo:
     """The prepared demo (`prepare`) as a plan of one cube, placed on one device."""
-    from neld_jax import submaps, train
-    from neld_jax.data.normalize import Normalization
-    from neld_jax.data.rays import RaySet
+    from neld_jax.field.normalize import Normalization
+    from neld_jax.training import submaps, train
+    from neld_jax.training.rays import RaySet
 
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: no prepared demo; run `python benchmarks/gpu_suite.py --prepare` first")
@@ -157,7 +157,7 @@ def load_demo(path: str) -> Demo:
 
 def demo_trainer(config, demo: Demo, total_steps: int | None = None):
     """train.make_trainer of the demo's one cube with the config's own pose steps (a run from the input poses)."""
-    from neld_jax import train
+    from neld_jax.training import train
 
     return train.make_trainer(config, demo.num_scans, 1, train.PoseSteps.from_config(config), demo.start_poses,
                               total_steps=total_steps, mesh=demo.mesh)
@@ -251,7 +251,7 @@ class Suite:
     def _demo_run(self, budget: str, matmul_dtype: str = "float32"):
         import functools
 
-        from neld_jax import train
+        from neld_jax.training import train
 
         demo = self.demo()
         config = self.config(budget)
@@ -285,7 +285,7 @@ class Suite:
         import jax
         import jax.numpy as jnp
 
-        from neld_jax import train
+        from neld_jax.training import train
 
         demo = self.demo()
         config = self.config("paper")
@@ -330,7 +330,8 @@ class Suite:
                 "target": "the 160k-step schedule in <= 600 s (>= 270 steps/s)"}
 
     def render_map(self):
-        from neld_jax import mapping, refine, train
+        from neld_jax.steps import mapping, refine
+        from neld_jax.training import train
 
         demo = self.demo()
         out = {}
@@ -404,7 +405,7 @@ def main(argv):
     del argv
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
                         force=True)
-    logging.getLogger("neld_jax.train").setLevel(logging.WARNING)
+    logging.getLogger("neld_jax.training.train").setLevel(logging.WARNING)
     if FLAGS.prepare:
         print(json.dumps(prepare(FLAGS.data, FLAGS.smoke)), flush=True)
         return

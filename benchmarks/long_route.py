@@ -99,12 +99,12 @@ def accuracy() -> dict:
 
 def split() -> dict:
     """Windows against spatial tiles on the route (initial poses, raw scans within 30 m): how many submaps hold
-    each keyframe either way (neld_jax.submaps: the measurement behind choosing windows)."""
+    each keyframe either way (neld_jax.training.submaps: the measurement behind choosing windows)."""
     import numpy as np
 
-    from neld_jax import submaps
-    from neld_jax.data.normalize import NORMALIZATION_MARGIN, fit_normalization
-    from neld_jax.data.synthetic import make_sequence
+    from neld_jax.field.normalize import NORMALIZATION_MARGIN, fit_normalization
+    from neld_jax.synthetic.generator import make_sequence
+    from neld_jax.training import submaps
 
     config = route_config("", True)
     seq = make_sequence(config.data.synthetic)
@@ -127,10 +127,10 @@ def throughput_worker(devices: int) -> dict:
     import jax
     import numpy as np
 
-    from neld_jax import submaps, train
     from neld_jax.config import from_file
-    from neld_jax.data.normalize import NORMALIZATION_MARGIN
-    from neld_jax.data.rays import RaySet, sphere_scene_rays
+    from neld_jax.field.normalize import NORMALIZATION_MARGIN
+    from neld_jax.training import submaps, train
+    from neld_jax.training.rays import RaySet, sphere_scene_rays
 
     assert len(jax.devices()) >= devices, jax.devices()  # GPUs: the first `devices` of them
     config = from_file(os.path.join(REPO, "configs", "generic.py"), "cpu")

@@ -8,7 +8,7 @@
 For each size it writes a synthetic 10 Hz recording of raw sweeps to WORK_DIR/sweeps_<S> in the generic layout
 without poses (scans/<stamp>.pcd, point_times/<stamp>.npy, gt_poses.txt), one sweep at a time (never the whole
 recording in memory): the sensor rounds the synthetic courtyard's loop once over the recording, each column cast
-from where the sensor is at its instant (neld_jax.data.synthetic's per-sweep functions). Then it runs
+from where the sensor is at its instant (neld_jax.synthetic.generator's per-sweep functions). Then it runs
 
     python bin/train.py --config=configs/generic.py:cpu --config.data.root=WORK_DIR/sweeps_<S> \\
         --config.output_dir=WORK_DIR/run_<S> --config.max_minutes=M
@@ -50,28 +50,28 @@ SEED = flags.DEFINE_integer("seed", 0, "The synthetic scene's and route's seed."
 def write_recording(root: Path, num_sweeps: int, beams: int, columns: int, seed: int) -> dict:
     """A 10 Hz raw recording of num_sweeps sweeps in the generic layout, written one sweep at a time; returns its
     size (points, bytes on disk, seconds)."""
-    from neld_jax.data import synthetic
     from neld_jax.data.generic import POINT_TIMES_FOLDER
     from neld_jax.data.poses import write_tum
     from neld_jax.data.scans import write_scan
+    from neld_jax.synthetic import generator
 
-    defaults = synthetic.synthetic_defaults()
+    defaults = generator.synthetic_defaults()
     started = time.perf_counter()
-    scene, _ = synthetic.make_scene(seed, defaults.scene_size_m, path_radius_m=defaults.trajectory_radius_m)
-    directions = synthetic.spinning_lidar_directions(beams, synthetic.FOV_DEG[1], synthetic.FOV_DEG[0], columns)
+    scene, _ = generator.make_scene(seed, defaults.scene_size_m, path_radius_m=defaults.trajectory_radius_m)
+    directions = generator.spinning_lidar_directions(beams, generator.FOV_DEG[1], generator.FOV_DEG[0], columns)
     rng = np.random.default_rng(seed + 2)
     column_fraction = np.arange(columns) / columns
     (root / "scans").mkdir(parents=True, exist_ok=True)
     (root / POINT_TIMES_FOLDER).mkdir(exist_ok=True)
     stamps, points_written = np.arange(num_sweeps) / RATE_HZ, 0
     for i, stamp in enumerate(stamps):
-        column_poses = synthetic.loop_poses((i + column_fraction) / num_sweeps, defaults.trajectory_radius_m, seed)
-        points, column = synthetic.cast_sweep(scene, column_poses, directions, defaults.max_range_m,
+        column_poses = generator.loop_poses((i + column_fraction) / num_sweeps, defaults.trajectory_radius_m, seed)
+        points, column = generator.cast_sweep(scene, column_poses, directions, defaults.max_range_m,
                                               defaults.range_noise_m, rng)
         write_scan(root / "scans" / f"{stamp:.9f}.pcd", points)
         np.save(root / POINT_TIMES_FOLDER / f"{stamp:.9f}.npy", (column_fraction[column] / RATE_HZ).astype(np.float32))
         points_written += len(points)
-    write_tum(root / "gt_poses.txt", stamps, synthetic.smooth_trajectory(num_sweeps, defaults.trajectory_radius_m,
+    write_tum(root / "gt_poses.txt", stamps, generator.smooth_trajectory(num_sweeps, defaults.trajectory_radius_m,
                                                                          seed))
     disk = sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
     return {"points": int(points_written), "disk_gb": round(disk / 1e9, 3),

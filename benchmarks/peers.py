@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """NeLD-BA against its peers on the same raw sweeps: KISS-ICP (as its own pipeline runs it), KISS-SLAM (KISS-ICP with a
 local-map pose graph and loop closures), the run's own odometry (its input: KISS-ICP twice, the sweeps deskewed along
-the first pass; neld_jax.data.odometry), the classical baseline and NeLD-BA, in one table.
+the first pass; neld_jax.frontend.odometry), the classical baseline and NeLD-BA, in one table.
 
     pip install -e .[peers]      # kiss-slam; without it its row says "not installed" and the rest still runs
     python benchmarks/peers.py --sequences=synthetic10hz:0,synthetic10hz:1:20 --set=data.keyframe_interval_s=1.0 \\
@@ -26,7 +26,7 @@ not. Each method gives one pose per input sweep (TUM, at the sweeps' stamps). Co
   kitti_r_deg_per_m, kitti_segments);
 - the raw map's crispness: mean map entropy and plane thickness of the run's keyframes (their KISS-ICP-deskewed
   scans) registered with each trajectory at the keyframes, on the same query points for every method
-  (neld_jax.judge, as neld-crispness; entropy, thickness_cm), and NeLD-BA's margin to each peer over
+  (neld_jax.judging.judge, as neld-crispness; entropy, thickness_cm), and NeLD-BA's margin to each peer over
   eval.crispness_draws draws of the query points (neld_ba_margin, neld_ba_verdict): "every draw" (crisper on each),
   "a tie" (the draws disagree in sign) or "blurrier" (blurrier on each);
 - the same for the raw map of EVERY input sweep (every_sweep_map: judge.EVERY_SCAN_POINTS random points of each, the
@@ -43,7 +43,7 @@ Sequences: `car:SEED` generates a car's 10 Hz scans along the synthetic courtyar
 with turns, 64 beams x 1024 columns, 80 m range; raw sweeps with per-point times, about 1.1 m of motion in each)
 with ground truth;
 `synthetic10hz:SEED[:RADIUS_M]` generates raw 10 Hz sweeps with per-point times and ground truth
-(neld_jax.data.synthetic.make_sequence, rate_hz=10; --loop_scans sweeps round one loop of RADIUS_M (10 m: 63 m at
+(neld_jax.synthetic.generator.make_sequence, rate_hz=10; --loop_scans sweeps round one loop of RADIUS_M (10 m: 63 m at
 2.1 m/s; 20 m: 126 m at 4.2 m/s, longer than KISS-SLAM's 100 m local maps, so it can close the loop) at 40 m range,
 the first --num_scans of them kept) into WORK/<name>/data in the generic layout without poses; `--roots` are
 folders of raw full-rate sweeps as --config reads them (configs/generic.py, or a dataset's config for its layout as
@@ -120,7 +120,7 @@ def make_synthetic(seed: int, radius_m: float, root: str) -> None:
     poses.txt); kept when root already holds the same sequence."""
     import dataclasses
 
-    from neld_jax.data.synthetic import make_sequence, write_generic
+    from neld_jax.synthetic.generator import make_sequence, write_generic
 
     spec = {**SYNTHETIC, "trajectory_radius_m": radius_m, "num_scans": LOOP_SCANS.value,
             "gt_map_points": GT_MAP_POINTS.value, "seed": seed, "kept": NUM_SCANS.value, "rate_hz": RATE_HZ}
@@ -138,7 +138,7 @@ def make_synthetic(seed: int, radius_m: float, root: str) -> None:
 def make_car(seed: int, root: str) -> None:
     """NUM_SCANS of a car's 10 Hz scans along the courtyards' route (CAR), in the generic layout (no poses.txt); kept
     when root already holds the same sequence."""
-    from neld_jax.data.synthetic import make_sequence, write_generic
+    from neld_jax.synthetic.generator import make_sequence, write_generic
 
     spec = {**CAR, "num_scans": NUM_SCANS.value, "gt_map_points": GT_MAP_POINTS.value, "seed": seed}
     written_once(spec, root, lambda folder: write_generic(make_sequence(spec), folder))
@@ -167,7 +167,7 @@ def watching_the_run(seen: dict):
     sequence and keyframes ("loaded", "keyframes"), the raw sweeps KISS-ICP read ("raw": the layout's Sequence) and
     the odometry's wall time ("odometry_s"), without loading or registering the scans twice."""
     from neld_jax import run as run_module
-    from neld_jax.data import odometry
+    from neld_jax.frontend import odometry
 
     real_load, real_odometry = run_module.load_sessions, odometry.with_kiss_icp_poses
 
@@ -210,7 +210,7 @@ def kiss_icp_poses(raw, min_range_m: float, max_range_m: float):
     world at the sweeps' stamps, scan 0 at the identity; seconds)."""
     from kiss_icp.kiss_icp import KissICP
 
-    from neld_jax.data.odometry import kiss_icp_config
+    from neld_jax.frontend.odometry import kiss_icp_config
 
     t0 = time.perf_counter()
     odometry, poses = KissICP(kiss_icp_config(min_range_m, max_range_m, deskew=raw.point_times is not None)), []
@@ -225,7 +225,7 @@ def kiss_icp_poses(raw, min_range_m: float, max_range_m: float):
 def at_the_stamps(raw, poses: np.ndarray) -> np.ndarray:
     """KISS-ICP's (or KISS-SLAM's) poses [S, 4, 4] of the sweeps of Sequence `raw` moved to the sweeps' stamps (where
     deskewed, a pose is the sensor's at its sweep's last point), scan 0 at the identity."""
-    from neld_jax.data.odometry import last_point_offsets, poses_at_stamps
+    from neld_jax.frontend.odometry import last_point_offsets, poses_at_stamps
 
     if raw.point_times is not None and raw.timestamps is not None and raw.num_scans >= 2:
         poses = poses_at_stamps(raw.timestamps, last_point_offsets(raw.point_times), poses)
@@ -240,7 +240,7 @@ def kiss_slam_poses(raw, min_range_m: float, max_range_m: float, splitting_m: fl
     from kiss_slam.config import KissSLAMConfig
     from kiss_slam.slam import KissSLAM
 
-    from neld_jax.data.odometry import VOXELS_PER_RANGE
+    from neld_jax.frontend.odometry import VOXELS_PER_RANGE
 
     config = KissSLAMConfig()  # its defaults; the range-derived voxel as its load_config derives it
     config.odometry.preprocessing.min_range = float(min_range_m)
@@ -273,7 +273,7 @@ def run_baseline_here(config, loaded, keyframes, path_dir: str):
     """The classical baseline from the keyframes' poses (as neld-baseline), its poses of every input sweep written to
     path_dir/poses_baseline.txt. Returns its registration seconds."""
     from neld_jax.baseline import BaselineSettings, register_sequence
-    from neld_jax.export import write_keyframe_poses
+    from neld_jax.writing.export import write_keyframe_poses
 
     t0 = time.perf_counter()
     poses = register_sequence(keyframes.scans, keyframes.poses, BaselineSettings.from_config(config)).poses
@@ -286,7 +286,7 @@ def peer_ranges(config, mode: str) -> dict:
     """The ranges KISS-ICP and KISS-SLAM run with: mode "own", KISS-ICP's KISSConfig defaults (KISS-SLAM's odometry
     has the same); "run", the run's data.min_range_m and data.max_range_m. Returns {"mode", "min_range_m",
     "max_range_m", "voxel_m"} (the voxel a hundredth of the maximum range, as their pipelines derive it)."""
-    from neld_jax.data.odometry import VOXELS_PER_RANGE
+    from neld_jax.frontend.odometry import VOXELS_PER_RANGE
 
     if mode == "own":
         from kiss_icp.config import KISSConfig
@@ -303,7 +303,7 @@ def peer_ranges(config, mode: str) -> dict:
 def run_peers(seen: dict, ranges: dict, out: str, rows: dict, files: dict, name: str) -> None:
     """KISS-ICP and KISS-SLAM over the raw sweeps the run read (seen["raw"]) with `ranges` (peer_ranges): their poses
     written below out, their files into `files`, wall time (or why not) into their rows."""
-    from neld_jax.export import write_poses
+    from neld_jax.writing.export import write_poses
 
     if "raw" not in seen:
         rows["kiss_icp"]["status"] = "not run: the layout gave the run its poses"
@@ -332,7 +332,7 @@ def trajectory_figures(est: np.ndarray, gt: np.ndarray, lengths_m, step: int = 1
     (Sim(3)-aligned, the scale that takes the estimate to the ground truth: above 1 for a shortened path),
     path_ratio (the estimate's path length over the ground truth's), and KITTI's relative error over segments of
     lengths_m [m] from every step-th frame: kitti_t_pct (%), kitti_r_deg_per_m, kitti_segments."""
-    from neld_jax import metrics
+    from neld_jax.judging import metrics
 
     rigid, similar = metrics.ate(est, gt, align="se3"), metrics.ate(est, gt, align="sim3")
     kitti = metrics.kitti_relative_error(est, gt, lengths_m, step)
@@ -351,7 +351,7 @@ def evaluated_poses(path: str, loaded, from_scan: int = 0) -> tuple[np.ndarray, 
     """A TUM file's poses matched by stamp to the input sweeps of `loaded` that have ground truth, from sweep index
     from_scan on, in time order: (est [K, 4, 4], gt [K, 4, 4]); a ValueError when fewer than 3 are left."""
     from neld_jax.data.poses import read_tum
-    from neld_jax.evaluate import match_poses
+    from neld_jax.writing.evaluate import match_poses
 
     stamps, poses = read_tum(path)
     est, gt, _ = match_poses(stamps, loaded.timestamps, len(poses), len(loaded.gt_poses), path, 0.01)
@@ -364,7 +364,7 @@ def evaluated_poses(path: str, loaded, from_scan: int = 0) -> tuple[np.ndarray, 
 
 
 def run_sequence(name: str, root: str, range_m: float | None) -> dict:
-    from neld_jax.metrics import path_length
+    from neld_jax.judging.metrics import path_length
     from neld_jax.run import run
 
     out = os.path.join(WORK.value, name)
@@ -417,8 +417,8 @@ def run_sequence(name: str, root: str, range_m: float | None) -> dict:
 def crispness_rows(config, loaded, keyframes, files: dict, rows: dict, methods: list) -> None:
     """Into each method's row: the keyframes' raw map under its trajectory (entropy, thickness_cm, NeLD-BA's margin
     and verdict, on the same query draws), the raw map of every sweep (every_sweep_map) and its poses' file."""
-    from neld_jax import judge
-    from neld_jax.evaluate import trajectory_at_keyframes
+    from neld_jax.judging import judge
+    from neld_jax.writing.evaluate import trajectory_at_keyframes
 
     at_keyframes = {m: trajectory_at_keyframes(files[m], loaded, keyframes, tol=float(config.data.timestamp_tol_s))
                     for m in methods}
@@ -442,7 +442,7 @@ def poses_of_every_sweep(path: str, loaded):
     sweep's nearest within 0.01 s), else one pose a sweep in order; a sweep without one is a DataError."""
     from neld_jax.data.poses import read_tum
     from neld_jax.errors import DataError
-    from neld_jax.evaluate import match_poses
+    from neld_jax.writing.evaluate import match_poses
 
     stamps, poses = read_tum(path)
     est, at, _ = match_poses(stamps, loaded.timestamps, len(poses), loaded.num_scans, path, 0.01)
@@ -458,7 +458,7 @@ def every_sweep_crispness(loaded, methods: dict, eval_cfg) -> dict:
     every_scan_crispness's points of each) under each method's poses [S, 4, 4]: {method: {"entropy",
     "thickness_cm", and beside NeLD-BA's: "neld_ba_margin" (its paired margin over eval.crispness_draws draws,
     negative: NeLD-BA crisper), "neld_ba_margin_per_draw", "neld_ba_verdict"}}."""
-    from neld_jax import judge
+    from neld_jax.judging import judge
 
     crisp, margins = judge.every_scan_crispness(loaded.scans, methods, eval_cfg, against="neld_ba")
     out = {}

@@ -23,7 +23,7 @@ Per sequence (one JSON object each, also printed as a line):
   --drift_recipe=generic runs it with configs/generic.py instead, as a user's own data is run: keyframes by the caps
   (HKU_2's drifted copy: 50 of 266), every other scan registered to the result.
 - "every_scan_map" in each: the raw map of EVERY input scan, not only the keyframes trained on, under the input's,
-  the baseline's and NeLD-BA's poses of every scan, and NeLD-BA's margins (neld_jax.judge.every_scan_crispness).
+  the baseline's and NeLD-BA's poses of every scan, and NeLD-BA's margins (neld_jax.judging.judge.every_scan_crispness).
 - "targets": the targets for real recordings read off the two (benchmarks/real_targets.py): the recorded run within
   --minutes_limit
   minutes end to end, one line per input scan in poses_optimized.txt, its map crisper than the odometry's and than
@@ -100,11 +100,11 @@ def _ate(evaluation: dict, method: str):
 def every_scan_map(config, run_dir: str) -> dict:
     """The raw map of EVERY input scan of a finished run (config: its config) under its poses of every input scan
     (poses_{initial,baseline,optimized}.txt, where written): {"crispness": {method: entropy, thickness},
-    "margin": {other: NeLD-BA's paired margin over the query draws}} (neld_jax.judge.every_scan_crispness)."""
-    from neld_jax import judge
-    from neld_jax.data.formats import load_sequence
+    "margin": {other: NeLD-BA's paired margin over the query draws}} (neld_jax.judging.judge.every_scan_crispness)."""
     from neld_jax.data.poses import read_tum
     from neld_jax.errors import DataError
+    from neld_jax.judging import judge
+    from neld_jax.steps.inputs import load_sequence
 
     loaded = load_sequence(config.data)
     methods = {}
@@ -119,12 +119,12 @@ def every_scan_map(config, run_dir: str) -> dict:
 
 
 def run_sequence(name: str, root: str) -> dict:
-    from neld_jax.data.formats import load_sequence
     from neld_jax.data.poses import read_tum
-    from neld_jax.data.pseudo_gt import with_drift
-    from neld_jax.data.synthetic import write_generic
-    from neld_jax.metrics import ate
+    from neld_jax.judging.metrics import ate
     from neld_jax.run import run
+    from neld_jax.steps.inputs import load_sequence
+    from neld_jax.synthetic.generator import write_generic
+    from neld_jax.synthetic.pseudo_gt import with_drift
 
     entry = {"sequence": name, "recorded": {}}
     out = os.path.join(WORK.value, name)

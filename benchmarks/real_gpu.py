@@ -12,8 +12,8 @@ carry there); only training needs the GPU. --prepare takes a finished bin/train.
 its config.json names the sequence, its start_poses.npz holds the start the run chose, the classical baseline's
 poses or the input's) and writes what the gpu budget's training needs: the keyframes' training rays as sensor-frame
 points (the same seeded subset a run draws), the start, and the config of configs/lio_keyframes.py:gpu with the
-pose steps a run takes from that start (neld_jax.start). The default mode trains every prepared sequence there
-with neld_jax.refine.refine_keyframes, the step a run takes (it plans the cubes from the prepared points on the
+pose steps a run takes from that start (neld_jax.steps.start). The default mode trains every prepared sequence there
+with neld_jax.steps.refine.refine_keyframes, the step a run takes (it plans the cubes from the prepared points on the
 devices it finds), one after the other, and writes the keyframes' poses and the training's figures. --evaluate
 measures here, on the whole preprocessed keyframes, the raw map's crispness under the input's, the baseline's, the
 GPU's and the given run's own poses over eval.crispness_draws query draws, and writes poses_<method>.kitti / .txt
@@ -78,8 +78,8 @@ def run_config(run_dir: str, config_file: str, budget: str, overrides: list):
 
 def read_start(run_dir: str, input_poses: np.ndarray) -> tuple[np.ndarray, str, np.ndarray | None]:
     """The start a run trained from: (its poses [K, 4, 4], "baseline" | "input", the baseline's poses or None). A
-    run whose baseline did not run saved none (neld_jax.start.Start.save) and started from its input."""
-    from neld_jax.start import FILE
+    run whose baseline did not run saved none (neld_jax.steps.start.Start.save) and started from its input."""
+    from neld_jax.steps.start import FILE
 
     path = os.path.join(run_dir, FILE)
     if not os.path.isfile(path):
@@ -94,12 +94,12 @@ def read_start(run_dir: str, input_poses: np.ndarray) -> tuple[np.ndarray, str, 
 
 
 def pose_steps_for(config, keyframes, chosen: str, start_poses: np.ndarray):
-    """The pose steps a run takes from its start (neld_jax.start): the config's own from the input; from the
+    """The pose steps a run takes from its start (neld_jax.steps.start): the config's own from the input; from the
     baseline's poses capped, with the prior (heavier where the start's map is thinner than start.THIN_MAP_M) and
     the start's scale kept."""
-    from neld_jax import judge
-    from neld_jax.start import pose_steps_from_baseline
-    from neld_jax.train import PoseSteps
+    from neld_jax.judging import judge
+    from neld_jax.steps.start import pose_steps_from_baseline
+    from neld_jax.training.train import PoseSteps
 
     if chosen != "baseline":
         return PoseSteps.from_config(config)
@@ -119,10 +119,10 @@ def prepare(run_dir: str, name: str) -> dict:
     """Write DATA/<name>.pkl: what refine_keyframes needs, the keyframes' training rays as sensor-frame points."""
     import dataclasses
 
-    from neld_jax import submaps
-    from neld_jax.data.normalize import Normalization
-    from neld_jax.data.preprocess import load_keyframes
-    from neld_jax.data.rays import build_rays
+    from neld_jax.field.normalize import Normalization
+    from neld_jax.steps.inputs import load_keyframes
+    from neld_jax.training import submaps
+    from neld_jax.training.rays import build_rays
 
     config = run_config(run_dir, CONFIG.value, BUDGET.value, SET.value)
     _, keyframes = load_keyframes(config.data)
@@ -162,13 +162,14 @@ def add_missing_fields(config, defaults, prefix: str = "") -> list:
 
 
 def train_prepared(path: str, out_dir: str, max_seconds: float) -> dict:
-    """Train one prepared sequence as a run would (neld_jax.refine.refine_keyframes); writes OUT/<name>_trained.npz."""
+    """Train one prepared sequence as a run would (neld_jax.steps.refine.refine_keyframes); writes OUT/<name>_trained.npz."""
     import jax
     import ml_collections
 
-    from neld_jax import outputs, refine
     from neld_jax.config import apply_overrides, defaults
-    from neld_jax.train import PoseSteps
+    from neld_jax.steps import refine
+    from neld_jax.training.train import PoseSteps
+    from neld_jax.writing import outputs
 
     with open(path, "rb") as f:
         d = pickle.load(f)
@@ -218,10 +219,11 @@ def train_all(out_dir: str) -> list:
 def evaluate(run_dir: str, trained_path: str, out_dir: str) -> dict:
     """The raw map's crispness under each method's keyframe poses, over the query draws; poses files for every input
     scan in out_dir (as a run writes them), evaluation.json with the figures."""
-    from neld_jax import export, judge
     from neld_jax.data.poses import read_kitti
-    from neld_jax.data.preprocess import load_keyframes
+    from neld_jax.judging import judge
+    from neld_jax.steps.inputs import load_keyframes
     from neld_jax.trajectory import propagate_corrections
+    from neld_jax.writing import export
 
     config = run_config(run_dir, CONFIG.value, BUDGET.value, SET.value)
     loaded, seq = load_keyframes(config.data)
@@ -248,7 +250,7 @@ def evaluate(run_dir: str, trained_path: str, out_dir: str) -> dict:
         export.write_poses(out_dir, "poses_baseline", loaded.timestamps, propagate_corrections(
             loaded.poses, seq.loaded_index, baseline, loaded.timestamps))
     if seq.gt_poses is not None:  # a synthetic or pseudo-ground-truth sequence: the ATE too (SE(3)-aligned)
-        from neld_jax import metrics
+        from neld_jax.judging import metrics
 
         for method, poses in methods.items():
             ate = metrics.ate(poses, seq.gt_poses)

@@ -111,8 +111,8 @@ def split_in_two(root: str, work: str) -> list[str]:
 
 def own_alignment_ate(poses_file: str, visit) -> float | None:
     """ATE [m] of a visit's trajectory file (TUM) under its own SE(3) alignment to its ground truth."""
-    from neld_jax import metrics
     from neld_jax.data.poses import read_tum
+    from neld_jax.judging import metrics
 
     if visit is None:
         return None
@@ -149,7 +149,7 @@ def measure(visits: list, roots: list[str]) -> dict:
 
 def visit_keyframes(root: str):
     """(loaded, keyframes) of one visit as the runs read it (--config, --set)."""
-    from neld_jax.data.preprocess import load_keyframes
+    from neld_jax.steps.inputs import load_keyframes
 
     return load_keyframes(run_config(root, "").data)
 
@@ -181,9 +181,9 @@ def same_points_crispness(roots: list[str], work: str, merged_metrics: dict) -> 
     within --overlap_m of another visit's (per-keyframe means of the first draw)."""
     from types import SimpleNamespace
 
-    from neld_jax import judge
-    from neld_jax.evaluate import trajectory_at_keyframes
     from neld_jax.geometry import register_scans
+    from neld_jax.judging import judge
+    from neld_jax.writing.evaluate import trajectory_at_keyframes
 
     eval_cfg = run_config(roots[0], "").eval
     scans, merged, alone, labels, per_visit = [], [], [], [], []
@@ -246,7 +246,7 @@ def _cm(metres: float | None) -> str:
 def main(argv):
     del argv
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from neld_jax.data.synthetic import make_sequence, write_generic
+    from neld_jax.synthetic.generator import make_sequence, write_generic
 
     work = os.path.abspath(WORK.value)
     cfg = {"seed": SEED.value, "num_scans": NUM_SCANS.value, "gt_map_points": GT_MAP_POINTS.value}

@@ -25,7 +25,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 def stretch_figures(est, gt) -> dict:
     """est, gt: [K, 4, 4] matched poses -> {"ate_m", "sim3_scale", "path_ratio", "poses"}."""
-    from neld_jax import metrics
+    from neld_jax.judging import metrics
 
     return {"ate_m": round(metrics.ate(est, gt)["translation_rmse_m"], 4),
             "sim3_scale": round(metrics.ate(est, gt, align="sim3")["scale"], 5),
@@ -38,7 +38,7 @@ def matched(path: str, loaded):
     import numpy as np
 
     from neld_jax.data.poses import read_tum
-    from neld_jax.evaluate import match_poses
+    from neld_jax.writing.evaluate import match_poses
 
     stamps, poses = read_tum(path)
     est, gt, _ = match_poses(stamps, loaded.timestamps, len(poses), len(loaded.gt_poses), path, 0.01)

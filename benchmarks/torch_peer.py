@@ -8,7 +8,7 @@ torch is not a dependency of neld_jax (nor of its tests): install it beside it t
 
 The peer is written as research code usually is: an nn.Module MLP, the surrogate Fourier encoding as a
 torch.autograd.Function, torch.optim.Adam. It does the same work per step as the JAX step
-(neld_jax.train.make_step over one cube), at the same sizes: a uniform batch of rays, per-scan SE(3) corrections
+(neld_jax.training.train.make_step over one cube), at the same sizes: a uniform batch of rays, per-scan SE(3) corrections
 (exp, composed on the right of the initial pose), the cube interval (eq. 7), stratified coarse samples, NeLD-BA's fine
 samples in the bin before each coarse sample, one MLP evaluation per sample (the fine pass reuses the coarse
 densities, as in JAX; --reevaluate_coarse evaluates the coarse samples again in the fine pass, as a typical
@@ -47,7 +47,7 @@ flags.DEFINE_integer("torch_threads", 0, "torch.set_num_threads (0: torch's defa
 def build_peer(torch, sizes: dict, rays_np, T_init_np, device: str, reevaluate_coarse: bool, seed: int = 0):
     """The peer's model, optimiser and step(): all torch objects, built from the benchmark's sizes.
 
-    rays_np: a neld_jax.data.rays.RaySet (numpy); T_init_np: [S, 4, 4]. Returns (step, parameters) where
+    rays_np: a neld_jax.training.rays.RaySet (numpy); T_init_np: [S, 4, 4]. Returns (step, parameters) where
     step() runs one training step and returns the loss tensor.
     """
     nn, F = torch.nn, torch.nn.functional
@@ -254,7 +254,7 @@ def main(argv):
     runner = train_step.StepRunner(config, sizes, FLAGS.steps * FLAGS.repeats + 2, FLAGS.scans, FLAGS.rays_per_scan,
                                    FLAGS.seed)
     jax_loss = float(runner.run(1)["loss"])
-    from neld_jax.data.rays import sphere_scene_rays
+    from neld_jax.training.rays import sphere_scene_rays
 
     rays_np, T_np = sphere_scene_rays(FLAGS.scans, FLAGS.rays_per_scan, FLAGS.seed)  # the JAX runner's rays
     peers, warm = {}, {}

@@ -39,7 +39,7 @@ metrics are fetched), so the first chunk, which compiles, is left out; then it t
 steps (one jitted call each, as in the default mode). "ratio" is the median of the rounds' fit / step rates of
 wall time, "cpu_ratio" that of process CPU time (all threads; steadier where other jobs share the cores).
 
---viewer times train.fit with the hook a run with viz.live hands it (neld_jax.viewer: run.rrd and a gRPC server
+--viewer times train.fit with the hook a run with viz.live hands it (neld_jax.writing.viewer: run.rrd and a gRPC server
 on a local port, the training curves and the keyframes' poses at every log) against fit without it, in the same
 way, the order alternating between rounds; "slowdown" is the median of the rounds' plain / live rate less 1.
 
@@ -68,11 +68,11 @@ import ml_collections
 import numpy as np
 from absl import app, flags
 
-from neld_jax import submaps, train
 from neld_jax.config import defaults, with_budget
-from neld_jax.data.normalize import Normalization
-from neld_jax.data.rays import RaySet, sphere_scene_rays
+from neld_jax.field.normalize import Normalization
 from neld_jax.hugepages import reexec_with_huge_page_malloc
+from neld_jax.training import submaps, train
+from neld_jax.training.rays import RaySet, sphere_scene_rays
 
 logger = logging.getLogger(__name__)
 
@@ -536,13 +536,13 @@ def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, re
 def benchmark_viewer(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
                      num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0) -> dict:
     """Steps/s of train.fit with the live viewer's hook against fit without it, alternately (--viewer): the hook a
-    run with viz.live gets (neld_jax.viewer: run.rrd and a gRPC server on a free local port; the training curves and
-    the keyframes' poses at every log, as neld_jax.refine hands them over)."""
+    run with viz.live gets (neld_jax.writing.viewer: run.rrd and a gRPC server on a free local port; the training curves and
+    the keyframes' poses at every log, as neld_jax.steps.refine hands them over)."""
     import socket
     import tempfile
 
-    from neld_jax import viewer
-    from neld_jax.refine import posed
+    from neld_jax.steps.refine import posed
+    from neld_jax.writing import viewer
 
     runner, fit_config, plan_of, fit_steps, timed_steps = fit_setup(config, sizes, steps, repeats, log_every,
                                                                     num_scans, rays_per_scan, seed)

@@ -30,8 +30,8 @@ import os
 
 import ml_collections
 
-from neld_jax.data.synthetic import synthetic_defaults
 from neld_jax.errors import ConfigError
+from neld_jax.synthetic.generator import synthetic_defaults
 
 BUDGETS = ("paper", "gpu", "cpu")
 # (init, final) pose learning rates of poses that are already good: a recording's odometry, the baseline's poses
@@ -44,7 +44,7 @@ def defaults() -> ml_collections.ConfigDict:
     c.output_dir = "outputs/run"  # where the run writes (a rerun resumes from its checkpoints)
     c.seed = 0  # the field's initialisation, the rays drawn, the batches
     c.budget = "paper"  # the budget the preset applied (paper | gpu | cpu); a record, not read by the run
-    c.max_minutes = 0.0  # the whole run's wall-clock budget (neld_jax.budget); 0: none
+    c.max_minutes = 0.0  # the whole run's wall-clock budget (neld_jax.training.budget); 0: none
 
     c.data = ml_collections.ConfigDict()
     c.data.format = "generic"  # one of neld_jax.data.FORMATS
@@ -109,13 +109,13 @@ def defaults() -> ml_collections.ConfigDict:
     c.train.checkpoint_every = 5000  # steps
     c.train.log_every = 100  # steps a device call runs (the log, the progress bar and the clock move in these)
 
-    # Where training starts (neld_jax.start): the input, the classical baseline's poses, or the crisper of the two.
+    # Where training starts (neld_jax.steps.start): the input, the classical baseline's poses, or the crisper of the two.
     c.start = ml_collections.ConfigDict()
     c.start.poses = "input"  # input | baseline | crisper
     c.start.pose_lr_from_baseline = REFINE_POSE_LR  # from the baseline: pose learning rates at most these
     c.start.prior_from_baseline = 3000.0  # ... and a pull of each pose toward its start (0: none)
 
-    # Submaps (neld_jax.submaps): a sequence larger than one cube is split into overlapping windows of keyframes.
+    # Submaps (neld_jax.training.submaps): a sequence larger than one cube is split into overlapping windows of keyframes.
     # The settings marked (M > 1) apply to a plan of several submaps only; one cube keeps the run's own.
     c.submaps = ml_collections.ConfigDict()
     c.submaps.enabled = "auto"  # auto (when one cube's finest detail exceeds max_detail_m) | on | off
@@ -152,7 +152,7 @@ def defaults() -> ml_collections.ConfigDict:
     c.eval.crispness_queries = 10_000  # ... and query points
     c.eval.crispness_draws = 5  # draws of the query points that say how sure a comparison is (< 2: none)
 
-    # Rerun (neld_jax.viewer): the run's trajectories, maps and training, to look at in Rerun's viewer.
+    # Rerun (neld_jax.writing.viewer): the run's trajectories, maps and training, to look at in Rerun's viewer.
     c.viz = ml_collections.ConfigDict()
     c.viz.record = True  # write run.rrd in the output folder
     c.viz.live = False  # also serve the run on 127.0.0.1:9876 while it trains (`rerun rerun+http://...`)
@@ -164,9 +164,9 @@ def defaults() -> ml_collections.ConfigDict:
 # that they agree): the config imports neither the loaders (Open3D) nor the model (Flax).
 # ---------------------------------------------------------------------------------------------------------------
 
-# data.formats.FORMATS
+# neld_jax.steps.inputs.FORMATS
 FORMATS = ("generic", "fusionportable", "newer_college", "lio_keyframes", "hba", "kitti", "synthetic")
-START_POSES = ("input", "baseline", "crisper")  # neld_jax.start.CHOICES
+START_POSES = ("input", "baseline", "crisper")  # neld_jax.steps.start.CHOICES
 # data.scan_frame: the published frames of each format's ground truth (data.ground_truth.PUBLISHED_GT_FROM_SCAN)
 SCAN_FRAMES = {"fusionportable": ("body_imu", "ouster00"), "newer_college": ("os_sensor", "os_imu")}
 KISS_ICP = "kiss_icp"  # data.initial_poses that makes the poses from the scans (data.formats.KISS_ICP)

@@ -2,11 +2,11 @@
 judge (the answer: NeLD-BA's poses or, where they blurred it, the start's), write.
 
 Each step is a function in the module of its idea; `bin/train.py` (neld-train) calls `run`. The viewer
-(neld_jax.viewer) records what each step made to run.rrd, and streams it with viz.live. The config is the
+(neld_jax.writing.viewer) records what each step made to run.rrd, and streams it with viz.live. The config is the
 user's, written once to config.json and never changed; what the run decides (the start, the pose steps, a plan
 compressed to the time) is recorded in metrics.json. One clock, config.max_minutes, is shared by the steps
-(neld_jax.budget). A rerun with the same output_dir and configuration resumes from its last checkpoint and its
-saved start; one of another configuration stops before it writes anything (neld_jax.output_folder).
+(neld_jax.training.budget). A rerun with the same output_dir and configuration resumes from its last checkpoint and its
+saved start; one of another configuration stops before it writes anything (neld_jax.writing.output_folder).
 """
 
 from __future__ import annotations
@@ -16,10 +16,13 @@ import logging
 import jax
 import ml_collections
 
-from neld_jax import answer, mapping, output_folder, outputs, refine, register_scans, session_outputs, start, train
-from neld_jax.budget import TimeBudget
-from neld_jax.session_alignment import load_sessions
-from neld_jax.viewer import RunViewer
+from neld_jax.judging import answer
+from neld_jax.steps import mapping, refine, registration, start
+from neld_jax.steps.session_alignment import load_sessions
+from neld_jax.training import train
+from neld_jax.training.budget import TimeBudget
+from neld_jax.writing import output_folder, outputs, session_outputs
+from neld_jax.writing.viewer import RunViewer
 
 logger = logging.getLogger(__name__)
 
@@ -39,25 +42,25 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     """The steps of `run` in its prepared output folder."""
     config_hash = outputs.config_hash(config)
 
-    # 1. Load every input scan and the keyframes trained on; several recordings joined (neld_jax.session_alignment).
+    # 1. Load every input scan and the keyframes trained on; several recordings joined (neld_jax.steps.session_alignment).
     loaded, keyframes, recordings = load_sessions(config.data)
     budget = budget.reserving_registration(loaded.num_scans - keyframes.num_scans)  # step 5's share of the clock
     logger.info("budget %s on jax's %s backend: %s", config.budget, jax.default_backend(), budget.describe())
     viewer.log_input(loaded, keyframes)
 
     # 2. Choose the start: the input or the classical baseline's poses, and the pose steps from there
-    #    (neld_jax.start); a resumed run keeps the start its first run chose.
+    #    (neld_jax.steps.start); a resumed run keeps the start its first run chose.
     begin = start.Start.resumed(out_dir, config_hash, keyframes.poses)
     if begin is None:
         begin = start.choose_start(config, keyframes, budget.baseline_deadline(), progress, recordings)
         begin.save(out_dir, config_hash, keyframes.poses)
     viewer.log_start(loaded, keyframes, begin)
 
-    # 3. Train the field(s) and the poses (neld_jax.refine: one cube, or submaps for a sequence larger than one).
+    # 3. Train the field(s) and the poses (neld_jax.steps.refine: one cube, or submaps for a sequence larger than one).
     context = refine.TrainingContext(out_dir, config_hash, budget.training_seconds(), progress, viewer.training_hook())
     refined = refine.refine_keyframes(config, keyframes, begin.poses, begin.pose_steps, context)
 
-    # 4. Render the map (neld_jax.mapping).
+    # 4. Render the map (neld_jax.steps.mapping).
     render = None
     if config.mapping.enabled:
         m = config.mapping
@@ -67,13 +70,13 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
         viewer.log_rendered(render)
 
     # 5. Register every other input scan to the keyframes' refined map, from its interpolated correction.
-    registration = register_scans.register_every_scan(loaded, keyframes, refined.poses,
-                                                      register_scans.RegistrationSettings.from_config(config), progress,
+    registered = registration.register_every_scan(loaded, keyframes, refined.poses,
+                                                      registration.RegistrationSettings.from_config(config), progress,
                                                       budget.registration_deadline())
-    made = outputs.RunSteps(loaded, keyframes, begin, refined, render, registration)
+    made = outputs.RunSteps(loaded, keyframes, begin, refined, render, registered)
 
-    # 6. Judge the crispness; the answer: NeLD-BA's poses unless they blurred the start's (neld_jax.answer); write
-    #    poses, maps, per-scan report, metrics.json (neld_jax.outputs), each recording's (neld_jax.session_outputs).
+    # 6. Judge the crispness; the answer: NeLD-BA's poses unless they blurred the start's (neld_jax.judging.answer); write
+    #    poses, maps, per-scan report, metrics.json (neld_jax.writing.outputs), each recording's (neld_jax.writing.session_outputs).
     made, judged = answer.keep_the_better(made, outputs.judge_crispness(config, made, budget, progress))
     written = outputs.write_outputs(out_dir, config, made)
     T_all = written.trajectories["optimized"].poses

@@ -63,11 +63,11 @@ def make_tiny_config(output_dir: str = "", steps: int = 20):
 
 
 def fake_training_clock(monkeypatch, seconds_per_step: float = 1.0, compile_s: float = 5.0) -> list:
-    """Make neld_jax.train's clock a fake one that only the fused chunks move: `seconds_per_step` a step, plus
+    """Make neld_jax.training.train's clock a fake one that only the fused chunks move: `seconds_per_step` a step, plus
     `compile_s` on each jitted chunk's first call. Returns the clock, [seconds]."""
     import types
 
-    from neld_jax import train
+    from neld_jax.training import train
 
     clock = [0.0]
     monkeypatch.setattr(train, "time", types.SimpleNamespace(perf_counter=lambda: clock[0]))
@@ -91,7 +91,7 @@ def tiny_synthetic_sequence(num_scans: int = 4):
     """A synthetic Sequence of num_scans small scans (8 beams x 64 columns, 30 m scene, 5 m trajectory radius)."""
     import ml_collections
 
-    from neld_jax.data.synthetic import make_sequence
+    from neld_jax.synthetic.generator import make_sequence
 
     cfg = ml_collections.ConfigDict({"num_scans": num_scans, "num_beams": 8, "num_columns": 64,
                                      "gt_map_points": 1000, "scene_size_m": 30.0, "trajectory_radius_m": 5.0,
@@ -107,7 +107,7 @@ def first_sweeps_of_the_loop(num_sweeps: int, loop_sweeps: int = 300, seed: int 
     import numpy as np
 
     from neld_jax.data.sequence import Sequence
-    from neld_jax.data.synthetic import (
+    from neld_jax.synthetic.generator import (
         FOV_DEG,
         cast_sweep,
         loop_poses,
@@ -138,7 +138,7 @@ def similarity_scale(T_moved, T_start) -> float:
     (float64): how much a pose update scales the route."""
     import numpy as np
 
-    from neld_jax.metrics import ate_errors
+    from neld_jax.judging.metrics import ate_errors
 
     return ate_errors(np.asarray(T_moved, np.float64), np.asarray(T_start, np.float64), "sim3")[3] - 1.0
 
@@ -186,9 +186,9 @@ def sphere_plan(num_scans: int = 3, per_scan: int = 64, seed: int = 0, window: i
     units) as the trainer's data: one cube (window 0) or windows of `window` keyframes sharing `overlap`.
     Returns (rays, frames, plan, T [S, 4, 4]) with rays and frames on a mesh of the plan's size."""
 
-    from neld_jax import submaps, train
-    from neld_jax.data.normalize import Normalization
-    from neld_jax.data.rays import sphere_scene_rays
+    from neld_jax.field.normalize import Normalization
+    from neld_jax.training import submaps, train
+    from neld_jax.training.rays import sphere_scene_rays
 
     rays, T = sphere_scene_rays(num_scans, per_scan, seed, spread=0.2)
     if window:

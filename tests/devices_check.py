@@ -14,8 +14,8 @@ import numpy as np  # noqa: E402
 from conftest import make_tiny_config, sphere_plan  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
 
-from neld_jax import train  # noqa: E402
-from neld_jax.checkpoint import Checkpointer  # noqa: E402
+from neld_jax.training import train  # noqa: E402
+from neld_jax.training.checkpoint import Checkpointer  # noqa: E402
 
 
 def main(tmp: str) -> None:

@@ -8,7 +8,7 @@ import numpy as np
 from neld_jax.data.kitti import VERTICAL_ANGLE_OFFSET_DEG, corrected_elevations
 from neld_jax.data.poses import write_kitti
 from neld_jax.data.sequence import Sequence
-from neld_jax.data.synthetic import FOV_DEG, cast_scan, loop_poses, make_scene, spinning_lidar_directions
+from neld_jax.synthetic.generator import FOV_DEG, cast_scan, loop_poses, make_scene, spinning_lidar_directions
 
 # Velodyne -> camera 0 of the benchmark's sequences 04-10 (x forward, y left, z up -> x right, y down, z forward)
 VELODYNE_TO_CAMERA = np.array([

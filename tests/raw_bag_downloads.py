@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from neld_jax.data import fusionportable, newer_college
+from neld_jax.data.bags.raw_bags import write_lidar_bag
 from neld_jax.data.ground_truth import published_offset
 from neld_jax.data.poses import write_newer_college_csv, write_tum
-from neld_jax.data.raw_bags import write_lidar_bag
 from neld_jax.geometry import invert_poses
 
 

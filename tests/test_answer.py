@@ -1,4 +1,4 @@
-"""The run's answer (neld_jax.answer): NeLD-BA's poses unless they blurred the start's raw map on every query
+"""The run's answer (neld_jax.judging.answer): NeLD-BA's poses unless they blurred the start's raw map on every query
 draw; then the start's poses, and NeLD-BA's written beside them."""
 
 import dataclasses
@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from conftest import make_tiny_config
 
-from neld_jax import answer, run
+from neld_jax import run
 from neld_jax.data.poses import read_tum
+from neld_jax.judging import answer
 from neld_jax.lie import se3_exp_float64
 
 
@@ -71,7 +72,7 @@ def test_a_run_whose_training_blurred_its_start_answers_with_the_start(tmp_path,
     config = make_tiny_config(str(tmp_path / "run"), steps=4)
     config.data.synthetic.num_beams, config.data.synthetic.num_columns = 16, 256  # a map with surfaces to judge
     config.mapping.enabled = False
-    with caplog.at_level(logging.WARNING, logger="neld_jax.answer"):
+    with caplog.at_level(logging.WARNING, logger="neld_jax.judging.answer"):
         summary = run.run(config, progress=False)
     r = summary["run"]
     assert r["started_from"] == "input" and r["answer"] == "input"

@@ -31,10 +31,10 @@ from neld_jax.baseline import (
     register_sequence,
 )
 from neld_jax.data.preprocess import KeyframeSettings, preprocess
-from neld_jax.data.pseudo_gt import with_drift
-from neld_jax.data.synthetic import make_sequence
 from neld_jax.geometry import invert_poses, rotation_angles_deg
-from neld_jax.metrics import ate
+from neld_jax.judging.metrics import ate
+from neld_jax.synthetic.generator import make_sequence
+from neld_jax.synthetic.pseudo_gt import with_drift
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -231,7 +231,7 @@ def test_training_starts_from_the_baseline_of_config_baseline(drifted_sequence, 
     # start.poses=baseline: the run registers first, with config.baseline's settings, and trains from the result;
     # "input" trains from the loaded poses.
     from neld_jax.config import defaults
-    from neld_jax.start import choose_start
+    from neld_jax.steps.start import choose_start
 
     config = defaults()
     config.baseline.window, config.baseline.voxel_size_m = SETTINGS.window, SETTINGS.voxel_size_m

@@ -121,7 +121,7 @@ def test_step_runner_starts_from_the_trainers_state():
     does: the same initial params as fit starts from."""
     import functools
 
-    from neld_jax import train
+    from neld_jax.training import train
 
     config, sizes = bench.preset_sizes("cpu")
     sizes = dict(sizes, rays=16, coarse=4, guided=0, fine=2, width=8, depth=1)
@@ -156,7 +156,7 @@ def test_fit_mode_times_fit_and_the_bare_step_alternately():
 
 
 def test_viewer_mode_times_fit_with_and_without_the_live_hook(monkeypatch):
-    from neld_jax import viewer
+    from neld_jax.writing import viewer
 
     monkeypatch.setattr(viewer, "LIVE_PORT", viewer.LIVE_PORT)  # the benchmark picks a free port; restore it after
     config, sizes = bench.preset_sizes("cpu")
@@ -193,8 +193,8 @@ def test_gpu_suite_loads_the_prepared_demo_as_one_cube(tmp_path):
     one cube the trainer takes; the ATE of zero corrections is the start's."""
     import numpy as np
 
-    from neld_jax import metrics
-    from neld_jax.data.rays import sphere_scene_rays
+    from neld_jax.judging import metrics
+    from neld_jax.training.rays import sphere_scene_rays
 
     suite = _gpu_suite_module()
     rays, T = sphere_scene_rays(3, 32, seed=0)  # normalised: taken as metres at scale 0.5 about (1, 2, 3)

@@ -1,17 +1,17 @@
-"""The run's one clock (neld_jax.budget.TimeBudget): training's share and floor, the baseline's deadline, the map's
+"""The run's one clock (neld_jax.training.budget.TimeBudget): training's share and floor, the baseline's deadline, the map's
 seconds, the crispness draws' deadline, and no limit at 0 minutes."""
 
 import pytest
 
-from neld_jax.budget import JUDGING_S, WRITING_S, TimeBudget
 from neld_jax.config import defaults, with_budget
+from neld_jax.training.budget import JUDGING_S, WRITING_S, TimeBudget
 
 
 def _at(budget: TimeBudget, elapsed: float, monkeypatch) -> TimeBudget:
     """The budget as seen `elapsed` seconds after its start."""
-    import neld_jax.budget
+    import neld_jax.training.budget
 
-    monkeypatch.setattr(neld_jax.budget.time, "perf_counter", lambda: budget.started + elapsed)
+    monkeypatch.setattr(neld_jax.training.budget.time, "perf_counter", lambda: budget.started + elapsed)
     return budget
 
 
@@ -40,7 +40,7 @@ def test_zero_minutes_is_no_limit(monkeypatch):
 
 
 def test_registering_every_other_scan_is_kept_back_from_training(monkeypatch):
-    from neld_jax.budget import MAX_REGISTRATION_SHARE, REGISTRATION_S_PER_SCAN
+    from neld_jax.training.budget import MAX_REGISTRATION_SHARE, REGISTRATION_S_PER_SCAN
 
     b = TimeBudget(570.0, 60.0, 100.0).reserving_registration(100)
     assert b.registration_s == 100 * REGISTRATION_S_PER_SCAN

@@ -11,7 +11,7 @@ from ml_collections import config_flags
 from neld_jax import config as config_module
 from neld_jax.config import apply_overrides, count_fields, defaults, with_budget
 from neld_jax.errors import ConfigError
-from neld_jax.outputs import config_hash
+from neld_jax.writing.outputs import config_hash
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RECORDED_LAYOUTS = ("generic.py", "fusionportable.py", "newer_college.py", "lio_keyframes.py", "hba.py", "kitti.py")
@@ -46,7 +46,7 @@ def test_a_config_a_person_can_hold():
     body = source[source.index("def defaults()"):source.index("def with_budget(")]
     for path in _leaves(c.to_dict()):
         if path.startswith("data.synthetic."):
-            continue  # the generator's own fields (neld_jax.data.synthetic)
+            continue  # the generator's own fields (neld_jax.synthetic.generator)
         line = re.search(rf"^\s*c\.{re.escape(path)} = .*$", body, re.M)
         assert line and "#" in line.group(0), path
 
@@ -189,18 +189,20 @@ def test_every_field_has_a_rule_and_every_shipped_config_passes():
 
 
 def test_the_rules_choices_are_those_of_the_readers():
-    from neld_jax import field, start
-    from neld_jax.data import formats, ground_truth, synthetic
+    from neld_jax.data import formats, ground_truth
+    from neld_jax.field import density
+    from neld_jax.steps import inputs, start
+    from neld_jax.synthetic import generator
 
-    assert config_module.FORMATS == tuple(formats.FORMATS) and config_module.KISS_ICP == formats.KISS_ICP
+    assert config_module.FORMATS == inputs.FORMATS and config_module.KISS_ICP == formats.KISS_ICP
     assert config_module.START_POSES == start.CHOICES
-    assert config_module.RULES["model.matmul_dtype"].choices == field.MATMUL_DTYPES
+    assert config_module.RULES["model.matmul_dtype"].choices == density.MATMUL_DTYPES
     published = {}
     for (release, frame) in ground_truth.PUBLISHED_GT_FROM_SCAN:
         published.setdefault(release.replace("_2021", "").replace("_2020", ""), []).append(frame)
     assert {k: tuple(dict.fromkeys(v)) for k, v in published.items()} == config_module.SCAN_FRAMES
-    assert config_module.RULES["data.synthetic.max_range_m"].low == synthetic.MIN_RANGE_M
-    assert synthetic.PATH_WOBBLE == 0.08  # config._loop_fits
+    assert config_module.RULES["data.synthetic.max_range_m"].low == generator.MIN_RANGE_M
+    assert generator.PATH_WOBBLE == 0.08  # config._loop_fits
 
 
 @pytest.mark.parametrize("field, value, expected", [

@@ -6,8 +6,8 @@ import time
 import numpy as np
 import pytest
 
-from neld_jax.crispness import crispness, entropy_over_query_draws, per_scan_means, sample_queries
-from neld_jax.judge import (
+from neld_jax.judging.crispness import crispness, entropy_over_query_draws, per_scan_means, sample_queries
+from neld_jax.judging.judge import (
     crispest,
     crispest_over_draws,
     crispness_margins,
@@ -142,7 +142,7 @@ def test_the_margins_stop_drawing_at_the_runs_deadline(caplog):
     assert {name: len(v) for name, v in entropy_over_query_draws(
         {"a": wall, "b": wall}, [0, 1], 300, deadline=past).items()} == {"a": 0, "b": 0}
     summaries, _ = map_crispness(seq, methods, eval_cfg)
-    with caplog.at_level("WARNING", logger="neld_jax.judge"):
+    with caplog.at_level("WARNING", logger="neld_jax.judging.judge"):
         assert crispness_margins(seq, methods, eval_cfg, first_draw=summaries, deadline=past) == {}
     assert "1 of 4 query draws fit the run's clock" in caplog.text and "no margin without two" in caplog.text
     far = time.perf_counter() + 3600.0
@@ -155,7 +155,7 @@ def test_no_draw_starts_that_would_end_past_the_deadline(monkeypatch):
     reading, so a draw takes 5 s and the second would start at 10 s and end at 15 s)."""
     import types
 
-    from neld_jax import crispness as crispness_module
+    from neld_jax.judging import crispness as crispness_module
 
     readings = iter(np.arange(0.0, 100.0, 5.0))
     monkeypatch.setattr(crispness_module, "time", types.SimpleNamespace(perf_counter=lambda: float(next(readings))))
@@ -167,7 +167,7 @@ def test_no_draw_starts_that_would_end_past_the_deadline(monkeypatch):
 
 
 def test_each_maps_tree_is_built_once_for_all_draws(monkeypatch):
-    from neld_jax import crispness as crispness_module
+    from neld_jax.judging import crispness as crispness_module
 
     built, original = [], crispness_module.cKDTree
 
@@ -195,12 +195,12 @@ def test_query_sampling_and_per_scan_means():
 def test_a_run_names_the_crispest_poses_and_warns_when_they_are_not_its_own(caplog):
     summaries = {"initial": {"mean_map_entropy": -3.42}, "baseline": {"mean_map_entropy": -3.49},
                  "optimized": {"mean_map_entropy": -3.475}}
-    with caplog.at_level("WARNING", logger="neld_jax.judge"):
+    with caplog.at_level("WARNING", logger="neld_jax.judging.judge"):
         assert warn_if_not_crispest(summaries) == "baseline"
     assert "poses_baseline.txt" in caplog.text and "-3.490" in caplog.text and "-3.475" in caplog.text
     caplog.clear()
     summaries["optimized"]["mean_map_entropy"] = -3.5
-    with caplog.at_level("WARNING", logger="neld_jax.judge"):
+    with caplog.at_level("WARNING", logger="neld_jax.judging.judge"):
         assert warn_if_not_crispest(summaries) == "optimized"
     assert caplog.text == ""
     assert crispest({"initial": {"mean_map_entropy": None}}) is None
@@ -212,19 +212,19 @@ def test_the_crispest_poses_are_judged_over_the_query_draws_and_a_tie_is_not_war
                  "optimized": {"mean_map_entropy": -3.475}}
     tie = {"initial": margin_over_draws([-0.05, -0.04, -0.06, -0.05, -0.05]),
            "baseline": margin_over_draws([0.015, -0.002, -0.001, 0.001, -0.003])}
-    with caplog.at_level("INFO", logger="neld_jax.judge"):
+    with caplog.at_level("INFO", logger="neld_jax.judging.judge"):
         assert warn_if_not_crispest(summaries, margins=tie) == "baseline"  # the lower mean, but a tie
     assert "WARNING" not in caplog.text and "a tie" in caplog.text and "poses_baseline.txt" in caplog.text
     caplog.clear()
     # Every draw puts the baseline ahead: a warning, with the mean over the draws.
     ahead = dict(tie, baseline=margin_over_draws([0.015, 0.002, 0.001, 0.004, 0.003]))
-    with caplog.at_level("WARNING", logger="neld_jax.judge"):
+    with caplog.at_level("WARNING", logger="neld_jax.judging.judge"):
         assert warn_if_not_crispest(summaries, margins=ahead) == "baseline"
     assert "poses_baseline.txt" in caplog.text and "0.00500 on average over 5 query draws" in caplog.text
     caplog.clear()
     # The mean over the draws below every other method's: NeLD-BA's own poses, though draw 0 says otherwise.
     behind = dict(tie, baseline=margin_over_draws([0.001, -0.004, -0.003, -0.002, -0.004]))
-    with caplog.at_level("INFO", logger="neld_jax.judge"):
+    with caplog.at_level("INFO", logger="neld_jax.judging.judge"):
         assert warn_if_not_crispest(summaries, margins=behind) == "optimized"
     assert caplog.text == ""
     assert crispest_over_draws({}) is None

@@ -10,9 +10,9 @@ import numpy as np
 from conftest import tiny_synthetic_sequence
 
 from neld_jax.data.poses import write_kitti
-from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.scans import write_scan
 from neld_jax.lie import se3_exp_float64, se3_log_float64
+from neld_jax.synthetic.pseudo_gt import with_drift
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

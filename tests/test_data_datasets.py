@@ -9,7 +9,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neld_jax.config import defaults as base_config
-from neld_jax.data.formats import load_sequence
 from neld_jax.data.fusionportable import load_fusionportable
 from neld_jax.data.generic import load_generic
 from neld_jax.data.layout import align_poses
@@ -20,6 +19,7 @@ from neld_jax.data.scans import write_scan
 from neld_jax.data.sequence import Sequence, check_pose_jumps
 from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S, match_by_timestamp
 from neld_jax.errors import ConfigError, DataError
+from neld_jax.steps.inputs import load_sequence
 
 
 def make_poses(n, seed=0):

@@ -9,10 +9,10 @@ import pytest
 from conftest import tiny_synthetic_sequence
 
 from neld_jax.data import frames
-from neld_jax.data.formats import load_sequence
-from neld_jax.data.synthetic import write_generic
 from neld_jax.errors import DataError
 from neld_jax.geometry import transform_points
+from neld_jax.steps.inputs import load_sequence
+from neld_jax.synthetic.generator import write_generic
 
 
 def _registered(seq):

@@ -14,12 +14,12 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neld_jax.config import defaults as base_config
-from neld_jax.data.formats import load_sequence
 from neld_jax.data.ground_truth import published_offset
 from neld_jax.data.poses import rotation_to_quat, write_newer_college_csv, write_tum
 from neld_jax.data.scans import write_scan
 from neld_jax.errors import ConfigError, DataError
 from neld_jax.geometry import invert_poses
+from neld_jax.steps.inputs import load_sequence
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SEQ = "20220216_canteen_day"
@@ -198,7 +198,7 @@ def test_hba_layout(tmp_path):
 def test_fusionportable_download_to_train_end_to_end(tmp_path):
     """README's FusionPortable steps on a tiny synthetic sequence written in the devkit's layout: bin/train.py with
     configs/fusionportable.py reads it, finds the ground truth above the sequence folder and evaluates."""
-    from neld_jax.data.synthetic import make_sequence
+    from neld_jax.synthetic.generator import make_sequence
 
     syn = make_sequence(ml_collections.ConfigDict({"num_scans": 4, "num_beams": 8, "num_columns": 64,
                                                    "gt_map_points": 2000, "scene_size_m": 30.0,

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from neld_jax.data.normalize import Normalization, fit_normalization
 from neld_jax.data.preprocess import (
     KeyframeSettings,
     crop_range,
@@ -16,9 +15,10 @@ from neld_jax.data.preprocess import (
     select_keyframes,
     voxel_downsample,
 )
-from neld_jax.data.rays import build_rays
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
+from neld_jax.field.normalize import Normalization, fit_normalization
+from neld_jax.training.rays import build_rays
 
 
 def make_sequence(num_scans=5, points_per_scan=400, seed=0, timestamps=None):
@@ -133,7 +133,7 @@ def test_preprocess_scan_left_empty_is_an_error():
 def test_preprocess_scan_left_empty_names_its_file_and_time_after_keyframes(tmp_path):
     """The case to guard: after keyframe selection the index would point at the wrong scan; the file does not."""
     from neld_jax.data.generic import load_generic
-    from neld_jax.data.synthetic import write_generic
+    from neld_jax.synthetic.generator import write_generic
 
     times = np.array([0.0, 1.0, 3.0, 4.0, 6.0, 9.5])  # keyframes 0, 2 and 4
     src = make_sequence(num_scans=6, timestamps=times)

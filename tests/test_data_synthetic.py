@@ -8,7 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from neld_jax.data.generic import load_generic
 from neld_jax.data.preprocess import select_keyframes
-from neld_jax.data.synthetic import (
+from neld_jax.errors import ConfigError
+from neld_jax.synthetic.generator import (
     add_odometry_drift,
     car_drive,
     cast_scan,
@@ -20,7 +21,6 @@ from neld_jax.data.synthetic import (
     synthetic_defaults,
     write_generic,
 )
-from neld_jax.errors import ConfigError
 
 SMALL = {"num_scans": 4, "num_beams": 16, "num_columns": 128, "gt_map_points": 5000}
 

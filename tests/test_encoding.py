@@ -7,7 +7,7 @@ import pytest
 from conftest import encoded_dim
 from jax.test_util import check_grads
 
-from neld_jax.encoding import barf_window, fourier_encode
+from neld_jax.field.encoding import barf_window, fourier_encode
 
 NUM_FREQS = 5
 
@@ -128,7 +128,7 @@ def test_barf_window():
 def test_sin_pi_matches_numpy_in_float64():
     """The polynomial sin(pi t) of the encoding, and cos(pi t) = sin(pi (t + 1/2)), against numpy over a wide
     range incl. half-integers and negatives; its derivative is pi cos(pi t), also in forward mode."""
-    from neld_jax.encoding import sin_pi
+    from neld_jax.field.encoding import sin_pi
 
     with jax.enable_x64(True):
         t = np.concatenate([np.linspace(-600.0, 600.0, 200_001), np.arange(-40, 41) / 2.0, [-0.25, 0.25, 1e-9]])

@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from neld_jax import export
 from neld_jax.data.poses import write_kitti, write_tum
 from neld_jax.errors import DataError
-from neld_jax.evaluate import (
+from neld_jax.writing.evaluate import (
     RunArtifacts,
     Trajectory,
     evaluate,
@@ -23,6 +22,7 @@ from neld_jax.evaluate import (
     map_files,
     match_poses,
 )
+from neld_jax.writing import export
 
 REPO = Path(__file__).resolve().parents[1]
 

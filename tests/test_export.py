@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from neld_jax import export
 from neld_jax.data.poses import read_kitti, read_tum
 from neld_jax.data.scans import read_scan
 from neld_jax.errors import DataError
 from neld_jax.geometry import register_scans
+from neld_jax.writing import export
 
 
 def _poses(num=5, seed=0):

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from conftest import encoded_dim
 
-from neld_jax.encoding import barf_window
-from neld_jax.field import DensityField
+from neld_jax.field.density import DensityField
+from neld_jax.field.encoding import barf_window
 
 SMALL = dict(width=32, depth=3, skip_layers=(2,), pos_freqs=6, dir_freqs=2)
 
@@ -119,7 +119,7 @@ def test_field_from_config_sets_every_architecture_field():
     import dataclasses
 
     from neld_jax.config import defaults
-    from neld_jax.field import field_from_config
+    from neld_jax.field.density import field_from_config
 
     model = defaults().model
     names = {"surrogate": "surrogate_gradient"}

@@ -1,5 +1,7 @@
-"""The package's layers (docs/design.md): imports only go down and never in a circle; the maths, the model and the
-trainer import no I/O library; the training step of a run needs no open3d (a GPU image has none)."""
+"""The package's wings (docs/design.md, "Layout"): imports only go down and never in a circle; the field and
+training import no I/O library; data imports neither the front-end nor the synthetic generator; no wing imports the
+steps or the run; at most ten loose modules and no two modules of one name; the training step of a run needs no
+open3d (a GPU image has none)."""
 
 import ast
 import os
@@ -9,19 +11,24 @@ import sys
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PACKAGE = os.path.join(REPO, "neld_jax")
 
-# From the bottom: a module may import its own layer and the ones below, never one above.
+# The wings from the bottom: a module may import its own wing and the ones below, never one above. The loose
+# modules of neld_jax/ are the foundations (errors, jsonable, geometry, lie, trajectory) and the edge (config, cli,
+# hugepages, run); commands/ are the entry points.
 LAYERS = [
-    ("foundations", {"errors", "jsonable", "geometry"}),
-    ("maths", {"lie", "encoding", "sampling", "rendering", "losses"}),
-    ("model", {"field", "model"}),
-    ("trainer", {"train", "checkpoint"}),
+    ("foundations", {"errors", "jsonable", "geometry", "lie", "trajectory"}),
     ("data", {"data"}),
-    ("library", {"config", "submaps", "crispness", "metrics", "trajectory", "report", "judge", "baseline", "budget",
-                 "session_alignment"}),
-    ("steps", {"refine", "mapping", "start", "register_scans", "answer"}),
-    ("edge", {"run", "outputs", "output_folder", "export", "evaluate", "plots", "viewer", "cli", "hugepages",
-              "commands", "session_outputs"}),
+    ("field", {"field"}),
+    ("training", {"training"}),
+    ("frontend", {"frontend"}),
+    ("synthetic", {"synthetic"}),
+    ("judging", {"judging"}),
+    ("baseline", {"baseline"}),
+    ("writing", {"writing"}),
+    ("steps", {"steps"}),
+    ("edge", {"config", "cli", "hugepages", "run", "commands"}),
 ]
+LOOSE_AT_MOST = 10  # modules in neld_jax/ itself, __init__.py included
+IO_LIBRARIES = ("open3d", "scipy", "matplotlib", "rosbags", "kiss_icp", "rerun", "map_closures")
 
 
 def _modules() -> dict[str, str]:
@@ -96,18 +103,41 @@ def _imports_without(blocked: tuple, code: str):
     return subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
 
 
-def test_the_maths_model_and_trainer_import_no_io_library():
-    code = ("import neld_jax.train, neld_jax.model, neld_jax.checkpoint, neld_jax.losses, neld_jax.sampling\n"
-            "bad = [m for m in sys.modules if m.split('.')[0] in ('open3d', 'scipy', 'matplotlib')]\n"
-            "assert not bad, bad\nprint('ok')")
-    result = _imports_without(("open3d", "scipy", "matplotlib"), code)
-    assert result.returncode == 0 and result.stdout.strip() == "ok", result.stderr[-2000:]
+def test_the_field_and_training_import_no_io_library():
+    names = sorted(m for m in _modules() if m.split(".")[1:2] in (["field"], ["training"]))
+    code = (f"import {', '.join(names)}\n"
+            f"bad = [m for m in sys.modules if m.split('.')[0] in {IO_LIBRARIES!r}]\nassert not bad, bad\nprint('ok')")
+    result = _imports_without(IO_LIBRARIES, code)
+    assert len(names) > 10 and result.returncode == 0 and result.stdout.strip() == "ok", result.stderr[-2000:]
+
+
+def test_data_imports_neither_the_frontend_nor_the_synthetic_generator():
+    modules = _modules()
+    wrong = [f"{a} imports {b}" for a, path in modules.items() if a.startswith("neld_jax.data")
+             for b in _imports(path, modules) if b.startswith(("neld_jax.frontend", "neld_jax.synthetic"))]
+    assert not wrong, wrong
+
+
+def test_no_wing_imports_the_steps_or_the_run():
+    modules = _modules()
+    edge = ("neld_jax.steps", "neld_jax.run", "neld_jax.commands", "neld_jax.cli")
+    wrong = [f"{a} imports {b}" for a, path in modules.items() if not a.startswith(edge)
+             for b in _imports(path, modules) if b.startswith(("neld_jax.steps", "neld_jax.run"))]
+    assert not wrong, wrong
+
+
+def test_few_loose_modules_and_no_two_modules_share_a_name():
+    loose = [name for name in os.listdir(PACKAGE) if name.endswith(".py")]
+    assert len(loose) <= LOOSE_AT_MOST, sorted(loose)
+    names = [m.rsplit(".", 1)[-1] for m in _modules() if ".commands." not in m and m.count(".") >= 1]
+    shared = sorted({n for n in names if names.count(n) > 1})
+    assert not shared, shared
 
 
 def test_the_training_step_of_a_run_imports_without_open3d():
     """refine.refine_keyframes is what a GPU image without open3d runs (benchmarks/real_gpu.py); the config too."""
-    code = ("import neld_jax.refine, neld_jax.config, neld_jax.mapping\n"
-            "assert callable(neld_jax.refine.refine_keyframes) and neld_jax.config.synthetic('cpu').budget == 'cpu'\n"
+    code = ("import neld_jax.steps.refine, neld_jax.config, neld_jax.steps.mapping\n"
+            "assert callable(neld_jax.steps.refine.refine_keyframes) and neld_jax.config.synthetic('cpu').budget == 'cpu'\n"
             "print('ok')")
     result = _imports_without(("open3d",), code)
     assert result.returncode == 0 and result.stdout.strip() == "ok", result.stderr[-2000:]

@@ -5,8 +5,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from neld_jax import encoding, lie, losses, rendering, sampling
-from neld_jax.field import DensityField
+from neld_jax import lie
+from neld_jax.field import encoding, losses, rendering, sampling
+from neld_jax.field.density import DensityField
 
 # Inputs built with numpy (float32): no eager JAX work at import.
 R, N, NF = 4, 8, 6

@@ -8,11 +8,11 @@ import pytest
 from conftest import make_tiny_config, train_a_download_briefly
 from kitti_layout import VELODYNE_TO_CAMERA, rigid_scans, write_kitti_download
 
-from neld_jax import metrics
-from neld_jax.data.formats import load_sequence
 from neld_jax.data.kitti import camera_to_lidar, corrected_elevations, load_kitti, read_calibration
 from neld_jax.data.poses import read_tum
 from neld_jax.errors import DataError
+from neld_jax.judging import metrics
+from neld_jax.steps.inputs import load_sequence
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ from conftest import make_tiny_config
 
 from neld_jax import lie, run
 from neld_jax.data.poses import read_kitti, read_tum
-from neld_jax.data.synthetic import make_sequence, write_generic
+from neld_jax.synthetic.generator import make_sequence, write_generic
 
 SCENE = {"num_scans": 6, "num_beams": 32, "num_columns": 512, "gt_map_points": 1000, "scene_size_m": 40.0,
          "trajectory_radius_m": 6.0, "max_range_m": 30.0, "range_noise_m": 0.0}

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from neld_jax import losses
+from neld_jax.field import losses
 
 
 @pytest.fixture(autouse=True)

@@ -1,4 +1,4 @@
-"""The rendered map (neld_jax.mapping): every ray by default, a uniform sample of them under a time limit, one cube
+"""The rendered map (neld_jax.steps.mapping): every ray by default, a uniform sample of them under a time limit, one cube
 or several stitched, points in the world."""
 
 import dataclasses
@@ -6,10 +6,11 @@ import dataclasses
 import numpy as np
 from conftest import make_tiny_config, sphere_plan
 
-from neld_jax import mapping, train
-from neld_jax.data.rays import sphere_scene_rays
-from neld_jax.mapping import render_map, render_order
-from neld_jax.refine import Refined
+from neld_jax.steps import mapping
+from neld_jax.steps.mapping import render_map, render_order
+from neld_jax.steps.refine import Refined
+from neld_jax.training import train
+from neld_jax.training.rays import sphere_scene_rays
 
 
 def _refined(window: int = 0, num_scans: int = 4):

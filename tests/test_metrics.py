@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from neld_jax import metrics
 from neld_jax.data.poses import write_tum
 from neld_jax.geometry import rotation_angles_deg, transform_points
+from neld_jax.judging import metrics
 
 
 def _random_trajectory(rng, num_poses=40):

@@ -1,4 +1,4 @@
-"""The forward model (neld_jax.model): pose gradients stay finite and smooth for every ray direction."""
+"""The forward model (neld_jax.field.model): pose gradients stay finite and smooth for every ray direction."""
 
 import jax
 import jax.numpy as jnp
@@ -7,8 +7,8 @@ from conftest import encoded_dim
 
 from neld_jax import lie
 from neld_jax import lie as _lie
-from neld_jax.field import DensityField
-from neld_jax.model import SamplerSettings, corrected_poses, render_rays, world_poses, world_rays
+from neld_jax.field.density import DensityField
+from neld_jax.field.model import SamplerSettings, corrected_poses, render_rays, world_poses, world_rays
 
 SAMPLER = SamplerSettings(num_coarse=16, num_fine=8, z_low=0.01, z_up=4.0)
 FIELD = DensityField(width=32, depth=2, skip_layers=(1,), pos_freqs=4, dir_freqs=4)
@@ -61,7 +61,7 @@ def test_view_input_is_the_world_direction():
 def test_a_shared_correction_is_the_same_motion_in_every_cube():
     # The pose row of a keyframe is a right (body-frame) correction; a cube's normalisation x -> s (x - o) scales
     # its translation part by s / s_ref (rho_factor), so every cube that holds the scan moves it the same in the world.
-    from neld_jax.data.normalize import Normalization
+    from neld_jax.field.normalize import Normalization
 
     rng = np.random.default_rng(0)
     T = np.asarray(lie.se3_exp(rng.normal(0, 0.5, (3, 6))), np.float64)

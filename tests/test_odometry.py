@@ -1,4 +1,4 @@
-"""Scans without poses (neld_jax.data.odometry): KISS-ICP makes the initial poses from raw 10 Hz sweeps, in two
+"""Scans without poses (neld_jax.frontend.odometry): KISS-ICP makes the initial poses from raw 10 Hz sweeps, in two
 passes deskewed by their points' own times and put on the sweeps' stamps; it registers within the sensor's range
 measured on the scans while the scans it returns keep the field's crop; a lost track is
 one clear error line naming the scan; a run from scans alone writes the odometry as poses_odometry.txt; the
@@ -16,12 +16,13 @@ from raw_bag_downloads import (
     write_newer_college_download,
 )
 
-from neld_jax import metrics, run
-from neld_jax.data import odometry
-from neld_jax.data.formats import load_sequence
+from neld_jax import run
 from neld_jax.data.poses import read_tum
-from neld_jax.data.synthetic import loop_poses, make_sequence, write_generic
 from neld_jax.errors import DataError
+from neld_jax.frontend import odometry
+from neld_jax.judging import metrics
+from neld_jax.steps.inputs import load_sequence
+from neld_jax.synthetic.generator import loop_poses, make_sequence, write_generic
 
 # 40 raw sweeps at 10 Hz, 2.1 m/s round a 10 m loop (0.2 m a sweep), 32 beams x 512 columns, 40 m range
 SWEEPS = {"num_scans": 300, "trajectory_radius_m": 10.0, "max_range_m": 40.0, "gt_map_points": 0}
@@ -107,7 +108,7 @@ def test_kiss_icp_registers_within_the_sensors_range_and_the_scans_keep_the_fiel
     rigid = dataclasses.replace(sweeps, point_times=None)
     assert 39.5 < odometry.sensor_range_m(rigid.scans) <= 40.0  # the synthetic sensor's 40 m (measured 39.95)
     assert odometry.sensor_range_m([4.0 * scan for scan in rigid.scans]) == 100.0  # at most KISS-ICP's default
-    with caplog.at_level(logging.INFO, logger="neld_jax.data.odometry"):
+    with caplog.at_level(logging.INFO, logger="neld_jax.frontend.odometry"):
         posed = odometry.with_kiss_icp_poses(rigid, 2.0, 20.0, progress=False)
     assert "KISS-ICP registers the points within 39.9 m (measured: the 99.9th percentile of the point distances of 8 " \
            "scans evenly spaced, at most KISS-ICP's default 100 m), voxel 0.40 m" in caplog.text
@@ -116,7 +117,7 @@ def test_kiss_icp_registers_within_the_sensors_range_and_the_scans_keep_the_fiel
     assert distances.min() >= 2.0 and distances.max() <= 20.0  # the field's crop, not KISS-ICP's range
     assert metrics.ate(posed.poses, posed.gt_poses)["translation_rmse_m"] < 0.1
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="neld_jax.data.odometry"):
+    with caplog.at_level(logging.INFO, logger="neld_jax.frontend.odometry"):
         assert odometry.registration_range_m(rigid, 30.0) == 30.0
     assert "within 30.0 m (given), voxel 0.30 m" in caplog.text
 
@@ -167,7 +168,7 @@ def test_a_handheld_walk_that_kiss_icp_loses_is_registered_again(caplog):
     # 2 Hz, 0.7 m and 40-50 degrees left or right from scan to scan after 8 scans looking ahead
     walk = make_sequence({"route": "handheld", "num_scans": 16, "max_range_m": 40.0, "gt_map_points": 0})
     labels = [f"s{i}" for i in range(walk.num_scans)]
-    with caplog.at_level(logging.INFO, logger="neld_jax.data.odometry"):
+    with caplog.at_level(logging.INFO, logger="neld_jax.frontend.odometry"):
         poses, _, _ = odometry.kiss_icp_odometry(walk.scans, None, labels, (0.5, 40.0))
     alone = metrics.ate(_kiss_icp_alone(walk.scans, 40.0), walk.gt_poses)["translation_rmse_m"]
     recovered = metrics.ate(poses, walk.gt_poses)["translation_rmse_m"]
@@ -193,7 +194,7 @@ def test_the_guesses_of_a_lost_scan_are_no_motion_constant_velocity_and_the_last
 
 def test_a_gap_in_the_stamps_is_named(caplog):
     stamps = np.r_[np.arange(10) * 0.1, 2.0 + np.arange(5) * 0.1]
-    with caplog.at_level(logging.WARNING, logger="neld_jax.data.odometry"):
+    with caplog.at_level(logging.WARNING, logger="neld_jax.frontend.odometry"):
         gaps = odometry.warn_about_gaps(stamps, [f"s{i}" for i in range(len(stamps))])
     assert gaps.tolist() == [10] and "s10: 1.10 s after the previous scan" in caplog.text
 

@@ -1,4 +1,4 @@
-"""The odometry checked by evidence that does not share its failure (neld_jax.data.odometry_check): sampled pairs of
+"""The odometry checked by evidence that does not share its failure (neld_jax.frontend.odometry_check): sampled pairs of
 consecutive scans registered globally from no guess agree with KISS-ICP's steps where it kept track; a path that
 slid is found and named, run again from the global steps, and refused in one line where it still disagrees."""
 
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from conftest import first_sweeps_of_the_loop
 
-from neld_jax import metrics
-from neld_jax.data import odometry, odometry_check
 from neld_jax.errors import DataError
+from neld_jax.frontend import odometry, odometry_check
+from neld_jax.judging import metrics
 
 NUM_SWEEPS = 40  # 10 Hz raw sweeps, 0.22 m apart round the 10 m loop, 32 beams, 40 m range
 RANGES, VOXEL_M = (0.0, 40.0), 0.4  # KISS-ICP's registration of them: its 0 m, the sensor's 40 m, a hundredth
@@ -61,7 +61,7 @@ def test_the_evidence_is_logged_in_one_line(loop, caplog):
     posed, sweeps, _ = loop
     rigid = dataclasses.replace(sweeps, scans=sweeps.scans[:8], point_times=None, timestamps=sweeps.timestamps[:8],
                                 gt_poses=sweeps.gt_poses[:8])
-    with caplog.at_level(logging.INFO, logger="neld_jax.data.odometry_check"):
+    with caplog.at_level(logging.INFO, logger="neld_jax.frontend.odometry_check"):
         odometry.with_kiss_icp_poses(rigid, 0.5, 40.0, progress=False, odometry_range_m=RANGES[1])
     line = re.search(r"KISS-ICP's steps against global registration from no guess: 7 pairs of consecutive scans "
                      r"checked, 7 converged \(fitness >= 0\.6\), 7 moving; KISS-ICP's step over the global step "
@@ -110,7 +110,7 @@ def test_kiss_icp_that_slid_from_rest_is_run_again_from_the_global_steps(caplog)
     # first step stops at a third of the way (measured 0.50 m against 1.60 m): the path is 15 % short, 1.15 m ATE
     fast = dataclasses.replace(first_sweeps_of_the_loop(12, 40), point_times=None)
     alone, _, _ = odometry.kiss_icp_odometry(fast.scans, None, _labels(12), RANGES, keep_sweeps=False)
-    with caplog.at_level(logging.INFO, logger="neld_jax.data.odometry_check"):
+    with caplog.at_level(logging.INFO, logger="neld_jax.frontend.odometry_check"):
         posed = odometry.with_kiss_icp_poses(fast, 0.5, 40.0, progress=False, odometry_range_m=RANGES[1])
     assert re.search(r"disagree with global registration .* 1 single steps slid .*\); scan 0 \(t=0\.000000\) to "
                      r"scan 1 \(t=0\.100000\): 0\.\d\d m against 1\.\d\d m", caplog.text), caplog.text

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from neld_jax import plots
+from neld_jax.writing import plots
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

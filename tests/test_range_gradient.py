@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from neld_jax import rendering, sampling
+from neld_jax.field import rendering, sampling
 
 BIG = 1e3  # density behind the surface (normalised units)
 # Transition width of the step: sharp against the coarse spacing (~0.06), resolvable by 16 fine samples in

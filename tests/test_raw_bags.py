@@ -1,4 +1,4 @@
-"""neld_jax.data.raw_bags: raw LiDAR sweeps read from ROS1 bags written with rosbags' writer (Ouster-style clouds),
+"""neld_jax.data.bags.raw_bags: raw LiDAR sweeps read from ROS1 bags written with rosbags' writer (Ouster-style clouds),
 and the FusionPortable / Newer College 2021 downloads (raw_bag_downloads) loaded by their format loaders."""
 
 import numpy as np
@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from neld_jax.config import defaults
 from neld_jax.data import fusionportable, newer_college
-from neld_jax.data.raw_bags import read_lidar_bag, write_lidar_bag
+from neld_jax.data.bags.raw_bags import read_lidar_bag, write_lidar_bag
 from neld_jax.errors import DataError
 
 T0 = 1_650_000_000.123456789
@@ -131,9 +131,9 @@ def test_newer_college_download_in_parts_loads_in_time_order(tmp_path):
 
 
 def test_import_without_odometry_writes_raw_sweeps_that_the_generic_loader_reads_with_times(tmp_path):
+    from neld_jax.data.bags.rosbag_import import ImportSettings, import_bag
     from neld_jax.data.generic import load_generic
     from neld_jax.data.poses import write_tum
-    from neld_jax.data.rosbag_import import ImportSettings, import_bag
 
     n = 3
     stamps, scans, times = _sweeps(n)

@@ -14,8 +14,8 @@ import pytest
 from conftest import tiny_synthetic_sequence
 
 from neld_jax.data.poses import read_kitti, write_kitti
-from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.scans import write_scan
+from neld_jax.synthetic.pseudo_gt import with_drift
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPT = os.path.join(REPO, "benchmarks", "real_gpu.py")
@@ -85,9 +85,9 @@ def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
     # The prepared points are the rays a run draws (the same seeded subset), to the packing's rounding.
     from configs.lio_keyframes import get_config
     from neld_jax.config import apply_overrides
-    from neld_jax.data.normalize import Normalization
-    from neld_jax.data.preprocess import load_keyframes
-    from neld_jax.data.rays import build_rays
+    from neld_jax.field.normalize import Normalization
+    from neld_jax.steps.inputs import load_keyframes
+    from neld_jax.training.rays import build_rays
 
     config = get_config("cpu")
     config.data.root = json.loads((run_dir / "config.json").read_text())["data"]["root"]
@@ -144,8 +144,8 @@ def test_prepare_names_a_run_of_another_sequence(finished_run, tmp_path):
     other = tmp_path / "other_run"
     other.mkdir()
     (other / "config.json").write_text((run_dir / "config.json").read_text())
-    from neld_jax.start import Start
-    from neld_jax.train import PoseSteps
+    from neld_jax.steps.start import Start
+    from neld_jax.training.train import PoseSteps
 
     Start(seq.poses[:3], "baseline", PoseSteps(), baseline_poses=seq.poses[:3], baseline_seconds=1.0,
           departure_m=0.0).save(str(other), "0" * 12, seq.poses[:3])

@@ -12,15 +12,15 @@ import pytest
 from conftest import tiny_synthetic_sequence
 from scipy.spatial.transform import Rotation
 
-from neld_jax import report
-from neld_jax.data.formats import load_sequence
 from neld_jax.data.lio_keyframes import load_lio_keyframes
 from neld_jax.data.poses import read_tum, write_kitti
 from neld_jax.data.preprocess import select_keyframes
-from neld_jax.data.pseudo_gt import with_drift
 from neld_jax.data.scans import write_scan
 from neld_jax.data.timing import read_times
 from neld_jax.errors import DataError
+from neld_jax.judging import report
+from neld_jax.steps.inputs import load_sequence
+from neld_jax.synthetic.pseudo_gt import with_drift
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -147,7 +147,7 @@ def test_the_report_flags_residuals_only_well_above_the_rest():
 
 
 def test_aligned_corrections_remove_the_trajectorys_rigid_motion():
-    from neld_jax.report import aligned_corrections
+    from neld_jax.judging.report import aligned_corrections
     T = np.tile(np.eye(4), (4, 1, 1))
     T[:, 0, 3] = np.arange(4.0)
     moved = T.copy()
@@ -240,7 +240,7 @@ def test_entropy_trajectory_benchmark_follows_the_poses(tmp_path):
 
 def _loaded_and_keyframes(root, keyframe_interval_s=0.0):
     from configs.lio_keyframes import get_config
-    from neld_jax.data.preprocess import load_keyframes
+    from neld_jax.steps.inputs import load_keyframes
 
     data = get_config("cpu").data
     data.root, data.keyframe_interval_s = str(root), keyframe_interval_s
@@ -250,7 +250,7 @@ def _loaded_and_keyframes(root, keyframe_interval_s=0.0):
 
 def test_another_trajectory_is_matched_to_the_keyframes_by_time_or_by_order(tmp_path):
     from neld_jax.data.poses import write_tum
-    from neld_jax.evaluate import trajectory_at_keyframes
+    from neld_jax.writing.evaluate import trajectory_at_keyframes
 
     seq = tiny_synthetic_sequence(6)
     _write_layout(tmp_path / "rec", seq, times=np.arange(6) * 1.0)
@@ -278,7 +278,7 @@ def test_another_trajectory_is_matched_to_the_keyframes_by_time_or_by_order(tmp_
 
 
 def test_judging_trajectories_finds_the_true_poses_crisper_on_every_draw():
-    from neld_jax.judge import judge_trajectories, margins_against
+    from neld_jax.judging.judge import judge_trajectories, margins_against
 
     seq = tiny_synthetic_sequence(6)
     eval_cfg = ml_collections.ConfigDict({"crispness_radius_m": 3.0, "crispness_queries": 800, "crispness_draws": 3})

@@ -1,4 +1,4 @@
-"""Every input scan registered to the result (neld_jax.register_scans): scans between keyframes, moved off their
+"""Every input scan registered to the result (neld_jax.steps.registration): scans between keyframes, moved off their
 true poses by a known perturbation, come back to the truth; a scan of another scene is refused and keeps its guess;
 the per-scan report carries the residual and the refusal."""
 
@@ -7,9 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from neld_jax import lie, register_scans, report
+from neld_jax import lie
 from neld_jax.data.sequence import Sequence
-from neld_jax.data.synthetic import make_sequence
+from neld_jax.judging import report
+from neld_jax.steps import registration
+from neld_jax.synthetic.generator import make_sequence
 
 SCENE = {"num_scans": 8, "num_beams": 16, "num_columns": 256, "gt_map_points": 1000, "scene_size_m": 40.0,
          "trajectory_radius_m": 6.0, "max_range_m": 30.0, "range_noise_m": 0.0}
@@ -35,13 +37,13 @@ def position_errors(T: np.ndarray, T_true: np.ndarray) -> np.ndarray:
 
 
 def test_perturbed_scans_between_keyframes_are_registered_back_to_the_truth(scene):
-    settings = register_scans.RegistrationSettings(max_range_m=30.0)
-    target = register_scans.map_cloud([scene.scans[k] for k in KEYFRAMES], scene.gt_poses[KEYFRAMES], settings)
+    settings = registration.RegistrationSettings(max_range_m=30.0)
+    target = registration.map_cloud([scene.scans[k] for k in KEYFRAMES], scene.gt_poses[KEYFRAMES], settings)
     others = np.setdiff1d(np.arange(scene.num_scans), KEYFRAMES)
     guesses = perturbed(scene.gt_poses[others], seed=1)
     assert position_errors(guesses, scene.gt_poses[others]).min() > 0.14
 
-    result = register_scans.register_to_map([scene.scans[s] for s in others], guesses, target, settings)
+    result = registration.register_to_map([scene.scans[s] for s in others], guesses, target, settings)
 
     assert result.registered.all(), result.flag
     assert position_errors(result.poses, scene.gt_poses[others]).max() < 0.02
@@ -52,23 +54,23 @@ def test_perturbed_scans_between_keyframes_are_registered_back_to_the_truth(scen
 
 
 def test_a_scan_of_another_scene_is_refused_and_keeps_its_guess(scene):
-    settings = register_scans.RegistrationSettings(max_range_m=30.0)
-    target = register_scans.map_cloud([scene.scans[k] for k in KEYFRAMES], scene.gt_poses[KEYFRAMES], settings)
+    settings = registration.RegistrationSettings(max_range_m=30.0)
+    target = registration.map_cloud([scene.scans[k] for k in KEYFRAMES], scene.gt_poses[KEYFRAMES], settings)
     elsewhere = make_sequence({**SCENE, "seed": 7, "num_scans": 2})
     guesses = scene.gt_poses[[1]]
 
-    result = register_scans.register_to_map(elsewhere.scans[:1], guesses, target, settings)
+    result = registration.register_to_map(elsewhere.scans[:1], guesses, target, settings)
 
-    assert result.flag[0] in (register_scans.POOR_FITNESS, register_scans.JUMP)
+    assert result.flag[0] in (registration.POOR_FITNESS, registration.JUMP)
     assert not result.registered[0]
     np.testing.assert_array_equal(result.poses[0], guesses[0])
 
 
 def test_too_few_points_are_refused(scene):
-    settings = register_scans.RegistrationSettings(max_range_m=30.0)
-    target = register_scans.map_cloud([scene.scans[0]], scene.gt_poses[:1], settings)
-    result = register_scans.register_to_map([scene.scans[1][:20]], scene.gt_poses[1:2], target, settings)
-    assert result.flag == [register_scans.TOO_FEW_POINTS] and np.isnan(result.residual_m[0])
+    settings = registration.RegistrationSettings(max_range_m=30.0)
+    target = registration.map_cloud([scene.scans[0]], scene.gt_poses[:1], settings)
+    result = registration.register_to_map([scene.scans[1][:20]], scene.gt_poses[1:2], target, settings)
+    assert result.flag == [registration.TOO_FEW_POINTS] and np.isnan(result.residual_m[0])
 
 
 def test_every_scan_but_the_keyframes_is_registered_from_its_interpolated_correction(scene):
@@ -80,9 +82,9 @@ def test_every_scan_but_the_keyframes_is_registered_from_its_interpolated_correc
     keyframes = dataclasses.replace(scene, scans=[scene.scans[k] for k in KEYFRAMES], poses=inputs[KEYFRAMES],
                                     timestamps=scene.timestamps[KEYFRAMES], gt_poses=scene.gt_poses[KEYFRAMES],
                                     source_index=KEYFRAMES)
-    settings = register_scans.RegistrationSettings(max_range_m=30.0)
+    settings = registration.RegistrationSettings(max_range_m=30.0)
 
-    result = register_scans.register_every_scan(loaded, keyframes, scene.gt_poses[KEYFRAMES], settings)
+    result = registration.register_every_scan(loaded, keyframes, scene.gt_poses[KEYFRAMES], settings)
 
     np.testing.assert_array_equal(result.tried, np.isin(np.arange(scene.num_scans), others))
     np.testing.assert_array_equal(result.poses[KEYFRAMES], scene.gt_poses[KEYFRAMES])
@@ -92,18 +94,18 @@ def test_every_scan_but_the_keyframes_is_registered_from_its_interpolated_correc
 
 def test_the_report_carries_the_residual_and_the_refusal():
     rows = [{"flag": ""}, {"flag": "residual"}, {"flag": ""}]
-    rows = report.add_registration(rows, np.array([np.nan, 0.01, 0.2]), ["", "", register_scans.POOR_FITNESS])
+    rows = report.add_registration(rows, np.array([np.nan, 0.01, 0.2]), ["", "", registration.POOR_FITNESS])
     assert [r["registration_residual_m"] for r in rows] == [None, 0.01, 0.2]
     assert [r["flag"] for r in rows] == ["", "residual", "unregistered (poor fitness)"]
 
 
 def test_scans_past_the_deadline_keep_their_guesses_flagged_out_of_time(scene):
-    settings = register_scans.RegistrationSettings(max_range_m=30.0)
-    target = register_scans.map_cloud([scene.scans[k] for k in KEYFRAMES], scene.gt_poses[KEYFRAMES], settings)
+    settings = registration.RegistrationSettings(max_range_m=30.0)
+    target = registration.map_cloud([scene.scans[k] for k in KEYFRAMES], scene.gt_poses[KEYFRAMES], settings)
     guesses = perturbed(scene.gt_poses[[1, 3]], seed=3)
 
-    result = register_scans.register_to_map([scene.scans[1], scene.scans[3]], guesses, target, settings,
+    result = registration.register_to_map([scene.scans[1], scene.scans[3]], guesses, target, settings,
                                             deadline=0.0)  # long past
 
-    assert result.flag == [register_scans.OUT_OF_TIME] * 2 and not result.registered.any()
+    assert result.flag == [registration.OUT_OF_TIME] * 2 and not result.registered.any()
     np.testing.assert_array_equal(result.poses, guesses)

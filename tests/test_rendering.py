@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from neld_jax import rendering
+from neld_jax.field import rendering
 
 composite = jax.jit(rendering.composite)
 depth_gradient = jax.jit(jax.grad(lambda sigma, z, z_far: jnp.sum(rendering.composite(sigma, z, z_far).depth)))
@@ -87,7 +87,7 @@ def test_map_range_uses_density_not_weight_and_guards_zero_spacing():
 
 
 def test_rendered_map_rays_per_scan_caps_the_sequence_total():
-    from neld_jax.data.rays import rays_per_scan
+    from neld_jax.training.rays import rays_per_scan
 
     assert rays_per_scan(0, 0, 10) is None  # every ray
     assert rays_per_scan(2048, 0, 266) == 2048  # only the per-scan limit

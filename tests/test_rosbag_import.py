@@ -1,4 +1,4 @@
-"""bin/import_rosbag.py and neld_jax.data.rosbag_import: small bags written with rosbags' own writers (ROS1 and
+"""bin/import_rosbag.py and neld_jax.data.bags.rosbag_import: small bags written with rosbags' own writers (ROS1 and
 ROS2), imported into the generic layout and read back with load_generic."""
 
 import json
@@ -12,8 +12,8 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
+from neld_jax.data.bags.rosbag_import import ImportSettings, cloud_xyz, import_bag
 from neld_jax.data.generic import load_generic
-from neld_jax.data.rosbag_import import ImportSettings, cloud_xyz, import_bag
 from neld_jax.errors import DataError
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -133,7 +133,7 @@ def test_world_frame_clouds_are_named_in_the_note_and_load_with_the_option(tmp_p
     # scans as they are and takes them with data.scans_in_world_frame.
     import ml_collections
 
-    from neld_jax.data.formats import load_sequence
+    from neld_jax.steps.inputs import load_sequence
 
     n = 24
     rng = np.random.default_rng(3)
@@ -263,10 +263,10 @@ def test_fastlio_bag_to_newer_college_2021_with_its_ground_truth(tmp_path):
     """README's Newer College steps up to training: FAST-LIO2's recorded topics imported, the downloaded base-frame
     ground truth put beside them, and configs/newer_college.py's loader matching it to the scans by time."""
     from neld_jax.config import defaults as base_config
-    from neld_jax.data.formats import load_sequence
     from neld_jax.data.ground_truth import published_offset
     from neld_jax.data.poses import write_newer_college_csv
     from neld_jax.geometry import invert_poses
+    from neld_jax.steps.inputs import load_sequence
 
     n = 4
     scans, poses, times = _scans(n), _poses(n), T0 + 0.1 * np.arange(n)

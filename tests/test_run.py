@@ -12,9 +12,13 @@ import numpy as np
 import pytest
 from conftest import free_gauge_config, make_tiny_config
 
-from neld_jax import baseline, budget, checkpoint, judge, output_folder, run, start, submaps
+from neld_jax import baseline, run
 from neld_jax.data.poses import read_kitti, read_tum
 from neld_jax.errors import ConfigError, DataError
+from neld_jax.judging import judge
+from neld_jax.steps import start
+from neld_jax.training import budget, checkpoint, submaps
+from neld_jax.writing import output_folder
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -227,7 +231,7 @@ def test_a_resumed_run_starts_from_the_baseline_poses_its_first_run_chose(tmp_pa
 def test_the_run_renders_its_map_within_the_time_its_budget_gives(tmp_path, monkeypatch):
     # The run asks the budget for the map's limit when the map starts, and the render keeps to it: a limit that has
     # already passed renders the first piece of the rays alone (a uniform sample, metrics.json).
-    from neld_jax import mapping
+    from neld_jax.steps import mapping
 
     asked = []
     monkeypatch.setattr(budget.TimeBudget, "render_seconds", lambda self: asked.append(self.elapsed()) or 1e-9)
@@ -304,7 +308,7 @@ def test_a_rerun_resumes_its_own_configuration_refuses_another_and_restarts_when
 
     # --restart: the earlier run's files go (the log names them; other files stay), and the run starts over.
     (out / "notes.txt").write_text("mine")
-    with caplog.at_level("WARNING", logger="neld_jax.output_folder"):
+    with caplog.at_level("WARNING", logger="neld_jax.writing.output_folder"):
         restarted = run.run(changed, progress=False, restart=True)["run"]
     assert "--restart: deleting" in caplog.text and "checkpoints/" in caplog.text and "metrics.json" in caplog.text
     assert "notes.txt" not in caplog.text and (out / "notes.txt").read_text() == "mine"

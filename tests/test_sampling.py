@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from neld_jax import sampling
+from neld_jax.field import sampling
 
 Z_LOW, Z_UP = 0.05, 3.0
 MARCH_STEP = 1e-3

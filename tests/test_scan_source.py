@@ -8,14 +8,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from neld_jax import register_scans
-from neld_jax.data import odometry
 from neld_jax.data.generic import load_generic
 from neld_jax.data.poses import write_tum
 from neld_jax.data.preprocess import KeyframeSettings, preprocess
 from neld_jax.data.scan_source import LazyScans, ScanFiles, is_lazy
 from neld_jax.data.scans import read_scan, write_scan
-from neld_jax.data.synthetic import make_sequence
+from neld_jax.frontend import odometry
+from neld_jax.steps import registration
+from neld_jax.synthetic.generator import make_sequence
 
 # 10 raw sweeps at 10 Hz round a 10 m loop, 16 beams x 256 columns: small, and moving enough to deskew
 SWEEPS = {"num_scans": 150, "num_beams": 16, "num_columns": 256, "trajectory_radius_m": 10.0, "max_range_m": 30.0,
@@ -84,8 +84,8 @@ def test_a_rigid_stream_is_cropped_as_kiss_icp_crops_it(on_disk):
 
 
 def _registered(loaded, keyframes):
-    settings = register_scans.RegistrationSettings(max_range_m=RANGES[1])
-    return register_scans.register_every_scan(loaded, keyframes, keyframes.gt_poses, settings)
+    settings = registration.RegistrationSettings(max_range_m=RANGES[1])
+    return registration.register_every_scan(loaded, keyframes, keyframes.gt_poses, settings)
 
 
 @pytest.fixture(scope="module")

@@ -10,15 +10,16 @@ import numpy as np
 import pytest
 from conftest import make_tiny_config
 
-from neld_jax import baseline, run, session_alignment, start
+from neld_jax import baseline, run
 from neld_jax.data import sessions as data_sessions
 from neld_jax.data.poses import read_tum
 from neld_jax.data.preprocess import KeyframeSettings, preprocess
 from neld_jax.data.sequence import Sequence
-from neld_jax.data.synthetic import make_sequence, write_generic
 from neld_jax.errors import DataError
 from neld_jax.geometry import invert_poses, rotation_angles_deg
-from neld_jax.session_outputs import shared_alignment_ate
+from neld_jax.steps import session_alignment, start
+from neld_jax.synthetic.generator import make_sequence, write_generic
+from neld_jax.writing.session_outputs import shared_alignment_ate
 
 SMALL_VISIT = dict(num_scans=12, num_columns=256, gt_map_points=0)
 

@@ -1,15 +1,15 @@
-"""The start policy (neld_jax.start): the input or the baseline's poses, the pose steps from there, how far the
+"""The start policy (neld_jax.steps.start): the input or the baseline's poses, the pose steps from there, how far the
 baseline departs, and the record a resume reads."""
 
 import numpy as np
 import pytest
 from conftest import make_tiny_config, tiny_synthetic_sequence
 
-from neld_jax import start
 from neld_jax.baseline import BaselineResult
 from neld_jax.config import recording
 from neld_jax.errors import ConfigError
-from neld_jax.train import PoseSteps
+from neld_jax.steps import start
+from neld_jax.training.train import PoseSteps
 
 
 def test_pose_steps_from_the_baseline_are_capped_held_and_keep_the_scale():

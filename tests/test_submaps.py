@@ -1,4 +1,4 @@
-"""The plan of cubes (neld_jax.submaps): one cube for a sequence it holds, else windows; the switch, the windows,
+"""The plan of cubes (neld_jax.training.submaps): one cube for a sequence it holds, else windows; the switch, the windows,
 the per-cube ray tensors, loop-closure submaps, and a run over submaps end to end. The trainer's side of submaps is
 in tests/test_train.py."""
 
@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from neld_jax import submaps
 from neld_jax.config import defaults
-from neld_jax.data.normalize import NORMALIZATION_MARGIN, fit_normalization
-from neld_jax.data.rays import sphere_scene_rays
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import ConfigError
+from neld_jax.field.normalize import NORMALIZATION_MARGIN, fit_normalization
+from neld_jax.training import submaps
+from neld_jax.training.rays import sphere_scene_rays
 
 
 def _line_of_scans(num_scans=12, spacing=5.0, radius=4.0, seed=0):
@@ -85,7 +85,7 @@ def test_switch_rule_and_log_line(caplog):
     c.submaps.max_detail_m = 0.1  # cubes of at most 46 m: a line of 12 scans 5 m apart (63 m) is split
     scans, poses = _line_of_scans(12)
     seq = Sequence(scans=scans, poses=poses, name="line")
-    with caplog.at_level(logging.INFO, logger="neld_jax.submaps"):
+    with caplog.at_level(logging.INFO, logger="neld_jax.training.submaps"):
         plan = submaps.plan_from_config(seq, c)
     assert plan.num_submaps > 1 and plan.window == submaps.max_window(*submaps.scan_bounds(scans, poses), 46.08, 0.1)
     assert any("split into" in r.message and f"{plan.num_submaps} submaps" in r.message for r in caplog.records)
@@ -95,7 +95,7 @@ def test_switch_rule_and_log_line(caplog):
     assert one.num_submaps == 1 and list(one.members[0]) == list(range(12)) and one.rho_factor[0] == 1.0
     assert one.norms[0].scale == one.ref_scale == norm.scale and np.allclose(one.norms[0].offset, norm.offset)
     c.submaps.max_detail_m, c.submaps.overlap = 0.01, 2  # 4.6 m cubes: not even one 8 m scan fits
-    with caplog.at_level(logging.WARNING, logger="neld_jax.submaps"):
+    with caplog.at_level(logging.WARNING, logger="neld_jax.training.submaps"):
         plan = submaps.plan_from_config(seq, c)
     assert plan.window == 3 and any("data.max_range_m" in r.message for r in caplog.records)
 
@@ -109,7 +109,7 @@ def test_max_submaps_lengthens_the_windows(caplog):
     free = submaps.plan_from_config(seq, c)
     assert free.num_submaps > 3
     c.submaps.max_submaps = 3
-    with caplog.at_level(logging.INFO, logger="neld_jax.submaps"):
+    with caplog.at_level(logging.INFO, logger="neld_jax.training.submaps"):
         capped = submaps.plan_from_config(seq, c)
     assert capped.num_submaps <= 3 and capped.window > free.window
     assert submaps.count_submaps(poses, capped.window - 1, 1, c.submaps.closure_radius_m) > 3  # the smallest such
@@ -176,7 +176,7 @@ def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_pat
 def test_long_courtyard_route_switches_submaps_on_by_itself():
     """The generic cpu config on the long synthetic route splits it without any submap flag."""
     from configs.generic import get_config
-    from neld_jax.data.synthetic import make_sequence
+    from neld_jax.synthetic.generator import make_sequence
 
     seq = make_sequence({"route": "courtyards", "route_length_m": 600.0, "num_scans": 100, "num_beams": 4,
                          "num_columns": 90, "max_range_m": 30.0, "gt_map_points": 0})

@@ -1,4 +1,4 @@
-"""Raw or deskewed, and per-point times from azimuths (neld_jax.data.sweep_times): scans without times are measured
+"""Raw or deskewed, and per-point times from azimuths (neld_jax.frontend.sweep_times): scans without times are measured
 (pairs registered rigidly and deskewed under each convention): the synthetic scene's rigid scans, and a handheld
 walk's at 2 Hz without stamps, are deskewed already; its raw sweeps are raw, with the convention they were cast with
 (mirrored or not); data.deskew overrides. On the raw sweeps, whose true times are known, the derived times are the
@@ -16,11 +16,10 @@ import pytest
 from conftest import first_sweeps_of_the_loop, make_tiny_config
 
 from neld_jax import config as config_module
-from neld_jax import metrics
-from neld_jax.data import odometry, sweep_times
-from neld_jax.data.formats import load_sequence
 from neld_jax.data.generic import POINT_TIMES_FOLDER
-from neld_jax.data.sweep_times import (
+from neld_jax.errors import ConfigError
+from neld_jax.frontend import odometry, sweep_times
+from neld_jax.frontend.sweep_times import (
     CONVENTIONS,
     VELODYNE,
     SweepConvention,
@@ -29,8 +28,9 @@ from neld_jax.data.sweep_times import (
     turn_fractions,
     with_azimuth_times,
 )
-from neld_jax.data.synthetic import make_sequence, write_generic
-from neld_jax.errors import ConfigError
+from neld_jax.judging import metrics
+from neld_jax.steps.inputs import load_sequence
+from neld_jax.synthetic.generator import make_sequence, write_generic
 
 # 20 raw sweeps at 10 Hz, 2.1 m/s round a 10 m loop (0.2 m a sweep), 32 beams x 512 columns, 40 m range
 SWEEPS = {"num_scans": 300, "trajectory_radius_m": 10.0, "max_range_m": 40.0, "gt_map_points": 0}
@@ -59,7 +59,13 @@ def velodyne_sweeps(sweeps):
 @pytest.fixture(scope="module")
 def rigid_scans(sweeps):
     """The same scene scanned rigidly (deskewed, as a front-end writes its scans) at the sweeps' stamps and poses."""
-    from neld_jax.data.synthetic import FOV_DEG, cast_scan, make_scene, spinning_lidar_directions, synthetic_defaults
+    from neld_jax.synthetic.generator import (
+        FOV_DEG,
+        cast_scan,
+        make_scene,
+        spinning_lidar_directions,
+        synthetic_defaults,
+    )
 
     cfg = synthetic_defaults()
     scene, _ = make_scene(0, cfg.scene_size_m, path_radius_m=SWEEPS["trajectory_radius_m"])

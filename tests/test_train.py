@@ -1,4 +1,4 @@
-"""The trainer (neld_jax.train): one pytree, one optimiser, one step and one loop for one cube and for many. Pose
+"""The trainer (neld_jax.training.train): one pytree, one optimiser, one step and one loop for one cube and for many. Pose
 freezing before k*, the gauge, compiles per stage, schedules, the pose prior and the kept scale, the clock, the fused
 loop, and on 8 simulated CPU devices (a subprocess) the sharded step, a shared scan's gradient and a resume."""
 
@@ -14,10 +14,10 @@ import pytest
 from conftest import fake_training_clock, make_tiny_config, similarity_scale, sphere_plan
 from scipy.spatial.transform import Rotation
 
-from neld_jax import train
 from neld_jax.config import defaults, with_budget
 from neld_jax.errors import ConfigError
-from neld_jax.model import world_poses
+from neld_jax.field.model import world_poses
+from neld_jax.training import train
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -237,7 +237,7 @@ def test_the_clock_stops_at_a_chunk_end(caplog):
     config.sampling.coarse_stages, config.sampling.fine_stages = (8,), (4,)
     config.train.log_every, config.train.checkpoint_every = 2, 0
     rays, frames, plan, T = sphere_plan()
-    with caplog.at_level("WARNING", logger="neld_jax.train"):
+    with caplog.at_level("WARNING", logger="neld_jax.training.train"):
         stopped = _fit(config, rays, frames, plan, T, max_seconds=1e-9)
     assert stopped.stopped_early and int(stopped.state.step) == 2
     assert "stopping at step 2 of 6" in caplog.text
@@ -389,7 +389,7 @@ def test_sharded_step_shared_scan_and_resume_on_8_devices(tmp_path):
 def test_bfloat16_matmuls_render_depth_close_to_float32_and_give_gradients():
     """model.matmul_dtype=bfloat16 on the trained sphere field (float32 parameters): rendered depths within ~1% of
     float32's, and finite parameter gradients through the bfloat16 matmuls (the training path)."""
-    from neld_jax.model import render_rays, world_rays
+    from neld_jax.field.model import render_rays, world_rays
 
     config, rays, frames, plan, T, result = _sphere_fit()
     params = jax.tree.map(lambda x: x[0], result.state.params["fields"])

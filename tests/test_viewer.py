@@ -1,4 +1,4 @@
-"""The run's Rerun recording (neld_jax.viewer), read back through Rerun's own reader: the entities, their counts and
+"""The run's Rerun recording (neld_jax.writing.viewer), read back through Rerun's own reader: the entities, their counts and
 values (the refined poses equal poses_optimized.txt), the training curves; no display and no network."""
 
 import csv
@@ -9,8 +9,9 @@ import pytest
 from conftest import make_tiny_config
 from rerun.chunk import RrdReader
 
-from neld_jax import run, viewer
+from neld_jax import run
 from neld_jax.data.poses import read_tum
+from neld_jax.writing import viewer
 
 
 def read_recording(path) -> dict:

@@ -11,9 +11,9 @@ import pytest
 from neld_jax.baseline import BaselineSettings, multiscale_icp, prepare_clouds
 from neld_jax.baseline.distances import keep_input_distances
 from neld_jax.baseline.icp import TargetIndex, direction_shares
-from neld_jax.data.synthetic_lidar import cast_scan, spinning_lidar_directions
-from neld_jax.data.synthetic_scene import make_scene, raycasting_scene, street_meshes
 from neld_jax.geometry import cumulative_path
+from neld_jax.synthetic.lidar import cast_scan, spinning_lidar_directions
+from neld_jax.synthetic.scene import make_scene, raycasting_scene, street_meshes
 from neld_jax.trajectory import window_scales, with_distances_of
 
 HELD = BaselineSettings(voxel_size_m=0.2)

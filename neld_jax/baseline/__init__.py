@@ -64,9 +64,9 @@ from neld_jax.baseline.icp import (
     prepare_clouds,
     prepare_scan,
 )
-from neld_jax.baseline.refine import Refinement, choose_refinement_start, refine_against_map
+from neld_jax.baseline.multiview import Refinement, choose_refinement_start, refine_against_map
+from neld_jax.baseline.pipeline import BaselineResult, anchored, register_sequence
 from neld_jax.baseline.segments import Segments
-from neld_jax.baseline.sequence import BaselineResult, anchored, register_sequence
 from neld_jax.baseline.settings import BaselineSettings
 
 __all__ = ["TILT_MARGIN", "BaselineResult", "BaselineSettings", "IcpResult", "LoopClosures", "Refinement", "Segments",

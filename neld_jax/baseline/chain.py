@@ -10,12 +10,12 @@ import time
 import numpy as np
 import open3d as o3d
 
-from neld_jax import judge
 from neld_jax.baseline.graph import fpfh_features, global_registration
 from neld_jax.baseline.icp import correction_m, multiscale_icp
 from neld_jax.baseline.segments import Segments
 from neld_jax.baseline.settings import BaselineSettings, first_items, progress_bar
 from neld_jax.geometry import with_up_axis_of
+from neld_jax.judging import judge
 
 logger = logging.getLogger(__name__)
 

@@ -20,9 +20,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from neld_jax import judge
 from neld_jax.baseline.settings import BaselineSettings
-from neld_jax.metrics import path_length_ratio
+from neld_jax.judging import judge
+from neld_jax.judging.metrics import path_length_ratio
 from neld_jax.trajectory import window_scales, with_distances_of
 
 logger = logging.getLogger(__name__)

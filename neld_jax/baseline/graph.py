@@ -17,7 +17,7 @@ import open3d as o3d
 from neld_jax.baseline.icp import IcpResult, correction_m, information, multiscale_icp
 from neld_jax.baseline.segments import Segments
 from neld_jax.baseline.settings import BaselineSettings, progress_bar
-from neld_jax.data import feature_registration
+from neld_jax.frontend import feature_registration
 
 _reg = o3d.pipelines.registration
 
@@ -63,7 +63,7 @@ def fpfh_features(cloud: o3d.geometry.PointCloud, settings: BaselineSettings):
 
 
 def global_registration(source, target, source_features, target_features, settings: BaselineSettings):
-    """FPFH + RANSAC (neld_jax.data.feature_registration), then multi-scale ICP at global_icp_distances_m:
+    """FPFH + RANSAC (neld_jax.frontend.feature_registration), then multi-scale ICP at global_icp_distances_m:
     registration from no initial guess.
 
     source, target: Open3D clouds with normals (sensor frames); source_features, target_features: their

@@ -23,11 +23,11 @@ logger = logging.getLogger(__name__)
 def run_baseline(config, progress: bool = True) -> dict:
     """Run the baseline on config.data into config.output_dir. Returns {"seconds", "crispness": {method: summary},
     "evaluation": evaluate_run's result or None, "report": what the baseline decided}."""
-    from neld_jax import judge
     from neld_jax.baseline import BaselineSettings, register_sequence
-    from neld_jax.data.preprocess import load_keyframes
-    from neld_jax.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
-    from neld_jax.export import (
+    from neld_jax.judging import judge
+    from neld_jax.writing.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
+    from neld_jax.steps.inputs import load_keyframes
+    from neld_jax.writing.export import (
         read_json,
         write_json,
         write_keyframe_poses,
@@ -69,8 +69,8 @@ def run_baseline(config, progress: bool = True) -> dict:
 
 
 def job(config) -> None:
-    from neld_jax.evaluate import format_table
-    from neld_jax.judge import format_crispness_table
+    from neld_jax.writing.evaluate import format_table
+    from neld_jax.judging.judge import format_crispness_table
 
     result = run_baseline(config)
     print(f"baseline ({result['seconds']:.0f} s) written to {config.output_dir}")

@@ -48,11 +48,11 @@ def named_paths(items: list[str]) -> dict[str, str]:
 
 
 def job(config) -> None:
-    from neld_jax import judge
-    from neld_jax.data.preprocess import load_keyframes
     from neld_jax.errors import ConfigError
-    from neld_jax.evaluate import trajectory_at_keyframes
-    from neld_jax.export import write_json
+    from neld_jax.judging import judge
+    from neld_jax.writing.evaluate import trajectory_at_keyframes
+    from neld_jax.steps.inputs import load_keyframes
+    from neld_jax.writing.export import write_json
 
     paths = named_paths(POSES.value)
     if not paths:

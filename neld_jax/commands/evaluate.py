@@ -3,7 +3,7 @@
     neld-evaluate --output_dir=outputs/demo
     neld-evaluate --output_dir=runs/canteen --gt_poses=/data/canteen/gt_poses.txt --gt_map=/data/canteen/gt_map.pcd
 
-Reads poses_*.txt and map_*.ply from the folder (neld_jax/evaluate.py), writes plots and merges the numbers into
+Reads poses_*.txt and map_*.ply from the folder (neld_jax/writing/evaluate.py), writes plots and merges the numbers into
 OUTPUT_DIR/metrics.json under "evaluation".
 """
 
@@ -25,7 +25,7 @@ MAP_ICP = flags.DEFINE_float("map_icp_m", 0.0, "Refine the map alignment by ICP 
 
 
 def evaluate() -> int:
-    from neld_jax.evaluate import evaluate_run, format_table
+    from neld_jax.writing.evaluate import evaluate_run, format_table
 
     result = evaluate_run(OUTPUT_DIR.value, gt_poses_path=GT_POSES.value, gt_map_path=GT_MAP.value,
                           threshold=THRESHOLD.value, raw_cutoff=RAW_CUTOFF.value, map_icp_m=MAP_ICP.value)

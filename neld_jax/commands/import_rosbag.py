@@ -14,14 +14,14 @@ generic layout that neld-train reads.
 
 Writes OUT/scans/NNNNNN.pcd (the clouds' own frame), OUT/poses.txt (TUM) and OUT/import.json (topics, frame,
 counts); without odometry (--odometry_topic='' or no /Odometry in the bag) OUT/scans/<stamp>.pcd and
-OUT/point_times/<stamp>.npy and no poses.txt. See neld_jax/data/rosbag_import.py for the matching rule and the
+OUT/point_times/<stamp>.npy and no poses.txt. See neld_jax/data/bags/rosbag_import.py for the matching rule and the
 time conventions.
 """
 
 from absl import flags
 
 from neld_jax.cli import main_with_flags
-from neld_jax.data import rosbag_import as ri
+from neld_jax.data.bags import rosbag_import as ri
 
 BAG = flags.DEFINE_multi_string("bag", None, "ROS1 .bag file or ROS2 bag folder (repeat for a split recording).",
                                 required=True)

@@ -43,7 +43,7 @@ SESSION = flags.DEFINE_integer("session", None, "Write the K-th visit of the sce
 
 
 def job(config) -> None:
-    from neld_jax.data.synthetic import make_sequence, write_generic
+    from neld_jax.synthetic.generator import make_sequence, write_generic
 
     seq = make_sequence(config.data.synthetic, rate_hz=RATE_HZ.value, session=SESSION.value)
     write_generic(seq, ROOT.value)

@@ -23,10 +23,10 @@ flags.mark_flag_as_required("out")
 
 
 def job(config) -> None:
-    from neld_jax.data.formats import load_sequence
-    from neld_jax.data.pseudo_gt import with_drift
-    from neld_jax.data.synthetic import write_generic
-    from neld_jax.metrics import ate
+    from neld_jax.judging.metrics import ate
+    from neld_jax.steps.inputs import load_sequence
+    from neld_jax.synthetic.generator import write_generic
+    from neld_jax.synthetic.pseudo_gt import with_drift
 
     seq = with_drift(load_sequence(config.data), TRANS_M.value, ROT_DEG.value, SEED.value, KEEP_TILT.value)
     write_generic(seq, OUT.value)

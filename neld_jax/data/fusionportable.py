@@ -33,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from neld_jax.data import ground_truth, raw_bags
+from neld_jax.data import ground_truth
+from neld_jax.data.bags import raw_bags
 from neld_jax.data.layout import (
     LoadOptions,
     check_root,

@@ -2,7 +2,7 @@
 write.
 
     ROOT/scans/*.{pcd,ply,bin,npy}   one scan per file, sensor frame, sorted by name
-    ROOT/poses.txt                   initial poses, TUM (without it: made from the scans, data/odometry.py)
+    ROOT/poses.txt                   initial poses, TUM (without it: made from the scans, neld_jax.frontend)
     ROOT/gt_poses.txt                optional ground-truth poses, TUM
     ROOT/gt_map.pcd | gt_map.ply     optional ground-truth map, world frame
     ROOT/point_times/<scan name>.npy optional, [N] float64 seconds after the scan's stamp per point (raw sweeps,

@@ -182,19 +182,5 @@ def preprocess(seq: Sequence, settings: KeyframeSettings = KeyframeSettings()) -
         gt_poses=None if seq.gt_poses is None else seq.gt_poses[keep],
         files=None if seq.files is None else [seq.files[i] for i in keep],
         source_index=keep if seq.source_index is None else seq.source_index[keep],
-        point_times=None,  # the keyframes are rigid: load_sequence has deskewed or refused raw sweeps
+        point_times=None,  # the keyframes are rigid: the front-end has deskewed or refused raw sweeps
     )
-
-
-def load_keyframes(data_cfg) -> tuple[Sequence, Sequence]:
-    """Load the sequence that `data_cfg` (config.data) names and preprocess it with the config's settings.
-
-    Returns (loaded, keyframes): every input scan (of a recording on disk, read again from disk when used:
-    data.scan_source) and the preprocessed keyframes that training uses, held in memory
-    (`keyframes.source_index` indexes `loaded`). The one place where bin/train.py and bin/baseline.py turn a config
-    into the scans they work on.
-    """
-    from neld_jax.data.formats import load_sequence
-
-    loaded = load_sequence(data_cfg)
-    return loaded, preprocess(loaded, KeyframeSettings.from_config(data_cfg))

@@ -6,7 +6,7 @@ sequence of S arrays [N_i, 3] whose `scans[i]` reads scan i from its file and wh
 each dropped by the caller once used. What is derived from a scan (the points moved into another frame, deskewed,
 cropped, its per-point times from its azimuths) is a `MappedScans` over it, computed again on each access. Only
 the keyframes' points are kept in memory (data.preprocess); the odometry keeps its poses and nothing of the sweeps
-(data.odometry), and the registration of every scan reads each again (neld_jax.register_scans).
+(data.odometry), and the registration of every scan reads each again (neld_jax.steps.registration).
 
 The last item read is kept (one scan), so that two views of one scan read together (its points and its per-point
 times derived from them) read the file once; a caller must not change an array it gets in place (the next reader

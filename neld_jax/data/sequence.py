@@ -27,7 +27,7 @@ class Sequence:
                 list held in memory, or a LazyScans read from disk when used (data.scan_source: a recording's
                 sweeps, which do not fit in memory)
     poses:      [S, 4, 4] float64 initial poses (sensor -> world), e.g. odometry output; None only between a
-                loader that found no poses and load_sequence, which makes them from the scans (odometry.py)
+                loader that found no poses and the front-end, which makes them from the scans (neld_jax.frontend)
     timestamps: [S] float64 seconds, or None
     gt_poses:   [S, 4, 4] float64 ground-truth poses (sensor -> world), or None
     gt_map:     [M, 3] float64 ground-truth map points in the world frame, or None

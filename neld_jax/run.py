@@ -6,11 +6,14 @@ Each step is a function in the module of its idea; `bin/train.py` (neld-train) c
 user's, written once to config.json and never changed; what the run decides (the start, the pose steps, a plan
 compressed to the time) is recorded in metrics.json. One clock, config.max_minutes, is shared by the steps
 (neld_jax.training.budget). A rerun with the same output_dir and configuration resumes from its last checkpoint and its
-saved start; one of another configuration stops before it writes anything (neld_jax.writing.output_folder).
+saved start, and its total_seconds counts the earlier processes' seconds too (output_folder.CLOCK_FILE); one of
+another configuration stops before it writes anything (neld_jax.writing.output_folder).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import logging
 
 import jax
@@ -33,8 +36,11 @@ def run(config: ml_collections.ConfigDict, progress: bool = True, restart: bool 
     instead); run.rrd is closed however the steps end, with the error that stopped them."""
     budget = TimeBudget.start(config)
     out_dir = output_folder.prepare(config, restart)
+    budget = dataclasses.replace(budget, earlier_s=output_folder.earlier_seconds(out_dir))  # a resume's earlier runs
     with RunViewer.open(out_dir, config.viz) as viewer:
-        return run_steps(config, out_dir, budget, viewer, progress)
+        summary = run_steps(config, out_dir, budget, viewer, progress)
+    output_folder.record_seconds(out_dir, budget)
+    return summary
 
 
 def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudget, viewer: RunViewer,
@@ -42,14 +48,13 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     """The steps of `run` in its prepared output folder."""
     config_hash = outputs.config_hash(config)
 
-    # 1. Load every input scan and the keyframes trained on; several recordings joined (neld_jax.steps.session_alignment).
+    # 1. Load every input scan and the keyframes trained on; several recordings joined (steps.session_alignment).
     loaded, keyframes, recordings = load_sessions(config.data)
     budget = budget.reserving_registration(loaded.num_scans - keyframes.num_scans)  # step 5's share of the clock
     logger.info("budget %s on jax's %s backend: %s", config.budget, jax.default_backend(), budget.describe())
     viewer.log_input(loaded, keyframes)
 
-    # 2. Choose the start: the input or the classical baseline's poses, and the pose steps from there
-    #    (neld_jax.steps.start); a resumed run keeps the start its first run chose.
+    # 2. Choose the start and its pose steps: the input's or the baseline's poses (steps.start); a resume keeps it.
     begin = start.Start.resumed(out_dir, config_hash, keyframes.poses)
     if begin is None:
         begin = start.choose_start(config, keyframes, budget.baseline_deadline(), progress, recordings)
@@ -57,7 +62,8 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     viewer.log_start(loaded, keyframes, begin)
 
     # 3. Train the field(s) and the poses (neld_jax.steps.refine: one cube, or submaps for a sequence larger than one).
-    context = refine.TrainingContext(out_dir, config_hash, budget.training_seconds(), progress, viewer.training_hook())
+    context = refine.TrainingContext(out_dir, config_hash, budget.training_seconds(), progress, viewer.training_hook(),
+                                     functools.partial(output_folder.record_seconds, out_dir, budget))
     refined = refine.refine_keyframes(config, keyframes, begin.poses, begin.pose_steps, context)
 
     # 4. Render the map (neld_jax.steps.mapping).
@@ -71,12 +77,12 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
 
     # 5. Register every other input scan to the keyframes' refined map, from its interpolated correction.
     registered = registration.register_every_scan(loaded, keyframes, refined.poses,
-                                                      registration.RegistrationSettings.from_config(config), progress,
-                                                      budget.registration_deadline())
+                                                  registration.RegistrationSettings.from_config(config), progress,
+                                                  budget.registration_deadline())
     made = outputs.RunSteps(loaded, keyframes, begin, refined, render, registered)
 
-    # 6. Judge the crispness; the answer: NeLD-BA's poses unless they blurred the start's (neld_jax.judging.answer); write
-    #    poses, maps, per-scan report, metrics.json (neld_jax.writing.outputs), each recording's (neld_jax.writing.session_outputs).
+    # 6. Judge the crispness; the answer: NeLD-BA's poses unless they blurred the start's (judging.answer); write
+    #    poses, maps, per-scan report, metrics.json (writing.outputs), each recording's (writing.session_outputs).
     made, judged = answer.keep_the_better(made, outputs.judge_crispness(config, made, budget, progress))
     written = outputs.write_outputs(out_dir, config, made)
     T_all = written.trajectories["optimized"].poses

@@ -1,5 +1,5 @@
-"""The run's one clock (neld_jax.training.budget.TimeBudget): training's share and floor, the baseline's deadline, the map's
-seconds, the crispness draws' deadline, and no limit at 0 minutes."""
+"""The run's one clock (neld_jax.training.budget.TimeBudget): training's share and floor, the baseline's deadline, the
+map's seconds, the crispness draws' deadline, no limit at 0 minutes, and a resumed run's seconds."""
 
 import pytest
 
@@ -52,3 +52,10 @@ def test_registering_every_other_scan_is_kept_back_from_training(monkeypatch):
     assert TimeBudget(570.0, 60.0, 0.0).reserving_registration(10_000).registration_s == MAX_REGISTRATION_SHARE * 570.0
     assert TimeBudget(0.0, 60.0, 0.0).reserving_registration(100).registration_s == 0.0
     assert TimeBudget(0.0, 60.0, 0.0).registration_deadline() is None
+
+
+def test_a_resumed_runs_seconds_count_its_earlier_processes_and_leave_its_limits_alone(monkeypatch):
+    fresh, resumed = TimeBudget(570.0, 60.0, 100.0), TimeBudget(570.0, 60.0, 100.0, earlier_s=300.0)
+    assert _at(resumed, 20.0, monkeypatch).run_seconds() == pytest.approx(320.0)
+    assert _at(fresh, 20.0, monkeypatch).run_seconds() == pytest.approx(20.0)
+    assert resumed.training_seconds() == fresh.training_seconds() and resumed.render_seconds() == fresh.render_seconds()

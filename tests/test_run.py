@@ -59,13 +59,19 @@ def test_run_writes_outputs_and_resumes_after_a_kill(free_gauge_run, tmp_path, m
     assert np.abs(T_opt[1:] - T_initial[1:]).max() > 1e-6
     assert metrics["run"]["map_rays_rendered"] == metrics["run"]["map_rays"] > 0  # no time limit: every ray
 
-    # A run killed right after its first checkpoint (step 5) ...
+    # A run killed right after its first checkpoint (step 5), its loading slowed by 2 s ...
+    real_load = run.load_sessions
+    monkeypatch.setattr(run, "load_sessions", lambda data_cfg: time.sleep(2.0) or real_load(data_cfg))
     _run_killed_after_its_first_checkpoint(free_gauge_config(str(out)), monkeypatch)
+    monkeypatch.setattr(run, "load_sessions", real_load)
     assert checkpoint.Checkpointer(str(out / "checkpoints")).latest_step() == 5
+    assert output_folder.earlier_seconds(str(out)) >= 2.0
 
     # ... and rerun with the same output_dir resumes there and ends at the same final step and the same poses, bit
     # for bit: the key travels in the checkpointed state and the chunks are cut at the same steps.
+    t0 = time.perf_counter()
     resumed = run.run(free_gauge_config(str(out)), progress=False)["run"]
+    this_process_s = time.perf_counter() - t0
     assert resumed["steps"] == 12
     for name in ("poses_optimized.txt", "poses_optimized.kitti"):
         assert (out / name).read_bytes() == (ref_dir / name).read_bytes(), name
@@ -77,11 +83,11 @@ def test_run_writes_outputs_and_resumes_after_a_kill(free_gauge_run, tmp_path, m
     elapsed = [h["elapsed_s"] for h in history]
     assert np.all(np.diff(elapsed) > 0), elapsed
     assert resumed["train_seconds"] >= round(elapsed[-1], 2) - 0.01
+    # The run's whole time counts the killed process's seconds too (up to its checkpoint), not the last one's alone.
+    assert resumed["total_seconds"] >= this_process_s + 1.5 and resumed["total_seconds"] >= resumed["train_seconds"]
 
     # Data that changed under the same configuration (here: every initial pose shifted by 1 m, which moves the
     # cube; then one scan fewer) must not resume silently in another frame.
-    real_load = run.load_sessions
-
     def load_changed(data_cfg, shift=1.0, drop=0):
         _, seq, _ = real_load(data_cfg)
         keep = slice(0, seq.num_scans - drop)
@@ -166,7 +172,7 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
         chain_deadlines.append(deadline)
         return real_chain(clouds, init_poses, settings, keep_input_tilt, None, progress, segments)
 
-    monkeypatch.setattr(baseline.sequence, "scan_to_map_chain", chain_without_deadline)
+    monkeypatch.setattr(baseline.pipeline, "scan_to_map_chain", chain_without_deadline)
     verdicts = []  # the margins the run's crispest verdict is given, and the verdict
     real_verdict = judge.warn_if_not_crispest
 
@@ -253,7 +259,7 @@ def test_run_reads_as_its_named_steps():
     calls = [ast.unparse(node.func) for node in sorted((n for n in ast.walk(tree) if isinstance(n, ast.Call)),
                                                         key=lambda n: (n.lineno, n.col_offset))]
     order = ["load_sessions", "start.choose_start", "refine.refine_keyframes", "mapping.render_map",
-             "register_scans.register_every_scan", "answer.keep_the_better", "outputs.judge_crispness",
+             "registration.register_every_scan", "answer.keep_the_better", "outputs.judge_crispness",
              "outputs.write_outputs", "outputs.judge_run"]
     positions = [calls.index(name) for name in order]
     assert positions == sorted(positions), calls
@@ -287,6 +293,7 @@ def test_a_rerun_resumes_its_own_configuration_refuses_another_and_restarts_when
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics) == set(again) == set(first) and "stale" not in metrics["crispness"]
     assert metrics["run"]["steps"] == 4 and (out / "config.json").read_bytes() == config_bytes
+    assert again["run"]["total_seconds"] > first["run"]["total_seconds"]  # the first process's seconds and its own
 
     # Another configuration: one ConfigError naming each field that differs, old -> new, before anything is written.
     before = _folder_state(out)
@@ -311,6 +318,7 @@ def test_a_rerun_resumes_its_own_configuration_refuses_another_and_restarts_when
     with caplog.at_level("WARNING", logger="neld_jax.writing.output_folder"):
         restarted = run.run(changed, progress=False, restart=True)["run"]
     assert "--restart: deleting" in caplog.text and "checkpoints/" in caplog.text and "metrics.json" in caplog.text
+    assert output_folder.CLOCK_FILE in caplog.text  # the run starts its clock over too
     assert "notes.txt" not in caplog.text and (out / "notes.txt").read_text() == "mine"
     assert restarted["steps"] == 6 and not (out / "run.rrd").exists()
     assert json.loads((out / "config.json").read_text())["seed"] == 3

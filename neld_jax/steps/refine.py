@@ -53,13 +53,15 @@ class TrainingContext:
     """Where and how a run's training runs, besides what it trains: out_dir, whose checkpoints/ it resumes from and
     writes (a checkpoint of another config_hash, other keyframes or another plan is an error); max_seconds, its
     wall-clock limit (0: none); progress, a progress bar; on_log(entry, poses [K, 4, 4]), a viewer's hook that sees
-    each history entry with the keyframes' poses of that step, anchored as the outputs are."""
+    each history entry with the keyframes' poses of that step, anchored as the outputs are; on_checkpoint(), run
+    before each checkpoint is saved (the run's clock, neld_jax.writing.output_folder.record_seconds)."""
 
     out_dir: str
     config_hash: str
     max_seconds: float = 0.0
     progress: bool = True
     on_log: Callable[[dict, np.ndarray], None] | None = None
+    on_checkpoint: Callable[[], None] | None = None
 
 
 def refine_keyframes(config: ml_collections.ConfigDict, keyframes, start_poses: np.ndarray,
@@ -89,7 +91,8 @@ def refine_keyframes(config: ml_collections.ConfigDict, keyframes, start_poses: 
     settings = train.FitSettings(context.max_seconds, context.progress, on_log)
     result = fit_resuming(os.path.join(context.out_dir, "checkpoints"), metadata,
                           lambda: train.init_state(config, first, num_scans, plan.num_submaps),
-                          functools.partial(train.fit, config, plan_of, data, settings=settings))
+                          functools.partial(train.fit, config, plan_of, data, settings=settings),
+                          on_save=context.on_checkpoint)
     poses_in_field = world_poses(start_poses, np.asarray(result.state.params["poses"]), plan.ref_scale)
     poses, anchor = anchored_on_first(poses_in_field, start_poses[0])
     return Refined(result, plan, first.field, poses, poses_in_field, anchor,

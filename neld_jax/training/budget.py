@@ -32,12 +32,14 @@ MAX_REGISTRATION_SHARE = 0.3
 class TimeBudget:
     """total_s: the whole run's seconds (0: no limit); render_s: the rendered map's share (0: no limit);
     started: time.perf_counter() at the run's start; registration_s: kept back for registering every other input
-    scan (reserving_registration)."""
+    scan (reserving_registration); earlier_s: the seconds earlier processes of a resumed run took, counted in
+    run_seconds alone (each process gets the whole budget, as training gets its share afresh on resume)."""
 
     total_s: float
     render_s: float
     started: float
     registration_s: float = 0.0
+    earlier_s: float = 0.0
 
     @classmethod
     def start(cls, config) -> "TimeBudget":
@@ -62,6 +64,10 @@ class TimeBudget:
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
+
+    def run_seconds(self) -> float:
+        """The run's seconds so far, over every process of a resumed run (metrics.json's total_seconds)."""
+        return self.earlier_s + self.elapsed()
 
     def baseline_deadline(self) -> float | None:
         """A time.perf_counter() value after which the baseline's refinement registers no more scans: where training

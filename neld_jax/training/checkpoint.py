@@ -89,7 +89,8 @@ class Checkpointer:
         self._manager.close()
 
 
-def fit_resuming(directory: str, metadata: dict, initial_state: Callable[[], Any], fit_fn: Callable):
+def fit_resuming(directory: str, metadata: dict, initial_state: Callable[[], Any], fit_fn: Callable,
+                 on_save: Callable[[], None] | None = None):
     """Run fit_fn from the latest checkpoint under `directory` (or from the initial state), checkpointing as it goes.
 
     metadata: what every checkpoint records and a resume must match (its "config_hash" and the data's shape: scan
@@ -97,6 +98,7 @@ def fit_resuming(directory: str, metadata: dict, initial_state: Callable[[], Any
     initial_state(): the state training starts from, also the template a checkpoint restores into.
     fit_fn(state, checkpoint_fn=, history=, elapsed_s=) -> its result (train.fit), given the restored state with the
     history and training seconds saved with it, or the initial state, [] and 0.
+    on_save(): runs before each checkpoint is saved (the run's clock: a process killed after it loses no seconds).
     """
     ckpt = Checkpointer(directory)
     state, history, elapsed_s = initial_state(), [], 0.0
@@ -105,6 +107,8 @@ def fit_resuming(directory: str, metadata: dict, initial_state: Callable[[], Any
         history, elapsed_s = list(saved.get("history", [])), float(saved.get("train_seconds", 0.0))
 
     def save(s, history, seconds):
+        if on_save is not None:
+            on_save()
         ckpt.save(s, {**metadata, "history": to_jsonable(history), "train_seconds": seconds})
 
     result = fit_fn(state, checkpoint_fn=save, history=history, elapsed_s=elapsed_s)

@@ -26,12 +26,15 @@ from neld_jax.writing.export import read_json, write_json
 logger = logging.getLogger(__name__)
 
 CONFIG_FILE = "config.json"
+# The seconds of the run's processes so far ({"seconds": s}), so that metrics.json's total_seconds spans a resume
+# as train_seconds does: written at each checkpoint and at the run's end, read when a process starts.
+CLOCK_FILE = "run_seconds.json"
 # Where the run writes and how it is watched (run.rrd, a live view): never what it computes or writes, so a rerun
 # may change them and still resume. Every other field must match.
 UNCOMPARED = ("output_dir", "viz")
 # What neld-train (and neld-baseline, neld-evaluate) write into an output folder: what --restart deletes. Any other
 # file in the folder is left alone.
-RUN_FILES = ("config.json", "metrics.json", "history.json", "start_poses.npz", "run.rrd", "checkpoints",
+RUN_FILES = ("config.json", CLOCK_FILE, "metrics.json", "history.json", "start_poses.npz", "run.rrd", "checkpoints",
              "scans_report.csv", "scans_report.png", "map_topdown.png", "trajectory.png", "pose_error.png",
              "error_histogram.png", "poses_*.txt", "poses_*.kitti", "map_*.ply")
 MAX_LISTED = 6  # differences named in the error line
@@ -55,6 +58,16 @@ def prepare(config: ml_collections.ConfigDict, restart: bool = False) -> str:
         os.makedirs(out_dir, exist_ok=True)
         write_json(path, now, merge=False)
     return out_dir
+
+
+def earlier_seconds(out_dir: str) -> float:
+    """The seconds earlier processes of the run in out_dir took, up to each one's last checkpoint or end (0: none)."""
+    return float(read_json(os.path.join(out_dir, CLOCK_FILE)).get("seconds", 0.0))
+
+
+def record_seconds(out_dir: str, budget) -> None:
+    """Record the run's seconds so far (budget: its TimeBudget, earlier processes' seconds included) in out_dir."""
+    write_json(os.path.join(out_dir, CLOCK_FILE), {"seconds": round(budget.run_seconds(), 2)}, merge=False)
 
 
 def config_differences(saved: dict, now: dict) -> list[str]:

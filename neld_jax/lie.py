@@ -47,18 +47,6 @@ def hat(omega: jax.Array) -> jax.Array:
     )
 
 
-def vee(skew: jax.Array) -> jax.Array:
-    """Inverse of `hat` (reads the antisymmetric part). skew: [..., 3, 3] -> [..., 3]."""
-    return 0.5 * jnp.stack(
-        [
-            skew[..., 2, 1] - skew[..., 1, 2],
-            skew[..., 0, 2] - skew[..., 2, 0],
-            skew[..., 1, 0] - skew[..., 0, 1],
-        ],
-        axis=-1,
-    )
-
-
 def _split_small(theta_sq: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(small mask, safe theta^2, safe theta): the safe values replace small angles by 1 (unused there)."""
     small = theta_sq < _SMALL_ANGLE_SQ

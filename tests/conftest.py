@@ -143,6 +143,15 @@ def similarity_scale(T_moved, T_start) -> float:
     return ate_errors(np.asarray(T_moved, np.float64), np.asarray(T_start, np.float64), "sim3")[3] - 1.0
 
 
+def poses_to_world(norm, poses):
+    """poses [..., 4, 4] in norm's (field.normalize.Normalization) normalised world -> metres in the world."""
+    import numpy as np
+
+    out = np.array(poses, dtype=np.float64, copy=True)
+    out[..., :3, 3] = norm.points_to_world(out[..., :3, 3])
+    return out
+
+
 @pytest.fixture
 def tiny_config(tmp_path):
     return make_tiny_config(str(tmp_path / "run"))

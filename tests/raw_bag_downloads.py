@@ -13,11 +13,11 @@ import os
 from pathlib import Path
 
 import numpy as np
+from fixture_writers import write_lidar_bag, write_newer_college_csv
 
 from neld_jax.data import fusionportable, newer_college
-from neld_jax.data.bags.raw_bags import write_lidar_bag
 from neld_jax.data.ground_truth import published_offset
-from neld_jax.data.poses import write_newer_college_csv, write_tum
+from neld_jax.data.poses import write_tum
 from neld_jax.geometry import invert_poses
 
 

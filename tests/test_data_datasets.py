@@ -6,6 +6,7 @@ import re
 import ml_collections
 import numpy as np
 import pytest
+from fixture_writers import write_newer_college_csv
 from scipy.spatial.transform import Rotation
 
 from neld_jax.config import defaults as base_config
@@ -13,7 +14,7 @@ from neld_jax.data.fusionportable import load_fusionportable
 from neld_jax.data.generic import load_generic
 from neld_jax.data.layout import align_poses
 from neld_jax.data.newer_college import load_newer_college
-from neld_jax.data.poses import write_newer_college_csv, write_tum
+from neld_jax.data.poses import write_tum
 from neld_jax.data.preprocess import KeyframeSettings, preprocess
 from neld_jax.data.scans import write_scan
 from neld_jax.data.sequence import Sequence, check_pose_jumps

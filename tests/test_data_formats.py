@@ -4,6 +4,7 @@ import logging
 
 import numpy as np
 import pytest
+from fixture_writers import write_newer_college_csv
 from scipy.spatial.transform import Rotation
 
 from neld_jax.data.poses import (
@@ -13,7 +14,6 @@ from neld_jax.data.poses import (
     read_tum,
     rotation_to_quat,
     write_kitti,
-    write_newer_college_csv,
     write_tum,
 )
 from neld_jax.data.scans import read_scan, write_scan

@@ -11,11 +11,12 @@ import sys
 import ml_collections
 import numpy as np
 import pytest
+from fixture_writers import write_newer_college_csv
 from scipy.spatial.transform import Rotation
 
 from neld_jax.config import defaults as base_config
 from neld_jax.data.ground_truth import published_offset
-from neld_jax.data.poses import rotation_to_quat, write_newer_college_csv, write_tum
+from neld_jax.data.poses import rotation_to_quat, write_tum
 from neld_jax.data.scans import write_scan
 from neld_jax.errors import ConfigError, DataError
 from neld_jax.geometry import invert_poses

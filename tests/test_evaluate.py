@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from neld_jax.data.poses import write_kitti, write_tum
 from neld_jax.errors import DataError
+from neld_jax.writing import export
 from neld_jax.writing.evaluate import (
     RunArtifacts,
     Trajectory,
@@ -22,7 +23,6 @@ from neld_jax.writing.evaluate import (
     map_files,
     match_poses,
 )
-from neld_jax.writing import export
 
 REPO = Path(__file__).resolve().parents[1]
 

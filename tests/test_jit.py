@@ -25,13 +25,10 @@ Z_NEAR, Z_FAR = np.full((R,), 0.1, np.float32), np.full((R,), 1.9, np.float32)
 Z = np.tile(np.linspace(0.15, 1.85, N, dtype=np.float32), (R, 1))
 WEIGHTS = np.full((R, N), 1.0 / N, np.float32)
 SIGMA = _rng.uniform(0, 5, size=(R, N)).astype(np.float32)
-SKEW = np.zeros((R, 3, 3), np.float32)
-SKEW[:, 0, 1], SKEW[:, 1, 0] = -POINTS[:, 2], POINTS[:, 2]
 DELTAS = np.full((R, N), 0.2, np.float32)
 
 CASES = {
     "lie.hat": (lie.hat, (POINTS,)),
-    "lie.vee": (lie.vee, (SKEW,)),
     "lie.so3_exp": (lie.so3_exp, (POINTS,)),
     "lie.so3_log": (lie.so3_log, (T[:, :3, :3],)),
     "lie.se3_exp": (lie.se3_exp, (XI,)),

@@ -3,6 +3,7 @@ and the FusionPortable / Newer College 2021 downloads (raw_bag_downloads) loaded
 
 import numpy as np
 import pytest
+from fixture_writers import write_lidar_bag
 from raw_bag_downloads import (
     write_fusionportable_download,
     write_newer_college_download,
@@ -11,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from neld_jax.config import defaults
 from neld_jax.data import fusionportable, newer_college
-from neld_jax.data.bags.raw_bags import read_lidar_bag, write_lidar_bag
+from neld_jax.data.bags.raw_bags import read_lidar_bag
 from neld_jax.errors import DataError
 
 T0 = 1_650_000_000.123456789

@@ -262,9 +262,10 @@ def test_cli_one_error_line_and_success(tmp_path):
 def test_fastlio_bag_to_newer_college_2021_with_its_ground_truth(tmp_path):
     """README's Newer College steps up to training: FAST-LIO2's recorded topics imported, the downloaded base-frame
     ground truth put beside them, and configs/newer_college.py's loader matching it to the scans by time."""
+    from fixture_writers import write_newer_college_csv
+
     from neld_jax.config import defaults as base_config
     from neld_jax.data.ground_truth import published_offset
-    from neld_jax.data.poses import write_newer_college_csv
     from neld_jax.geometry import invert_poses
     from neld_jax.steps.inputs import load_sequence
 

@@ -231,8 +231,6 @@ def write_kitti(path: str | os.PathLike, poses: np.ndarray) -> None:
 # Newer College ground truth CSV: #sec,nsec,x,y,z,qx,qy,qz,qw
 # --------------------------------------------------------------------------------------------------
 
-NEWER_COLLEGE_HEADER = "#sec,nsec,x,y,z,qx,qy,qz,qw"
-
 
 def read_newer_college_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Read a Newer College CSV (header optional, with or without '#').
@@ -254,23 +252,6 @@ def read_newer_college_csv(path: str | os.PathLike) -> tuple[np.ndarray, np.ndar
     timestamps = values[:, 0] + values[:, 1] * 1e-9
     _check_unique_times(path, timestamps, line_numbers)
     return timestamps, make_poses(values[:, 2:5], quaternions)
-
-
-def write_newer_college_csv(path: str | os.PathLike, timestamps: np.ndarray, poses: np.ndarray) -> None:
-    """Write timestamps: [S] and poses: [S, 4, 4] in the Newer College CSV layout (with header)."""
-    path = Path(path)
-    timestamps, poses = _check_stamped_poses(path, timestamps, poses)
-    quaternions = rotation_to_quat(poses[:, :3, :3])
-    lines = [NEWER_COLLEGE_HEADER]
-    for t, pose, q in zip(timestamps, poses, quaternions):
-        sec = int(np.floor(t))
-        nsec = int(round((t - sec) * 1e9))
-        if nsec >= 1_000_000_000:
-            sec, nsec = sec + 1, nsec - 1_000_000_000
-        numbers = ",".join(repr(float(v)) for v in (*pose[:3, 3], *q))
-        lines.append(f"{sec},{nsec},{numbers}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
 
 
 # --------------------------------------------------------------------------------------------------

@@ -60,10 +60,6 @@ class Sessions:
     def keyframes_of(self, r: int) -> slice:
         return slice(int(self.keyframe_bounds[r]), int(self.keyframe_bounds[r + 1]))
 
-    def keyframe_labels(self) -> np.ndarray:
-        """[K] int64: the recording of each joined keyframe."""
-        return np.repeat(np.arange(self.count), np.diff(self.keyframe_bounds))
-
     def scan_labels(self) -> np.ndarray:
         """[S] int64: the recording of each joined input scan."""
         return np.repeat(np.arange(self.count), np.diff(self.scan_bounds))

@@ -44,26 +44,13 @@ class Normalization:
         out[..., :3, 3] = self.points_to_normalized(out[..., :3, 3])
         return out
 
-    def poses_to_world(self, poses: np.ndarray) -> np.ndarray:
-        """poses: [..., 4, 4] in the normalised world -> metres in the original world."""
-        out = np.array(poses, dtype=np.float64, copy=True)
-        out[..., :3, 3] = self.points_to_world(out[..., :3, 3])
-        return out
-
     def ranges_to_normalized(self, ranges: np.ndarray) -> np.ndarray:
         """ranges: [...] metres -> [...] normalised units."""
         return np.asarray(ranges, dtype=np.float64) * self.scale
 
     def to_dict(self) -> dict:
-        """JSON-able form, for checkpoints and config.json."""
+        """JSON-able form, for the checkpoints' plan of cubes."""
         return {"scale": self.scale, "offset": [float(v) for v in self.offset]}
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "Normalization":
-        try:
-            return cls(scale=float(d["scale"]), offset=np.asarray(d["offset"], dtype=np.float64))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise DataError(f"invalid normalisation record {d!r}: {exc}") from exc
 
 
 def fit_normalization(scans: list[np.ndarray], poses: np.ndarray,

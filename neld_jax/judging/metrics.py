@@ -342,9 +342,27 @@ def nearest_neighbor_distances(query: np.ndarray, reference: np.ndarray) -> np.n
 
 def map_metrics_from_distances(est_to_gt: np.ndarray, gt_to_est: np.ndarray, threshold: float = 0.2,
                                cutoff: float | None = None, mode: str = "paper") -> dict[str, Any]:
-    """Map metrics from precomputed nearest-neighbour distances (see `map_metrics`).
+    """Compare an estimated map with a ground-truth map (both in the same frame) from their nearest-neighbour
+    distances (`nearest_neighbor_distances`): est_to_gt [N], d_acc(p), the distance of estimated point p to its
+    nearest GT point ("accuracy" direction); gt_to_est [M], d_comp(q), the distance of GT point q to its nearest
+    estimated point ("completeness" direction).
 
-    est_to_gt: [N] distances of estimated points to the GT map; gt_to_est: [M] the reverse.
+    Chamfer conventions (`mode`), `cutoff` in metres (the paper uses 1 m for raw maps, none for
+    rendered maps):
+    - "paper" (default): L1-Chamfer = 1/2 mean(d_acc) + 1/2 mean(d_comp), as in the NeLD-BA paper and
+      the FusionPortable / MapEval tools; distances beyond `cutoff` are DROPPED from both means
+      (outliers do not count at all).
+    - "clip": the same halved mean, but distances beyond `cutoff` are CLIPPED to `cutoff` (outliers
+      count with the maximum penalty).
+    - "sum": mean(d_acc) + mean(d_comp), unhalved (as some FusionPortable scripts report), with the
+      cutoff dropping as in "paper".
+    With cutoff=None all three use every distance ("paper" and "clip" then agree).
+
+    Independent of mode and cutoff: precision = fraction of d_acc <= threshold, recall = fraction of
+    d_comp <= threshold, f1 = 2PR / (P + R), inlier_rmse = RMSE of the d_acc <= threshold.
+    Returned keys: accuracy_m, completeness_m, chamfer_l1_m, precision, recall, f1, inlier_rmse_m,
+    threshold_m, cutoff_m, mode, num_est, num_gt, num_est/gt_within_cutoff, num_inliers. A mean over
+    no points is NaN.
     """
     if mode not in MAP_MODES:
         raise ValueError(f"map metrics mode must be one of {MAP_MODES}, got {mode!r}")
@@ -388,38 +406,3 @@ def map_metrics_from_distances(est_to_gt: np.ndarray, gt_to_est: np.ndarray, thr
         "num_gt_within_cutoff": int(len(gt_to_est) if cutoff is None else np.sum(gt_to_est <= cutoff)),
         "num_inliers": int(len(inliers)),
     }
-
-
-def map_metrics(est_points: np.ndarray, gt_points: np.ndarray, threshold: float = 0.2,
-                cutoff: float | None = None, mode: str = "paper") -> dict[str, Any]:
-    """Compare an estimated map with a ground-truth map (both already in the same frame).
-
-    est_points: [N, 3], gt_points: [M, 3], both non-empty.
-    d_acc(p) = distance of estimated point p to its nearest GT point ("accuracy" direction);
-    d_comp(q) = distance of GT point q to its nearest estimated point ("completeness" direction).
-
-    Chamfer conventions (`mode`), `cutoff` in metres (the paper uses 1 m for raw maps, none for
-    rendered maps):
-    - "paper" (default): L1-Chamfer = 1/2 mean(d_acc) + 1/2 mean(d_comp), as in the NeLD-BA paper and
-      the FusionPortable / MapEval tools; distances beyond `cutoff` are DROPPED from both means
-      (outliers do not count at all).
-    - "clip": the same halved mean, but distances beyond `cutoff` are CLIPPED to `cutoff` (outliers
-      count with the maximum penalty).
-    - "sum": mean(d_acc) + mean(d_comp), unhalved (as some FusionPortable scripts report), with the
-      cutoff dropping as in "paper".
-    With cutoff=None all three use every distance ("paper" and "clip" then agree).
-
-    Independent of mode and cutoff: precision = fraction of d_acc <= threshold, recall = fraction of
-    d_comp <= threshold, f1 = 2PR / (P + R), inlier_rmse = RMSE of the d_acc <= threshold.
-    Returned keys: accuracy_m, completeness_m, chamfer_l1_m, precision, recall, f1, inlier_rmse_m,
-    threshold_m, cutoff_m, mode, num_est, num_gt, num_est/gt_within_cutoff, num_inliers. A mean over
-    no points is NaN.
-    """
-    est_points = _check_points(est_points, "est_points")
-    gt_points = _check_points(gt_points, "gt_points")
-    if len(est_points) == 0 or len(gt_points) == 0:
-        raise ValueError(f"map metrics need non-empty maps, got {len(est_points)} estimated and "
-                         f"{len(gt_points)} ground-truth points")
-    return map_metrics_from_distances(nearest_neighbor_distances(est_points, gt_points),
-                                      nearest_neighbor_distances(gt_points, est_points),
-                                      threshold=threshold, cutoff=cutoff, mode=mode)

@@ -207,9 +207,9 @@ def evaluate(artifacts: RunArtifacts, settings: EvalSettings = EvalSettings()) -
     """Every method's pose errors against the GT poses and map errors against the GT map (module docstring).
 
     result: {"threshold_m", "raw_cutoff_m", "map_icp_m", "methods": {method: {"poses", "num_poses", ["matching",
-    "matched_poses", "ate", "rpe"], ["raw_map", "rendered_map"]}}}; a map entry holds `metrics.map_metrics` keys
-    plus "file" (the map's name in an output folder), "aligned_to_gt" and "icp" (fitness, correction in m and deg;
-    None without ICP)."""
+    "matched_poses", "ate", "rpe"], ["raw_map", "rendered_map"]}}}; a map entry holds
+    `metrics.map_metrics_from_distances` keys plus "file" (the map's name in an output folder), "aligned_to_gt" and
+    "icp" (fitness, correction in m and deg; None without ICP)."""
     methods, aligned, pose_errors, map_distances = {}, {}, {}, {}
     for name, trajectory in artifacts.trajectories.items():
         entry, alignment, errors = _pose_entry(name, trajectory, artifacts.gt, settings)

@@ -3,7 +3,6 @@ own (sensor) frame, with each point's time within the sweep; no poses (load_sequ
 
     read_lidar_bag(bag, topic)            -> RawSweeps (stamps, scans, per-point times, frame, counts)
     sweeps_sequence(root, sweeps, ...)    -> Sequence with poses=None and the ground truth matched to the stamps
-    write_lidar_bag(bag, topic, ...)      a ROS1 .bag of Ouster-style clouds (tests and fixtures)
 
 Per-point time comes from the cloud's own field table (rosbag_import.cloud_point_times: Ouster `t`, uint32 ns
 since the sweep's start; Velodyne/Hesai `time`, float32 seconds relative; `timestamp`, float64 absolute seconds)
@@ -29,7 +28,6 @@ import numpy as np
 
 from neld_jax.data.bags.rosbag_import import (
     CLOUD_TYPES,
-    POINTFIELD_TYPES,
     TIME_FIELDS,
     as_bag_paths,
     cloud_sweep,
@@ -227,77 +225,3 @@ def sweeps_sequence(root: Path, sweeps: RawSweeps, gt_file: Path | None, gt_from
     return Sequence(scans=sweeps.scans, poses=None, timestamps=sweeps.timestamps, gt_poses=gt_poses,
                     gt_map=None if gt_map_file is None else read_scan(gt_map_file), name=root.name, source=str(root),
                     files=sweeps.labels, point_times=sweeps.point_times)
-
-
-# --------------------------------------------------------------------------------------------------
-# Writing
-# --------------------------------------------------------------------------------------------------
-
-# The Ouster driver's point: x, y, z (padded to 16 bytes), intensity, t (ns since the sweep's start), reflectivity,
-# ring, ambient, range; (name, offset, PointField datatype). 48 bytes a point with the driver's alignment.
-OUSTER_FIELDS = (("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 16, 7), ("t", 20, 6), ("reflectivity", 24, 4),
-                 ("ring", 26, 4), ("ambient", 28, 4), ("range", 32, 6))
-OUSTER_POINT_STEP = 48
-
-
-def _ouster_cloud(store, stamp_ns: int, frame_id: str, points: np.ndarray, times: np.ndarray | None, rows: int):
-    """One PointCloud2 of the Ouster layout; organised (height = rows) when rows divides the point count. No `t`
-    field when times is None."""
-    n = points.shape[0]
-    height = rows if rows > 1 and n % rows == 0 else 1
-    fields = [f for f in OUSTER_FIELDS if times is not None or f[0] != "t"]
-    dtype = np.dtype({"names": [f[0] for f in fields], "formats": ["<" + POINTFIELD_TYPES[f[2]] for f in fields],
-                      "offsets": [f[1] for f in fields], "itemsize": OUSTER_POINT_STEP})
-    data = np.zeros(n, dtype=dtype)
-    for i, axis in enumerate("xyz"):
-        data[axis] = points[:, i]
-    if times is not None:
-        data["t"] = np.round(np.asarray(times, dtype=np.float64) * 1e9).astype(np.uint32)
-    data["ring"] = np.arange(n) % max(height, 1)
-    with np.errstate(invalid="ignore", over="ignore"):
-        distance = np.linalg.norm(points, axis=1)
-    data["range"] = np.round(np.where(np.isfinite(distance), np.clip(distance, 0, 4e6), 0) * 1e3)  # mm, 0: none
-    types = store.types
-    point_field = types["sensor_msgs/msg/PointField"]
-    header = types["std_msgs/msg/Header"](
-        seq=0, stamp=types["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000,
-                                                          nanosec=stamp_ns % 1_000_000_000), frame_id=frame_id)
-    return types["sensor_msgs/msg/PointCloud2"](
-        header=header, height=height, width=n // height,
-        fields=[point_field(name=name, offset=offset, datatype=datatype, count=1) for name, offset, datatype in fields],
-        is_bigendian=False, point_step=OUSTER_POINT_STEP, row_step=OUSTER_POINT_STEP * (n // height),
-        data=data.view(np.uint8).reshape(-1), is_dense=False)
-
-
-def write_lidar_bag(bag: str | os.PathLike, topic: str, frame_id: str, timestamps, scans, point_times=None,
-                    rows: int = 1) -> Path:
-    """Write a ROS1 .bag with one sensor_msgs/PointCloud2 per scan on `topic`, laid out as the Ouster driver's
-    clouds (OUSTER_FIELDS), header stamp = bag time = the scan's timestamp.
-
-    timestamps: [S] seconds; scans: S arrays [N_i, 3] (sensor frame; NaN or (0, 0, 0) points are written as
-    they are); point_times: S arrays [N_i] seconds after the stamp (written as uint32 ns in `t`), or None for
-    clouds without a time field; rows: the clouds' height when it divides N_i (organised clouds), else 1.
-    Returns the bag's path (overwritten when it exists)."""
-    from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    bag = Path(bag)
-    timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
-    if len(scans) != timestamps.shape[0] or (point_times is not None and len(point_times) != len(scans)):
-        raise DataError(f"{bag}: {timestamps.shape[0]} timestamps, {len(scans)} scans and "
-                        f"{'no' if point_times is None else len(point_times)} point times do not match")
-    store = get_typestore(Stores.ROS1_NOETIC)
-    bag.parent.mkdir(parents=True, exist_ok=True)
-    if bag.exists():
-        bag.unlink()
-    msgtype = "sensor_msgs/msg/PointCloud2"
-    with Writer(bag) as writer:
-        connection = writer.add_connection(topic, msgtype, typestore=store)
-        for i in np.argsort(timestamps, kind="stable"):
-            sec = int(np.floor(timestamps[i]))  # whole seconds apart: t * 1e9 alone loses ~100 ns to rounding
-            stamp_ns = sec * 1_000_000_000 + int(np.rint((timestamps[i] - sec) * 1e9))
-            points = np.asarray(scans[i], dtype=np.float64).reshape(-1, 3)
-            times = None if point_times is None else point_times[i]
-            msg = _ouster_cloud(store, stamp_ns, frame_id, points, times, rows)
-            writer.write(connection, stamp_ns, store.serialize_ros1(msg, msgtype))
-    return bag

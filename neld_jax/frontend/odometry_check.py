@@ -54,6 +54,7 @@ from typing import Callable
 
 import numpy as np
 
+from neld_jax.data.preprocess import crop_range
 from neld_jax.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -234,13 +235,6 @@ def global_step(source: np.ndarray, target: np.ndarray, voxel_m: float) -> PairR
     return PairRegistration(transform, fitness, *grids)
 
 
-def cropped(scan: np.ndarray, ranges: tuple[float, float]) -> np.ndarray:
-    """The points of scan [N, 3] (sensor frame) within ranges (min, max) m of the sensor: [M, 3]."""
-    scan = np.asarray(scan, np.float64)
-    distance = np.linalg.norm(scan, axis=1)
-    return scan[(distance >= ranges[0]) & (distance <= ranges[1])]
-
-
 def check_steps(scans, poses: np.ndarray, ranges: tuple[float, float], voxel_m: float,
                 pairs: np.ndarray | None = None, registered: dict | None = None) -> StepCheck:
     """The odometry's poses [S, 4, 4] (sensor -> world, one a scan) against global registration of the scans
@@ -255,7 +249,8 @@ def check_steps(scans, poses: np.ndarray, ranges: tuple[float, float], voxel_m: 
     started = time.perf_counter()
     for i in pairs:
         if int(i) not in registered:
-            registered[int(i)] = global_step(cropped(scans[i + 1], ranges), cropped(scans[i], ranges), voxel_m)
+            later, earlier = (crop_range(np.asarray(scans[j], np.float64), *ranges) for j in (i + 1, i))
+            registered[int(i)] = global_step(later, earlier, voxel_m)
     found = [registered[int(i)] for i in pairs]
     increments = np.linalg.inv(poses[pairs]) @ poses[pairs + 1]  # [P, 4, 4] scan i + 1 -> scan i
     return StepCheck(pairs=pairs, global_steps=np.array([pair.transform for pair in found]).reshape(-1, 4, 4),

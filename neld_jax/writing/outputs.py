@@ -20,11 +20,11 @@ import numpy as np
 from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.geometry import register_scans
 from neld_jax.judging import judge, report
-from neld_jax.writing.evaluate import GT_POSES_FILE, EvalSettings, RunArtifacts, Trajectory, evaluation_record
 from neld_jax.judging.metrics import path_length_ratio
 from neld_jax.training.budget import TimeBudget
 from neld_jax.trajectory import propagate_corrections, window_scales
 from neld_jax.writing import plots
+from neld_jax.writing.evaluate import GT_POSES_FILE, EvalSettings, RunArtifacts, Trajectory, evaluation_record
 from neld_jax.writing.export import write_json, write_point_cloud, write_poses, write_raw_map
 
 logger = logging.getLogger(__name__)
@@ -54,7 +54,8 @@ class RunSteps:
     """What a run's steps made: every input scan (`loaded`) and the keyframes (step 1), the start (2), the refined
     poses and fields (3), the rendered map (4; None with mapping off) and every other input scan registered to the
     result (5; neld_jax.steps.registration.ScanRegistration, None where nothing was registered); neld_ba: NeLD-BA's
-    poses of every input scan [S, 4, 4] where the start's poses are the answer instead (neld_jax.judging.answer), else None."""
+    poses of every input scan [S, 4, 4] where the start's poses are the answer instead (neld_jax.judging.answer),
+    else None."""
 
     loaded: Any
     keyframes: Any
@@ -75,9 +76,9 @@ class RunSteps:
 
 def write_outputs(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps) -> RunArtifacts:
     """poses_initial / poses_optimized (TUM .txt and KITTI .kitti, one line per input scan: the answer,
-    made.every_scan_poses), poses_neld_ba where the start's poses are the answer (neld_jax.judging.answer), poses_baseline
-    when the baseline ran, poses_gt where ground truth exists, poses_odometry when the input poses were made from
-    the scans (KISS-ICP; the same poses as poses_initial, under the name that says where they came from);
+    made.every_scan_poses), poses_neld_ba where the start's poses are the answer (neld_jax.judging.answer),
+    poses_baseline when the baseline ran, poses_gt where ground truth exists, poses_odometry when the input poses were
+    made from the scans (KISS-ICP; the same poses as poses_initial, under the name that says where they came from);
     map_raw.ply (the keyframes registered with the answer's poses), map_raw_initial.ply, map_rendered.ply,
     map_gt.ply. Returns what it wrote, as arrays (the evaluation measures them without reading the files back);
     trajectories["optimized"]: every input scan's poses [S, 4, 4]."""
@@ -124,13 +125,13 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, w
     Returns (metrics.json's content, the per-scan report's rows)."""
     keyframes, refined = made.keyframes, made.refined
     crisp, per_scan_entropy, margins = judged
-    rows = write_scan_report(out_dir, made, written.trajectories["optimized"].poses, per_scan_entropy,
-                             float(config.mapping.min_opacity))
+    T_all = written.trajectories["optimized"].poses  # made.every_scan_poses(), as write_outputs wrote them
+    rows = write_scan_report(out_dir, made, T_all, per_scan_entropy, float(config.mapping.min_opacity))
     plots.plot_map_topdown(os.path.join(out_dir, "map_topdown.png"),
                            {"input poses": register_scans(keyframes.scans, keyframes.poses),
                             ("after NeLD-BA" if made.neld_ba is None else f"kept: the {made.start.chosen} poses"):
                             register_scans(keyframes.scans, refined.poses)})
-    summary = {"run": run_record(config, made, budget, margins, judge.warn_if_not_crispest(crisp, margins)),
+    summary = {"run": run_record(config, made, T_all, budget, margins, judge.warn_if_not_crispest(crisp, margins)),
                "scans_report": report.summarize(rows), "crispness": crisp}
     if written.gt is not None or written.gt_map is not None:
         gt_files = {"gt_poses": None if written.gt is None else os.path.join(out_dir, GT_POSES_FILE),
@@ -164,9 +165,10 @@ def judge_crispness(config: ml_collections.ConfigDict, made: RunSteps, budget: T
     return crisp, per_scan_entropy, margins
 
 
-def run_record(config: ml_collections.ConfigDict, made: RunSteps, budget: TimeBudget, margins: dict,
-               crispest: str | None) -> dict:
-    """metrics.json's "run" section: what ran, what the run decided, how long it took, the crispness verdict."""
+def run_record(config: ml_collections.ConfigDict, made: RunSteps, T_all: np.ndarray, budget: TimeBudget,
+               margins: dict, crispest: str | None) -> dict:
+    """metrics.json's "run" section: what ran, what the run decided, how long it took, the crispness verdict (T_all:
+    the answer's poses of every input scan [S, 4, 4], made.every_scan_poses())."""
     result, render = made.refined.result, made.render
     return {
         "config_hash": config_hash(config),
@@ -177,7 +179,7 @@ def run_record(config: ml_collections.ConfigDict, made: RunSteps, budget: TimeBu
         "schedule_steps": result.schedules.total_steps,  # the plan that ran: fewer than asked when compressed
         "stopped_early": bool(result.stopped_early),
         "train_seconds": round(result.train_seconds, 2),
-        "total_seconds": round(budget.elapsed(), 2),
+        "total_seconds": round(budget.run_seconds(), 2),  # every process of a resumed run, as train_seconds
         "device": str(jax.devices()[0]),
         "map_rays": None if render is None else int(render.rays.num_rays),
         "map_rays_rendered": None if render is None else render.num_rendered,
@@ -186,7 +188,7 @@ def run_record(config: ml_collections.ConfigDict, made: RunSteps, budget: TimeBu
         "answer": "neld_ba" if made.neld_ba is None else made.start.chosen,  # whose poses poses_optimized holds
         "crispest": crispest,
         "crispness_margin": margins,  # {other method: the answer's entropy minus its, per draw and mean}
-        "path_vs_input": path_vs_input(made.every_scan_poses(), made.loaded.poses),
+        "path_vs_input": path_vs_input(T_all, made.loaded.poses),
     }
 
 

@@ -1,4 +1,4 @@
-"""The rendered map (neld_jax.steps.mapping): every ray by default, a uniform sample of them under a time limit, one cube
+"""The rendered map (steps.mapping): every ray by default, a uniform sample of them under a time limit, one cube
 or several stitched, points in the world."""
 
 import dataclasses

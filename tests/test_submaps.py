@@ -1,4 +1,4 @@
-"""The plan of cubes (neld_jax.training.submaps): one cube for a sequence it holds, else windows; the switch, the windows,
+"""The plan of cubes (training.submaps): one cube for a sequence it holds, else windows; the switch, the windows,
 the per-cube ray tensors, loop-closure submaps, and a run over submaps end to end. The trainer's side of submaps is
 in tests/test_train.py."""
 

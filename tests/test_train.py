@@ -1,4 +1,4 @@
-"""The trainer (neld_jax.training.train): one pytree, one optimiser, one step and one loop for one cube and for many. Pose
+"""The trainer (training.train): one pytree, one optimiser, one step and one loop for one cube and for many. Pose
 freezing before k*, the gauge, compiles per stage, schedules, the pose prior and the kept scale, the clock, the fused
 loop, and on 8 simulated CPU devices (a subprocess) the sharded step, a shared scan's gradient and a resume."""
 

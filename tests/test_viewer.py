@@ -1,4 +1,4 @@
-"""The run's Rerun recording (neld_jax.writing.viewer), read back through Rerun's own reader: the entities, their counts and
+"""The run's Rerun recording (writing.viewer), read back through Rerun's own reader: the entities, their counts and
 values (the refined poses equal poses_optimized.txt), the training curves; no display and no network."""
 
 import csv

@@ -25,8 +25,8 @@ def run_baseline(config, progress: bool = True) -> dict:
     "evaluation": evaluate_run's result or None, "report": what the baseline decided}."""
     from neld_jax.baseline import BaselineSettings, register_sequence
     from neld_jax.judging import judge
-    from neld_jax.writing.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
     from neld_jax.steps.inputs import load_keyframes
+    from neld_jax.writing.evaluate import GT_MAP_FILES, GT_POSES_FILE, evaluate_run
     from neld_jax.writing.export import (
         read_json,
         write_json,
@@ -69,8 +69,8 @@ def run_baseline(config, progress: bool = True) -> dict:
 
 
 def job(config) -> None:
-    from neld_jax.writing.evaluate import format_table
     from neld_jax.judging.judge import format_crispness_table
+    from neld_jax.writing.evaluate import format_table
 
     result = run_baseline(config)
     print(f"baseline ({result['seconds']:.0f} s) written to {config.output_dir}")

@@ -50,8 +50,8 @@ def named_paths(items: list[str]) -> dict[str, str]:
 def job(config) -> None:
     from neld_jax.errors import ConfigError
     from neld_jax.judging import judge
-    from neld_jax.writing.evaluate import trajectory_at_keyframes
     from neld_jax.steps.inputs import load_keyframes
+    from neld_jax.writing.evaluate import trajectory_at_keyframes
     from neld_jax.writing.export import write_json
 
     paths = named_paths(POSES.value)

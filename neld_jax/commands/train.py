@@ -27,9 +27,9 @@ RESTART = flags.DEFINE_bool("restart", False, "Delete the files an earlier run w
 
 def job(config) -> None:
     from neld_jax.config import slow_run_warning
-    from neld_jax.writing.evaluate import format_table
     from neld_jax.judging.judge import format_crispness_table
     from neld_jax.run import run
+    from neld_jax.writing.evaluate import format_table
 
     if slow := slow_run_warning(config):  # e.g. :paper on a CPU: weeks
         logging.getLogger(__name__).warning(slow)

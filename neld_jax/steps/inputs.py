@@ -15,7 +15,8 @@ FORMATS = (*formats.FORMATS, SYNTHETIC)  # every data.format a run accepts
 
 def load_sequence(data_cfg, progress: bool = True) -> Sequence:
     """The sequence data_cfg (config.data) names, posed: read (or generated), then the front-end's poses where it
-    has none. A folder without ground truth is reported with what was looked for (formats.report_missing_ground_truth)."""
+    has none. A folder without ground truth is reported with what was looked for
+    (formats.report_missing_ground_truth)."""
     if str(data_cfg.format).lower() == SYNTHETIC:
         from neld_jax.synthetic import generator  # here: Open3D's ray casting is only needed to make scans
 

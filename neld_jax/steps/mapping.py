@@ -87,7 +87,7 @@ class CubeToRender(NamedTuple):
 
 
 def cubes_to_render(refined) -> list[CubeToRender]:
-    """The real cubes (weight > 0) of refined.plan with their fields and refined poses (neld_jax.steps.refine.Refined)."""
+    """The real cubes (weight > 0) of refined.plan with their fields and refined poses (steps.refine.Refined)."""
     plan, fields = refined.plan, refined.result.state.params["fields"]
     cubes = []
     for m in np.flatnonzero(plan.weight > 0):

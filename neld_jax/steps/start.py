@@ -109,9 +109,9 @@ def _plain(report: dict) -> dict:
 def choose_start(config: ml_collections.ConfigDict, keyframes, deadline: float | None = None,
                  progress: bool = False, recordings=None) -> Start:
     """The start of training on `keyframes` (config.start.poses; module docstring). deadline: a time.perf_counter()
-    value after which the baseline's multi-view refinement registers no more scans (neld_jax.training.budget). recordings:
-    neld_jax.data.sessions.Sessions where keyframes joins several recordings (None: one): the baseline's chain
-    restarts at each later one's first keyframe, and the closures that placed it join its pose graph."""
+    value after which the baseline's multi-view refinement registers no more scans (neld_jax.training.budget).
+    recordings: neld_jax.data.sessions.Sessions where keyframes joins several recordings (None: one): the baseline's
+    chain restarts at each later one's first keyframe, and the closures that placed it join its pose graph."""
     how = str(config.start.poses).lower()
     if how not in CHOICES:
         raise ConfigError(f"start.poses: unknown value {config.start.poses!r} ({' | '.join(CHOICES)})")

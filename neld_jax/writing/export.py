@@ -47,7 +47,8 @@ def write_keyframe_poses(output_dir: str | os.PathLike, stem: str, loaded, keyfr
                          ) -> np.ndarray:
     """The keyframes' poses T_keyframes [K, 4, 4] carried to every input scan of `loaded` (the scans between
     keyframes take their keyframes' interpolated correction: trajectory.propagate_corrections) and written as
-    `write_poses` does. loaded, keyframes: neld_jax.steps.inputs.load_keyframes's. Returns the poses [S, 4, 4] written."""
+    `write_poses` does. loaded, keyframes: neld_jax.steps.inputs.load_keyframes's. Returns the poses [S, 4, 4]
+    written."""
     T_all = propagate_corrections(loaded.poses, keyframes.loaded_index, T_keyframes, loaded.timestamps)
     write_poses(output_dir, stem, loaded.timestamps, T_all)
     return T_all

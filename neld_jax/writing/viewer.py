@@ -141,8 +141,8 @@ class RunViewer:
         self._trajectory("baseline", all_scans, begin.baseline_poses)
 
     def training_hook(self):
-        """Step 3: on_log(entry, poses [K, 4, 4]) for neld_jax.steps.refine: the training curves and the keyframes' poses
-        at each logged step (None when disabled, so that training runs without a hook)."""
+        """Step 3: on_log(entry, poses [K, 4, 4]) for neld_jax.steps.refine: the training curves and the keyframes'
+        poses at each logged step (None when disabled, so that training runs without a hook)."""
         return self._timed_training_entry if self.enabled else None
 
     @_timed
@@ -181,7 +181,7 @@ class RunViewer:
 
     @_timed
     def log_verdict(self, rows: list[dict], loaded, T_all: np.ndarray) -> None:
-        """Step 6: every scan at its refined position with its row of the per-scan report (neld_jax.judging.report, as in
+        """Step 6: every scan at its refined position with its row of the per-scan report (judging.report, as in
         scans_report.csv) attached, the flagged scans highlighted; the ground truth (aligned to the refined
         trajectory) and each scan's error against it where it exists."""
         import rerun as rr

@@ -30,11 +30,12 @@ import numpy as np
 from neld_jax.baseline import BaselineSettings, Segments, register_sequence
 from neld_jax.errors import ConfigError, DataError
 from neld_jax.judging import judge, metrics
+from neld_jax.steps.choices import START_POSES
 from neld_jax.training.train import PoseSteps, fixed_rows
 
 logger = logging.getLogger(__name__)
 
-CHOICES = ("input", "baseline", "crisper")
+CHOICES = START_POSES  # start.poses
 FILE = "start_poses.npz"  # the start a run chose, kept for a resume (the baseline's deadline may not repeat)
 
 
@@ -109,8 +110,8 @@ def _plain(report: dict) -> dict:
 def choose_start(config: ml_collections.ConfigDict, keyframes, deadline: float | None = None,
                  progress: bool = False, recordings=None) -> Start:
     """The start of training on `keyframes` (config.start.poses; module docstring). deadline: a time.perf_counter()
-    value after which the baseline's multi-view refinement registers no more scans (neld_jax.training.budget). recordings:
-    neld_jax.data.sessions.Sessions where keyframes joins several recordings (None: one): the baseline's chain
+    value after which the baseline's multi-view refinement registers no more scans (neld_jax.training.budget).
+    recordings: neld_jax.data.sessions.Sessions where keyframes joins several recordings (None: one): the baseline's chain
     restarts at each later one's first keyframe, and the closures that placed it join its pose graph."""
     how = str(config.start.poses).lower()
     if how not in CHOICES:

@@ -1,7 +1,11 @@
 """Every setting of a run, its default, and the named presets over them.
 
-`defaults()` is the paper's configuration, one line of comment per field. A run is one of two recipes at one of
-three budgets (docs/defaults.md says why each value is what it is):
+`SETTINGS` declares every field once: its name, default, what it accepts (a `Rule`: type, range or choices) and
+what it does in one line. `defaults()` (the paper's configuration), `RULES` (what `validate` checks) and the
+settings reference of docs/defaults.md (`python -m neld_jax.config --docs`) are made from it. Where a module owns a
+default or a list of choices (the baseline's settings, the synthetic generator's, the formats, the start's choices),
+the declaration imports it from there. A run is one of two recipes at one of three budgets (docs/defaults.md says
+why each value is what it is):
 
 - budgets: "paper" (the defaults as they are: 160k steps), "cpu" (within 10 minutes on 2 CPU cores) and "gpu" (the
   cpu recipe trained 20x longer, the paper's map); a config string that names none gets "gpu" where JAX's default
@@ -15,7 +19,7 @@ The files in configs/ only say how to read a layout: `get_config(budget)` picks 
 and what the layout needs. Every field can be overridden on the command line (`--config.train.steps=2000`).
 Distances are metres (`*_m`); the trainer converts them with the normalisation's scale.
 
-`RULES` says what each field accepts (its type, range or choices) and `RELATIONS` what fields accept together;
+`RULES` says what each field accepts and `RELATIONS` what fields accept together;
 `validate` checks both once the config is resolved, before a run reads anything, and a bad value is one ConfigError
 line naming the field, its value and what it accepts.
 """
@@ -30,146 +34,20 @@ import os
 
 import ml_collections
 
+from neld_jax.baseline.settings import BaselineSettings
+from neld_jax.data.formats import KISS_ICP
+from neld_jax.data.ground_truth import SCAN_FRAMES
 from neld_jax.errors import ConfigError
-from neld_jax.synthetic.generator import synthetic_defaults
+from neld_jax.field.options import HIERARCHICAL, MATMUL_DTYPES
+from neld_jax.frontend.sweep_times import DESKEW_CHOICES
+from neld_jax.judging import crispness
+from neld_jax.steps.choices import START_POSES
+from neld_jax.steps.inputs import FORMATS
+from neld_jax.synthetic.generator import MIN_RANGE_M, PATH_WOBBLE, synthetic_defaults
 
 BUDGETS = ("paper", "gpu", "cpu")
 # (init, final) pose learning rates of poses that are already good: a recording's odometry, the baseline's poses
 REFINE_POSE_LR = (5e-6, 2.5e-7)
-
-
-def defaults() -> ml_collections.ConfigDict:
-    """The paper's configuration (the "paper" budget)."""
-    c = ml_collections.ConfigDict()
-    c.output_dir = "outputs/run"  # where the run writes (a rerun resumes from its checkpoints)
-    c.seed = 0  # the field's initialisation, the rays drawn, the batches
-    c.budget = "paper"  # the budget the preset applied (paper | gpu | cpu); a record, not read by the run
-    c.max_minutes = 0.0  # the whole run's wall-clock budget (neld_jax.training.budget); 0: none
-
-    c.data = ml_collections.ConfigDict()
-    c.data.format = "generic"  # one of neld_jax.data.FORMATS
-    c.data.root = ""  # the sequence's folder
-    c.data.initial_poses = ""  # "": the layout's poses; kiss_icp: KISS-ICP from the scans; lio_keyframes: a file
-    c.data.drop_unmatched_tail = False  # drop up to 5 trailing scans without a pose or stamp instead of failing
-    c.data.scans_in_world_frame = False  # the scans are registered already: move them into their sensors' frames
-    c.data.invert_poses = False  # the poses file holds world -> sensor transforms
-    c.data.keyframe_interval_s = 3.0  # keyframes at most this many seconds apart (<= 0: cap off) ...
-    c.data.keyframe_distance_m = 0.0  # ... this far apart (0: a tenth of max_range_m with the time cap, else off) ...
-    c.data.keyframe_angle_deg = 0.0  # ... and turned this far (0: 30 with the time cap, else off; all off: every scan)
-    c.data.min_range_m = 0.5  # points nearer the sensor are dropped
-    c.data.max_range_m = 80.0  # points further away are dropped
-    c.data.deskew = "auto"  # scans without point times: auto (measured) | deskewed | raw | raw_<start>_<turning>
-    c.data.voxel_size_m = 0.05  # each keyframe's points on this grid
-    c.data.first_scan = 0  # keyframes from this input scan on ...
-    c.data.max_scans = 0  # ... and at most this many (0: all): a long sequence in pieces
-    c.data.max_rays_per_scan = 0  # training rays per keyframe, a random subset (0: every point)
-    c.data.timestamp_tol_s = 0.05  # scans and poses match by time within this
-    c.data.gt_poses_path = ""  # ground-truth trajectory (TUM, or Newer College .csv) in place of the layout's
-    c.data.gt_map_path = ""  # ground-truth map (.pcd / .ply) in place of the layout's
-    c.data.gt_from_scan = ()  # the scan frame's pose in the ground truth's body frame (tx ty tz qx qy qz qw)
-    c.data.scan_frame = ""  # published extrinsic: fusionportable body_imu | ouster00; newer_college os_sensor | os_imu
-    c.data.gt_time_offset_s = 0.0  # added to the scan stamps when matching ground truth
-    c.data.synthetic = synthetic_defaults()  # the generated sequence (data.format="synthetic")
-
-    c.model = ml_collections.ConfigDict()
-    c.model.width = 512  # hidden layer width
-    c.model.depth = 8  # hidden layers
-    c.model.skip_layers = (4,)  # hidden layers that get the encoded position again
-    c.model.pos_freqs = 15  # L of the position encoding
-    c.model.dir_freqs = 4  # L of the view direction's encoding
-    c.model.surrogate_gradient = True  # eq. 9 (ablation: False)
-    c.model.matmul_dtype = "float32"  # float32 | bfloat16 (the hidden matmuls' inputs; parameters stay float32)
-
-    c.sampling = ml_collections.ConfigDict()
-    c.sampling.z_low_m = 0.3  # eq. 7's lower bound
-    c.sampling.z_up_m = 200.0  # eq. 7's upper bound (beyond the cube: the cube bound decides)
-    c.sampling.cube_bound = True  # samples only inside [-1, 1]^3 (ablation: False)
-    c.sampling.hierarchical = "before"  # before (NeLD-BA) | nerf (ablation) | none (ablation)
-    c.sampling.coarse_stages = (32, 48, 64)  # coarse samples per ray, one stage each (ramp over train.c2f_end_fraction)
-    c.sampling.fine_stages = (16, 24, 32)  # fine samples per ray, one stage each
-    c.sampling.guided_samples = 0  # coarse samples within 1 m of the measured range (0: the paper)
-
-    c.loss = ml_collections.ConfigDict()
-    c.loss.lambda_coarse = 0.1  # eq. 13
-    c.loss.lambda_range = 1.0  # eq. 13
-    c.loss.lambda_termination = 1.0  # eq. 13 (ablation: 0)
-
-    c.train = ml_collections.ConfigDict()
-    c.train.steps = 160_000  # optimiser steps
-    c.train.batch_rays = 1024  # rays a step (over every submap)
-    c.train.field_lr_init = 5e-5  # the field's Adam learning rate, decaying exponentially ...
-    c.train.field_lr_final = 2e-5  # ... to this
-    c.train.pose_lr_rot_init = 5e-5  # the poses' rotation learning rate ...
-    c.train.pose_lr_rot_final = 2e-5  # ... decaying to this
-    c.train.pose_lr_trans_init = 5e-5  # ... and translation learning rate
-    c.train.pose_lr_trans_final = 2e-5  # ... decaying to this
-    c.train.c2f_end_fraction = 0.75  # coarse-to-fine: every frequency active after this fraction of the steps
-    c.train.pose_start_freq = 6  # k*: the poses move once this frequency is active
-    c.train.fixed_scans = (0,)  # scans that never move (the gauge; (): every pose free, anchored on scan 0 after)
-    c.train.checkpoint_every = 5000  # steps
-    c.train.log_every = 100  # steps a device call runs (the log, the progress bar and the clock move in these)
-
-    # Where training starts (neld_jax.steps.start): the input, the classical baseline's poses, or the crisper of the two.
-    c.start = ml_collections.ConfigDict()
-    c.start.poses = "input"  # input | baseline | crisper
-    c.start.pose_lr_from_baseline = REFINE_POSE_LR  # from the baseline: pose learning rates at most these
-    c.start.prior_from_baseline = 3000.0  # ... and a pull of each pose toward its start (0: none)
-
-    # Submaps (neld_jax.training.submaps): a sequence larger than one cube is split into overlapping windows of keyframes.
-    # The settings marked (M > 1) apply to a plan of several submaps only; one cube keeps the run's own.
-    c.submaps = ml_collections.ConfigDict()
-    c.submaps.enabled = "auto"  # auto (when one cube's finest detail exceeds max_detail_m) | on | off
-    c.submaps.max_detail_m = 0.25  # the finest Fourier period one cube may have
-    c.submaps.keyframes = 0  # keyframes a submap (0: the most whose cube keeps max_detail_m)
-    c.submaps.overlap = 2  # keyframes neighbouring submaps share
-    c.submaps.closure_radius_m = 10.0  # a revisit within this distance gets a submap of both visits (0: none)
-    c.submaps.max_submaps = 0  # at most this many submaps (longer windows, coarser cubes; 0: no limit)
-    c.submaps.width = 0  # (M > 1) each submap's field width (0: model.width)
-    c.submaps.step_rays_factor = 1.0  # (M > 1) a step's rays over every submap, in units of train.batch_rays
-    c.submaps.lambda_termination = 0.0  # (M > 1) the termination loss's weight (0: loss.lambda_termination)
-    c.submaps.field_lr_from_steps = ()  # (M > 1) (N, f): a plan of N steps or more trains the fields at f x the rate
-
-    c.mapping = ml_collections.ConfigDict()
-    c.mapping.enabled = True  # render map_rendered.ply
-    c.mapping.num_coarse = 128  # samples per ray of the rendered map (eq. 14)
-    c.mapping.num_fine = 128  # ... coarse and fine
-    c.mapping.max_rays_per_scan = 0  # rays per keyframe (0: every ray) ...
-    c.mapping.max_rays = 0  # ... and over the sequence (0: no limit; each keyframe an equal share, >= 256)
-    c.mapping.voxel_size_m = 0.05  # the written maps' grid (0: none)
-    c.mapping.min_opacity = 0.5  # rays less opaque than this end nowhere
-    c.mapping.max_seconds = 0.0  # the render's share of max_minutes (0: no limit)
-
-    # The classical baseline (neld_jax.baseline): scan-to-map ICP, a loop-closed pose graph, multi-view refinement.
-    c.baseline = ml_collections.ConfigDict()
-    c.baseline.voxel_size_m = 0.1  # the scans' grid for ICP
-    c.baseline.loop_radius_m = 10.0  # loop-closure candidates within this distance
-    c.baseline.global_loops_per_scan = 1  # FPFH + RANSAC closures where ICP cannot reach (0: none)
-    c.baseline.map_rounds = 2  # rounds of multi-view refinement (0: none)
-
-    c.eval = ml_collections.ConfigDict()
-    c.eval.map_icp_m = 0.0  # > 0: refine the ground-truth map's alignment by ICP at this distance
-    c.eval.crispness_radius_m = 0.3  # the raw map's crispness: neighbourhood radius ...
-    c.eval.crispness_queries = 10_000  # ... and query points
-    c.eval.crispness_draws = 5  # draws of the query points that say how sure a comparison is (< 2: none)
-
-    # Rerun (neld_jax.writing.viewer): the run's trajectories, maps and training, to look at in Rerun's viewer.
-    c.viz = ml_collections.ConfigDict()
-    c.viz.record = True  # write run.rrd in the output folder
-    c.viz.live = False  # also serve the run on 127.0.0.1:9876 while it trains (`rerun rerun+http://...`)
-    return c
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# What each field accepts. Choices repeat the constants of the modules that read them (tests/test_config.py checks
-# that they agree): the config imports neither the loaders (Open3D) nor the model (Flax).
-# ---------------------------------------------------------------------------------------------------------------
-
-# neld_jax.steps.inputs.FORMATS
-FORMATS = ("generic", "fusionportable", "newer_college", "lio_keyframes", "hba", "kitti", "synthetic")
-START_POSES = ("input", "baseline", "crisper")  # neld_jax.steps.start.CHOICES
-# data.scan_frame: the published frames of each format's ground truth (data.ground_truth.PUBLISHED_GT_FROM_SCAN)
-SCAN_FRAMES = {"fusionportable": ("body_imu", "ouster00"), "newer_college": ("os_sensor", "os_imu")}
-KISS_ICP = "kiss_icp"  # data.initial_poses that makes the poses from the scans (data.formats.KISS_ICP)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -227,6 +105,11 @@ class Rule:
         tuple_of = f"a {'non-empty ' if self.nonempty else ''}tuple of {counts + ' ' if counts else ''}{what}"
         return f"() or {tuple_of}" if 0 in self.lengths else tuple_of
 
+    @property
+    def type_name(self) -> str:
+        """The field's Python type: "int", "float", "bool", "str", "tuple[int]" or "tuple[float]"."""
+        return f"tuple[{self.kind[:-1]}]" if self.kind in ("ints", "floats") else self.kind
+
 
 def _integer(low=None, high=None) -> Rule:
     return Rule("int", low, high)
@@ -243,110 +126,249 @@ def _choice(*choices: str, any_case=False) -> Rule:
 FLAG, TEXT, POSITIVE, NON_NEGATIVE = Rule("bool"), Rule("str"), _number(0, above=True), _number(0)
 COUNT, AT_LEAST_ONE = _integer(0), _integer(1)
 
-RULES = {
-    "output_dir": TEXT,
-    "seed": COUNT,
-    "budget": _choice(*BUDGETS, any_case=True),
-    "max_minutes": NON_NEGATIVE,
-    "data.format": _choice(*FORMATS, any_case=True),
-    "data.root": TEXT,
-    "data.initial_poses": TEXT,
-    "data.drop_unmatched_tail": FLAG,
-    "data.scans_in_world_frame": FLAG,
-    "data.invert_poses": FLAG,
-    "data.keyframe_interval_s": _number(),
-    "data.keyframe_distance_m": _number(),
-    "data.keyframe_angle_deg": _number(),
-    "data.min_range_m": NON_NEGATIVE,
-    "data.max_range_m": POSITIVE,
-    "data.deskew": _choice("auto", "deskewed", "raw", "raw_behind_clockwise", "raw_behind_anticlockwise",
-                           "raw_front_clockwise", "raw_front_anticlockwise",
-                           any_case=True),  # sweep_times.DESKEW_CHOICES
-    "data.voxel_size_m": NON_NEGATIVE,
-    "data.first_scan": COUNT,
-    "data.max_scans": COUNT,
-    "data.max_rays_per_scan": COUNT,
-    "data.timestamp_tol_s": NON_NEGATIVE,
-    "data.gt_poses_path": TEXT,
-    "data.gt_map_path": TEXT,
-    "data.gt_from_scan": Rule("floats", lengths=(0, 7)),
-    "data.scan_frame": _choice("", *sorted({f for frames in SCAN_FRAMES.values() for f in frames})),
-    "data.gt_time_offset_s": _number(),
-    "data.synthetic.seed": COUNT,
-    "data.synthetic.route": _choice("loop", "courtyards"),
-    "data.synthetic.route_length_m": POSITIVE,
-    "data.synthetic.num_scans": AT_LEAST_ONE,
-    "data.synthetic.scene_size_m": POSITIVE,
-    "data.synthetic.trajectory_radius_m": POSITIVE,
-    "data.synthetic.num_beams": AT_LEAST_ONE,
-    "data.synthetic.num_columns": AT_LEAST_ONE,
-    "data.synthetic.max_range_m": _number(0.5, above=True),  # data.synthetic.MIN_RANGE_M
-    "data.synthetic.range_noise_m": NON_NEGATIVE,
-    "data.synthetic.drift_trans_m": NON_NEGATIVE,
-    "data.synthetic.drift_rot_deg": NON_NEGATIVE,
-    "data.synthetic.gt_map_points": COUNT,
-    "model.width": _integer(2),  # the density head is width // 2 wide
-    "model.depth": AT_LEAST_ONE,
-    "model.skip_layers": Rule("ints", low=0),
-    "model.pos_freqs": AT_LEAST_ONE,
-    "model.dir_freqs": COUNT,
-    "model.surrogate_gradient": FLAG,
-    "model.matmul_dtype": _choice("float32", "bfloat16"),  # field.MATMUL_DTYPES
-    "sampling.z_low_m": POSITIVE,
-    "sampling.z_up_m": POSITIVE,
-    "sampling.cube_bound": FLAG,
-    "sampling.hierarchical": _choice("before", "nerf", "none"),  # model.render_rays
-    "sampling.coarse_stages": Rule("ints", low=1, nonempty=True),
-    "sampling.fine_stages": Rule("ints", low=0, nonempty=True),
-    "sampling.guided_samples": COUNT,
-    "loss.lambda_coarse": NON_NEGATIVE,
-    "loss.lambda_range": NON_NEGATIVE,
-    "loss.lambda_termination": NON_NEGATIVE,
-    "train.steps": AT_LEAST_ONE,
-    "train.batch_rays": AT_LEAST_ONE,
-    "train.field_lr_init": NON_NEGATIVE,
-    "train.field_lr_final": NON_NEGATIVE,
-    "train.pose_lr_rot_init": NON_NEGATIVE,
-    "train.pose_lr_rot_final": NON_NEGATIVE,
-    "train.pose_lr_trans_init": NON_NEGATIVE,
-    "train.pose_lr_trans_final": NON_NEGATIVE,
-    "train.c2f_end_fraction": _number(0, 1),
-    "train.pose_start_freq": COUNT,
-    "train.fixed_scans": Rule("ints"),  # negative: from the last keyframe back (train.fixed_rows)
-    "train.checkpoint_every": AT_LEAST_ONE,
-    "train.log_every": AT_LEAST_ONE,
-    "start.poses": _choice(*START_POSES, any_case=True),
-    "start.pose_lr_from_baseline": Rule("floats", low=0, lengths=(0, 2)),
-    "start.prior_from_baseline": NON_NEGATIVE,
-    "submaps.enabled": _choice("auto", "on", "off", "true", "false", "1", "0", any_case=True),  # submaps_wanted
-    "submaps.max_detail_m": POSITIVE,
-    "submaps.keyframes": COUNT,
-    "submaps.overlap": COUNT,
-    "submaps.closure_radius_m": NON_NEGATIVE,
-    "submaps.max_submaps": COUNT,
-    "submaps.width": COUNT,
-    "submaps.step_rays_factor": POSITIVE,
-    "submaps.lambda_termination": NON_NEGATIVE,
-    "submaps.field_lr_from_steps": Rule("floats", low=0, above=True, lengths=(0, 2)),
-    "mapping.enabled": FLAG,
-    "mapping.num_coarse": AT_LEAST_ONE,
-    "mapping.num_fine": COUNT,
-    "mapping.max_rays_per_scan": COUNT,
-    "mapping.max_rays": COUNT,
-    "mapping.voxel_size_m": NON_NEGATIVE,
-    "mapping.min_opacity": _number(0, 1),
-    "mapping.max_seconds": NON_NEGATIVE,
-    "baseline.voxel_size_m": NON_NEGATIVE,
-    "baseline.loop_radius_m": NON_NEGATIVE,
-    "baseline.global_loops_per_scan": COUNT,
-    "baseline.map_rounds": COUNT,
-    "eval.map_icp_m": NON_NEGATIVE,
-    "eval.crispness_radius_m": POSITIVE,
-    "eval.crispness_queries": AT_LEAST_ONE,
-    "eval.crispness_draws": COUNT,
-    "viz.record": FLAG,
-    "viz.live": FLAG,
+
+@dataclasses.dataclass(frozen=True)
+class Setting:
+    """One field of the config: its dotted name, its default (a value `rule` accepts, of the type the ConfigDict
+    keeps), what it accepts and, in one line, what it does (docs/defaults.md says why the value)."""
+
+    name: str
+    default: object
+    rule: Rule
+    why: str
+
+    @property
+    def group(self) -> str:
+        """The group the field belongs to ("" for the run's own fields): "data.synthetic" for
+        data.synthetic.seed."""
+        return self.name.rpartition(".")[0]
+
+
+# The groups, in order, and what each is for (a heading of docs/defaults.md's reference)
+GROUPS = {
+    "": "the run: where it writes, its seed and its clock",
+    "data": "the sequence and its keyframes (neld_jax.steps.inputs, neld_jax.data)",
+    "data.synthetic": 'the generated sequence, data.format="synthetic" (neld_jax.synthetic.generator owns the '
+                      "defaults)",
+    "model": "the field (neld_jax.field.density)",
+    "sampling": "the samples along a ray (neld_jax.field.sampling)",
+    "loss": "the loss terms' weights (eq. 13)",
+    "train": "the schedule and the steps of the field and the poses (neld_jax.training.train)",
+    "start": "where training starts (neld_jax.steps.start): the input, the classical baseline's poses, or the "
+             "crisper of the two",
+    "submaps": "a sequence larger than one cube split into overlapping windows of keyframes "
+               "(neld_jax.training.submaps); the fields marked (M > 1) apply to a plan of several submaps only",
+    "mapping": "the rendered map (neld_jax.steps.mapping)",
+    "baseline": "the classical baseline (neld_jax.baseline): scan-to-map ICP, a loop-closed pose graph, multi-view "
+                "refinement; BaselineSettings owns these defaults and the baseline's other settings",
+    "eval": "the judging of the result: the ground-truth map's alignment, the raw map's crispness",
+    "viz": "Rerun (neld_jax.writing.viewer): the run's trajectories, maps and training in Rerun's viewer",
 }
+
+_BASELINE = BaselineSettings()
+_SYNTHETIC = synthetic_defaults()
+
+# Every setting of the paper's configuration (the "paper" budget), in the order of `GROUPS`. Distances are metres.
+SETTINGS = (
+    Setting("output_dir", "outputs/run", TEXT, "where the run writes (a rerun resumes from its checkpoints)"),
+    Setting("seed", 0, COUNT, "the field's initialisation, the rays drawn, the batches"),
+    Setting("budget", "paper", _choice(*BUDGETS, any_case=True),
+            "the budget the preset applied; a record, not read by the run"),
+    Setting("max_minutes", 0.0, NON_NEGATIVE, "the whole run's wall-clock budget (neld_jax.training.budget); 0: none"),
+
+    Setting("data.format", "generic", _choice(*FORMATS, any_case=True), "the layout the sequence arrives in"),
+    Setting("data.root", "", TEXT, "the sequence's folder"),
+    Setting("data.initial_poses", "", TEXT,
+            f'"": the layout\'s poses; {KISS_ICP}: KISS-ICP from the scans; lio_keyframes: a file'),
+    Setting("data.drop_unmatched_tail", False, FLAG,
+            "drop up to 5 trailing scans without a pose or stamp instead of failing"),
+    Setting("data.scans_in_world_frame", False, FLAG,
+            "the scans are registered already: move them into their sensors' frames"),
+    Setting("data.invert_poses", False, FLAG, "the poses file holds world -> sensor transforms"),
+    Setting("data.keyframe_interval_s", 3.0, _number(),
+            "keyframes at most this many seconds apart (<= 0: cap off) ..."),
+    Setting("data.keyframe_distance_m", 0.0, _number(),
+            "... this far apart (0: a tenth of max_range_m with the time cap, else off) ..."),
+    Setting("data.keyframe_angle_deg", 0.0, _number(),
+            "... and turned this far (0: 30 with the time cap, else off; all off: every scan)"),
+    Setting("data.min_range_m", 0.5, NON_NEGATIVE, "points nearer the sensor are dropped"),
+    Setting("data.max_range_m", 80.0, POSITIVE, "points further away are dropped"),
+    Setting("data.deskew", "auto", _choice(*DESKEW_CHOICES, any_case=True),
+            "scans without point times: measured (auto), deskewed already, or raw sweeps (raw_<start>_<turning>)"),
+    Setting("data.voxel_size_m", 0.05, NON_NEGATIVE, "each keyframe's points on this grid"),
+    Setting("data.first_scan", 0, COUNT, "keyframes from this input scan on ..."),
+    Setting("data.max_scans", 0, COUNT, "... and at most this many (0: all): a long sequence in pieces"),
+    Setting("data.max_rays_per_scan", 0, COUNT, "training rays per keyframe, a random subset (0: every point)"),
+    Setting("data.timestamp_tol_s", 0.05, NON_NEGATIVE, "scans and poses match by time within this"),
+    Setting("data.gt_poses_path", "", TEXT,
+            "ground-truth trajectory (TUM, or Newer College .csv) in place of the layout's"),
+    Setting("data.gt_map_path", "", TEXT, "ground-truth map (.pcd / .ply) in place of the layout's"),
+    Setting("data.gt_from_scan", (), Rule("floats", lengths=(0, 7)),
+            "the scan frame's pose in the ground truth's body frame (tx ty tz qx qy qz qw)"),
+    Setting("data.scan_frame", "", _choice("", *sorted({f for frames in SCAN_FRAMES.values() for f in frames})),
+            "the published extrinsic of the ground truth (data.ground_truth.SCAN_FRAMES)"),
+    Setting("data.gt_time_offset_s", 0.0, _number(), "added to the scan stamps when matching ground truth"),
+
+    Setting("data.synthetic.seed", _SYNTHETIC.seed, COUNT, "the scene, the drift and the noise drawn"),
+    Setting("data.synthetic.route", _SYNTHETIC.route, _choice("loop", "courtyards"),
+            "a loop round one courtyard, or a route through several"),
+    Setting("data.synthetic.route_length_m", _SYNTHETIC.route_length_m, POSITIVE, "the courtyards route's length"),
+    Setting("data.synthetic.num_scans", _SYNTHETIC.num_scans, AT_LEAST_ONE, "scans generated (each a keyframe)"),
+    Setting("data.synthetic.scene_size_m", _SYNTHETIC.scene_size_m, POSITIVE, "the courtyard's width"),
+    Setting("data.synthetic.trajectory_radius_m", _SYNTHETIC.trajectory_radius_m, POSITIVE, "the loop's radius"),
+    Setting("data.synthetic.num_beams", _SYNTHETIC.num_beams, AT_LEAST_ONE, "the spinning LiDAR's rows ..."),
+    Setting("data.synthetic.num_columns", _SYNTHETIC.num_columns, AT_LEAST_ONE, "... and columns"),
+    Setting("data.synthetic.max_range_m", _SYNTHETIC.max_range_m, _number(MIN_RANGE_M, above=True),
+            "the LiDAR's reach (beyond its minimum range, synthetic.lidar.MIN_RANGE_M)"),
+    Setting("data.synthetic.range_noise_m", _SYNTHETIC.range_noise_m, NON_NEGATIVE, "the ranges' noise (sigma)"),
+    Setting("data.synthetic.drift_trans_m", _SYNTHETIC.drift_trans_m, NON_NEGATIVE,
+            "the initial poses' random walk: translation a step ..."),
+    Setting("data.synthetic.drift_rot_deg", _SYNTHETIC.drift_rot_deg, NON_NEGATIVE, "... and rotation a step"),
+    Setting("data.synthetic.gt_map_points", _SYNTHETIC.gt_map_points, COUNT, "points of the ground-truth map"),
+
+    Setting("model.width", 512, _integer(2), "hidden layer width (the density head is width // 2 wide)"),
+    Setting("model.depth", 8, AT_LEAST_ONE, "hidden layers"),
+    Setting("model.skip_layers", (4,), Rule("ints", low=0), "hidden layers that get the encoded position again"),
+    Setting("model.pos_freqs", 15, AT_LEAST_ONE, "L of the position encoding"),
+    Setting("model.dir_freqs", 4, COUNT, "L of the view direction's encoding"),
+    Setting("model.surrogate_gradient", True, FLAG, "eq. 9 (ablation: False)"),
+    Setting("model.matmul_dtype", "float32", _choice(*MATMUL_DTYPES),
+            "the hidden matmuls' inputs (parameters stay float32)"),
+
+    Setting("sampling.z_low_m", 0.3, POSITIVE, "eq. 7's lower bound"),
+    Setting("sampling.z_up_m", 200.0, POSITIVE, "eq. 7's upper bound (beyond the cube: the cube bound decides)"),
+    Setting("sampling.cube_bound", True, FLAG, "samples only inside [-1, 1]^3 (ablation: False)"),
+    Setting("sampling.hierarchical", "before", _choice(*HIERARCHICAL),
+            "before (NeLD-BA) | nerf (ablation) | none (ablation)"),
+    Setting("sampling.coarse_stages", (32, 48, 64), Rule("ints", low=1, nonempty=True),
+            "coarse samples per ray, one stage each (ramp over train.c2f_end_fraction)"),
+    Setting("sampling.fine_stages", (16, 24, 32), Rule("ints", low=0, nonempty=True),
+            "fine samples per ray, one stage each"),
+    Setting("sampling.guided_samples", 0, COUNT, "coarse samples within 1 m of the measured range (0: the paper)"),
+
+    Setting("loss.lambda_coarse", 0.1, NON_NEGATIVE, "eq. 13"),
+    Setting("loss.lambda_range", 1.0, NON_NEGATIVE, "eq. 13"),
+    Setting("loss.lambda_termination", 1.0, NON_NEGATIVE, "eq. 13 (ablation: 0)"),
+
+    Setting("train.steps", 160_000, AT_LEAST_ONE, "optimiser steps"),
+    Setting("train.batch_rays", 1024, AT_LEAST_ONE, "rays a step (over every submap)"),
+    Setting("train.field_lr_init", 5e-5, NON_NEGATIVE, "the field's Adam learning rate, decaying exponentially ..."),
+    Setting("train.field_lr_final", 2e-5, NON_NEGATIVE, "... to this"),
+    Setting("train.pose_lr_rot_init", 5e-5, NON_NEGATIVE, "the poses' rotation learning rate ..."),
+    Setting("train.pose_lr_rot_final", 2e-5, NON_NEGATIVE, "... decaying to this"),
+    Setting("train.pose_lr_trans_init", 5e-5, NON_NEGATIVE, "... and translation learning rate"),
+    Setting("train.pose_lr_trans_final", 2e-5, NON_NEGATIVE, "... decaying to this"),
+    Setting("train.c2f_end_fraction", 0.75, _number(0, 1),
+            "coarse-to-fine: every frequency active after this fraction of the steps"),
+    Setting("train.pose_start_freq", 6, COUNT, "k*: the poses move once this frequency is active"),
+    Setting("train.fixed_scans", (0,), Rule("ints"),
+            "scans that never move, negative from the last back (the gauge; (): every pose free, anchored on scan "
+            "0 after)"),
+    Setting("train.checkpoint_every", 5000, AT_LEAST_ONE, "steps"),
+    Setting("train.log_every", 100, AT_LEAST_ONE,
+            "steps a device call runs (the log, the progress bar and the clock move in these)"),
+
+    Setting("start.poses", "input", _choice(*START_POSES, any_case=True), "input | baseline | crisper"),
+    Setting("start.pose_lr_from_baseline", REFINE_POSE_LR, Rule("floats", low=0, lengths=(0, 2)),
+            "from the baseline: pose learning rates at most these"),
+    Setting("start.prior_from_baseline", 3000.0, NON_NEGATIVE,
+            "... and a pull of each pose toward its start (0: none)"),
+
+    # submaps_wanted reads the flag's words too
+    Setting("submaps.enabled", "auto", _choice("auto", "on", "off", "true", "false", "1", "0", any_case=True),
+            "auto (when one cube's finest detail exceeds max_detail_m) | on | off"),
+    Setting("submaps.max_detail_m", 0.25, POSITIVE, "the finest Fourier period one cube may have"),
+    Setting("submaps.keyframes", 0, COUNT, "keyframes a submap (0: the most whose cube keeps max_detail_m)"),
+    Setting("submaps.overlap", 2, COUNT, "keyframes neighbouring submaps share"),
+    Setting("submaps.closure_radius_m", 10.0, NON_NEGATIVE,
+            "a revisit within this distance gets a submap of both visits (0: none)"),
+    Setting("submaps.max_submaps", 0, COUNT, "at most this many submaps (longer windows, coarser cubes; 0: no limit)"),
+    Setting("submaps.width", 0, COUNT, "(M > 1) each submap's field width (0: model.width)"),
+    Setting("submaps.step_rays_factor", 1.0, POSITIVE,
+            "(M > 1) a step's rays over every submap, in units of train.batch_rays"),
+    Setting("submaps.lambda_termination", 0.0, NON_NEGATIVE,
+            "(M > 1) the termination loss's weight (0: loss.lambda_termination)"),
+    Setting("submaps.field_lr_from_steps", (), Rule("floats", low=0, above=True, lengths=(0, 2)),
+            "(M > 1) (N, f): a plan of N steps or more trains the fields at f x the rate"),
+
+    Setting("mapping.enabled", True, FLAG, "render map_rendered.ply"),
+    Setting("mapping.num_coarse", 128, AT_LEAST_ONE, "samples per ray of the rendered map (eq. 14) ..."),
+    Setting("mapping.num_fine", 128, COUNT, "... coarse and fine"),
+    Setting("mapping.max_rays_per_scan", 0, COUNT, "rays per keyframe (0: every ray) ..."),
+    Setting("mapping.max_rays", 0, COUNT,
+            "... and over the sequence (0: no limit; each keyframe an equal share, >= 256)"),
+    Setting("mapping.voxel_size_m", 0.05, NON_NEGATIVE, "the written maps' grid (0: none)"),
+    Setting("mapping.min_opacity", 0.5, _number(0, 1), "rays less opaque than this end nowhere"),
+    Setting("mapping.max_seconds", 0.0, NON_NEGATIVE, "the render's share of max_minutes (0: no limit)"),
+
+    Setting("baseline.voxel_size_m", _BASELINE.voxel_size_m, NON_NEGATIVE, "the scans' grid for ICP"),
+    Setting("baseline.loop_radius_m", _BASELINE.loop_radius_m, NON_NEGATIVE,
+            "loop-closure candidates within this distance"),
+    Setting("baseline.global_loops_per_scan", _BASELINE.global_loops_per_scan, COUNT,
+            "FPFH + RANSAC closures where ICP cannot reach (0: none)"),
+    Setting("baseline.map_rounds", _BASELINE.map_rounds, COUNT, "rounds of multi-view refinement (0: none)"),
+
+    Setting("eval.map_icp_m", 0.0, NON_NEGATIVE,
+            "> 0: refine the ground-truth map's alignment by ICP at this distance"),
+    Setting("eval.crispness_radius_m", crispness.DEFAULT_RADIUS_M, POSITIVE,
+            "the raw map's crispness: neighbourhood radius ..."),
+    Setting("eval.crispness_queries", crispness.DEFAULT_MAX_QUERIES, AT_LEAST_ONE, "... and query points"),
+    Setting("eval.crispness_draws", crispness.DEFAULT_DRAWS, COUNT,
+            "draws of the query points that say how sure a comparison is (< 2: none)"),
+
+    Setting("viz.record", True, FLAG, "write run.rrd in the output folder"),
+    Setting("viz.live", False, FLAG, "also serve the run on 127.0.0.1:9876 while it trains (`rerun rerun+http://...`)"),
+)
+
+# What each field accepts, by dotted name
+RULES = {s.name: s.rule for s in SETTINGS}
+
+
+def defaults() -> ml_collections.ConfigDict:
+    """The paper's configuration (the "paper" budget): every field of `SETTINGS` at its default."""
+    c = ml_collections.ConfigDict()
+    for setting in SETTINGS:
+        node = c
+        *parents, leaf = setting.name.split(".")
+        for part in parents:
+            if part not in node:
+                node[part] = ml_collections.ConfigDict()
+            node = node[part]
+        node[leaf] = setting.default
+    return c
+
+
+# The generated part of docs/defaults.md lies between these lines (`python -m neld_jax.config --docs` rewrites it)
+DOCS_PATH = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs", "defaults.md")
+DOCS_BEGIN = "<!-- settings: generated by python -m neld_jax.config --docs -->"
+DOCS_END = "<!-- end of generated settings -->"
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
+def settings_reference() -> str:
+    """The settings reference in Markdown: per group of `GROUPS`, a table of its fields (field, type, default,
+    accepts, what it does), from `SETTINGS`."""
+    parts = []
+    for group, about in GROUPS.items():
+        # bold lines, not headings: the hand-written sections of the same names keep their anchors
+        parts += [f"**{group or 'The run'}**: {about}.", "",
+                  "| field | type | default | accepts | what it does |", "|---|---|---|---|---|"]
+        parts += [f"| `{s.name}` | {s.rule.type_name} | `{_cell(repr(s.default))}` | {_cell(s.rule.describe())} | "
+                  f"{_cell(s.why)} |" for s in SETTINGS if s.group == group]
+        parts.append("")
+    return "\n".join(parts)
+
+
+def with_settings_reference(text: str) -> str:
+    """text (docs/defaults.md) with what lies between DOCS_BEGIN and DOCS_END replaced by `settings_reference()`;
+    a ConfigError where the markers are missing."""
+    begin, end = text.find(DOCS_BEGIN), text.find(DOCS_END)
+    if begin < 0 or end < begin:
+        raise ConfigError(f"the settings reference's markers ({DOCS_BEGIN} ... {DOCS_END}) are missing")
+    return f"{text[:begin]}{DOCS_BEGIN}\n\n{settings_reference()}\n{text[end:]}"
 
 
 def _nerf_needs_three(c) -> bool:
@@ -359,8 +381,8 @@ def _unit_quaternion(values) -> bool:
 
 
 def _loop_fits(s) -> bool:
-    """The loop route stays inside its courtyard (data.synthetic.PATH_WOBBLE = 0.08)."""
-    return s.route != "loop" or s.trajectory_radius_m * 1.08 < s.scene_size_m / 2 - 1.0
+    """The loop route stays inside its courtyard: its radius wobbles by PATH_WOBBLE (synthetic.scene)."""
+    return s.route != "loop" or s.trajectory_radius_m * (1 + PATH_WOBBLE) < s.scene_size_m / 2 - 1.0
 
 
 # What fields accept together: (the field named, what it accepts, the test on the config).
@@ -378,7 +400,7 @@ RELATIONS = (
      "os_sensor | os_imu)", lambda c: c.data.scan_frame in ("",) + SCAN_FRAMES.get(c.data.format.lower(), ())),
     ("data.gt_from_scan", "() or (tx, ty, tz, qx, qy, qz, qw) with a unit quaternion",
      lambda c: _unit_quaternion(c.data.gt_from_scan)),
-    ("data.synthetic.trajectory_radius_m", "a loop inside the courtyard (1.08 x the radius < "
+    ("data.synthetic.trajectory_radius_m", f"a loop inside the courtyard ({1 + PATH_WOBBLE:g} x the radius < "
      "data.synthetic.scene_size_m / 2 - 1)", lambda c: _loop_fits(c.data.synthetic)),
     ("data.synthetic.route_length_m", "at least 100 with data.synthetic.route=courtyards",
      lambda c: c.data.synthetic.route != "courtyards" or c.data.synthetic.route_length_m >= 100),
@@ -568,3 +590,26 @@ def apply_overrides(c: ml_collections.ConfigDict, items) -> ml_collections.Confi
 def count_fields(c: ml_collections.ConfigDict) -> int:
     """How many settings (leaves) a config holds."""
     return sum(count_fields(v) if isinstance(v, ml_collections.ConfigDict) else 1 for v in c.values())
+
+
+def main(argv=None) -> int:
+    """`python -m neld_jax.config --docs [PATH]`: rewrite the settings reference in docs/defaults.md (or PATH)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m neld_jax.config", description=main.__doc__)
+    parser.add_argument("--docs", nargs="?", const=DOCS_PATH, default="", metavar="PATH",
+                        help="rewrite the generated settings reference of this file (default: docs/defaults.md)")
+    args = parser.parse_args(argv)
+    if not args.docs:
+        parser.print_help()
+        return 2
+    with open(args.docs) as f:
+        text = f.read()
+    with open(args.docs, "w") as f:
+        f.write(with_settings_reference(text))
+    print(f"wrote the settings reference of {args.docs}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -51,26 +51,38 @@ the links between them) and `sequence` (`register_sequence`: arrays in, a Baseli
 edge is neld_jax.commands.baseline.
 """
 
-from neld_jax.baseline.chain import TILT_MARGIN, choose_chain, scan_to_map_chain
-from neld_jax.baseline.graph import LoopClosures, candidate_pairs, fpfh_features, global_registration, loop_closed_graph
-from neld_jax.baseline.icp import (
-    IcpResult,
-    TargetIndex,
-    correction_m,
-    information,
-    multiscale_icp,
-    point_to_plane_icp,
-    point_to_plane_step,
-    prepare_clouds,
-    prepare_scan,
-)
-from neld_jax.baseline.multiview import Refinement, choose_refinement_start, refine_against_map
-from neld_jax.baseline.pipeline import BaselineResult, anchored, register_sequence
-from neld_jax.baseline.segments import Segments
-from neld_jax.baseline.settings import BaselineSettings
+import importlib
 
-__all__ = ["TILT_MARGIN", "BaselineResult", "BaselineSettings", "IcpResult", "LoopClosures", "Refinement", "Segments",
-           "TargetIndex", "anchored", "candidate_pairs", "choose_chain", "choose_refinement_start", "correction_m",
-           "fpfh_features", "global_registration", "information", "loop_closed_graph", "multiscale_icp",
-           "point_to_plane_icp", "point_to_plane_step", "prepare_clouds", "prepare_scan", "refine_against_map",
-           "register_sequence", "scan_to_map_chain"]
+# Each public name and the module it lives in: a name is imported when first used, so that
+# `import neld_jax.baseline.settings` (the config reads BaselineSettings' defaults) does not load Open3D.
+_HOMES = {
+    "chain": ("TILT_MARGIN", "choose_chain", "scan_to_map_chain"),
+    "graph": ("LoopClosures", "candidate_pairs", "fpfh_features", "global_registration", "loop_closed_graph"),
+    "icp": ("IcpResult", "TargetIndex", "correction_m", "information", "multiscale_icp", "point_to_plane_icp",
+            "point_to_plane_step", "prepare_clouds", "prepare_scan"),
+    "multiview": ("Refinement", "choose_refinement_start", "refine_against_map"),
+    "pipeline": ("BaselineResult", "anchored", "register_sequence"),
+    "segments": ("Segments",),
+    "settings": ("BaselineSettings",),
+}
+_MODULE_OF = {name: module for module, names in _HOMES.items() for name in names}
+
+__all__ = sorted(_MODULE_OF)
+
+
+_MODULES = (*_HOMES, "distances")
+
+
+def __getattr__(name: str):
+    """A public name, or a module of the package (`baseline.chain`), imported on first use."""
+    if name in _MODULES:
+        return importlib.import_module(f"{__name__}.{name}")
+    if name not in _MODULE_OF:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_MODULE_OF[name]}"), name)
+    globals()[name] = value  # the next use finds it without this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 
+from neld_jax.judging import crispness
+
 
 @dataclasses.dataclass(frozen=True)
 class BaselineSettings:
-    """The baseline's settings (config.baseline); metres unless named otherwise."""
+    """The baseline's settings; metres unless named otherwise. The config's baseline group exposes voxel_size_m,
+    loop_radius_m, global_loops_per_scan and map_rounds with the defaults given here (neld_jax.config declares them
+    from these), and its eval group the judge's crispness settings (judging.crispness's defaults)."""
 
     voxel_size_m: float = 0.1  # scans are downsampled to this grid before ICP
     normal_radius_m: float = 0.5  # normal estimation radius (LiDAR scans are sparse: at least 0.5 m)
@@ -89,9 +93,9 @@ class BaselineSettings:
     map_gather_m: float = 0.5
     # The judge of the choices above (which chain, where the rounds start): the raw map's mean map entropy at this
     # radius over this many query points (the run's eval.crispness_radius_m / crispness_queries)
-    crispness_radius_m: float = 0.3
-    crispness_queries: int = 10_000
-    crispness_draws: int = 5
+    crispness_radius_m: float = crispness.DEFAULT_RADIUS_M
+    crispness_queries: int = crispness.DEFAULT_MAX_QUERIES
+    crispness_draws: int = crispness.DEFAULT_DRAWS
 
     @classmethod
     def from_config(cls, config) -> "BaselineSettings":

@@ -21,8 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from neld_jax.field.encoding import fourier_encode
-
-MATMUL_DTYPES = ("float32", "bfloat16")
+from neld_jax.field.options import MATMUL_DTYPES
 
 
 def bfloat16_dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None):

@@ -33,7 +33,7 @@ class SamplerSettings:
     z_low: float  # normalised units
     z_up: float
     cube_bound: bool = True
-    hierarchical: str = "before"  # before | nerf | none
+    hierarchical: str = "before"  # one of options.HIERARCHICAL: before | nerf | none
     guided_samples: int = 0
     guided_width: float = 0.0  # normalised units
 

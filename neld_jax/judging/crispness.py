@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 DEFAULT_RADIUS_M = 0.3
 DEFAULT_MIN_NEIGHBORS = 5
 DEFAULT_MAX_QUERIES = 10_000
+DEFAULT_DRAWS = 5  # draws of the query points a comparison of two maps is judged over (eval.crispness_draws)
 _EIGENVALUE_FLOOR = 1e-12  # m^2: collinear neighbourhoods would give ln(0); 1e-6 m is far below LiDAR noise
 
 

@@ -30,11 +30,12 @@ import numpy as np
 from neld_jax.baseline import BaselineSettings, Segments, register_sequence
 from neld_jax.errors import ConfigError, DataError
 from neld_jax.judging import judge, metrics
+from neld_jax.steps.choices import START_POSES
 from neld_jax.training.train import PoseSteps, fixed_rows
 
 logger = logging.getLogger(__name__)
 
-CHOICES = ("input", "baseline", "crisper")
+CHOICES = START_POSES  # start.poses
 FILE = "start_poses.npz"  # the start a run chose, kept for a resume (the baseline's deadline may not repeat)
 
 

@@ -7,8 +7,8 @@
 
 A GPU image may lack open3d (and ml-collections, which gpu_suite.sh installs from .whl/), so the demo sequence
 is generated here by `--prepare` into .gpu_data/demo.npz (the keyframes' rays in metres, initial and ground-truth
-poses, the normalisation of its one cube) and the suite trains on it with neld_jax.training.train alone, as a plan of one
-cube (train.make_trainer, train.init_state, train.fit: the path a run takes).
+poses, the normalisation of its one cube) and the suite trains on it with neld_jax.training.train alone, as a plan of
+one cube (train.make_trainer, train.init_state, train.fit: the path a run takes).
 
 Sections, in order of priority (each is skipped once --budget_s is spent; a failing one records its error
 and the next runs):

@@ -536,8 +536,8 @@ def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, re
 def benchmark_viewer(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
                      num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0) -> dict:
     """Steps/s of train.fit with the live viewer's hook against fit without it, alternately (--viewer): the hook a
-    run with viz.live gets (neld_jax.writing.viewer: run.rrd and a gRPC server on a free local port; the training curves and
-    the keyframes' poses at every log, as neld_jax.steps.refine hands them over)."""
+    run with viz.live gets (neld_jax.writing.viewer: run.rrd and a gRPC server on a free local port; the training curves
+    and the keyframes' poses at every log, as neld_jax.steps.refine hands them over)."""
     import socket
     import tempfile
 

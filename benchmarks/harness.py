@@ -46,7 +46,7 @@ def default_out(path: str) -> None:
 
 def overrides_flag(example: str = "train.steps=2000"):
     """`--set=KEY=VALUE` (repeatable): overrides of the package's config, applied by neld_jax.config.apply_overrides."""
-    return flags.DEFINE_multi_string("set", [], f"Config overrides KEY=VALUE (Python literal), e.g. {example}.")
+    return flags.DEFINE_multi_string("set", [], f"Config overrides KEY=VALUE (Python literal), e.g. {example}")
 
 
 def _cpu_model() -> str:

@@ -73,5 +73,6 @@ def main(argv):
 
 
 if __name__ == "__main__":
+    harness.default_out(None)  # no default here: the file must be named
     flags.mark_flag_as_required("out")
     app.run(main)

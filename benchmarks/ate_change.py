@@ -36,9 +36,6 @@ import harness  # this folder's benchmarks/harness.py: --out, the machine stamp 
 import numpy as np
 from absl import app, flags
 
-RUNS = flags.DEFINE_list("runs", None, "Run output folders, comma-separated (poses_gt.txt, poses_baseline.txt, "
-                         "poses_optimized.txt in each; poses_initial.txt where present).")
-
 
 def _correlation(a: np.ndarray, b: np.ndarray) -> float:
     """Uncentred correlation of two [N, 3] vector fields (a move and an error have no mean to remove)."""
@@ -119,6 +116,8 @@ def main(argv):
     harness.write(harness.OUT.value, results)
 
 
-if __name__ == "__main__":
+if __name__ == "__main__":  # the flag defined here: tests import the module's functions, more than once
+    RUNS = flags.DEFINE_list("runs", None, "Run output folders, comma-separated (poses_gt.txt, poses_baseline.txt, "
+                             "poses_optimized.txt in each; poses_initial.txt where present).")
     flags.mark_flag_as_required("runs")
     app.run(main)

@@ -7,7 +7,7 @@
 
 For each sequence: NeLD-BA (neld_jax.run) and the classical baseline (neld_jax.baseline) on the same
 preprocessed scans, evaluated together; prints one JSON line per sequence with initial / baseline / optimised
-ATE and map metrics and the wall time of each method.
+ATE and map metrics and the wall time of each method, and writes the list of them to --out (benchmarks/harness.py).
 """
 
 import json
@@ -15,6 +15,7 @@ import logging
 import os
 import time
 
+import harness  # this folder's benchmarks/harness.py: --out, --set, the machine stamp and the JSON schema
 from absl import app, flags
 
 from neld_jax.hugepages import reexec_with_huge_page_malloc
@@ -31,8 +32,7 @@ SEQ = flags.DEFINE_list("sequences", list(SEQUENCES), f"Which of {list(SEQUENCES
 BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper).")
 OUTPUT_ROOT = flags.DEFINE_string("output_root", "outputs/accuracy", "One output_dir per sequence below this.")
 STEPS = flags.DEFINE_integer("steps", 0, "Override train.steps (0: the budget's).")
-OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. "
-                                      "train.pose_lr_rot_init=1e-4.")
+OVERRIDES = harness.overrides_flag("train.pose_lr_rot_init=1e-4")
 START = flags.DEFINE_enum("start", "input", ["input", "baseline", "crisper"],
                           "start.poses: start NeLD-BA from the drifted odometry, the baseline's poses or the crisper.")
 
@@ -55,9 +55,10 @@ def main(argv):
     logging.basicConfig(level=logging.WARNING)
     from neld_jax.commands.baseline import run_baseline
     from neld_jax.config import apply_overrides, from_file
-    from neld_jax.writing.evaluate import evaluate_run
     from neld_jax.run import run
+    from neld_jax.writing.evaluate import evaluate_run
 
+    entries = []
     for name in SEQ.value:
         config = from_file(os.path.join(REPO, "configs", "demo.py"), BUDGET.value)
         config.data.synthetic.update(SEQUENCES[name])
@@ -78,7 +79,7 @@ def main(argv):
             run_baseline(config, progress=False)
             t_base = time.perf_counter() - t0
         evaluation = evaluate_run(config.output_dir)
-        print(json.dumps({
+        entries.append({
             "sequence": name, "budget": BUDGET.value, "start": START.value, "synthetic": SEQUENCES[name],
             "started_from": summary["run"]["started_from"], "steps": summary["run"]["steps"],
             "overrides": OVERRIDES.value,
@@ -87,7 +88,9 @@ def main(argv):
             "neld_ba": dict(_summary(evaluation, "optimized"), wall_s=round(t_neld, 1),
                             train_s=summary["run"]["train_seconds"]),
             "device": summary["run"]["device"],
-        }), flush=True)
+        })
+        print(json.dumps(entries[-1]), flush=True)
+        harness.write(harness.OUT.value, entries)
 
 
 if __name__ == "__main__":

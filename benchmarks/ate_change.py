@@ -29,11 +29,12 @@ least as large in magnitude (on 200 pairs of independent random walks, 6.5 % of 
 (`toward_input_correlation`): a refinement pulled back toward its start would show there.
 """
 
-import argparse
 import json
 import os
 
+import harness  # this folder's benchmarks/harness.py: --out, the machine stamp and the JSON schema
 import numpy as np
+from absl import app, flags
 
 
 def _correlation(a: np.ndarray, b: np.ndarray) -> float:
@@ -100,28 +101,23 @@ def ate_change_terms(T_baseline: np.ndarray, T_optimized: np.ndarray, T_gt: np.n
     return terms
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", required=True, type=lambda text: text.split(","),
-                        help="Run output folders, comma-separated (poses_gt.txt, poses_baseline.txt, "
-                             "poses_optimized.txt in each; poses_initial.txt where present).")
-    parser.add_argument("--out", default="", help="JSON file (default: print only).")
-    args = parser.parse_args()
+def main(argv):
+    del argv
     from neld_jax.data.poses import read_tum
 
     results = {}
-    for run in args.runs:
+    for run in RUNS.value:
         poses = {name: read_tum(os.path.join(run, f"poses_{name}.txt"))[1] for name in ("gt", "baseline", "optimized")}
         initial = os.path.join(run, "poses_initial.txt")
         T_input = read_tum(initial)[1] if os.path.exists(initial) else None
         name = os.path.join(*os.path.normpath(run).split(os.sep)[-2:])  # <sequence>/drift for real_data.py's runs
         results[name] = ate_change_terms(poses["baseline"], poses["optimized"], poses["gt"], T_input)
-    text = json.dumps(results, indent=1)
-    print(text)
-    if args.out:
-        with open(args.out, "w") as f:
-            f.write(text + "\n")
+    print(json.dumps(results, indent=1))
+    harness.write(harness.OUT.value, results)
 
 
-if __name__ == "__main__":
-    main()
+if __name__ == "__main__":  # the flag defined here: tests import the module's functions, more than once
+    RUNS = flags.DEFINE_list("runs", None, "Run output folders, comma-separated (poses_gt.txt, poses_baseline.txt, "
+                             "poses_optimized.txt in each; poses_initial.txt where present).")
+    flags.mark_flag_as_required("runs")
+    app.run(main)

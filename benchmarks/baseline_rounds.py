@@ -24,6 +24,7 @@ import logging
 import os
 import time
 
+import harness  # this folder's benchmarks/harness.py: --out, the machine stamp and the JSON schema
 from absl import app, flags
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -38,7 +39,7 @@ KEEP_TILT = flags.DEFINE_bool("keep_tilt", False, "Drift in position and heading
                               "drifts (benchmarks/real_data.py --keep_tilt).")
 REGRAPH = flags.DEFINE_bool("regraph", False, "After the rounds, the pose graph again from each answer and two "
                               "rounds after it (module docstring).")
-OUT = flags.DEFINE_string("out", "outputs/baseline_rounds.json", "JSON output.")
+harness.default_out("outputs/baseline_rounds.json")
 flags.mark_flag_as_required("root")
 
 
@@ -122,15 +123,12 @@ def main(argv):
                 "translation_rmse_m"], 3), **{f"entropy_{name}": round(summary[name]["mean_map_entropy"], 4)
                                                 for name in summary}}
         print(json.dumps({"regraph": regraph}), flush=True)
-    os.makedirs(os.path.dirname(os.path.abspath(OUT.value)), exist_ok=True)
-    with open(OUT.value, "w") as f:
-        json.dump({"sequence": os.path.basename(os.path.normpath(ROOT.value)), "keep_tilt": KEEP_TILT.value,
-                   "drift_per_keyframe": {"trans_m": DRIFT_TRANS.value, "rot_deg": DRIFT_ROT.value,
-                                          "seed": SEED.value},
-                   "baseline_s": {"recorded": round(recorded_s, 1), "drift": round(drifted_s, 1)},
-                   "decided": {"recorded": recorded_decided, "drift": drifted_decided},
-                   "date": time.strftime("%Y-%m-%d"), "rounds": rows, **({"regraph": regraph} if regraph else {})},
-                  f, indent=1)
+    harness.write(harness.OUT.value, {
+        "sequence": os.path.basename(os.path.normpath(ROOT.value)), "keep_tilt": KEEP_TILT.value,
+        "drift_per_keyframe": {"trans_m": DRIFT_TRANS.value, "rot_deg": DRIFT_ROT.value, "seed": SEED.value},
+        "baseline_s": {"recorded": round(recorded_s, 1), "drift": round(drifted_s, 1)},
+        "decided": {"recorded": recorded_decided, "drift": drifted_decided},
+        "date": time.strftime("%Y-%m-%d"), "rounds": rows, **({"regraph": regraph} if regraph else {})})
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ elsewhere is refused with one line). Writes one JSON object to --out.
 import json
 import os
 
+import harness  # this folder's benchmarks/harness.py: --out, the machine stamp and the JSON schema
 from absl import app, flags
 
 RUN_DIR = flags.DEFINE_string("run_dir", None, "Output folder of a bin/train.py run (config.json, poses_*.kitti).")
@@ -34,7 +35,6 @@ QUERIES = flags.DEFINE_integer("queries", 0, "Query points a draw (0: the run's 
 MEAN_OF = flags.DEFINE_list("mean_of", [], "Other run folders from the same start (other training seeds): the answer "
                        "judged is the mean, on se(3), of this run's and their corrections from this run's initial "
                        "poses (`mean_of_corrections`).")
-OUT = flags.DEFINE_string("out", "", "JSON file written (none if empty).")
 flags.mark_flag_as_required("run_dir")
 
 METHODS = ("initial", "baseline", "optimized")
@@ -115,9 +115,7 @@ def main(argv):
               "mean_of": MEAN_OF.value, "optimized_minus": margins}
     for other, margin in margins.items():
         print(judge.describe_margin(other, margin) + ": " + " ".join(f"{d:+.5f}" for d in margin["per_draw"]))
-    if OUT.value:
-        with open(OUT.value, "w") as f:
-            json.dump(result, f, indent=1)
+    harness.write(harness.OUT.value, result)
 
 
 if __name__ == "__main__":

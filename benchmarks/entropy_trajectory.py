@@ -24,6 +24,7 @@ import json
 import os
 import time
 
+import harness  # this folder's benchmarks/harness.py: --out, --set, the machine stamp and the JSON schema
 from absl import app, flags
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -33,8 +34,8 @@ POSE_FILE = flags.DEFINE_string("pose_file", "", "KITTI poses to start from (abs
 EVERY = flags.DEFINE_integer("every", 250, "Measure the map's crispness every this many steps.")
 AS_BASELINE = flags.DEFINE_bool("as_baseline", False, "Train with the pose steps of a run that starts from the "
                                 "classical baseline's poses (module docstring).")
-OUT = flags.DEFINE_string("out", "outputs/entropy_trajectory.json", "The JSON file written.")
-OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE, e.g. train.pose_lr_trans_init=5e-6.")
+harness.default_out("outputs/entropy_trajectory.json")
+OVERRIDES = harness.overrides_flag("train.pose_lr_trans_init=5e-6")
 
 
 def main(argv):
@@ -64,7 +65,8 @@ def main(argv):
         pose_steps = pose_steps_from_baseline(config, judged["start"].get("mean_plane_thickness_m"))
     else:
         pose_steps = train.PoseSteps.from_config(config)
-    # The training of a run (neld_jax.steps.refine.refine_keyframes) without its checkpoints, the measurements in their place
+    # The training of a run (neld_jax.steps.refine.refine_keyframes) without its checkpoints, the measurements in
+    # their place
     devices = len(jax.devices())
     plan = submaps.plan_from_config(keyframes, config, num_devices=devices)
     rays_m = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
@@ -88,10 +90,10 @@ def main(argv):
                         "pose_trans_mean_m": last.get("pose_trans_mean_m", 0.0),
                         "pose_rot_mean_deg": last.get("pose_rot_mean_deg", 0.0)})
         print(json.dumps(records[-1]), flush=True)
-        with open(OUT.value, "w") as f:
-            json.dump({"root": ROOT.value, "pose_file": POSE_FILE.value, "overrides": OVERRIDES.value,
-                       "as_baseline": AS_BASELINE.value, "pose_steps": pose_steps.to_dict(), "scans": num_scans,
-                       "submaps": plan.num_submaps, "records": records}, f, indent=1)
+        harness.write(harness.OUT.value, {
+            "root": ROOT.value, "pose_file": POSE_FILE.value, "overrides": OVERRIDES.value,
+            "as_baseline": AS_BASELINE.value, "pose_steps": pose_steps.to_dict(), "scans": num_scans,
+            "submaps": plan.num_submaps, "records": records})
 
     t0 = time.perf_counter()
     measure(0, np.zeros((num_scans, 6)), [])

@@ -19,6 +19,7 @@ every sweep at most 1.2 x the keyframes' ATE.
 import json
 import time
 
+import harness  # this folder's benchmarks/harness.py: --out, the machine stamp and the JSON schema
 import numpy as np
 from absl import app, flags
 
@@ -78,7 +79,6 @@ def measure(run_dir: str) -> dict:
 
 
 RUNS = flags.DEFINE_list("runs", [], "Finished run folders with ground truth.")
-OUT = flags.DEFINE_string("out", "", "JSON file with one entry per run.")
 
 
 def main(argv) -> None:
@@ -86,11 +86,8 @@ def main(argv) -> None:
     if not RUNS.value:
         raise app.UsageError("--runs: name at least one finished run folder")
     entries = [measure(run_dir) for run_dir in RUNS.value]
-    text = json.dumps(entries, indent=1)
-    print(text)
-    if OUT.value:
-        with open(OUT.value, "w") as f:
-            f.write(text + "\n")
+    print(json.dumps(entries, indent=1))
+    harness.write(harness.OUT.value, entries)  # one entry per run
 
 
 if __name__ == "__main__":

@@ -7,8 +7,8 @@
 
 A GPU image may lack open3d (and ml-collections, which gpu_suite.sh installs from .whl/), so the demo sequence
 is generated here by `--prepare` into .gpu_data/demo.npz (the keyframes' rays in metres, initial and ground-truth
-poses, the normalisation of its one cube) and the suite trains on it with neld_jax.training.train alone, as a plan of one
-cube (train.make_trainer, train.init_state, train.fit: the path a run takes).
+poses, the normalisation of its one cube) and the suite trains on it with neld_jax.training.train alone, as a plan of
+one cube (train.make_trainer, train.init_state, train.fit: the path a run takes).
 
 Sections, in order of priority (each is skipped once --budget_s is spent; a failing one records its error
 and the next runs):
@@ -37,6 +37,7 @@ import time
 import traceback
 from typing import NamedTuple
 
+import harness  # this folder's benchmarks/harness.py: --out, the machine stamp and the JSON schema
 import numpy as np
 import train_step as ts  # this folder's benchmarks/train_step.py (its flags are defined too; the suite sets sizes)
 from absl import app, flags
@@ -52,7 +53,8 @@ flags.DEFINE_bool("prepare", False, "Write the demo's rays and poses to --data (
 flags.DEFINE_string("data", os.path.join(ROOT, ".gpu_data", "demo.npz"), "The prepared demo (--prepare).")
 flags.DEFINE_float("budget_s", 450.0, "Start no section after this many seconds.")
 flags.DEFINE_list("sections", [], "Run only these sections (default: all).")
-flags.DEFINE_string("out", "", "Output folder (default: $OUT, else benchmarks/results/).")
+# --out (benchmarks/harness.py, through train_step): the JSON file; default gpu_suite[_smoke].json in $OUT, else in
+# benchmarks/results/.
 
 SECTIONS = ("step_per_stage", "matmul_peak", "fit_vs_step", "demo_gpu", "paper_schedule", "render_map", "bfloat16",
             "torch_peer")
@@ -176,6 +178,7 @@ class Suite:
         self.out_path, self.smoke, self.budget_s, self.data = out_path, smoke, budget_s, data
         self.t0 = time.perf_counter()
         self.record = {"benchmark": "gpu_suite", "smoke": smoke, **ts.device_info(), "sections": {}}
+        self.stamped = None  # the record's schema around it, stamped at the first write
         self._demo = None
 
     def demo(self):
@@ -216,8 +219,7 @@ class Suite:
             result["section_s"] = time.perf_counter() - t
             self.record["sections"][name] = result
             self.record["elapsed_s"] = time.perf_counter() - self.t0
-            with open(self.out_path, "w") as f:
-                json.dump(self.record, f, indent=1)
+            self.stamped = harness.write(self.out_path, self.record, stamped=self.stamped)
         return self.record
 
     def step_per_stage(self):
@@ -413,9 +415,8 @@ def main(argv):
     unknown = set(names) - set(SECTIONS)
     if unknown:
         raise app.UsageError(f"unknown --sections {sorted(unknown)}; choose from {', '.join(SECTIONS)}")
-    out_dir = FLAGS.out or os.environ.get("OUT") or os.path.join(ROOT, "benchmarks", "results")
-    os.makedirs(out_dir, exist_ok=True)
-    out_path = os.path.join(out_dir, "gpu_suite_smoke.json" if FLAGS.smoke else "gpu_suite.json")
+    out_dir = os.environ.get("OUT") or os.path.join(ROOT, "benchmarks", "results")
+    out_path = FLAGS.out or os.path.join(out_dir, "gpu_suite_smoke.json" if FLAGS.smoke else "gpu_suite.json")
     record = Suite(out_path, FLAGS.smoke, FLAGS.budget_s, FLAGS.data).run(names)
     summary = {name: ("error" if "error" in r else "skipped" if "skipped" in r else "ok")
                for name, r in record["sections"].items()}

@@ -12,7 +12,7 @@ initial / optimised ATE, seconds and the split for each.
 throughput: one subprocess per device count d with XLA_FLAGS=--xla_force_host_platform_device_count=d (the flag
 must be set before jax starts) timing the sharded submap step on the same M submaps; steps/s, rays/s and the
 efficiency (steps/s relative to one device). On a CPU the simulated devices share the machine's cores.
-One JSON object on stdout (and in --output).
+One JSON object on stdout (and in --out, in the schema of benchmarks/harness.py; --output is its older name).
 """
 
 import json
@@ -23,6 +23,7 @@ import subprocess
 import sys
 import time
 
+import harness  # this folder's benchmarks/harness.py: --out, --set, the machine stamp and the JSON schema
 from absl import app, flags
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -37,9 +38,8 @@ START = flags.DEFINE_enum("start", "input", ["input", "baseline", "crisper"],
                           "start.poses of both runs: the drifted odometry, the classical baseline's poses (its pose "
                           "graph closes the loop that the drift hides) or the crisper of the two.")
 OUTPUT_ROOT = flags.DEFINE_string("output_root", "outputs/long_route", "Run directories below this.")
-OUTPUT = flags.DEFINE_string("output", "", "Also write the JSON here.")
-OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal) for the accuracy runs, "
-                                      "e.g. submaps.step_rays_factor=2.0.")
+flags.DEFINE_alias("output", "out")  # the name the recorded commands give
+OVERRIDES = harness.overrides_flag("submaps.step_rays_factor=2.0 (the accuracy runs)")
 DEVICES = flags.DEFINE_list("devices", ["1", "2", "4", "8"], "Device counts for the throughput part.")
 TP_SUBMAPS = flags.DEFINE_integer("throughput_submaps", 8, "Submaps in the throughput part.")
 TP_STEPS = flags.DEFINE_integer("throughput_steps", 10, "Timed steps per device count (after one warm-up).")
@@ -201,11 +201,8 @@ def main(argv):
         result["accuracy"] = accuracy()
     if "throughput" in PARTS.value:
         result["throughput"] = throughput()
-    text = json.dumps(result, indent=1)
-    print(text)
-    if OUTPUT.value:
-        with open(OUTPUT.value, "w") as f:
-            f.write(text + "\n")
+    print(json.dumps(result, indent=1))
+    harness.write(harness.OUT.value, result)
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ import sys
 import time
 from pathlib import Path
 
+import harness  # this folder's benchmarks/harness.py: --out, the machine stamp and the JSON schema
 import numpy as np
 from absl import app, flags
 
@@ -39,7 +40,6 @@ SWEEPS = flags.DEFINE_list("sweeps", ["300"], "Recording sizes (sweeps) to measu
 BEAMS = flags.DEFINE_integer("beams", 128, "Beams of the simulated spinning LiDAR.")
 COLUMNS = flags.DEFINE_integer("columns", 1024, "Columns (firings per turn) of the simulated LiDAR.")
 WORK_DIR = flags.DEFINE_string("work_dir", "/tmp/neld_memory", "Recordings and run folders go here.")
-OUT = flags.DEFINE_string("out", "", "Also write the JSON here.")
 CODE = flags.DEFINE_string("repo", REPO, "The checkout whose bin/train.py runs (e.g. an older one, to compare).")
 LABEL = flags.DEFINE_string("label", "", "A name for this code in the JSON (e.g. before / after).")
 MAX_MINUTES = flags.DEFINE_float("max_minutes", 3.0, "config.max_minutes of each run (the clock of training).")
@@ -178,9 +178,7 @@ def main(argv):
               "columns": COLUMNS.value, "rate_hz": RATE_HZ, "max_minutes": MAX_MINUTES.value,
               "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "sizes": sizes}
     print(json.dumps(result, indent=2))
-    if OUT.value:
-        Path(OUT.value).parent.mkdir(parents=True, exist_ok=True)
-        Path(OUT.value).write_text(json.dumps(result, indent=2) + "\n")
+    harness.write(harness.OUT.value, result)
 
 
 if __name__ == "__main__":

@@ -59,6 +59,7 @@ import sys
 import time
 import traceback
 
+import harness  # this folder's benchmarks/harness.py: --out, --set, the machine stamp and the JSON schema
 import numpy as np
 import real_targets  # this folder's benchmarks/real_targets.py: the targets' table
 from absl import app, flags
@@ -75,9 +76,9 @@ NUM_SCANS = flags.DEFINE_integer("num_scans", 300, "Synthetic: sweeps kept (the 
 LOOP_SCANS = flags.DEFINE_integer("loop_scans", 300, "Synthetic: sweeps round the whole loop (300: 2.1 m/s).")
 GT_MAP_POINTS = flags.DEFINE_integer("gt_map_points", 50_000, "Synthetic: points of the ground-truth map.")
 WORK = flags.DEFINE_string("work", "outputs/peers", "The sequences and the runs go below this.")
-OUT = flags.DEFINE_string("out", "outputs/peers/peers.json", "JSON file with one entry per sequence.")
+harness.default_out("outputs/peers/peers.json")  # --out: one entry per sequence
 CONFIG = flags.DEFINE_string("config", "configs/generic.py:cpu", "The run's config, PATH[:BUDGET].")
-OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. train.steps=2000.")
+OVERRIDES = harness.overrides_flag()
 MAX_RANGE = flags.DEFINE_float("max_range_m", 0.0, "data.max_range_m of real roots (0: the config's); synthetic "
                                "sequences use their generated range (40 m). --set wins over both.")
 SLAM_SPLITTING = flags.DEFINE_float("slam_splitting_m", 0.0, "KISS-SLAM's local_mapper.splitting_distance [m] "
@@ -539,7 +540,7 @@ def main(argv):
     if not lengths or min(lengths) <= 0 or SEGMENT_STEP.value < 1 or EVAL_FROM_SCAN.value < 0:
         raise app.UsageError("--segments_m needs positive lengths, --segment_step >= 1, --eval_from_scan >= 0")
     todo = sequences()
-    results = []
+    results, stamped = [], None
     for name, root, synthetic in todo:
         try:
             if synthetic:
@@ -551,17 +552,16 @@ def main(argv):
             entry = {"sequence": name, "error": f"{type(e).__name__}: {e}"}
             logging.error("%s failed:\n%s", name, traceback.format_exc())
         results.append(entry)
-        os.makedirs(os.path.dirname(os.path.abspath(OUT.value)), exist_ok=True)
-        with open(OUT.value, "w") as f:
-            json.dump({"config": CONFIG.value, "overrides": OVERRIDES.value, "num_scans": NUM_SCANS.value,
-                       "slam_splitting_m": SLAM_SPLITTING.value or None, "peer_range": PEER_RANGE.value,
-                       "eval_from_scan": EVAL_FROM_SCAN.value, "segments_m": [float(v) for v in SEGMENTS_M.value],
-                       "segment_step": SEGMENT_STEP.value, "sequences": results}, f, indent=1)
+        stamped = harness.write(harness.OUT.value, {
+            "config": CONFIG.value, "overrides": OVERRIDES.value, "num_scans": NUM_SCANS.value,
+            "slam_splitting_m": SLAM_SPLITTING.value or None, "peer_range": PEER_RANGE.value,
+            "eval_from_scan": EVAL_FROM_SCAN.value, "segments_m": [float(v) for v in SEGMENTS_M.value],
+            "segment_step": SEGMENT_STEP.value, "sequences": results}, stamped=stamped)
     print(f"targets (NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's and over theirs, the baseline's and the "
           f"odometry's, its path within 0.1 % of the odometry's, its raw map crisper than both peers on every draw, "
           f"the whole run within {MINUTES_LIMIT.value:g} minutes):\n" + real_targets.format_targets(results),
           flush=True)
-    print(f"written to {OUT.value}", flush=True)
+    print(f"written to {harness.OUT.value}", flush=True)
 
 
 if __name__ == "__main__":

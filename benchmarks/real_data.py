@@ -39,6 +39,7 @@ import os
 import time
 import traceback
 
+import harness  # this folder's benchmarks/harness.py: --out, --set, the machine stamp and the JSON schema
 import real_targets  # this folder's benchmarks/real_targets.py
 from absl import app, flags
 
@@ -50,7 +51,7 @@ ROOT = flags.DEFINE_string("root", None, "Folder holding one sub-folder per sequ
 SEQUENCES = flags.DEFINE_list("sequences", None,
                               "Sub-folders of --root to run (default: every sub-folder with Scans/).")
 WORK = flags.DEFINE_string("work", "outputs/real_data", "Output folders of the runs go below this.")
-OUT = flags.DEFINE_string("out", "outputs/real_data/real_data.json", "JSON file with one entry per sequence.")
+harness.default_out("outputs/real_data/real_data.json")  # --out: one entry per sequence
 BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper).")
 MAX_MINUTES = flags.DEFINE_float("max_minutes", -1.0, "Override max_minutes, the whole run's (-1: the budget's).")
 RECORDED_STARTS = flags.DEFINE_list("recorded_starts", ["crisper"],
@@ -62,7 +63,7 @@ DRIFT_ROT = flags.DEFINE_float("drift_rot_deg", 0.5, "Injected drift per keyfram
 SEED = flags.DEFINE_integer("seed", 0, "Seed of the injected drift.")
 KEEP_TILT = flags.DEFINE_bool("keep_tilt", False, "The drift of an IMU-aided odometry: position and heading only "
                               "(bin/perturb.py --keep_tilt); without it the drift turns all three axes.")
-OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal), e.g. train.steps=2000.")
+OVERRIDES = harness.overrides_flag()
 DRIFT_RECIPE = flags.DEFINE_enum("drift_recipe", "lio_keyframes", ["lio_keyframes", "generic"],
                                  "The drift run's config: lio_keyframes (every scan a keyframe) or generic (the "
                                  "own-data recipe: keyframes by the caps, the other scans registered to the result).")
@@ -204,9 +205,9 @@ def main(argv):
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     names = SEQUENCES.value or sorted(d for d in os.listdir(ROOT.value)
                                       if os.path.isdir(os.path.join(ROOT.value, d, "Scans")))
-    results = []
-    if os.path.exists(OUT.value):
-        results = [r for r in json.load(open(OUT.value)).get("sequences", []) if r["sequence"] not in names]
+    results, stamped = [], None
+    if os.path.exists(harness.OUT.value):  # the other sequences of an earlier run stay
+        results = [r for r in harness.load(harness.OUT.value).get("sequences", []) if r["sequence"] not in names]
     for name in names:
         try:
             entry = run_sequence(name, os.path.join(ROOT.value, name))
@@ -216,10 +217,9 @@ def main(argv):
             logging.error("%s failed:\n%s", name, traceback.format_exc())
             print(json.dumps(entry), flush=True)
         results.append(entry)
-        os.makedirs(os.path.dirname(os.path.abspath(OUT.value)), exist_ok=True)
-        with open(OUT.value, "w") as f:
-            json.dump({"budget": BUDGET.value, "overrides": OVERRIDES.value, "keep_tilt": KEEP_TILT.value,
-                       "drift_recipe": DRIFT_RECIPE.value, "sequences": results}, f, indent=1)
+        stamped = harness.write(harness.OUT.value, {
+            "budget": BUDGET.value, "overrides": OVERRIDES.value, "keep_tilt": KEEP_TILT.value,
+            "drift_recipe": DRIFT_RECIPE.value, "sequences": results}, stamped=stamped)
     print("targets for real recordings (benchmarks/RESULTS.md):\n" + real_targets.format_targets(results), flush=True)
 
 

@@ -162,7 +162,8 @@ def add_missing_fields(config, defaults, prefix: str = "") -> list:
 
 
 def train_prepared(path: str, out_dir: str, max_seconds: float) -> dict:
-    """Train one prepared sequence as a run would (neld_jax.steps.refine.refine_keyframes); writes OUT/<name>_trained.npz."""
+    """Train one prepared sequence as a run would (neld_jax.steps.refine.refine_keyframes); writes
+    OUT/<name>_trained.npz."""
     import jax
     import ml_collections
 

@@ -30,12 +30,12 @@ and the merged run within --minutes_limit minutes; without ground truth, the mer
 the runs alone on the same points (each visit's, then all together: "every draw" crisper, "a tie" or "blurrier").
 """
 
-import json
 import logging
 import os
 import shutil
 import time
 
+import harness  # this folder's benchmarks/harness.py: --out, --set, the machine stamp and the JSON schema
 import numpy as np
 import real_targets  # this folder's benchmarks/real_targets.py: the margins' verdicts
 from absl import app, flags
@@ -49,9 +49,9 @@ SEED = flags.DEFINE_integer("seed", 0, "The courtyard's seed.")
 NUM_SCANS = flags.DEFINE_integer("num_scans", 24, "Scans a visit (3 s apart, round the loop).")
 GT_MAP_POINTS = flags.DEFINE_integer("gt_map_points", 50_000, "Points of each visit's ground-truth map.")
 WORK = flags.DEFINE_string("work", "outputs/sessions", "The visits and the runs go below this.")
-OUT = flags.DEFINE_string("out", "outputs/sessions/sessions.json", "JSON file of the results.")
+harness.default_out("outputs/sessions/sessions.json")
 CONFIG = flags.DEFINE_string("config", "configs/generic.py:cpu", "The runs' config, PATH[:BUDGET].")
-OVERRIDES = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (Python literal).")
+OVERRIDES = harness.overrides_flag()
 SKIP_ALONE = flags.DEFINE_bool("skip_alone", False, "Run the merged run only (no visit alone).")
 SPLIT_ROOT = flags.DEFINE_string("split_root", "", "A lio_keyframes folder whose two halves are the visits.")
 MAX_ATE_M = flags.DEFINE_float("max_ate_m", 0.01, "Target: each visit's ATE under the shared alignment.")
@@ -262,9 +262,7 @@ def main(argv):
     result = measure(visits, roots)
     result["targets"] = targets(result)
     result.update(config=CONFIG.value, overrides=OVERRIDES.value, visit=cfg, visits=VISITS.value)
-    os.makedirs(os.path.dirname(os.path.abspath(OUT.value)), exist_ok=True)
-    with open(OUT.value, "w") as f:
-        json.dump(result, f, indent=1)
+    harness.write(harness.OUT.value, result)
     for k, v in enumerate(result["merged"]["visits"]):
         a = result["alone"][k] if result["alone"] else {}
         print(f"{v['name']}: ATE alone {_cm(a.get('ate_m'))}, merged (shared alignment) "
@@ -280,7 +278,7 @@ def main(argv):
               f"{t['alone_placed_entropy']:.3f}, margin {t['merged_margin']}; the {t['overlap_keyframes']} keyframes "
               f"where the visits overlap: {t['overlap_merged_entropy']:.3f} against "
               f"{t['overlap_alone_placed_entropy']:.3f}", flush=True)
-    print(f"merged run {result['merged']['wall_s']:.0f} s; targets {result['targets']}; written to {OUT.value}")
+    print(f"merged run {result['merged']['wall_s']:.0f} s; targets {result['targets']}; written to {harness.OUT.value}")
 
 
 if __name__ == "__main__":

@@ -12,14 +12,13 @@ is matched to the sweeps by stamp as peers.py matches them, and over each stretc
 inclusive) the SE(3)-aligned ATE, the Sim(3) scale and the path-length ratio are written.
 """
 
-import json
 import os
 
+import harness  # this folder's benchmarks/harness.py: --out, the machine stamp and the JSON schema
 from absl import app, flags
 
 PEERS = flags.DEFINE_string("peers", None, "A peers.py JSON file.", required=True)
 STRETCHES = flags.DEFINE_list("stretches", ["15-37", "47-100"], "FIRST-LAST sweep indices, inclusive.")
-OUT = flags.DEFINE_string("out", None, "The JSON written.", required=True)
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -53,8 +52,7 @@ def main(argv):
     from neld_jax.config import from_file
     from neld_jax.data.formats import FORMATS
 
-    with open(PEERS.value) as f:
-        peers = json.load(f)
+    peers = harness.load(PEERS.value)
     stretches = [tuple(int(v) for v in item.split("-")) for item in STRETCHES.value]
     out = {"peers": PEERS.value, "stretches": STRETCHES.value, "sequences": []}
     for entry in peers["sequences"]:
@@ -71,9 +69,10 @@ def main(argv):
             rows[method] = {f"{a}-{b}": stretch_figures(est[a:b + 1], gt[a:b + 1]) for a, b in stretches}
             print(entry["sequence"], method, rows[method], flush=True)
         out["sequences"].append({"sequence": entry["sequence"], "methods": rows})
-    with open(OUT.value, "w") as f:
-        json.dump(out, f, indent=1)
+    harness.write(harness.OUT.value, out)
 
 
 if __name__ == "__main__":
+    harness.default_out(None)  # no default here: the file must be named
+    flags.mark_flag_as_required("out")
     app.run(main)

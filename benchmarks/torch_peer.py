@@ -8,10 +8,10 @@ torch is not a dependency of neld_jax (nor of its tests): install it beside it t
 
 The peer is written as research code usually is: an nn.Module MLP, the surrogate Fourier encoding as a
 torch.autograd.Function, torch.optim.Adam. It does the same work per step as the JAX step
-(neld_jax.training.train.make_step over one cube), at the same sizes: a uniform batch of rays, per-scan SE(3) corrections
-(exp, composed on the right of the initial pose), the cube interval (eq. 7), stratified coarse samples, NeLD-BA's fine
-samples in the bin before each coarse sample, one MLP evaluation per sample (the fine pass reuses the coarse
-densities, as in JAX; --reevaluate_coarse evaluates the coarse samples again in the fine pass, as a typical
+(neld_jax.training.train.make_step over one cube), at the same sizes: a uniform batch of rays, per-scan SE(3)
+corrections (exp, composed on the right of the initial pose), the cube interval (eq. 7), stratified coarse samples,
+NeLD-BA's fine samples in the bin before each coarse sample, one MLP evaluation per sample (the fine pass reuses the
+coarse densities, as in JAX; --reevaluate_coarse evaluates the coarse samples again in the fine pass, as a typical
 NeRF implementation does), alpha compositing, the L1 range and termination losses of eq. 13, and Adam on the
 field and the poses. Left out (negligible work): the learning-rate schedules (constant rates here).
 
@@ -30,6 +30,7 @@ import statistics
 import sys
 import time
 
+import harness  # this folder's benchmarks/harness.py: --out, the machine stamp and the JSON schema
 import numpy as np
 import train_step  # this folder's benchmarks/train_step.py: the size flags (--rays, --coarse, ...) and its runner
 from absl import app, flags
@@ -307,6 +308,7 @@ def main(argv):
                    "reevaluate_coarse": FLAGS.reevaluate_coarse, "modes": modes},
     }
     print(json.dumps(record), flush=True)
+    harness.write(FLAGS.out, record)
 
 
 if __name__ == "__main__":

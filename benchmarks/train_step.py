@@ -62,6 +62,7 @@ import sys
 import time
 from typing import Callable, NamedTuple
 
+import harness  # this folder's benchmarks/harness.py: --out, the machine stamp and the JSON schema
 import jax
 import jax.numpy as jnp
 import ml_collections
@@ -536,8 +537,8 @@ def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, re
 def benchmark_viewer(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
                      num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0) -> dict:
     """Steps/s of train.fit with the live viewer's hook against fit without it, alternately (--viewer): the hook a
-    run with viz.live gets (neld_jax.writing.viewer: run.rrd and a gRPC server on a free local port; the training curves and
-    the keyframes' poses at every log, as neld_jax.steps.refine hands them over)."""
+    run with viz.live gets (neld_jax.writing.viewer: run.rrd and a gRPC server on a free local port; the training curves
+    and the keyframes' poses at every log, as neld_jax.steps.refine hands them over)."""
     import socket
     import tempfile
 
@@ -683,6 +684,7 @@ def main(argv):
                                       FLAGS.seed, FLAGS.profile_dir, FLAGS.profile_steps, FLAGS.dump_hlo)
     record["preset"] = FLAGS.preset
     print(json.dumps(record), flush=True)  # the one line of stdout a caller parses
+    harness.write(FLAGS.out, record)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,9 @@ import pytest
 from conftest import COARSE_REGISTRATION_GRID_M
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))  # as `python benchmarks/x.py` would: the scripts import harness
+import harness  # noqa: E402
+
 SCRIPT = ROOT / "benchmarks" / "train_step.py"
 
 TINY = ["--steps", "2", "--repeats", "1", "--rays", "16", "--coarse", "4", "--fine", "2", "--width", "8",
@@ -398,7 +401,11 @@ def test_peers_compares_the_methods_on_the_same_sweeps(tmp_path):
          "--segments_m=1,2", *[f"--set={s}" for s in tiny]],
         cwd=ROOT, env=dict(os.environ, JAX_PLATFORMS="cpu"), capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
-    (entry,) = json.loads(out.read_text())["sequences"]
+    record = json.loads(out.read_text())  # the benchmarks' schema (benchmarks/harness.py) around the payload
+    assert set(record) == set(harness.SCHEMA_KEYS) and record["benchmark"] == "peers"
+    assert record["command"].startswith("python benchmarks/peers.py --sequences=synthetic10hz:0 --num_scans=30")
+    assert record["machine"]["cores"] >= 1 and record["machine"]["date_utc"].endswith("UTC")
+    (entry,) = harness.load(str(out))["sequences"]
     assert "error" not in entry, entry.get("error")
     assert entry["input_scans"] == 30 and entry["keyframes"] == 6
     rows = entry["methods"]

@@ -20,11 +20,11 @@ import numpy as np
 from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.geometry import register_scans
 from neld_jax.judging import judge, report
-from neld_jax.writing.evaluate import GT_POSES_FILE, EvalSettings, RunArtifacts, Trajectory, evaluation_record
 from neld_jax.judging.metrics import path_length_ratio
 from neld_jax.training.budget import TimeBudget
 from neld_jax.trajectory import propagate_corrections, window_scales
 from neld_jax.writing import plots
+from neld_jax.writing.evaluate import GT_POSES_FILE, EvalSettings, RunArtifacts, Trajectory, evaluation_record
 from neld_jax.writing.export import write_json, write_point_cloud, write_poses, write_raw_map
 
 logger = logging.getLogger(__name__)
@@ -54,7 +54,9 @@ class RunSteps:
     """What a run's steps made: every input scan (`loaded`) and the keyframes (step 1), the start (2), the refined
     poses and fields (3), the rendered map (4; None with mapping off) and every other input scan registered to the
     result (5; neld_jax.steps.registration.ScanRegistration, None where nothing was registered); neld_ba: NeLD-BA's
-    poses of every input scan [S, 4, 4] where the start's poses are the answer instead (neld_jax.judging.answer), else None."""
+    poses of every input scan [S, 4, 4] where the start's poses are the answer instead (neld_jax.judging.answer), else
+    None; every_scan and travelled: the answer's poses of every input scan where the check of the distance
+    travelled took the input's, and that check's record (neld_jax.judging.answer.keep_travel_of_input)."""
 
     loaded: Any
     keyframes: Any
@@ -63,10 +65,16 @@ class RunSteps:
     render: Any = None
     registration: Any = None
     neld_ba: np.ndarray | None = None
+    every_scan: np.ndarray | None = None
+    travelled: dict | None = None
 
     def every_scan_poses(self) -> np.ndarray:
-        """The answer's poses of every input scan [S, 4, 4]: the scans between keyframes registered to the result,
-        or, where nothing was registered (or a scan was refused), their keyframes' interpolated correction."""
+        """The answer's poses of every input scan [S, 4, 4]: where the check of the distance travelled took the
+        input's (neld_jax.judging.answer.keep_travel_of_input), those; else the scans between keyframes registered
+        to the result, or, where nothing was registered (or a scan was refused), their keyframes' interpolated
+        correction."""
+        if self.every_scan is not None:
+            return self.every_scan
         if self.registration is not None:
             return self.registration.poses
         return propagate_corrections(self.loaded.poses, self.keyframes.loaded_index, self.refined.poses,
@@ -187,6 +195,7 @@ def run_record(config: ml_collections.ConfigDict, made: RunSteps, budget: TimeBu
         "crispest": crispest,
         "crispness_margin": margins,  # {other method: the answer's entropy minus its, per draw and mean}
         "path_vs_input": path_vs_input(made.every_scan_poses(), made.loaded.poses),
+        "travelled": made.travelled,  # the check of the distance travelled against the input's (answer.py)
     }
 
 

@@ -80,6 +80,9 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
                                                   registration.RegistrationSettings.from_config(config), progress,
                                                   budget.registration_deadline())
     made = outputs.RunSteps(loaded, keyframes, begin, refined, render, registered)
+    # 5b. The distance travelled: the input's where the answer departs from it beyond an odometry's drift and every
+    #     scan's map does not side with the answer (neld_jax.judging.answer.keep_travel_of_input).
+    made = answer.keep_travel_of_input(made, config.eval)
 
     # 6. Judge the crispness; the answer: NeLD-BA's poses unless they blurred the start's (judging.answer); write
     #    poses, maps, per-scan report, metrics.json (writing.outputs), each recording's (writing.session_outputs).

@@ -63,13 +63,16 @@ def window_scales(poses: np.ndarray, reference: np.ndarray, window_m: float) -> 
     return np.where(own > 0, (along[hi] - along[lo]) / np.where(own > 0, own, 1.0), 1.0)
 
 
-def with_distances_of(poses: np.ndarray, reference: np.ndarray, window_m: float) -> np.ndarray:
+def with_distances_of(poses: np.ndarray, reference: np.ndarray, window_m: float, beyond: float = 0.0) -> np.ndarray:
     """poses [S, 4, 4] with each step's translation scaled by window_scales (the reference's [S, 4, 4] distance
     travelled over a window_m window around it): the same rotations and directions of travel, the reference's
     distances; pose 0 stays. Where a registration measures the shape of a path but a LiDAR odometry over
     consecutive sweeps measures the distance travelled better (docs/evaluation.md, "Weak directions and the distance
-    travelled")."""
+    travelled"). beyond: only the steps whose window's scale departs from 1 by more than this take the reference's
+    distances; the others keep their own."""
     poses = np.array(poses, np.float64)
-    steps = np.diff(poses[:, :3, 3], axis=0) * window_scales(poses, reference, window_m)[:, None]
+    scales = window_scales(poses, reference, window_m)
+    scales = np.where(np.abs(scales - 1.0) > beyond, scales, 1.0)
+    steps = np.diff(poses[:, :3, 3], axis=0) * scales[:, None]
     poses[1:, :3, 3] = poses[0, :3, 3] + np.cumsum(steps, axis=0)
     return poses

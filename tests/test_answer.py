@@ -90,3 +90,64 @@ def test_a_run_whose_training_blurred_its_start_answers_with_the_start(tmp_path,
     assert not margins["initial"]["all_draws_agree"]  # against itself: a tie
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert set(metrics["evaluation"]["methods"]) >= {"initial", "optimized", "neld_ba"}
+
+
+def _scaled(poses: np.ndarray, factor: float) -> np.ndarray:
+    scaled = poses.copy()
+    scaled[:, :3, 3] = poses[0, :3, 3] + factor * (poses[:, :3, 3] - poses[0, :3, 3])
+    return scaled
+
+
+EVERY_SCAN = {"crispness_radius_m": 0.3, "crispness_queries": 3000, "crispness_draws": 3}
+
+
+def test_a_path_shortened_where_no_scan_can_tell_takes_the_input_distances():
+    """On a straight street no surface faces along it: a crisper keyframe map could have shortened the path 3 %, every
+    scan's map cannot tell, and the input's distances (the truth here) are the answer's."""
+    from test_weak_directions import scans_along, sensor_pose
+
+    from neld_jax.synthetic.scene import raycasting_scene, street_meshes
+
+    truth = np.stack([sensor_pose(2.0 * k - 6.0) for k in range(6)])
+    scans = scans_along(raycasting_scene(street_meshes()), truth)
+    kept, record = answer.keep_input_travel(scans, _scaled(truth, 0.97), truth, EVERY_SCAN)
+    assert record["kept"] == "input" and record["largest_window_change"] > answer.ODOMETRY_DRIFT
+    assert record["path_ratio"] == pytest.approx(1.0, abs=1e-9)
+    np.testing.assert_allclose(kept[:, :3, 3], truth[:, :3, 3], atol=1e-9)
+
+
+def test_distances_the_scans_confirm_or_within_an_odometry_drift_stay():
+    from test_weak_directions import scans_along, sensor_pose
+
+    from neld_jax.synthetic.scene import make_scene
+
+    truth = np.stack([sensor_pose(-3.0 + 1.5 * k, 15.0, 0.1 * k) for k in range(4)])
+    scans = scans_along(make_scene(0)[0], truth)
+    # The input drifted 3 % long; the walls across the path see it: the answer's true distances are crisper.
+    kept, record = answer.keep_input_travel(scans, truth, _scaled(truth, 1.03), EVERY_SCAN)
+    assert record["kept"] == "own" and record["margin"] < 0
+    np.testing.assert_array_equal(kept, truth)
+    # Within what an odometry drifts: nothing judged, nothing moved.
+    kept, record = answer.keep_input_travel(scans, truth, _scaled(truth, 1.0 + answer.ODOMETRY_DRIFT / 2), EVERY_SCAN)
+    assert record["kept"] is None and record["margin"] is None and record["steps_beyond"] == 0.0
+    np.testing.assert_array_equal(kept, truth)
+
+
+def test_the_kept_travel_reaches_every_output_of_the_run():
+    """keep_travel_of_input on a run's steps: the input's distances become the every-scan poses and the keyframes'."""
+    from test_weak_directions import scans_along, sensor_pose
+
+    from neld_jax.synthetic.scene import raycasting_scene, street_meshes
+    from neld_jax.writing.outputs import RunSteps
+
+    truth = np.stack([sensor_pose(2.0 * k - 6.0) for k in range(6)])
+    scans = scans_along(raycasting_scene(street_meshes()), truth)
+    loaded = dataclasses.make_dataclass("Loaded", ["scans", "poses", "timestamps", "num_scans"])(
+        scans, truth, None, 6)
+    keyframes = dataclasses.make_dataclass("Keyframes", ["loaded_index"])(np.array([0, 5]))
+    refined = dataclasses.make_dataclass("Refined", ["poses"])(_scaled(truth, 0.97)[[0, 5]])
+    made = RunSteps(loaded, keyframes, None, refined)
+    checked = answer.keep_travel_of_input(made, EVERY_SCAN)
+    assert checked.travelled["kept"] == "input"
+    np.testing.assert_allclose(checked.every_scan_poses()[:, :3, 3], truth[:, :3, 3], atol=1e-9)
+    np.testing.assert_allclose(checked.refined.poses, checked.every_scan_poses()[[0, 5]])

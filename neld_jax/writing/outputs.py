@@ -54,8 +54,14 @@ class RunSteps:
     """What a run's steps made: every input scan (`loaded`) and the keyframes (step 1), the start (2), the refined
     poses and fields (3), the rendered map (4; None with mapping off) and every other input scan registered to the
     result (5; neld_jax.steps.registration.ScanRegistration, None where nothing was registered); neld_ba: NeLD-BA's
+<<<<<<< HEAD
     poses of every input scan [S, 4, 4] where the start's poses are the answer instead (neld_jax.judging.answer),
     else None."""
+=======
+    poses of every input scan [S, 4, 4] where the start's poses are the answer instead (neld_jax.judging.answer), else
+    None; every_scan and travelled: the answer's poses of every input scan where the check of the distance
+    travelled took the input's, and that check's record (neld_jax.judging.answer.keep_travel_of_input)."""
+>>>>>>> answer
 
     loaded: Any
     keyframes: Any
@@ -64,10 +70,16 @@ class RunSteps:
     render: Any = None
     registration: Any = None
     neld_ba: np.ndarray | None = None
+    every_scan: np.ndarray | None = None
+    travelled: dict | None = None
 
     def every_scan_poses(self) -> np.ndarray:
-        """The answer's poses of every input scan [S, 4, 4]: the scans between keyframes registered to the result,
-        or, where nothing was registered (or a scan was refused), their keyframes' interpolated correction."""
+        """The answer's poses of every input scan [S, 4, 4]: where the check of the distance travelled took the
+        input's (neld_jax.judging.answer.keep_travel_of_input), those; else the scans between keyframes registered
+        to the result, or, where nothing was registered (or a scan was refused), their keyframes' interpolated
+        correction."""
+        if self.every_scan is not None:
+            return self.every_scan
         if self.registration is not None:
             return self.registration.poses
         return propagate_corrections(self.loaded.poses, self.keyframes.loaded_index, self.refined.poses,
@@ -189,6 +201,7 @@ def run_record(config: ml_collections.ConfigDict, made: RunSteps, T_all: np.ndar
         "crispest": crispest,
         "crispness_margin": margins,  # {other method: the answer's entropy minus its, per draw and mean}
         "path_vs_input": path_vs_input(T_all, made.loaded.poses),
+        "travelled": made.travelled,  # the check of the distance travelled against the input's (answer.py)
     }
 
 

@@ -54,14 +54,9 @@ class RunSteps:
     """What a run's steps made: every input scan (`loaded`) and the keyframes (step 1), the start (2), the refined
     poses and fields (3), the rendered map (4; None with mapping off) and every other input scan registered to the
     result (5; neld_jax.steps.registration.ScanRegistration, None where nothing was registered); neld_ba: NeLD-BA's
-<<<<<<< HEAD
-    poses of every input scan [S, 4, 4] where the start's poses are the answer instead (neld_jax.judging.answer),
-    else None."""
-=======
     poses of every input scan [S, 4, 4] where the start's poses are the answer instead (neld_jax.judging.answer), else
     None; every_scan and travelled: the answer's poses of every input scan where the check of the distance
     travelled took the input's, and that check's record (neld_jax.judging.answer.keep_travel_of_input)."""
->>>>>>> answer
 
     loaded: Any
     keyframes: Any

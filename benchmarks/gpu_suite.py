@@ -345,7 +345,7 @@ class Suite:
             result = train.FitResult(state.replace(step=state.step + total), [], False, 0.0, trainer.schedules)
             refined = refine.Refined(result, demo.plan, trainer.field, demo.start_poses, demo.start_poses, np.eye(4),
                                      np.bincount(demo.rays_m.scan_index, minlength=demo.num_scans))
-            sampler = train.sampler_settings(config, config.mapping.num_coarse, config.mapping.num_fine)
+            sampler = train.sampler_settings(config.sampling, config.mapping.num_coarse, config.mapping.num_fine)
             rows = []
             # A [rays x 256 samples, width] float32 activation is 4 GiB at 8192 rays and width 512.
             default_batch = mapping.RAYS_PER_BATCH

@@ -22,7 +22,6 @@ import ml_collections
 from neld_jax.judging import answer
 from neld_jax.steps import mapping, refine, registration, start
 from neld_jax.steps.session_alignment import load_sessions
-from neld_jax.training import train
 from neld_jax.training.budget import TimeBudget
 from neld_jax.writing import output_folder, outputs, session_outputs
 from neld_jax.writing.viewer import RunViewer
@@ -66,23 +65,18 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
                                      functools.partial(output_folder.record_seconds, out_dir, budget))
     refined = refine.refine_keyframes(config, keyframes, begin.poses, begin.pose_steps, context)
 
-    # 4. Render the map (neld_jax.steps.mapping).
-    render = None
-    if config.mapping.enabled:
-        m = config.mapping
-        render = mapping.render_map(refined, mapping.mapping_rays(m, keyframes, config.seed + 1),
-                                    train.sampler_settings(config, m.num_coarse, m.num_fine), float(m.min_opacity),
-                                    budget.render_seconds(), config.seed + 1, progress)
-        viewer.log_rendered(render)
+    # 4. Render the map (neld_jax.steps.mapping; none with mapping.enabled off).
+    render = mapping.rendered_map(config.mapping, config.sampling, refined, keyframes, config.seed + 1,
+                                  budget.render_seconds(), progress)
+    viewer.log_rendered(render)
 
     # 5. Register every other input scan to the keyframes' refined map, from its interpolated correction.
     registered = registration.register_every_scan(loaded, keyframes, refined.poses,
                                                   registration.RegistrationSettings.from_config(config), progress,
                                                   budget.registration_deadline())
-    made = outputs.RunSteps(loaded, keyframes, begin, refined, render, registered)
-    # 5b. The distance travelled: the input's where the answer departs from it beyond an odometry's drift and every
-    #     scan's map does not side with the answer (neld_jax.judging.answer.keep_travel_of_input).
-    made = answer.keep_travel_of_input(made, config.eval)
+    # ... and the distance travelled checked against the input's on every scan's map (judging.answer).
+    made = answer.keep_travel_of_input(outputs.RunSteps(loaded, keyframes, begin, refined, render, registered),
+                                       config.eval)
 
     # 6. Judge the crispness; the answer: NeLD-BA's poses unless they blurred the start's (judging.answer); write
     #    poses, maps, per-scan report, metrics.json (writing.outputs), each recording's (writing.session_outputs).

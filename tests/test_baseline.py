@@ -327,7 +327,7 @@ def test_a_chain_whose_links_overlap_too_little_is_given_up(drifted_sequence, mo
         raise AssertionError("no pose graph without a chain")
 
     Result.fitness = 0.2
-    monkeypatch.setattr(baseline.sequence, "loop_closed_graph", not_called)
+    monkeypatch.setattr(baseline.pipeline, "loop_closed_graph", not_called)
     result = register_sequence(seq.scans, seq.poses, settings)
     np.testing.assert_allclose(result.poses, seq.poses, atol=1e-9)  # no rounds here: the input as it came
     assert result.chain_given_up and result.refined_from == "input" and result.chain_entropy == {}
@@ -350,7 +350,7 @@ def test_a_chain_still_running_at_the_deadline_is_given_up(drifted_sequence, mon
     def not_called(*args):
         raise AssertionError("no pose graph without a chain")
 
-    monkeypatch.setattr(baseline.sequence, "loop_closed_graph", not_called)
+    monkeypatch.setattr(baseline.pipeline, "loop_closed_graph", not_called)
     result = register_sequence(seq.scans, seq.poses, dataclasses.replace(SETTINGS, map_rounds=2),
                                deadline=time.perf_counter() - 1.0)
     np.testing.assert_allclose(result.poses, seq.poses, atol=1e-9)

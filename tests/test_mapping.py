@@ -27,7 +27,7 @@ def _render(max_seconds: float, monkeypatch, window: int = 0):
     monkeypatch.setattr(mapping, "RAYS_PER_BATCH", 64)
     config, refined = _refined(window)
     rays, _ = sphere_scene_rays(num_scans=4, rays_per_scan=100, seed=0)
-    sampler = dataclasses.replace(train.sampler_settings(config, 8, 8), guided_samples=0)
+    sampler = dataclasses.replace(train.sampler_settings(config.sampling, 8, 8), guided_samples=0)
     render = render_map(refined, rays, sampler, min_opacity=0.0, max_seconds=max_seconds, seed=3)
     return render, np.asarray(rays.scan_index)
 

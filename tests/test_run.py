@@ -258,8 +258,9 @@ def test_run_reads_as_its_named_steps():
     tree = ast.parse(inspect.getsource(run.run_steps))
     calls = [ast.unparse(node.func) for node in sorted((n for n in ast.walk(tree) if isinstance(n, ast.Call)),
                                                         key=lambda n: (n.lineno, n.col_offset))]
-    order = ["load_sessions", "start.choose_start", "refine.refine_keyframes", "mapping.render_map",
-             "registration.register_every_scan", "answer.keep_the_better", "outputs.judge_crispness",
+    order = ["load_sessions", "start.choose_start", "refine.refine_keyframes", "mapping.rendered_map",
+             "registration.register_every_scan", "answer.keep_travel_of_input", "answer.keep_the_better",
+             "outputs.judge_crispness",
              "outputs.write_outputs", "outputs.judge_run"]
     positions = [calls.index(name) for name in order]
     assert positions == sorted(positions), calls

@@ -81,7 +81,7 @@ def test_fit_without_steps_is_the_seeded_initial_state():
         np.testing.assert_array_equal(jax.random.key_data(state.key), jax.random.key_data(start.key))
     assert jax.tree.leaves(start.params["fields"])[0].shape[0] == 1  # one cube: the fields' leading axis is 1
     assert trainer.field == train.make_field(config) and hash(trainer.field) == hash(train.make_field(config))
-    assert trainer.sampler(0) == train.sampler_settings(config, *trainer.schedules.samples(0))  # metres
+    assert trainer.sampler(0) == train.sampler_settings(config.sampling, *trainer.schedules.samples(0))  # metres
     assert train.loss_settings(config) == train.LossSettings()  # the config's defaults
 
 
@@ -396,7 +396,7 @@ def test_bfloat16_matmuls_render_depth_close_to_float32_and_give_gradients():
     field32 = train.make_field(config)
     field16 = field32.clone(matmul_dtype="bfloat16")
     assert field32.matmul_dtype == "float32"
-    sampler = train.sampler_settings(config, 16, 8)
+    sampler = train.sampler_settings(config.sampling, 16, 8)
     n = int(rays.num_rays[0])
     Tn = jnp.asarray(T, jnp.float32)[rays.scan_index[0, :n]]
     origins, directions = world_rays(Tn, rays.directions[0, :n])

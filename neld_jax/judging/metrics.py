@@ -342,27 +342,19 @@ def nearest_neighbor_distances(query: np.ndarray, reference: np.ndarray) -> np.n
 
 def map_metrics_from_distances(est_to_gt: np.ndarray, gt_to_est: np.ndarray, threshold: float = 0.2,
                                cutoff: float | None = None, mode: str = "paper") -> dict[str, Any]:
-    """Compare an estimated map with a ground-truth map (both in the same frame) from their nearest-neighbour
-    distances (`nearest_neighbor_distances`): est_to_gt [N], d_acc(p), the distance of estimated point p to its
-    nearest GT point ("accuracy" direction); gt_to_est [M], d_comp(q), the distance of GT point q to its nearest
-    estimated point ("completeness" direction).
+    """Compare an estimated map with a ground-truth map (same frame) from their nearest-neighbour distances
+    (`nearest_neighbor_distances`): est_to_gt [N], each estimated point's to its nearest GT point ("accuracy");
+    gt_to_est [M], each GT point's to its nearest estimated point ("completeness").
 
-    Chamfer conventions (`mode`), `cutoff` in metres (the paper uses 1 m for raw maps, none for
-    rendered maps):
-    - "paper" (default): L1-Chamfer = 1/2 mean(d_acc) + 1/2 mean(d_comp), as in the NeLD-BA paper and
-      the FusionPortable / MapEval tools; distances beyond `cutoff` are DROPPED from both means
-      (outliers do not count at all).
-    - "clip": the same halved mean, but distances beyond `cutoff` are CLIPPED to `cutoff` (outliers
-      count with the maximum penalty).
-    - "sum": mean(d_acc) + mean(d_comp), unhalved (as some FusionPortable scripts report), with the
-      cutoff dropping as in "paper".
-    With cutoff=None all three use every distance ("paper" and "clip" then agree).
-
-    Independent of mode and cutoff: precision = fraction of d_acc <= threshold, recall = fraction of
-    d_comp <= threshold, f1 = 2PR / (P + R), inlier_rmse = RMSE of the d_acc <= threshold.
-    Returned keys: accuracy_m, completeness_m, chamfer_l1_m, precision, recall, f1, inlier_rmse_m,
-    threshold_m, cutoff_m, mode, num_est, num_gt, num_est/gt_within_cutoff, num_inliers. A mean over
-    no points is NaN.
+    Chamfer conventions (`mode`), `cutoff` in metres (the paper: 1 m for raw maps, none for rendered maps):
+    "paper" (default): L1-Chamfer = 1/2 mean(d_acc) + 1/2 mean(d_comp), as the NeLD-BA paper and the FusionPortable /
+    MapEval tools, distances beyond `cutoff` DROPPED from both means; "clip": the same, distances CLIPPED to `cutoff`
+    (outliers count with the maximum penalty); "sum": mean(d_acc) + mean(d_comp), unhalved (some FusionPortable
+    scripts), dropping as "paper". With cutoff=None all three use every distance. Whatever the mode: precision =
+    fraction of d_acc <= threshold, recall = fraction of d_comp <= threshold, f1 = 2PR / (P + R), inlier_rmse = RMSE
+    of the d_acc <= threshold. Returns accuracy_m, completeness_m, chamfer_l1_m, precision, recall, f1,
+    inlier_rmse_m, threshold_m, cutoff_m, mode, num_est, num_gt, num_est/gt_within_cutoff, num_inliers (a mean over
+    no points is NaN).
     """
     if mode not in MAP_MODES:
         raise ValueError(f"map metrics mode must be one of {MAP_MODES}, got {mode!r}")

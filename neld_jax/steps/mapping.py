@@ -19,6 +19,7 @@ from neld_jax.field.density import DensityField
 from neld_jax.field.model import SamplerSettings, in_units, render_rays, world_rays
 from neld_jax.field.normalize import Normalization
 from neld_jax.training.rays import RaySet, build_rays, rays_per_scan
+from neld_jax.training.train import sampler_settings
 
 logger = logging.getLogger(__name__)
 
@@ -138,6 +139,18 @@ def _render_batch(cube: CubeToRender, field: DensityField, sampler_m: SamplerSet
     origins_n = np.asarray(cube.poses)[slots[: len(idx)][better], :3, 3]
     so_far.ranges_m[kept] = np.linalg.norm(p_n[better] - origins_n, axis=1) / cube.norm.scale
     so_far.opacity[kept] = op[better]
+
+
+def rendered_map(mapping_cfg, sampling_cfg, refined, keyframes, seed: int, max_seconds: float = 0.0,
+                 progress: bool = False) -> MapRender | None:
+    """Step 4 of a run: the map of `refined` (neld_jax.steps.refine.Refined) rendered along mapping_rays of
+    `keyframes` (mapping_cfg: config.mapping) with the sampler of sampling_cfg (config.sampling) at the mapping's
+    sample counts; None with mapping.enabled off."""
+    if not mapping_cfg.enabled:
+        return None
+    sampler = sampler_settings(sampling_cfg, mapping_cfg.num_coarse, mapping_cfg.num_fine)
+    return render_map(refined, mapping_rays(mapping_cfg, keyframes, seed), sampler, float(mapping_cfg.min_opacity),
+                      max_seconds, seed, progress)
 
 
 def render_map(refined, rays: RaySet, sampler_m: SamplerSettings, min_opacity: float, max_seconds: float = 0.0,

@@ -418,9 +418,10 @@ class Trainer(NamedTuple):
     sharding: Any  # the state's NamedSharding tree
 
 
-def sampler_settings(config: ml_collections.ConfigDict, num_coarse: int, num_fine: int) -> SamplerSettings:
-    """The sampler of one stage (config.sampling), in metres (model.in_units converts it into a cube's units)."""
-    s = config.sampling
+def sampler_settings(sampling_cfg: ml_collections.ConfigDict, num_coarse: int, num_fine: int) -> SamplerSettings:
+    """The sampler of one stage (sampling_cfg: config.sampling), in metres (model.in_units converts it into a cube's
+    units)."""
+    s = sampling_cfg
     return SamplerSettings(num_coarse=int(num_coarse), num_fine=int(num_fine), z_low=float(s.z_low_m),
                            z_up=float(s.z_up_m), cube_bound=bool(s.cube_bound), hierarchical=str(s.hierarchical),
                            guided_samples=int(s.guided_samples), guided_width=GUIDED_WIDTH_M)
@@ -478,7 +479,7 @@ def make_trainer(config: ml_collections.ConfigDict, num_scans: int, num_submaps:
     step = make_step(tx, schedules, field, loss_settings(config, num_submaps), batch, sharding)
 
     def sampler(step_index: int) -> SamplerSettings:
-        return sampler_settings(config, *schedules.samples(step_index))
+        return sampler_settings(config.sampling, *schedules.samples(step_index))
 
     return Trainer(tx, schedules, field, sampler, step, jit_chunk(step), batch, sharding)
 

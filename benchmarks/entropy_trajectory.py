@@ -62,7 +62,7 @@ def main(argv):
         from neld_jax.steps.start import pose_steps_from_baseline
 
         judged, _ = judge.map_crispness(keyframes, {"start": start_poses}, config.eval)
-        pose_steps = pose_steps_from_baseline(config, judged["start"].get("mean_plane_thickness_m"))
+        pose_steps = pose_steps_from_baseline(config.start, config.train, judged["start"].get("mean_plane_thickness_m"))
     else:
         pose_steps = train.PoseSteps.from_config(config)
     # The training of a run (neld_jax.steps.refine.refine_keyframes) without its checkpoints, the measurements in

@@ -60,8 +60,8 @@ def measure(run_dir: str) -> dict:
     refined = written[keyframes.loaded_index]
     interpolated = propagate_corrections(loaded.poses, keyframes.loaded_index, refined, loaded.timestamps)
     t0 = time.perf_counter()
-    registered = registration.register_every_scan(loaded, keyframes, refined,
-                                                      registration.RegistrationSettings.from_config(config))
+    settings = registration.RegistrationSettings.from_groups(config.data, config.baseline)
+    registered = registration.register_every_scan(loaded, keyframes, refined, settings)
     seconds = time.perf_counter() - t0
     radius = float(config.eval.crispness_radius_m)
     entry = {"run": run_dir, "input_scans": loaded.num_scans, "keyframes": keyframes.num_scans,

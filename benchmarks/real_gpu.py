@@ -104,7 +104,7 @@ def pose_steps_for(config, keyframes, chosen: str, start_poses: np.ndarray):
     if chosen != "baseline":
         return PoseSteps.from_config(config)
     judged, _ = judge.map_crispness(keyframes, {"baseline": start_poses}, config.eval)
-    return pose_steps_from_baseline(config, judged["baseline"].get("mean_plane_thickness_m"))
+    return pose_steps_from_baseline(config.start, config.train, judged["baseline"].get("mean_plane_thickness_m"))
 
 
 def prepared_keyframes(d: dict):
@@ -182,7 +182,8 @@ def train_prepared(path: str, out_dir: str, max_seconds: float) -> dict:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as scratch:  # its checkpoints
         context = refine.TrainingContext(scratch, outputs.config_hash(config), max_seconds, progress=False)
-        refined = refine.refine_keyframes(config, keyframes, d["T_start"], PoseSteps(**d["pose_steps"]), context)
+        refined = refine.refine_keyframes(refine.TrainingSettings.from_config(config), keyframes, d["T_start"],
+                                          PoseSteps(**d["pose_steps"]), context)
     wall_s = time.perf_counter() - t0
     result = refined.result
     figures = {"name": d["name"], "device": str(jax.devices()[0]), "jax": jax.__version__,

@@ -56,14 +56,16 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     # 2. Choose the start and its pose steps: the input's or the baseline's poses (steps.start); a resume keeps it.
     begin = start.Start.resumed(out_dir, config_hash, keyframes.poses)
     if begin is None:
-        begin = start.choose_start(config, keyframes, budget.baseline_deadline(), progress, recordings)
+        begin = start.choose_start(start.StartSettings.from_config(config), keyframes, budget.baseline_deadline(),
+                                   progress, recordings)
         begin.save(out_dir, config_hash, keyframes.poses)
     viewer.log_start(loaded, keyframes, begin)
 
     # 3. Train the field(s) and the poses (neld_jax.steps.refine: one cube, or submaps for a sequence larger than one).
     context = refine.TrainingContext(out_dir, config_hash, budget.training_seconds(), progress, viewer.training_hook(),
                                      functools.partial(output_folder.record_seconds, out_dir, budget))
-    refined = refine.refine_keyframes(config, keyframes, begin.poses, begin.pose_steps, context)
+    refined = refine.refine_keyframes(refine.TrainingSettings.from_config(config), keyframes, begin.poses,
+                                      begin.pose_steps, context)
 
     # 4. Render the map (neld_jax.steps.mapping; none with mapping.enabled off).
     render = mapping.rendered_map(config.mapping, config.sampling, refined, keyframes, config.seed + 1,
@@ -71,8 +73,8 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     viewer.log_rendered(render)
 
     # 5. Register every other input scan to the keyframes' refined map, from its interpolated correction.
-    registered = registration.register_every_scan(loaded, keyframes, refined.poses,
-                                                  registration.RegistrationSettings.from_config(config), progress,
+    settings = registration.RegistrationSettings.from_groups(config.data, config.baseline)
+    registered = registration.register_every_scan(loaded, keyframes, refined.poses, settings, progress,
                                                   budget.registration_deadline())
     # ... and the distance travelled checked against the input's on every scan's map (judging.answer).
     made = answer.keep_travel_of_input(outputs.RunSteps(loaded, keyframes, begin, refined, render, registered),
@@ -80,8 +82,8 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
 
     # 6. Judge the crispness; the answer: NeLD-BA's poses unless they blurred the start's (judging.answer); write
     #    poses, maps, per-scan report, metrics.json (writing.outputs), each recording's (writing.session_outputs).
-    made, judged = answer.keep_the_better(made, outputs.judge_crispness(config, made, budget, progress))
-    written = outputs.write_outputs(out_dir, config, made)
+    made, judged = answer.keep_the_better(made, outputs.judge_crispness(config.eval, made, budget, progress))
+    written = outputs.write_outputs(out_dir, config.mapping, made)
     T_all = written.trajectories["optimized"].poses
     viewer.log_outputs(keyframes, made.refined, T_all, recordings)
     sections = session_outputs.sections(recordings, keyframes, made.refined.poses, written, config.eval)

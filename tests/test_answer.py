@@ -64,8 +64,8 @@ def test_a_run_whose_training_blurred_its_start_answers_with_the_start(tmp_path,
     # says whose the answer is, and the log says why.
     real_refine = run.refine.refine_keyframes
 
-    def refine_then_blur(config, keyframes, start_poses, pose_steps, context):
-        refined = real_refine(config, keyframes, start_poses, pose_steps, context)
+    def refine_then_blur(settings, keyframes, start_poses, pose_steps, context):
+        refined = real_refine(settings, keyframes, start_poses, pose_steps, context)
         return dataclasses.replace(refined, poses=_blurred(refined.poses))
 
     monkeypatch.setattr(run.refine, "refine_keyframes", refine_then_blur)

@@ -231,18 +231,18 @@ def test_training_starts_from_the_baseline_of_config_baseline(drifted_sequence, 
     # start.poses=baseline: the run registers first, with config.baseline's settings, and trains from the result;
     # "input" trains from the loaded poses.
     from neld_jax.config import defaults
-    from neld_jax.steps.start import choose_start
+    from neld_jax.steps.start import StartSettings, choose_start
 
     config = defaults()
     config.baseline.window, config.baseline.voxel_size_m = SETTINGS.window, SETTINGS.voxel_size_m
     config.start.poses = "baseline"
-    chosen = choose_start(config, drifted_sequence)
+    chosen = choose_start(StartSettings.from_config(config), drifted_sequence)
     assert chosen.baseline_seconds > 0 and chosen.chosen == "baseline" and chosen.pose_steps.keep_scale
     assert chosen.baseline_report["refined_from"] in ("graph", "chain")
     assert BaselineSettings.from_config(config) == SETTINGS
     np.testing.assert_array_equal(chosen.poses, registered.poses)
     config.start.poses = "input"
-    chosen = choose_start(config, drifted_sequence)
+    chosen = choose_start(StartSettings.from_config(config), drifted_sequence)
     assert chosen.baseline_seconds is None and chosen.poses is drifted_sequence.poses and chosen.chosen == "input"
 
 

@@ -267,6 +267,31 @@ def test_run_reads_as_its_named_steps():
     assert len(inspect.getsource(run.run_steps).splitlines()) < 50
 
 
+def test_no_step_takes_the_whole_config():
+    # A step receives the groups it reads (config.data, ...) or a settings dataclass built from them at the edge: a
+    # parameter named config in neld_jax.steps is the whole config coming back. The settings' from_config builders
+    # are that edge (run.py, commands/ call them).
+    import importlib
+    import inspect
+    import pkgutil
+
+    import neld_jax.steps
+
+    taking = []
+    for info in pkgutil.iter_modules(neld_jax.steps.__path__):
+        module = importlib.import_module(f"neld_jax.steps.{info.name}")
+        for name, value in vars(module).items():
+            if getattr(value, "__module__", None) != module.__name__ or name.startswith("_"):
+                continue
+            members = [(name, value)] if inspect.isfunction(value) else []
+            if inspect.isclass(value):
+                members = [(f"{name}.{key}", getattr(value, key)) for key in vars(value)
+                           if not key.startswith("_") and key != "from_config" and callable(getattr(value, key))]
+            taking += [f"{module.__name__}.{qualified}" for qualified, function in members
+                       if "config" in inspect.signature(function).parameters]
+    assert not taking, f"steps that take the whole config: {taking}"
+
+
 def _folder_state(folder) -> dict:
     """{relative path: (bytes, mtime in ns)} of every file under folder."""
     return {str(p.relative_to(folder)): (p.read_bytes(), p.stat().st_mtime_ns)

@@ -124,7 +124,7 @@ def test_fixed_scan_out_of_range_is_an_error():
     config = make_tiny_config()
     config.train.fixed_scans = (5,)
     with pytest.raises(ConfigError, match=r"train.fixed_scans = \(5,\): scan 5 is not one of the 3 keyframes"):
-        train.fixed_rows(config, 3)
+        train.fixed_rows(config.train, 3)
 
 
 def test_pose_prior_pulls_corrections_back_to_their_start_and_is_off_at_zero():

@@ -101,13 +101,19 @@ class BaselineSettings:
     def from_config(cls, config) -> "BaselineSettings":
         """From a run's config: config.baseline's fields and the judge's (config.eval's crispness settings); the
         rest keep their defaults."""
-        fields = dict(config.baseline)
+        return cls.from_groups(config.baseline, config.eval)
+
+    @classmethod
+    def from_groups(cls, baseline_cfg, eval_cfg) -> "BaselineSettings":
+        """baseline_cfg (config.baseline): its fields; eval_cfg (config.eval): the judge's crispness settings; the
+        rest keep their defaults."""
+        fields = dict(baseline_cfg)
         unknown = set(fields) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise ValueError(f"config.baseline: unknown field(s) {sorted(unknown)}")
-        return cls(**fields, crispness_radius_m=float(config.eval.crispness_radius_m),
-                   crispness_queries=int(config.eval.crispness_queries),
-                   crispness_draws=int(config.eval.crispness_draws))
+        return cls(**fields, crispness_radius_m=float(eval_cfg.crispness_radius_m),
+                   crispness_queries=int(eval_cfg.crispness_queries),
+                   crispness_draws=int(eval_cfg.crispness_draws))
 
 
 def progress_bar(what: str, progress: bool, iterable=None, total: int | None = None):

@@ -35,7 +35,7 @@ def localize_scans(config, run_dir: str, progress: bool = True) -> dict:
     map_path = os.path.join(run_dir or "", "map_raw.ply")
     if not run_dir or not os.path.isfile(map_path):
         raise ConfigError(f"--run: {map_path} not found (give a finished run's output folder)")
-    settings = registration.RegistrationSettings.from_config(config)
+    settings = registration.RegistrationSettings.from_groups(config.data, config.baseline)
     target = registration.cloud_with_normals(read_scan(map_path), settings)
     scans = load_sequence(config.data)
     registered, how = registration.localize(scans.scans, scans.poses, target, settings, progress,

@@ -64,15 +64,43 @@ class TrainingContext:
     on_checkpoint: Callable[[], None] | None = None
 
 
-def refine_keyframes(config: ml_collections.ConfigDict, keyframes, start_poses: np.ndarray,
+@dataclasses.dataclass(frozen=True)
+class TrainingSettings:
+    """What training reads, each group as the config has it: train, model, sampling, submaps and loss (config.<group>),
+    seed (config.seed) and max_rays_per_scan (config.data.max_rays_per_scan; 0: every ray). Built once at the edge
+    (`from_config`)."""
+
+    train: ml_collections.ConfigDict
+    model: ml_collections.ConfigDict
+    sampling: ml_collections.ConfigDict
+    submaps: ml_collections.ConfigDict
+    loss: ml_collections.ConfigDict
+    seed: int
+    max_rays_per_scan: int
+
+    @classmethod
+    def from_config(cls, config: ml_collections.ConfigDict) -> "TrainingSettings":
+        """The groups of a run's config that training reads."""
+        return cls(config.train, config.model, config.sampling, config.submaps, config.loss, config.seed,
+                   config.data.max_rays_per_scan)
+
+    def training_config(self) -> ml_collections.ConfigDict:
+        """A config of these groups and the seed alone, the shape neld_jax.training's functions read (config.train,
+        config.seed, ...): the groups themselves, not copies."""
+        return ml_collections.ConfigDict({"train": self.train, "model": self.model, "sampling": self.sampling,
+                                          "submaps": self.submaps, "loss": self.loss, "seed": self.seed})
+
+
+def refine_keyframes(settings: TrainingSettings, keyframes, start_poses: np.ndarray,
                      pose_steps: train.PoseSteps, context: TrainingContext) -> Refined:
-    """Train from the keyframes' start poses [K, 4, 4] (world) with `pose_steps`, resuming from and checkpointing to
-    context.out_dir/checkpoints, within context.max_seconds (`TrainingContext`)."""
+    """Train from the keyframes' start poses [K, 4, 4] (world) with `pose_steps` (settings: TrainingSettings),
+    resuming from and checkpointing to context.out_dir/checkpoints, within context.max_seconds (`TrainingContext`)."""
     num_scans = keyframes.num_scans
+    config = settings.training_config()
     plan = submaps.plan_from_config(dataclasses.replace(keyframes, poses=start_poses), config,
                                     num_devices=len(jax.devices()))
-    rays_m = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
-                        seed=config.seed)
+    rays_m = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=(settings.max_rays_per_scan or None),
+                        seed=settings.seed)
     mesh = train.make_mesh(submaps.mesh_size(plan, len(jax.devices())))
     rays, frames = train.device_data(submaps.submap_arrays(plan, rays_m, start_poses), mesh)
     plan_of = functools.partial(train.make_trainer, config, num_scans, plan.num_submaps, pose_steps, start_poses,

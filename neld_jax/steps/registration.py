@@ -46,10 +46,11 @@ class RegistrationSettings:
     max_jump_deg: float = 5.0  # ... or turned more than this: not registered
 
     @classmethod
-    def from_config(cls, config) -> "RegistrationSettings":
-        """The run's range crop (config.data) and its map's grid (config.baseline.voxel_size_m); the rest as above."""
-        return cls(voxel_size_m=float(config.baseline.voxel_size_m), min_range_m=float(config.data.min_range_m),
-                   max_range_m=float(config.data.max_range_m))
+    def from_groups(cls, data_cfg, baseline_cfg) -> "RegistrationSettings":
+        """The run's range crop (data_cfg: config.data) and its map's grid (baseline_cfg: config.baseline, its
+        voxel_size_m); the rest as above."""
+        return cls(voxel_size_m=float(baseline_cfg.voxel_size_m), min_range_m=float(data_cfg.min_range_m),
+                   max_range_m=float(data_cfg.max_range_m))
 
 
 class ScanRegistration(NamedTuple):

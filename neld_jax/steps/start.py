@@ -107,32 +107,53 @@ def _plain(report: dict) -> dict:
     return json.loads(json.dumps(report, default=float))
 
 
-def choose_start(config: ml_collections.ConfigDict, keyframes, deadline: float | None = None,
+@dataclasses.dataclass(frozen=True)
+class StartSettings:
+    """What choosing the start reads, each group as the config has it: start (config.start: the policy, the caps
+    from the baseline), train (config.train: the config's own pose steps, fixed_scans), baseline (config.baseline),
+    eval (config.eval: the crispness that judges a crisper start, and the baseline's own judge) and max_minutes
+    (config.max_minutes, which a log line names). Built once at the edge (`from_config`)."""
+
+    start: ml_collections.ConfigDict
+    train: ml_collections.ConfigDict
+    baseline: ml_collections.ConfigDict
+    eval: ml_collections.ConfigDict
+    max_minutes: float
+
+    @classmethod
+    def from_config(cls, config: ml_collections.ConfigDict) -> "StartSettings":
+        """The groups of a run's config that the start reads."""
+        return cls(config.start, config.train, config.baseline, config.eval, config.max_minutes)
+
+
+def choose_start(settings: StartSettings, keyframes, deadline: float | None = None,
                  progress: bool = False, recordings=None) -> Start:
-    """The start of training on `keyframes` (config.start.poses; module docstring). deadline: a time.perf_counter()
-    value after which the baseline's multi-view refinement registers no more scans (neld_jax.training.budget).
-    recordings: neld_jax.data.sessions.Sessions where keyframes joins several recordings (None: one): the baseline's
-    chain restarts at each later one's first keyframe, and the closures that placed it join its pose graph."""
-    how = str(config.start.poses).lower()
+    """The start of training on `keyframes` (settings: StartSettings; settings.start.poses, module docstring).
+    deadline: a time.perf_counter() value after which the baseline's multi-view refinement registers no more scans
+    (neld_jax.training.budget). recordings: neld_jax.data.sessions.Sessions where keyframes joins several recordings
+    (None: one): the baseline's chain restarts at each later one's first keyframe, and the closures that placed it
+    join its pose graph."""
+    how = str(settings.start.poses).lower()
     if how not in CHOICES:
-        raise ConfigError(f"start.poses: unknown value {config.start.poses!r} ({' | '.join(CHOICES)})")
-    fixed_rows(config, keyframes.num_scans)  # train.fixed_scans names keyframes: checked before the baseline runs
+        raise ConfigError(f"start.poses: unknown value {settings.start.poses!r} ({' | '.join(CHOICES)})")
+    fixed_rows(settings.train, keyframes.num_scans)  # train.fixed_scans names keyframes: checked before the baseline
     if how == "input":
-        return Start(keyframes.poses, "input", PoseSteps.from_config(config))
+        return Start(keyframes.poses, "input", PoseSteps.from_train(settings.train))
     t0 = time.perf_counter()
-    result = register_sequence(keyframes.scans, keyframes.poses, BaselineSettings.from_config(config),
+    result = register_sequence(keyframes.scans, keyframes.poses,
+                               BaselineSettings.from_groups(settings.baseline, settings.eval),
                                deadline=deadline, progress=progress, segments=segments_of(recordings))
     seconds = time.perf_counter() - t0
     baseline, report = result.poses, result.report()
     if report.get("stopped_at_deadline"):
         logger.warning("the classical baseline's multi-view refinement stopped after %.2f of its %d rounds, so that "
                        "training keeps its share of max_minutes=%g (max_minutes=0 lifts the limit)",
-                       report["map_rounds_done"], int(config.baseline.map_rounds), config.max_minutes)
+                       report["map_rounds_done"], int(settings.baseline.map_rounds), settings.max_minutes)
     departure_m, path_m = trajectory_departure(keyframes.poses, baseline)
     logger.info("the classical baseline took %.1f s; it departs from the input by up to %.2f m after alignment (%.2f%% "
                 "of the %.0f m path)", seconds, departure_m, 100 * departure_m / max(path_m, 1e-9), path_m)
     methods = {"baseline": baseline} if how == "baseline" else {"initial": keyframes.poses, "baseline": baseline}
-    judged = judge.map_crispness(keyframes, methods, config.eval)
+    judged = judge.map_crispness(keyframes, methods, settings.eval)
     entropy = {name: summary["mean_map_entropy"] for name, summary in judged[0].items()}
     chosen = "baseline"
     if how == "crisper":
@@ -141,8 +162,8 @@ def choose_start(config: ml_collections.ConfigDict, keyframes, deadline: float |
         logger.info("start.poses=crisper: training starts from the %s poses (raw-map entropy: input %s, baseline %s)",
                     chosen, _text(entropy["initial"]), _text(entropy["baseline"]))
     thickness = judged[0]["baseline"].get("mean_plane_thickness_m")
-    pose_steps = (pose_steps_from_baseline(config, thickness) if chosen == "baseline"
-                  else PoseSteps.from_config(config))
+    pose_steps = (pose_steps_from_baseline(settings.start, settings.train, thickness) if chosen == "baseline"
+                  else PoseSteps.from_train(settings.train))
     return Start(baseline if chosen == "baseline" else keyframes.poses, chosen, pose_steps, baseline, seconds, report,
                  departure_m, judged)
 
@@ -161,20 +182,22 @@ def segments_of(recordings) -> Segments:
 THIN_MAP_M = 0.02
 
 
-def pose_steps_from_baseline(config: ml_collections.ConfigDict, thickness_m: float | None) -> PoseSteps:
-    """The pose steps from the baseline's poses: the config's learning rates capped at start.pose_lr_from_baseline,
-    a prior of start.prior_from_baseline, (THIN_MAP_M / thickness)^2 times heavier on the translations when the
-    start's raw map is thinner than THIN_MAP_M (scans precise enough for ICP's translations to beat what the
-    field resolves), and the start's scale kept."""
-    cap = tuple(config.start.pose_lr_from_baseline or ())
+def pose_steps_from_baseline(start_cfg: ml_collections.ConfigDict, train_cfg: ml_collections.ConfigDict,
+                             thickness_m: float | None) -> PoseSteps:
+    """The pose steps from the baseline's poses: the config's learning rates (train_cfg: config.train) capped at
+    start.pose_lr_from_baseline, a prior of start.prior_from_baseline (start_cfg: config.start), (THIN_MAP_M /
+    thickness)^2 times heavier on the translations when the start's raw map is thinner than THIN_MAP_M (scans
+    precise enough for ICP's translations to beat what the field resolves), and the start's scale kept.
+    thickness_m: the start's raw map's mean plane thickness [m] (None: not judged)."""
+    cap = tuple(start_cfg.pose_lr_from_baseline or ())
     if cap and len(cap) != 2:
         raise ConfigError(f"start.pose_lr_from_baseline: expected (init, final) or (), got {cap!r}")
-    own = PoseSteps.from_config(config)
+    own = PoseSteps.from_train(train_cfg)
 
     def capped(pair):
         return tuple(min(float(v), float(c)) for v, c in zip(pair, cap)) if cap else pair
 
-    prior = float(config.start.prior_from_baseline)
+    prior = float(start_cfg.prior_from_baseline)
     thin_m = THIN_MAP_M
     heavier = 1.0
     if prior > 0 and thin_m > 0 and thickness_m is not None and 0 < thickness_m < thin_m:

@@ -159,7 +159,12 @@ class PoseSteps:
 
     @classmethod
     def from_config(cls, config: ml_collections.ConfigDict) -> "PoseSteps":
-        t = config.train
+        return cls.from_train(config.train)
+
+    @classmethod
+    def from_train(cls, train_cfg: ml_collections.ConfigDict) -> "PoseSteps":
+        """The config's own pose steps (train_cfg: config.train, its pose_lr_*), no prior, the scale free."""
+        t = train_cfg
         return cls((float(t.pose_lr_trans_init), float(t.pose_lr_trans_final)),
                    (float(t.pose_lr_rot_init), float(t.pose_lr_rot_final)))
 
@@ -280,12 +285,13 @@ def pose_transform(schedules: Schedules, pose_steps: PoseSteps, fixed: np.ndarra
                        zero_rows(fixed), *scale)
 
 
-def fixed_rows(config: ml_collections.ConfigDict, num_scans: int) -> np.ndarray:
-    """[S] bool: the rows of train.fixed_scans; a ConfigError naming the field for a scan not among the S."""
+def fixed_rows(train_cfg: ml_collections.ConfigDict, num_scans: int) -> np.ndarray:
+    """[S] bool: the rows of train.fixed_scans (train_cfg: config.train); a ConfigError naming the field for a scan
+    not among the S."""
     fixed = np.zeros(num_scans, bool)
-    for s in config.train.fixed_scans:
+    for s in train_cfg.fixed_scans:
         if not -num_scans <= int(s) < num_scans:
-            raise ConfigError(f"train.fixed_scans = {tuple(config.train.fixed_scans)!r}: scan {s} is not one of the "
+            raise ConfigError(f"train.fixed_scans = {tuple(train_cfg.fixed_scans)!r}: scan {s} is not one of the "
                               f"{num_scans} keyframes")
         fixed[int(s)] = True
     return fixed
@@ -293,7 +299,7 @@ def fixed_rows(config: ml_collections.ConfigDict, num_scans: int) -> np.ndarray:
 
 def make_optimizer(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int, pose_steps: PoseSteps,
                    start_poses: np.ndarray | None = None) -> optax.GradientTransformation:
-    pose_tx = pose_transform(schedules, pose_steps, fixed_rows(config, num_scans), start_poses)
+    pose_tx = pose_transform(schedules, pose_steps, fixed_rows(config.train, num_scans), start_poses)
 
     def labels(params):
         return {"fields": jax.tree.map(lambda _: "fields", params["fields"]), "poses": "poses"}

@@ -81,13 +81,14 @@ class RunSteps:
                                      self.loaded.timestamps)
 
 
-def write_outputs(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps) -> RunArtifacts:
-    """poses_initial / poses_optimized (TUM .txt and KITTI .kitti, one line per input scan: the answer,
+def write_outputs(out_dir: str, mapping_cfg: ml_collections.ConfigDict, made: RunSteps) -> RunArtifacts:
+    """Into out_dir: poses_initial / poses_optimized (TUM .txt and KITTI .kitti, one line per input scan: the answer,
     made.every_scan_poses), poses_neld_ba where the start's poses are the answer (neld_jax.judging.answer),
     poses_baseline when the baseline ran, poses_gt where ground truth exists, poses_odometry when the input poses were
     made from the scans (KISS-ICP; the same poses as poses_initial, under the name that says where they came from);
     map_raw.ply (the keyframes registered with the answer's poses), map_raw_initial.ply, map_rendered.ply,
-    map_gt.ply. Returns what it wrote, as arrays (the evaluation measures them without reading the files back);
+    map_gt.ply, on the grid of mapping_cfg (config.mapping: voxel_size_m, and min_opacity named when the rendered
+    map is empty). Returns what it wrote, as arrays (the evaluation measures them without reading the files back);
     trajectories["optimized"]: every input scan's poses [S, 4, 4]."""
     loaded, keyframes, refined, render = made.loaded, made.keyframes, made.refined, made.render
     index = keyframes.loaded_index
@@ -105,7 +106,7 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, made: RunStep
         write_poses(out_dir, f"poses_{name}", stamps, poses)
     if loaded.gt_poses is not None:
         write_poses(out_dir, "poses_gt", stamps, loaded.gt_poses)
-    voxel = float(config.mapping.voxel_size_m)
+    voxel = float(mapping_cfg.voxel_size_m)
     maps = {"optimized": {"raw": write_raw_map(os.path.join(out_dir, "map_raw.ply"), keyframes.scans, refined.poses,
                                                voxel_size=voxel)},
             "initial": {"raw": write_raw_map(os.path.join(out_dir, "map_raw_initial.ply"), keyframes.scans,
@@ -118,14 +119,15 @@ def write_outputs(out_dir: str, config: ml_collections.ConfigDict, made: RunStep
             write_point_cloud(os.path.join(out_dir, "map_rendered.ply"), maps["optimized"]["rendered"])
         else:
             logger.warning("rendered map is empty: no ray reached opacity %.2f (train longer or lower "
-                           "mapping.min_opacity); map_rendered.ply not written", config.mapping.min_opacity)
+                           "mapping.min_opacity); map_rendered.ply not written", mapping_cfg.min_opacity)
     return RunArtifacts({name: Trajectory(stamps, poses) for name, poses in trajectories.items()}, maps,
                         None if loaded.gt_poses is None else Trajectory(stamps, loaded.gt_poses), keyframes.gt_map)
 
 
 def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, written: RunArtifacts,
               budget: TimeBudget, judged: tuple, sections: dict | None = None) -> tuple[dict, list[dict]]:
-    """The verdict of a run (judged: judge_crispness' answer for `made`): metrics.json (run, scans_report,
+    """The verdict of a run (judged: judge_crispness' answer for `made`; config: the run's whole config, whose hash
+    metrics.json records, its mapping.min_opacity and eval.map_icp_m read): metrics.json (run, scans_report,
     crispness; evaluation where ground truth exists; and the caller's `sections`, e.g. a run over several
     recordings' "sessions"), built here and written once, whole (a rerun into the folder inherits nothing of an
     earlier metrics.json), history.json, scans_report.csv / .png, map_topdown.png and the evaluation's plots.
@@ -138,7 +140,8 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, w
                            {"input poses": register_scans(keyframes.scans, keyframes.poses),
                             ("after NeLD-BA" if made.neld_ba is None else f"kept: the {made.start.chosen} poses"):
                             register_scans(keyframes.scans, refined.poses)})
-    summary = {"run": run_record(config, made, T_all, budget, margins, judge.warn_if_not_crispest(crisp, margins)),
+    crispest = judge.warn_if_not_crispest(crisp, margins)
+    summary = {"run": run_record(config_hash(config), made, T_all, budget, margins, crispest),
                "scans_report": report.summarize(rows), "crispness": crisp}
     if written.gt is not None or written.gt_map is not None:
         gt_files = {"gt_poses": None if written.gt is None else os.path.join(out_dir, GT_POSES_FILE),
@@ -152,33 +155,35 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, w
     return summary, rows
 
 
-def judge_crispness(config: ml_collections.ConfigDict, made: RunSteps, budget: TimeBudget,
+def judge_crispness(eval_cfg: ml_collections.ConfigDict, made: RunSteps, budget: TimeBudget,
                     progress: bool = True) -> tuple[dict, dict, dict]:
     """The raw map's crispness under the input's, the baseline's (where it ran) and the refined poses, on the same
     query points (the start's figures reused as they are), and how sure the verdict is over query draws (up to the
-    budget's judging deadline): ({method: summary}, {method: per-keyframe entropy [K]}, crispness_margins' answer)."""
+    budget's judging deadline), with eval_cfg's crispness settings (config.eval): ({method: summary}, {method:
+    per-keyframe entropy [K]}, crispness_margins' answer)."""
     keyframes = made.keyframes
     methods = {"initial": keyframes.poses, "optimized": made.refined.poses}
     if made.start.baseline_poses is not None:
         methods["baseline"] = made.start.baseline_poses
     judged, judged_per_scan = made.start.judged
     crisp, per_scan_entropy = judge.map_crispness(
-        keyframes, {name: poses for name, poses in methods.items() if name not in judged}, config.eval)
+        keyframes, {name: poses for name, poses in methods.items() if name not in judged}, eval_cfg)
     crisp, per_scan_entropy = {**judged, **crisp}, {**judged_per_scan, **per_scan_entropy}
-    margins = judge.crispness_margins(keyframes, methods, config.eval, first_draw=crisp,
+    margins = judge.crispness_margins(keyframes, methods, eval_cfg, first_draw=crisp,
                                       deadline=budget.judging_deadline(), progress=progress)
     for other, margin in margins.items():
         logger.info("%s", judge.describe_margin(other, margin))
     return crisp, per_scan_entropy, margins
 
 
-def run_record(config: ml_collections.ConfigDict, made: RunSteps, T_all: np.ndarray, budget: TimeBudget,
-               margins: dict, crispest: str | None) -> dict:
-    """metrics.json's "run" section: what ran, what the run decided, how long it took, the crispness verdict (T_all:
-    the answer's poses of every input scan [S, 4, 4], made.every_scan_poses())."""
+def run_record(run_hash: str, made: RunSteps, T_all: np.ndarray, budget: TimeBudget, margins: dict,
+               crispest: str | None) -> dict:
+    """metrics.json's "run" section: what ran (run_hash: the config's hash, `config_hash`), what the run decided, how
+    long it took, the crispness verdict (T_all: the answer's poses of every input scan [S, 4, 4],
+    made.every_scan_poses())."""
     result, render = made.refined.result, made.render
     return {
-        "config_hash": config_hash(config),
+        "config_hash": run_hash,
         "num_input_scans": made.loaded.num_scans,
         "num_scans": made.keyframes.num_scans,  # keyframes: the scans trained on
         "submaps": made.refined.plan.num_submaps,

@@ -81,7 +81,8 @@ def variant_poses(variant, scans, point_times, stamps, ranges):
 
     passes, first, convergence, iterations, voxel, one_pass_deskew = variant
     labels = [str(i) for i in range(len(scans))]
-    with kiss_icp_settings(first if passes == 2 else None, convergence, iterations, voxel):
+    two_passes = passes == 2 and point_times is not None
+    with kiss_icp_settings(first if two_passes else None, convergence, iterations, voxel):
         if point_times is None:
             return odometry.kiss_icp_odometry(scans, None, labels, ranges, keep_sweeps=False)[0]
         if passes == 2:

@@ -90,7 +90,7 @@ def test_a_path_that_slid_is_found_and_its_scans_named(loop):
                                         r"\(FPFH features and RANSAC, then ICP, from no guess\) finds between "
                                         r"consecutive scans in the median and its path \d+% of theirs over 9 pairs "
                                         r"\(sweep 0000\d\d to sweep 0000\d\d: 0\.\d\d m against 0\.\d\d m; ") as error:
-        odometry_check.checked_odometry(scans, lambda guesses: (slid,), _labels(10), RANGES, VOXEL_M, "the loop")
+        odometry_check.checked_odometry(scans, lambda guesses, seen: (slid,), _labels(10), RANGES, VOXEL_M, "the loop")
     assert "\n" not in str(error.value)
 
 

@@ -13,21 +13,23 @@ deskewed or not: only the registration sees the full range. Measured on a real 2
 apart): KISS-ICP at 40 m kept 57 % of the path length, at its own 100 m 96 %.
 
 Time. Where the points carry their own times (raw sweeps) and the sweeps their stamps, KISS-ICP runs twice, its own
-deskewing off both times (two_pass_odometry). The first pass registers each sweep as it is, and its pose is taken
-as the sensor's at about the mean instant of the sweep's points; the second registers each sweep deskewed along that
+deskewing off both times (two_pass_odometry). The first pass registers each sweep as it is, and its pose is taken as
+the sensor's at about the mean instant of the sweep's points; the second registers each sweep deskewed along that
 first trajectory into the frame at its stamp, so its poses are at the stamps, which the sequence's ground truth
-refers to (an Ouster stamps a sweep at its start). The sweeps are then deskewed along the finished trajectory
-(deskewed_along). Why not KISS-ICP's own deskewing: it deskews a sweep by the motion its registration of the sweep
-before found, and that registration took the deskewing before it: at speed the two feed each other and the poses
-swing from sweep to sweep. Measured on the synthetic car's 300 raw sweeps (64 beams, 80 m, 11 m/s): heading errors
-of 1.27 deg RMS a sweep and 2.72 m ATE with KISS-ICP's own deskewing, 0.38 deg and 1.80 m not deskewed, 0.22 deg and
-0.15 m in two passes (0.14 m with every sweep deskewed along the true motion); on the 10 m loop at 2.1 m/s 6.0 cm
-against 6.7 cm over the first 40 sweeps, at 6.3 m/s 2.8 cm against 10.3 cm. Earlier, with KISS-ICP's own deskewing,
-deskewing the sweeps again along the finished trajectory took the 300 synthetic loop sweeps' keyframes' raw map under
-the true poses from -3.73 to -4.23 nats (-5.09 with the true motion, -3.74 not deskewed). Sweeps with point times but
-no stamps are registered once, by KISS-ICP with its own deskewing, each pose the sensor's at its sweep's last point;
-where their times were derived from the azimuths (data.sweep_times, at an assumed period) they are put that period
-apart and registered in two passes instead (a common time scale: the poses do not depend on it).
+refers to (an Ouster stamps a sweep at its start). The two go together, each sweep read once, the second a sweep
+behind. One pass does not do: on the car's 200 sweeps 0.350 m ATE not deskewed, 3.69 m with KISS-ICP's own
+deskewing, against 0.146 m in two (benchmarks/frontend_pace.py). The sweeps are then deskewed along the finished
+trajectory (deskewed_along). Why not KISS-ICP's own deskewing: it deskews a sweep by the motion its registration of
+the sweep before found, and that registration took the deskewing before it: at speed the two feed each other and the
+poses swing from sweep to sweep. Measured on the synthetic car's 300 raw sweeps (64 beams, 80 m, 11 m/s): heading
+errors of 1.27 deg RMS a sweep and 2.72 m ATE with KISS-ICP's own deskewing, 0.38 deg and 1.80 m not deskewed, 0.22
+deg and 0.15 m in two passes (0.14 m with every sweep deskewed along the true motion); on the 10 m loop at 2.1 m/s
+6.0 cm against 6.7 cm over the first 40 sweeps, at 6.3 m/s 2.8 cm against 10.3 cm. Earlier, with KISS-ICP's own
+deskewing, deskewing the sweeps again along the finished trajectory took the 300 synthetic loop sweeps' keyframes'
+raw map under the true poses from -3.73 to -4.23 nats (-5.09 with the true motion, -3.74 not deskewed). Sweeps with
+point times but no stamps are registered once, by KISS-ICP with its own deskewing, each pose the sensor's at its
+sweep's last point; where their times were derived from the azimuths (data.sweep_times, at an assumed period) they
+are put that period apart and registered in two passes instead (a common time scale: the poses do not depend on it).
 
 Losing track. A jump or a dropped stretch does not stop KISS-ICP: it registers the next sweep wherever its
 constant-velocity guess and ICP lead, and the map bends. After each registration, the share of the sweep's
@@ -56,6 +58,7 @@ import collections
 import dataclasses
 import logging
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -78,10 +81,11 @@ RANGE_SCANS = 8
 RECENT_FRAMES = 20  # scans whose map points rebuild KISS-ICP's local map when a registration is undone
 FEATURE_RADIUS_VOXELS = 5.0  # FPFH radius, in KISS-ICP voxels (the classical baseline's ratio)
 RECOVERY_ICP_VOXELS = 3.0  # ICP from RANSAC's pose pairs points this far apart first, then as KISS-ICP does
-# The first of two passes (two_pass_odometry) only gives the motion to deskew by: its ICP stops at 1 mm (KISS-ICP's own
-# criterion: 0.1 mm). Measured: 2.4x faster on the 10 m loop's sweeps (13.6 against 33.1 s for 120), the second pass
-# as good (13.96 against 14.12 cm there; 14.5 against 15.7 cm on the car's 300); at 1 cm the car's 16.4 cm.
-FIRST_PASS_CONVERGENCE = 1e-3
+# KISS-ICP's ICP stops when a step moves less than this (its own default: 1e-4), in both passes. Measured
+# (benchmarks/frontend_pace.py, 2 cores at load 4-5): KITTI 00's 101 sweeps 0.071 against 0.091 s a sweep, ATE 0.1335
+# against 0.1333 m; the synthetic car's 200 raw sweeps in two passes 0.18 against 0.26 s, 0.146 against 0.137 m. Its
+# iteration cap at 10 lost the car (50 m); a voxel of 1.5 % of the range 0.182 m there.
+CONVERGENCE = 1e-3
 RANSAC_ITERATIONS = 20_000  # at most, per recovery (the classical baseline's)
 # KISS-ICP's poses of the same sweeps differ in their last bits from run to run (about 5e-15 m), and a second pass over
 # sweeps deskewed along the first turned that into centimetres (3.6-4.2 cm over 80 sweeps of the 10 m loop: a point
@@ -90,55 +94,36 @@ POSE_DECIMALS = 9
 
 
 def kiss_icp_odometry(scans, point_times, labels: list[str], ranges: tuple[float, float], keep_sweeps: bool = True,
-                      progress: bool = False, first_pass: bool = False,
-                      motion_guesses: dict | None = None) -> tuple[np.ndarray, list[np.ndarray] | None, np.ndarray]:
+                      progress: bool = False, motion_guesses: dict | None = None, seen: Callable | None = None
+                      ) -> tuple[np.ndarray, list[np.ndarray] | None, np.ndarray]:
     """KISS-ICP over scans [S] x [N_i, 3] (sensor frame, time order; a list or a LazyScans, read one at a time),
     deskewing where point_times [S] x [N_i] (seconds after each scan's stamp) are given; a scan that lost track is
-    registered again (Tracker.recover). Of the scans it keeps only its poses (and its bounded local map).
+    registered again (Tracker.register). Of the scans it keeps only its poses (and its bounded local map).
     ranges: (min, max) m of its registration. motion_guesses: {scan i: its motion [4, 4] from scan i - 1} that
     replace KISS-ICP's constant-velocity guess for those scans (odometry_check.py: global registration's steps).
-    labels [S] name the scans in the logs and in the error of a track that could not be recovered. first_pass:
-    two_pass_odometry's first pass: each sweep registered as it is (not deskewed; its pose the sensor's at about its
-    points' mean time, which offsets then hold, read with the sweep) and ICP stopping at FIRST_PASS_CONVERGENCE.
+    labels [S] name the scans in the logs and in the error of a track that could not be recovered. seen(i, scan
+    [N_i, 3]) is called with each scan as it is read (odometry_check registers its pairs from that one read).
 
     Returns (poses [S, 4, 4] sensor -> world at each sweep's reference instant (scan 0's at the identity; rounded to
     POSE_DECIMALS), the sweeps [S] x [M_i, 3] deskewed into the frame at that instant and cropped to the ranges (None
     unless keep_sweeps: a caller that deskews again need not hold a second copy of every sweep), offsets [S] seconds
-    from each stamp to that instant: the last point's time (the mean with first_pass), 0 without point times)."""
+    from each stamp to that instant: the last point's time, 0 without point times)."""
     from tqdm.auto import tqdm
 
-    deskew = point_times is not None and not first_pass
-    tracker = Tracker(*ranges, deskew, FIRST_PASS_CONVERGENCE if first_pass else None)
+    tracker = Tracker(*ranges, deskew=point_times is not None)
     poses, sweeps, offsets = [], [], np.zeros(len(scans))
     for i in tqdm(range(len(scans)), disable=not progress, desc="KISS-ICP odometry", unit="scan"):
+        scan = np.asarray(scans[i], np.float64)
+        if seen is not None:
+            seen(i, scan)
         times = np.zeros(0) if point_times is None else np.asarray(point_times[i], np.float64)
         if len(times):  # the instant its pose refers to
-            offsets[i] = float(np.mean(times)) if first_pass else float(np.max(times))
-        if motion_guesses and i in motion_guesses:  # KISS-ICP starts its ICP (and deskews) by last_delta
-            tracker.kiss.last_delta = np.array(motion_guesses[i], np.float64)
-        before = tracker.motion()
-        sweep, source = tracker.kiss.register_frame(np.asarray(scans[i], np.float64), times if deskew else np.zeros(0))
-        overlap = tracker.overlap(source, tracker.kiss.last_pose)
-        if overlap is not None and lost_track(tracker.overlaps, overlap):
-            recovered = tracker.recover(sweep, source, before)
-            recent = recent_overlap(tracker.overlaps)
-            if lost_track(tracker.overlaps, recovered):
-                raise DataError(
-                    f"{labels[i]}: KISS-ICP lost track here: {overlap:.0%} of its points lie within "
-                    f"{tracker.voxel:.2f} m of {labels[i - 1]}'s after registration, against {recent:.0%} from sweep "
-                    f"to sweep before, and {recovered:.0%} registered again from features or from no motion, "
-                    "constant velocity or the last turn (a jump or a dropped stretch); give the sequence its poses "
-                    "(poses.txt, an odometry topic) or split its scans here and run the parts apart")
-            logger.info("%s: KISS-ICP lost track (%.0f%% overlap with %s after registration, against %.0f%% before); "
-                        "registered again: %.0f%%", labels[i], 100 * overlap, labels[i - 1], 100 * recent,
-                        100 * recovered)
-            overlap = recovered
-            before = None
-        tracker.keep(sweep, source, overlap, before)
-        poses.append(np.array(tracker.kiss.last_pose, np.float64))
+            offsets[i] = float(np.max(times))
+        sweep = tracker.register(scan, times, labels, i, (motion_guesses or {}).get(i))
+        poses.append(tracker.pose())
         if keep_sweeps:
             sweeps.append(np.asarray(sweep, np.float64))
-    return np.round(np.stack(poses), POSE_DECIMALS), (sweeps if keep_sweeps else None), offsets
+    return np.stack(poses), (sweeps if keep_sweeps else None), offsets
 
 
 class Tracker:
@@ -147,18 +132,49 @@ class Tracker:
     deviations from its motion model that its adaptive threshold learned, the sweep-to-sweep overlaps, and the
     previous scan's registration points in the world."""
 
-    def __init__(self, min_range_m: float, max_range_m: float, deskew: bool, convergence: float | None = None):
+    def __init__(self, min_range_m: float, max_range_m: float, deskew: bool):
         from kiss_icp.kiss_icp import KissICP
 
         self.config = kiss_icp_config(min_range_m, max_range_m, deskew)
-        if convergence is not None:
-            self.config.registration.convergence_criterion = float(convergence)
         self.voxel = self.config.mapping.voxel_size
         self.kiss = KissICP(self.config)
         self.frames = collections.deque(maxlen=RECENT_FRAMES)  # (map points [M, 3] sensor frame, pose [4, 4])
         self.deviations = []  # [4, 4] each: a kept scan's pose against KISS-ICP's guess of it
         self.overlaps = np.zeros(0)  # [K] each kept scan's overlap with the scan before
         self.previous = None  # the last kept scan's registration points [N, 3] in the world, a cKDTree
+
+    def register(self, scan: np.ndarray, times: np.ndarray, labels: list[str], i: int,
+                 motion_guess: np.ndarray | None = None) -> np.ndarray:
+        """Register scan i [N, 3] (sensor frame; deskewed by its point times [N] where given, else empty) after the
+        scans before it; motion_guess [4, 4] replaces KISS-ICP's constant-velocity guess. A scan that lost track is
+        registered again (recover); a DataError naming it (labels [S]) where that fails. Returns the sweep [M, 3] as
+        KISS-ICP deskewed and cropped it."""
+        if motion_guess is not None:  # KISS-ICP starts its ICP (and deskews) by last_delta
+            self.kiss.last_delta = np.array(motion_guess, np.float64)
+        before = self.motion()
+        sweep, source = self.kiss.register_frame(scan, times)
+        overlap = self.overlap(source, self.kiss.last_pose)
+        if overlap is not None and lost_track(self.overlaps, overlap):
+            recovered = self.recover(sweep, source, before)
+            recent = recent_overlap(self.overlaps)
+            if lost_track(self.overlaps, recovered):
+                raise DataError(
+                    f"{labels[i]}: KISS-ICP lost track here: {overlap:.0%} of its points lie within "
+                    f"{self.voxel:.2f} m of {labels[i - 1]}'s after registration, against {recent:.0%} from sweep "
+                    f"to sweep before, and {recovered:.0%} registered again from features or from no motion, "
+                    "constant velocity or the last turn (a jump or a dropped stretch); give the sequence its poses "
+                    "(poses.txt, an odometry topic) or split its scans here and run the parts apart")
+            logger.info("%s: KISS-ICP lost track (%.0f%% overlap with %s after registration, against %.0f%% before); "
+                        "registered again: %.0f%%", labels[i], 100 * overlap, labels[i - 1], 100 * recent,
+                        100 * recovered)
+            overlap = recovered
+            before = None
+        self.keep(sweep, source, overlap, before)
+        return sweep
+
+    def pose(self) -> np.ndarray:
+        """KISS-ICP's last pose [4, 4], rounded to POSE_DECIMALS."""
+        return np.round(np.array(self.kiss.last_pose, np.float64), POSE_DECIMALS)
 
     def motion(self) -> tuple[np.ndarray, np.ndarray]:
         """(last pose [4, 4], last motion [4, 4]): KISS-ICP's state before a registration."""
@@ -373,14 +389,15 @@ def with_kiss_icp_poses(seq: Sequence, min_range_m: float, max_range_m: float, p
     registration = (kiss_icp_default_ranges()[0], odometry_range_m or registration_range_m(seq))
     two_passes = point_times is not None and stamps is not None and seq.num_scans >= 2
 
-    def odometry(motion_guesses: dict) -> tuple:  # (poses [S, 4, 4], KISS-ICP's deskewed sweeps or None)
+    def odometry(motion_guesses: dict, seen: Callable) -> tuple:  # (poses [S, 4, 4], deskewed sweeps or None)
         if two_passes:
             return two_pass_odometry(seq.scans, point_times, stamps, labels, registration, progress,
-                                     motion_guesses), None
+                                     motion_guesses, seen), None
         return kiss_icp_odometry(seq.scans, point_times, labels, registration, keep_sweeps=point_times is not None,
-                                 progress=progress, motion_guesses=motion_guesses)[:2]
+                                 progress=progress, motion_guesses=motion_guesses, seen=seen)[:2]
 
-    # checked against global registration of sampled pairs of the scans as they came (odometry_check.py)
+    # checked against global registration of sampled pairs of the scans as they came, from the odometry's one read
+    # of each (odometry_check.py)
     poses, sweeps = odometry_check.checked_odometry(seq.scans, odometry, labels, registration,
                                                     VOXELS_PER_RANGE * registration[1], seq.source or seq.name)
     if two_passes:
@@ -418,18 +435,37 @@ def _with_odometry(seq: Sequence, sweeps, poses: np.ndarray, started: float, reg
 
 
 def two_pass_odometry(scans, point_times, stamps: np.ndarray, labels: list[str], ranges: tuple[float, float],
-                      progress: bool = False, motion_guesses: dict | None = None) -> np.ndarray:
+                      progress: bool = False, motion_guesses: dict | None = None, seen: Callable | None = None
+                      ) -> np.ndarray:
     """KISS-ICP twice over raw sweeps scans [S] x [N_i, 3] with point_times [S] x [N_i] (seconds after their stamps
     [S]; lists or LazyScans), its own deskewing off both times -> poses [S, 4, 4] at the stamps, scan 0 at the
     identity (module docstring, "Time"). The first pass registers each sweep as it is, its pose the sensor's at
     about the mean instant of its points; the second registers each sweep deskewed along that trajectory into the
-    frame at its stamp. ranges: (min, max) m of KISS-ICP's registration; motion_guesses (kiss_icp_odometry) serve
-    both passes (a step between sweeps is about the same between their mean instants and between their stamps)."""
-    first, _, mean_offsets = kiss_icp_odometry(scans, point_times, labels, ranges, keep_sweeps=False,
-                                               progress=progress, first_pass=True, motion_guesses=motion_guesses)
-    deskewed = deskewed_sweeps(scans, point_times, stamps, mean_offsets, first, ranges)
-    poses, _, _ = kiss_icp_odometry(deskewed, None, labels, ranges, keep_sweeps=False, progress=progress,
-                                    motion_guesses=motion_guesses)
+    frame at its stamp. Each sweep is read once: the two passes go together, the second a sweep or two behind, as
+    soon as the first's trajectory reaches past the sweep's last point (from there on its interpolation between the
+    two nearest poses no longer changes). ranges: (min, max) m of KISS-ICP's registration; motion_guesses
+    (kiss_icp_odometry) serve both passes (a step between sweeps is about the same between their mean instants and
+    between their stamps); seen as kiss_icp_odometry's."""
+    from tqdm.auto import tqdm
+
+    first, second = Tracker(*ranges, deskew=False), Tracker(*ranges, deskew=False)
+    guesses = motion_guesses or {}
+    instants, trajectory, poses = [], [], []
+    waiting = collections.deque()  # (i, sweep, its point times, its last instant): read, not yet in the second pass
+    for i in tqdm(range(len(scans)), disable=not progress, desc="KISS-ICP odometry, two passes", unit="scan"):
+        scan, times = np.asarray(scans[i], np.float64), np.asarray(point_times[i], np.float64)
+        if seen is not None:
+            seen(i, scan)
+        first.register(scan, np.zeros(0), labels, i, guesses.get(i))
+        instants.append(stamps[i] + (float(np.mean(times)) if len(times) else 0.0))
+        trajectory.append(first.pose())
+        waiting.append((i, scan, times, stamps[i] + (float(np.max(times)) if len(times) else 0.0)))
+        while waiting and (waiting[0][3] < instants[-1] or i == len(scans) - 1):
+            j, sweep, sweep_times, _ = waiting.popleft()
+            deskewed = deskewed_along(np.array(instants), np.stack(trajectory), stamps[j], sweep, sweep_times, *ranges)
+            second.register(deskewed, np.zeros(0), labels, j, guesses.get(j))
+            poses.append(second.pose())
+    poses = np.stack(poses)
     return np.linalg.inv(poses[0]) @ poses
 
 
@@ -464,6 +500,7 @@ def kiss_icp_config(min_range_m: float, max_range_m: float, deskew: bool):
     config.data.min_range, config.data.max_range = float(min_range_m), float(max_range_m)
     config.data.deskew = deskew
     config.mapping.voxel_size = VOXELS_PER_RANGE * float(max_range_m)
+    config.registration.convergence_criterion = CONVERGENCE
     return config
 
 

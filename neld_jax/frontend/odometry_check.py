@@ -94,6 +94,7 @@ class PairRegistration:
     fitness: float  # the share of scan i + 1's grid points within a voxel of scan i's under it
     source: object  # scan i + 1 on KISS-ICP's grid (an Open3D cloud, its sensor frame)
     target: object  # scan i on that grid
+    seconds: float = 0.0  # what it cost
 
 
 @dataclasses.dataclass
@@ -223,16 +224,34 @@ def global_step(source: np.ndarray, target: np.ndarray, voxel_m: float) -> PairR
     RANSAC from no guess on a FEATURE_VOXELS x voxel_m grid, then point-to-plane ICP on the voxel_m grid."""
     from neld_jax.frontend.feature_registration import fpfh_features, point_cloud, ransac_alignment, refined_alignment
 
+    started = time.perf_counter()
     grids = [point_cloud(points).voxel_down_sample(voxel_m) for points in (source, target)]
     feature_voxel = FEATURE_VOXELS * voxel_m
     if min(len(points) for points in (source, target)) < MIN_POINTS:  # nothing to match: no evidence
-        return PairRegistration(np.eye(4), 0.0, *grids)
+        return PairRegistration(np.eye(4), 0.0, *grids, time.perf_counter() - started)
     features = [fpfh_features(point_cloud(points), feature_voxel, FEATURE_RADIUS_VOXELS * feature_voxel)
                 for points in (source, target)]
     guess = ransac_alignment(*features, feature_voxel, RANSAC_ITERATIONS, seed=0)
     distances = tuple(d * voxel_m for d in ICP_DISTANCES_VOXELS)
     transform, fitness = refined_alignment(*grids, guess, distances, 2 * voxel_m)
-    return PairRegistration(transform, fitness, *grids)
+    return PairRegistration(transform, fitness, *grids, time.perf_counter() - started)
+
+
+def registering_pairs(pairs: np.ndarray, ranges: tuple[float, float], voxel_m: float, registered: dict) -> Callable:
+    """seen(i, scan [N_i, 3]) for an odometry that reads the scans once, in order: each of the pairs (scan pairs[k] +
+    1 onto scan pairs[k]) not yet in registered is registered into it (global_step, within ranges (min, max) m on
+    voxel_m) as soon as its second scan is seen, so that check_steps reads no scan again. Holds one scan at most."""
+    wanted = {int(i) for i in pairs} - set(registered)
+    held = {}  # {i: scan i within the ranges} while pair i waits for scan i + 1
+
+    def seen(i: int, scan: np.ndarray) -> None:
+        cropped = crop_range(np.asarray(scan, np.float64), *ranges) if i in wanted or i - 1 in wanted else None
+        if i - 1 in held:
+            registered[i - 1] = global_step(cropped, held.pop(i - 1), voxel_m)
+        if i in wanted:
+            held[i] = cropped
+
+    return seen
 
 
 def check_steps(scans, poses: np.ndarray, ranges: tuple[float, float], voxel_m: float,
@@ -246,6 +265,7 @@ def check_steps(scans, poses: np.ndarray, ranges: tuple[float, float], voxel_m: 
 
     pairs = sampled_pairs(len(poses)) if pairs is None else np.asarray(pairs, np.int64)
     registered = {} if registered is None else registered
+    earlier = {id(pair) for pair in registered.values()}  # registered before this call (as the odometry read them)
     started = time.perf_counter()
     for i in pairs:
         if int(i) not in registered:
@@ -258,7 +278,8 @@ def check_steps(scans, poses: np.ndarray, ranges: tuple[float, float], voxel_m: 
                      odometry_steps=np.linalg.norm(increments[:, :3, 3], axis=1),
                      odometry_fitness=np.array([fitness(pair.source, pair.target, increment, voxel_m)
                                                 for pair, increment in zip(found, increments)], np.float64),
-                     voxel_m=float(voxel_m), seconds=time.perf_counter() - started)
+                     voxel_m=float(voxel_m),
+                     seconds=time.perf_counter() - started + sum(pair.seconds for pair in found if id(pair) in earlier))
 
 
 def motion_guesses(check: StepCheck) -> dict[int, np.ndarray]:
@@ -267,14 +288,16 @@ def motion_guesses(check: StepCheck) -> dict[int, np.ndarray]:
     return {int(i) + 1: step for i, step, ok in zip(check.pairs, check.global_steps, check.converged) if ok}
 
 
-def checked_odometry(scans, odometry: Callable[[dict], tuple], labels: list[str], ranges: tuple[float, float],
-                     voxel_m: float, where: str) -> tuple:
-    """odometry({}) (a tuple whose first item is the poses [S, 4, 4] of the scans [S] x [N_i, 3]), checked by
-    check_steps (ranges (min, max) m and voxel_m: KISS-ICP's). Where its steps disagree with the global ones, it is
-    run again as odometry(motion_guesses) and checked on the pairs between the first ones; that result is returned
-    if it agrees, else a DataError names the recording (where) and the scans (labels [S]). Logs the evidence."""
+def checked_odometry(scans, odometry: Callable[[dict, Callable], tuple], labels: list[str],
+                     ranges: tuple[float, float], voxel_m: float, where: str) -> tuple:
+    """odometry({}, seen) (a tuple whose first item is the poses [S, 4, 4] of the scans [S] x [N_i, 3]; it calls
+    seen(i, scan i) as it reads each scan, and the pairs are registered from that read: registering_pairs), checked
+    by check_steps (ranges (min, max) m and voxel_m: KISS-ICP's). Where its steps disagree with the global ones, it
+    is run again as odometry(motion_guesses, seen) and checked on the pairs between the first ones; that result is
+    returned if it agrees, else a DataError names the recording (where) and the scans (labels [S]). Logs the
+    evidence."""
     registered = {}
-    result = odometry({})
+    result = odometry({}, registering_pairs(sampled_pairs(len(scans)), ranges, voxel_m, registered))
     check = check_steps(scans, result[0], ranges, voxel_m, registered=registered)
     if check.agrees:
         log = logger.info if check.median_ratio is not None and check.within_tolerance else logger.warning
@@ -283,9 +306,9 @@ def checked_odometry(scans, odometry: Callable[[dict], tuple], labels: list[str]
     logger.warning("%s: KISS-ICP's steps disagree with global registration from no guess (%s; %s): running it "
                    "again from the global steps of %d pairs", where, check.summary(), check.furthest(labels),
                    len(motion_guesses(check)))
-    repaired = odometry(motion_guesses(check))
-    again = check_steps(scans, repaired[0], ranges, voxel_m, sampled_pairs(len(repaired[0]), between=True),
-                        registered)
+    between = sampled_pairs(len(scans), between=True)
+    repaired = odometry(motion_guesses(check), registering_pairs(between, ranges, voxel_m, registered))
+    again = check_steps(scans, repaired[0], ranges, voxel_m, between, registered)
     if again.agrees:
         log = logger.info if again.median_ratio is not None else logger.warning
         log("%s: KISS-ICP run again from the global steps; its steps against global registration: %s", where,

@@ -16,12 +16,12 @@ import dataclasses
 import functools
 import logging
 
-import jax
 import ml_collections
 
 from neld_jax.judging import answer
 from neld_jax.steps import mapping, refine, registration, start
 from neld_jax.steps.session_alignment import load_sessions
+from neld_jax.training import stage_plan
 from neld_jax.training.budget import TimeBudget
 from neld_jax.writing import output_folder, outputs, session_outputs
 from neld_jax.writing.viewer import RunViewer
@@ -49,8 +49,8 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
 
     # 1. Load every input scan and the keyframes trained on; several recordings joined (steps.session_alignment).
     loaded, keyframes, recordings = load_sessions(config.data)
-    budget = budget.reserving_registration(loaded.num_scans - keyframes.num_scans)  # step 5's share of the clock
-    logger.info("budget %s on jax's %s backend: %s", config.budget, jax.default_backend(), budget.describe())
+    # ... and every step's seconds planned from the recording's size, with one warning where it cannot fit.
+    budget = stage_plan.planned(stage_plan.PlanSettings.from_config(config), loaded, keyframes, budget)
     viewer.log_input(loaded, keyframes)
 
     # 2. Choose the start and its pose steps: the input's or the baseline's poses (steps.start); a resume keeps it.

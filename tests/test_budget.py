@@ -1,6 +1,10 @@
 """The run's one clock (neld_jax.training.budget.TimeBudget): training's share and floor, the baseline's deadline, the
-map's seconds, the crispness draws' deadline, no limit at 0 minutes, and a resumed run's seconds."""
+map's seconds, the crispness draws' deadline, no limit at 0 minutes, a resumed run's seconds; and the plan that sizes
+every step before it starts (neld_jax.training.stage_plan)."""
 
+import time
+
+import numpy as np
 import pytest
 
 from neld_jax.config import defaults, with_budget
@@ -59,3 +63,72 @@ def test_a_resumed_runs_seconds_count_its_earlier_processes_and_leave_its_limits
     assert _at(resumed, 20.0, monkeypatch).run_seconds() == pytest.approx(320.0)
     assert _at(fresh, 20.0, monkeypatch).run_seconds() == pytest.approx(20.0)
     assert resumed.training_seconds() == fresh.training_seconds() and resumed.render_seconds() == fresh.render_seconds()
+
+
+def test_a_small_recording_fits_and_every_stage_gets_its_floor():
+    from neld_jax.training.stage_plan import STAGES, Recording, Work, plan_stages
+
+    work = Work(baseline=True, map_rounds=2, render_s=60.0)
+    plan = plan_stages(Recording(num_scans=24, num_keyframes=24, points_per_scan=16_000, loaded_s=5.0), 570.0, work)
+    assert plan.fits and plan.warning() is None and set(plan.seconds) == set(STAGES)
+    assert all(plan.seconds[stage] >= plan.needed[stage] for stage in STAGES)  # every stage at least its floor
+    assert plan.needed["training"] == work.min_steps * plan.rates.step_s and plan.needed["load"] == 5.0
+    assert sum(plan.seconds.values()) == pytest.approx(570.0)  # training gets what is left
+    assert plan.seconds["baseline"] > plan.needed["baseline"]  # room for every refinement round
+    assert plan.record()["fits"] and plan.record()["planned_s"]["map"] == 60.0
+
+
+def test_a_recording_too_long_for_its_budget_is_told_up_front_with_the_budget_it_needs(caplog):
+    import logging
+    import types
+
+    from neld_jax.training import stage_plan
+
+    # 1,000 raw 64 x 1024 sweeps on the cpu budget: the odometry alone took 438 s of the 570 (benchmarks/RESULTS.md)
+    plan = stage_plan.plan_stages(stage_plan.Recording(1000, 34, 40_000, odometry=True), 570.0,
+                                  stage_plan.Work(baseline=True, render_s=60.0))
+    assert not plan.fits and plan.seconds == {} and plan.needed_minutes > 2 * 9.5
+    assert plan.needed["load"] == pytest.approx(1000 * 0.44 * 40_000 / 65_536)  # forecast from the odometry's rate
+    assert stage_plan.plan_stages(plan.recording, 60.0 * plan.needed_minutes, plan.work).fits  # what it says suffices
+    # The run logs it once, after loading: the plan and one warning that names the max_minutes it needs.
+    scans = types.SimpleNamespace(num_scans=1000, poses_from="kiss_icp")
+    keyframes = types.SimpleNamespace(num_scans=34, scans=[np.zeros((40_000, 3))] * 34)
+    settings = stage_plan.PlanSettings(stage_plan.Work(baseline=True), "cpu", "cpu")
+    with caplog.at_level(logging.INFO, logger=stage_plan.__name__):
+        budget = stage_plan.planned(settings, scans, keyframes, TimeBudget(570.0, 60.0, time.perf_counter() - 438.0))
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "too long for max_minutes=9.5" in warnings[0]
+    assert f"set max_minutes={budget.plan.needed_minutes:g} or more" in warnings[0]
+    assert any("odometry 0.44 s a sweep (measured)" in r.getMessage() for r in caplog.records)
+    assert budget.judging_s == JUDGING_S and budget.registration_s == 0.3 * 570.0  # the fixed reserves, as before
+
+
+def test_a_recording_that_fits_hands_the_clock_its_planned_reserves():
+    import types
+
+    from neld_jax.training import stage_plan
+
+    scans = types.SimpleNamespace(num_scans=1000, poses_from="")
+    keyframes = types.SimpleNamespace(num_scans=100, scans=[np.zeros((10_000, 3))] * 100)
+    settings = stage_plan.PlanSettings(stage_plan.Work(), "cpu", "cpu")
+    budget = stage_plan.planned(settings, scans, keyframes, TimeBudget(3600.0, 60.0, time.perf_counter()))
+    assert budget.plan.fits and budget.registration_s == 900 * 0.5  # every scan's registration, past the 30 % cap
+    assert budget.judging_s == budget.plan.seconds["judging"] >= JUDGING_S
+
+
+def test_an_unlimited_budget_plans_no_limits(caplog):
+    import logging
+    import types
+
+    from neld_jax.training import stage_plan
+
+    plan = stage_plan.plan_stages(stage_plan.Recording(1000, 34, 40_000, odometry=True), 0.0)
+    assert plan.fits and plan.seconds == {} and plan.warning() is None and plan.needed_s > 0
+    scans = types.SimpleNamespace(num_scans=1000, poses_from="kiss_icp")
+    keyframes = types.SimpleNamespace(num_scans=34, scans=[np.zeros((40_000, 3))] * 34)
+    with caplog.at_level(logging.INFO, logger=stage_plan.__name__):
+        budget = stage_plan.planned(stage_plan.PlanSettings(stage_plan.Work(), "paper", "cpu"), scans, keyframes,
+                                    TimeBudget(0.0, 0.0, time.perf_counter()))
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert budget.registration_s == 0.0 and budget.judging_s == JUDGING_S and budget.baseline_deadline() is None
+    assert any("with no time limit" in r.getMessage() for r in caplog.records)

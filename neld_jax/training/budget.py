@@ -7,7 +7,8 @@ most MAX_REGISTRATION_SHARE of the budget) and JUDGING_S for the crispness margi
 ends where that reserve begins, but always gets at least MIN_SHARE of its share of the budget, however long the
 baseline took before it; the baseline's multi-view refinement stops where only that floor would be left. A step
 that overran its share is paid back by the next (the render gets its seconds less the overrun, at least MIN_SHARE
-of them). A budget of 0 minutes has no limits.
+of them). A budget of 0 minutes has no limits. Where the run's plan (neld_jax.training.stage_plan) finds that the
+recording fits, the registration and the judging keep back what it planned for them instead of the fixed reserves.
 """
 
 from __future__ import annotations
@@ -33,13 +34,16 @@ class TimeBudget:
     """total_s: the whole run's seconds (0: no limit); render_s: the rendered map's share (0: no limit);
     started: time.perf_counter() at the run's start; registration_s: kept back for registering every other input
     scan (reserving_registration); earlier_s: the seconds earlier processes of a resumed run took, counted in
-    run_seconds alone (each process gets the whole budget, as training gets its share afresh on resume)."""
+    run_seconds alone (each process gets the whole budget, as training gets its share afresh on resume); judging_s:
+    kept back for the crispness draws and the last files; plan: the run's stage_plan.Plan (None: not planned)."""
 
     total_s: float
     render_s: float
     started: float
     registration_s: float = 0.0
     earlier_s: float = 0.0
+    judging_s: float = JUDGING_S
+    plan: object = dataclasses.field(default=None, compare=False)
 
     @classmethod
     def start(cls, config) -> "TimeBudget":
@@ -60,7 +64,7 @@ class TimeBudget:
     def training_share_s(self) -> float:
         """The seconds up to the end of training: the budget less the reserve for the map, the registration of every
         other scan and the judging."""
-        return max(self.total_s - max(self.render_s, 0.0) - self.registration_s - JUDGING_S, 0.0)
+        return max(self.total_s - max(self.render_s, 0.0) - self.registration_s - self.judging_s, 0.0)
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.started
@@ -96,7 +100,7 @@ class TimeBudget:
         reserve begins, but at least MIN_SHARE of the registration's reserve from now (None: no limit)."""
         if not self.limited:
             return None
-        return max(self.started + self.total_s - JUDGING_S, time.perf_counter() + MIN_SHARE * self.registration_s)
+        return max(self.started + self.total_s - self.judging_s, time.perf_counter() + MIN_SHARE * self.registration_s)
 
     def judging_deadline(self) -> float | None:
         """A time.perf_counter() value by which the query draws end, WRITING_S before the budget's end (None: no
@@ -108,5 +112,5 @@ class TimeBudget:
             return "no time limit (max_minutes=0)"
         return (f"{self.total_s / 60:g} minutes: training until {self.training_share_s / 60:.1f} min, then "
                 f"{self.render_s:g} s for the rendered map, {self.registration_s:.0f} s for registering every other "
-                f"scan and {JUDGING_S:g} s for the crispness draws and the last files")
+                f"scan and {self.judging_s:.0f} s for the crispness draws and the last files")
 

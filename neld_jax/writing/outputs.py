@@ -192,6 +192,7 @@ def run_record(run_hash: str, made: RunSteps, T_all: np.ndarray, budget: TimeBud
         "stopped_early": bool(result.stopped_early),
         "train_seconds": round(result.train_seconds, 2),
         "total_seconds": round(budget.run_seconds(), 2),  # every process of a resumed run, as train_seconds
+        "plan": None if budget.plan is None else budget.plan.record(),  # each step's seconds, planned at the start
         "device": str(jax.devices()[0]),
         "map_rays": None if render is None else int(render.rays.num_rays),
         "map_rays_rendered": None if render is None else render.num_rendered,

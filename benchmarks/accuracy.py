@@ -33,8 +33,12 @@ BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper)
 OUTPUT_ROOT = flags.DEFINE_string("output_root", "outputs/accuracy", "One output_dir per sequence below this.")
 STEPS = flags.DEFINE_integer("steps", 0, "Override train.steps (0: the budget's).")
 OVERRIDES = harness.overrides_flag("train.pose_lr_rot_init=1e-4")
-START = flags.DEFINE_enum("start", "input", ["input", "baseline", "crisper"],
-                          "start.poses: start NeLD-BA from the drifted odometry, the baseline's poses or the crisper.")
+START = flags.DEFINE_enum(
+    "start",
+    "input",
+    ["input", "baseline", "crisper"],
+    "start.poses: start NeLD-BA from the drifted odometry, the baseline's poses or the crisper.",
+)
 
 
 def _summary(evaluation: dict, method: str) -> dict:
@@ -79,16 +83,23 @@ def main(argv):
             run_baseline(config, progress=False)
             t_base = time.perf_counter() - t0
         evaluation = evaluate_run(config.output_dir)
-        entries.append({
-            "sequence": name, "budget": BUDGET.value, "start": START.value, "synthetic": SEQUENCES[name],
-            "started_from": summary["run"]["started_from"], "steps": summary["run"]["steps"],
-            "overrides": OVERRIDES.value,
-            "initial": _summary(evaluation, "initial"),
-            "baseline": dict(_summary(evaluation, "baseline"), wall_s=round(t_base, 1)),
-            "neld_ba": dict(_summary(evaluation, "optimized"), wall_s=round(t_neld, 1),
-                            train_s=summary["run"]["train_seconds"]),
-            "device": summary["run"]["device"],
-        })
+        entries.append(
+            {
+                "sequence": name,
+                "budget": BUDGET.value,
+                "start": START.value,
+                "synthetic": SEQUENCES[name],
+                "started_from": summary["run"]["started_from"],
+                "steps": summary["run"]["steps"],
+                "overrides": OVERRIDES.value,
+                "initial": _summary(evaluation, "initial"),
+                "baseline": dict(_summary(evaluation, "baseline"), wall_s=round(t_base, 1)),
+                "neld_ba": dict(
+                    _summary(evaluation, "optimized"), wall_s=round(t_neld, 1), train_s=summary["run"]["train_seconds"]
+                ),
+                "device": summary["run"]["device"],
+            }
+        )
         print(json.dumps(entries[-1]), flush=True)
         harness.write(harness.OUT.value, entries)
 

@@ -63,8 +63,9 @@ def _onto(T: np.ndarray, T_reference: np.ndarray) -> np.ndarray:
     return T[:, :3, 3] @ A[:3, :3].T + A[:3, 3]
 
 
-def ate_change_terms(T_baseline: np.ndarray, T_optimized: np.ndarray, T_gt: np.ndarray,
-                     T_input: np.ndarray | None = None) -> dict:
+def ate_change_terms(
+    T_baseline: np.ndarray, T_optimized: np.ndarray, T_gt: np.ndarray, T_input: np.ndarray | None = None
+) -> dict:
     """The terms of the ATE change from T_baseline to T_optimized against T_gt (all [N, 4, 4], matched by
     index), in millimetres (mm^2 for the squared terms); with T_input (the poses both started from), also how
     the move correlates with the input's departure from T_gt. See the module docstring."""
@@ -97,7 +98,8 @@ def ate_change_terms(T_baseline: np.ndarray, T_optimized: np.ndarray, T_gt: np.n
     if T_input is not None:
         departure = _onto(T_input, T_baseline) @ to_gt[:3, :3].T + to_gt[:3, 3] - T_gt[:, :3, 3]
         terms["toward_input_correlation"], terms["toward_input_rotation_sd"], terms["toward_input_rotation_p"] = (
-            rotation_null(d, departure))
+            rotation_null(d, departure)
+        )
     return terms
 
 
@@ -117,7 +119,11 @@ def main(argv):
 
 
 if __name__ == "__main__":  # the flag defined here: tests import the module's functions, more than once
-    RUNS = flags.DEFINE_list("runs", None, "Run output folders, comma-separated (poses_gt.txt, poses_baseline.txt, "
-                             "poses_optimized.txt in each; poses_initial.txt where present).")
+    RUNS = flags.DEFINE_list(
+        "runs",
+        None,
+        "Run output folders, comma-separated (poses_gt.txt, poses_baseline.txt, "
+        "poses_optimized.txt in each; poses_initial.txt where present).",
+    )
     flags.mark_flag_as_required("runs")
     app.run(main)

@@ -35,10 +35,16 @@ JUDGE_EVERY = flags.DEFINE_integer("judge_every", 2, "Measure the maps' entropy 
 DRIFT_TRANS = flags.DEFINE_float("drift_trans_m", 0.05, "Injected drift per keyframe: translation sigma [m].")
 DRIFT_ROT = flags.DEFINE_float("drift_rot_deg", 0.5, "Injected drift per keyframe: rotation sigma [deg].")
 SEED = flags.DEFINE_integer("seed", 0, "Seed of the injected drift.")
-KEEP_TILT = flags.DEFINE_bool("keep_tilt", False, "Drift in position and heading only, as an IMU-aided odometry "
-                              "drifts (benchmarks/real_data.py --keep_tilt).")
-REGRAPH = flags.DEFINE_bool("regraph", False, "After the rounds, the pose graph again from each answer and two "
-                              "rounds after it (module docstring).")
+KEEP_TILT = flags.DEFINE_bool(
+    "keep_tilt",
+    False,
+    "Drift in position and heading only, as an IMU-aided odometry drifts (benchmarks/real_data.py --keep_tilt).",
+)
+REGRAPH = flags.DEFINE_bool(
+    "regraph",
+    False,
+    "After the rounds, the pose graph again from each answer and two rounds after it (module docstring).",
+)
 harness.default_out("outputs/baseline_rounds.json")
 flags.mark_flag_as_required("root")
 
@@ -59,8 +65,9 @@ def _rounds(seq, config) -> tuple[list, float, dict]:
 
     history = []
     t0 = time.perf_counter()
-    result = register_sequence(seq.scans, seq.poses, BaselineSettings.from_config(config),
-                               on_round=lambda r, poses: history.append(poses))
+    result = register_sequence(
+        seq.scans, seq.poses, BaselineSettings.from_config(config), on_round=lambda r, poses: history.append(poses)
+    )
     return history, time.perf_counter() - t0, {"tilt": result.tilt, "refined_from": result.refined_from}
 
 
@@ -119,16 +126,24 @@ def main(argv):
         for k, stage in enumerate(("graph", "graph_rounds")):
             poses = {name: result[k] for name, result in again.items()}
             summary, _ = judge.map_crispness(seq, poses, config.eval)
-            regraph[stage] = {"apart_cm": round(100 * ate(poses["drift"], poses["recorded"], align="se3")[
-                "translation_rmse_m"], 3), **{f"entropy_{name}": round(summary[name]["mean_map_entropy"], 4)
-                                                for name in summary}}
+            regraph[stage] = {
+                "apart_cm": round(100 * ate(poses["drift"], poses["recorded"], align="se3")["translation_rmse_m"], 3),
+                **{f"entropy_{name}": round(summary[name]["mean_map_entropy"], 4) for name in summary},
+            }
         print(json.dumps({"regraph": regraph}), flush=True)
-    harness.write(harness.OUT.value, {
-        "sequence": os.path.basename(os.path.normpath(ROOT.value)), "keep_tilt": KEEP_TILT.value,
-        "drift_per_keyframe": {"trans_m": DRIFT_TRANS.value, "rot_deg": DRIFT_ROT.value, "seed": SEED.value},
-        "baseline_s": {"recorded": round(recorded_s, 1), "drift": round(drifted_s, 1)},
-        "decided": {"recorded": recorded_decided, "drift": drifted_decided},
-        "date": time.strftime("%Y-%m-%d"), "rounds": rows, **({"regraph": regraph} if regraph else {})})
+    harness.write(
+        harness.OUT.value,
+        {
+            "sequence": os.path.basename(os.path.normpath(ROOT.value)),
+            "keep_tilt": KEEP_TILT.value,
+            "drift_per_keyframe": {"trans_m": DRIFT_TRANS.value, "rot_deg": DRIFT_ROT.value, "seed": SEED.value},
+            "baseline_s": {"recorded": round(recorded_s, 1), "drift": round(drifted_s, 1)},
+            "decided": {"recorded": recorded_decided, "drift": drifted_decided},
+            "date": time.strftime("%Y-%m-%d"),
+            "rounds": rows,
+            **({"regraph": regraph} if regraph else {}),
+        },
+    )
 
 
 if __name__ == "__main__":

@@ -32,9 +32,13 @@ RUN_DIR = flags.DEFINE_string("run_dir", None, "Output folder of a bin/train.py 
 ROOT = flags.DEFINE_string("root", "", "The sequence's folder, if it is not the run's data.root any more.")
 DRAWS = flags.DEFINE_integer("draws", 5, "Draws of the query points (seeds 0 .. draws-1).")
 QUERIES = flags.DEFINE_integer("queries", 0, "Query points a draw (0: the run's eval.crispness_queries).")
-MEAN_OF = flags.DEFINE_list("mean_of", [], "Other run folders from the same start (other training seeds): the answer "
-                       "judged is the mean, on se(3), of this run's and their corrections from this run's initial "
-                       "poses (`mean_of_corrections`).")
+MEAN_OF = flags.DEFINE_list(
+    "mean_of",
+    [],
+    "Other run folders from the same start (other training seeds): the answer "
+    "judged is the mean, on se(3), of this run's and their corrections from this run's initial "
+    "poses (`mean_of_corrections`).",
+)
 flags.mark_flag_as_required("run_dir")
 
 METHODS = ("initial", "baseline", "optimized")
@@ -61,8 +65,11 @@ def _run_poses(folder: str, loaded_index) -> dict:
     one line naming the folder when it holds no answer."""
     from neld_jax.data.poses import read_kitti
 
-    poses = {method: read_kitti(path)[loaded_index] for method in METHODS
-             if os.path.exists(path := os.path.join(folder, f"poses_{method}.kitti"))}
+    poses = {
+        method: read_kitti(path)[loaded_index]
+        for method in METHODS
+        if os.path.exists(path := os.path.join(folder, f"poses_{method}.kitti"))
+    }
     if "optimized" not in poses:
         raise SystemExit(f"{folder}: no poses_optimized.kitti (is it a bin/train.py run's folder?)")
     return poses
@@ -74,12 +81,15 @@ def _check_same_start(folder: str, initial, own_initial, tol: float = 1e-6) -> N
     import numpy as np
 
     if initial is None:
-        raise SystemExit(f"{folder}: no poses_initial.kitti, so --mean_of cannot check it started where "
-                         f"{RUN_DIR.value} did")
+        raise SystemExit(
+            f"{folder}: no poses_initial.kitti, so --mean_of cannot check it started where {RUN_DIR.value} did"
+        )
     gap = float(np.abs(initial - own_initial).max())
     if gap > tol:
-        raise SystemExit(f"{folder}: its poses_initial.kitti differ from {RUN_DIR.value}'s by up to {gap:.3g} "
-                         "(matrix elements; metres in the translations): --mean_of averages runs from one start")
+        raise SystemExit(
+            f"{folder}: its poses_initial.kitti differ from {RUN_DIR.value}'s by up to {gap:.3g} "
+            "(matrix elements; metres in the translations): --mean_of averages runs from one start"
+        )
 
 
 def main(argv):
@@ -109,10 +119,15 @@ def main(argv):
             answers.append(poses["optimized"])
         methods["optimized"] = mean_of_corrections(methods["initial"], np.stack(answers))
     margins = judge.crispness_margins(seq, methods, config.eval)
-    result = {"run_dir": RUN_DIR.value, "sequence": config.data.root, "draws": DRAWS.value,
-              "queries": int(config.eval.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES)),
-              "radius_m": float(config.eval.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)),
-              "mean_of": MEAN_OF.value, "optimized_minus": margins}
+    result = {
+        "run_dir": RUN_DIR.value,
+        "sequence": config.data.root,
+        "draws": DRAWS.value,
+        "queries": int(config.eval.get("crispness_queries", crispness.DEFAULT_MAX_QUERIES)),
+        "radius_m": float(config.eval.get("crispness_radius_m", crispness.DEFAULT_RADIUS_M)),
+        "mean_of": MEAN_OF.value,
+        "optimized_minus": margins,
+    }
     for other, margin in margins.items():
         print(judge.describe_margin(other, margin) + ": " + " ".join(f"{d:+.5f}" for d in margin["per_draw"]))
     harness.write(harness.OUT.value, result)

@@ -32,8 +32,11 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ROOT = flags.DEFINE_string("root", None, "A sequence in the lio_keyframes layout (Scans/, odom_poses.txt, times.txt).")
 POSE_FILE = flags.DEFINE_string("pose_file", "", "KITTI poses to start from (absolute, or relative to --root).")
 EVERY = flags.DEFINE_integer("every", 250, "Measure the map's crispness every this many steps.")
-AS_BASELINE = flags.DEFINE_bool("as_baseline", False, "Train with the pose steps of a run that starts from the "
-                                "classical baseline's poses (module docstring).")
+AS_BASELINE = flags.DEFINE_bool(
+    "as_baseline",
+    False,
+    "Train with the pose steps of a run that starts from the classical baseline's poses (module docstring).",
+)
 harness.default_out("outputs/entropy_trajectory.json")
 OVERRIDES = harness.overrides_flag("train.pose_lr_trans_init=5e-6")
 
@@ -69,12 +72,14 @@ def main(argv):
     # their place
     devices = len(jax.devices())
     plan = submaps.plan_from_config(keyframes, config, num_devices=devices)
-    rays_m = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
-                        seed=config.seed)
+    rays_m = build_rays(
+        keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None), seed=config.seed
+    )
     mesh = train.make_mesh(submaps.mesh_size(plan, devices))
     rays, frames = train.device_data(submaps.submap_arrays(plan, rays_m, start_poses), mesh)
-    plan_of = functools.partial(train.make_trainer, config, num_scans, plan.num_submaps, pose_steps, start_poses,
-                                mesh=mesh)
+    plan_of = functools.partial(
+        train.make_trainer, config, num_scans, plan.num_submaps, pose_steps, start_poses, mesh=mesh
+    )
     state = train.init_state(config, plan_of(int(config.train.steps)), num_scans, plan.num_submaps)
     records = []
 
@@ -83,23 +88,42 @@ def main(argv):
         T_world, _ = anchored_on_first(in_field, start_poses[0])  # keyframe 0 stays
         summary, _ = judge.map_crispness(keyframes, {"poses": T_world}, config.eval)
         last = history[-1] if history else {}
-        records.append({"step": step, "mean_map_entropy": summary["poses"]["mean_map_entropy"],
-                        "mean_plane_thickness_m": summary["poses"]["mean_plane_thickness_m"],
-                        "range_err_m": last.get("range_err_m"),
-                        "range_residual_median_m": last.get("range_residual_median_m"),
-                        "pose_trans_mean_m": last.get("pose_trans_mean_m", 0.0),
-                        "pose_rot_mean_deg": last.get("pose_rot_mean_deg", 0.0)})
+        records.append(
+            {
+                "step": step,
+                "mean_map_entropy": summary["poses"]["mean_map_entropy"],
+                "mean_plane_thickness_m": summary["poses"]["mean_plane_thickness_m"],
+                "range_err_m": last.get("range_err_m"),
+                "range_residual_median_m": last.get("range_residual_median_m"),
+                "pose_trans_mean_m": last.get("pose_trans_mean_m", 0.0),
+                "pose_rot_mean_deg": last.get("pose_rot_mean_deg", 0.0),
+            }
+        )
         print(json.dumps(records[-1]), flush=True)
-        harness.write(harness.OUT.value, {
-            "root": ROOT.value, "pose_file": POSE_FILE.value, "overrides": OVERRIDES.value,
-            "as_baseline": AS_BASELINE.value, "pose_steps": pose_steps.to_dict(), "scans": num_scans,
-            "submaps": plan.num_submaps, "records": records})
+        harness.write(
+            harness.OUT.value,
+            {
+                "root": ROOT.value,
+                "pose_file": POSE_FILE.value,
+                "overrides": OVERRIDES.value,
+                "as_baseline": AS_BASELINE.value,
+                "pose_steps": pose_steps.to_dict(),
+                "scans": num_scans,
+                "submaps": plan.num_submaps,
+                "records": records,
+            },
+        )
 
     t0 = time.perf_counter()
     measure(0, np.zeros((num_scans, 6)), [])
-    train.fit(config, plan_of, train.TrainingData(rays, frames, plan.ref_scale), state,
-              checkpoint_fn=lambda state, history, seconds: measure(int(state.step), state.params["poses"], history),
-              settings=train.FitSettings(progress=False))
+    train.fit(
+        config,
+        plan_of,
+        train.TrainingData(rays, frames, plan.ref_scale),
+        state,
+        checkpoint_fn=lambda state, history, seconds: measure(int(state.step), state.params["poses"], history),
+        settings=train.FitSettings(progress=False),
+    )
     print(f"done in {time.perf_counter() - t0:.0f} s", flush=True)
 
 

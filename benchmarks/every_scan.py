@@ -37,10 +37,13 @@ def figures(T: np.ndarray, loaded, keyframe: np.ndarray, radius_m: float) -> dic
 
     gt = loaded.gt_poses
     summary = crispness(register_scans(loaded.scans, T), radius=radius_m, max_queries=20_000, seed=0).summary()
-    return {"ate_every_sweep_cm": ate_cm(T, gt), "ate_keyframes_cm": ate_cm(T[keyframe], gt[keyframe]),
-            "ate_other_sweeps_cm": ate_cm(T[~keyframe], gt[~keyframe]),
-            "entropy_every_sweep": round(summary["mean_map_entropy"], 4),
-            "thickness_every_sweep_cm": round(100 * summary["mean_plane_thickness_m"], 3)}
+    return {
+        "ate_every_sweep_cm": ate_cm(T, gt),
+        "ate_keyframes_cm": ate_cm(T[keyframe], gt[keyframe]),
+        "ate_other_sweeps_cm": ate_cm(T[~keyframe], gt[~keyframe]),
+        "entropy_every_sweep": round(summary["mean_map_entropy"], 4),
+        "thickness_every_sweep_cm": round(100 * summary["mean_plane_thickness_m"], 3),
+    }
 
 
 def measure(run_dir: str) -> dict:
@@ -64,13 +67,16 @@ def measure(run_dir: str) -> dict:
     registered = registration.register_every_scan(loaded, keyframes, refined, settings)
     seconds = time.perf_counter() - t0
     radius = float(config.eval.crispness_radius_m)
-    entry = {"run": run_dir, "input_scans": loaded.num_scans, "keyframes": keyframes.num_scans,
-             "num_registered": int(registered.registered.sum()),
-             "num_refused": int(sum(map(bool, registered.flag))),
-             "registration_s": round(seconds, 1),
-             "median_residual_cm": round(100 * float(np.nanmedian(registered.residual_m)), 3)}
-    for name, poses in (("odometry", loaded.poses), ("interpolated", interpolated),
-                        ("registered", registered.poses)):
+    entry = {
+        "run": run_dir,
+        "input_scans": loaded.num_scans,
+        "keyframes": keyframes.num_scans,
+        "num_registered": int(registered.registered.sum()),
+        "num_refused": int(sum(map(bool, registered.flag))),
+        "registration_s": round(seconds, 1),
+        "median_residual_cm": round(100 * float(np.nanmedian(registered.residual_m)), 3),
+    }
+    for name, poses in (("odometry", loaded.poses), ("interpolated", interpolated), ("registered", registered.poses)):
         entry[name] = figures(poses, loaded, keyframe, radius)
     after = entry["registered"]
     entry["every_sweep_over_keyframes"] = round(after["ate_every_sweep_cm"] / after["ate_keyframes_cm"], 3)

@@ -21,8 +21,11 @@ import time
 import harness  # this folder's benchmarks/harness.py: --out, the machine stamp and the JSON schema
 from absl import app, flags
 
-KITTI = flags.DEFINE_string("kitti", "/work/data/kitti00/kitti/dataset/sequences/00", "A KITTI sequence folder "
-                            "(velodyne/, times.txt, calib.txt; ground truth in ../../poses); empty: none.")
+KITTI = flags.DEFINE_string(
+    "kitti",
+    "/work/data/kitti00/kitti/dataset/sequences/00",
+    "A KITTI sequence folder (velodyne/, times.txt, calib.txt; ground truth in ../../poses); empty: none.",
+)
 CAR_SCANS = flags.DEFINE_integer("car_scans", 200, "Raw sweeps of the synthetic car (0: none).")
 WORK_DIR = flags.DEFINE_string("work_dir", "/tmp/frontend_pace", "Where the car's sweeps are written (kept).")
 ONLY = flags.DEFINE_list("variants", [], "Variant names to run (empty: all).")
@@ -100,8 +103,10 @@ def variant_poses(variant, scans, point_times, stamps, ranges):
 def accuracy(poses, gt, first: int) -> dict:
     from neld_jax.judging import metrics
 
-    return {"ate_m": round(metrics.ate(poses[first:], gt[first:])["translation_rmse_m"], 4),
-            "path_ratio": round(float(metrics.path_length_ratio(poses[first:], gt[first:])), 4)}
+    return {
+        "ate_m": round(metrics.ate(poses[first:], gt[first:])["translation_rmse_m"], 4),
+        "path_ratio": round(float(metrics.path_length_ratio(poses[first:], gt[first:])), 4),
+    }
 
 
 def load(name: str):
@@ -150,27 +155,38 @@ def sequence_rows(name: str, variants: dict) -> dict:
     ranges = (odometry.kiss_icp_default_ranges()[0], odometry.sensor_range_m(seq.scans))
     held, read_s = timed(lambda: [np.asarray(s, np.float64) for s in seq.scans])
     held_times = None if seq.point_times is None else [np.asarray(t, np.float64) for t in seq.point_times]
-    out = {"sweeps": seq.num_scans, "points_per_sweep": int(np.mean([len(s) for s in held])),
-           "raw_sweeps": seq.point_times is not None, "registration_range_m": round(ranges[1], 2),
-           "read_s_per_sweep": round(read_s / seq.num_scans, 4), "evaluated_from": first, "variants": {}}
+    out = {
+        "sweeps": seq.num_scans,
+        "points_per_sweep": int(np.mean([len(s) for s in held])),
+        "raw_sweeps": seq.point_times is not None,
+        "registration_range_m": round(ranges[1], 2),
+        "read_s_per_sweep": round(read_s / seq.num_scans, 4),
+        "evaluated_from": first,
+        "variants": {},
+    }
     print(name, {k: v for k, v in out.items() if k != "variants"}, flush=True)
     for label, variant in variants.items():
         if seq.point_times is None and variant[0] == 1:
             continue  # rigid scans: one pass whatever the variant
         poses, with_reading = timed(variant_poses, variant, seq.scans, seq.point_times, stamps, ranges)
         again, alone = timed(variant_poses, variant, held, held_times, stamps, ranges)
-        row = {"read_s_per_sweep": round(with_reading / seq.num_scans, 4),
-               "odometry_s_per_sweep": round(alone / seq.num_scans, 4), **accuracy(poses, seq.gt_poses, first),
-               "same_poses_from_memory": bool(np.allclose(poses, again, atol=1e-6)),
-               "load_average": [round(v, 2) for v in os.getloadavg()]}
+        row = {
+            "read_s_per_sweep": round(with_reading / seq.num_scans, 4),
+            "odometry_s_per_sweep": round(alone / seq.num_scans, 4),
+            **accuracy(poses, seq.gt_poses, first),
+            "same_poses_from_memory": bool(np.allclose(poses, again, atol=1e-6)),
+            "load_average": [round(v, 2) for v in os.getloadavg()],
+        }
         out["variants"][label] = row
         print(name, label, row, flush=True)
     if FRONT_END.value:
         config.data.max_range_m = 1000.0  # the crop does not matter here: the odometry's own range does
         result, seconds = timed(scan_poses.with_scan_poses, seq, config.data, name != "kitti", False)
-        out["front_end"] = {"s_per_sweep": round(seconds / seq.num_scans, 4),
-                            **accuracy(result.poses, seq.gt_poses, first),
-                            "load_average": [round(v, 2) for v in os.getloadavg()]}
+        out["front_end"] = {
+            "s_per_sweep": round(seconds / seq.num_scans, 4),
+            **accuracy(result.poses, seq.gt_poses, first),
+            "load_average": [round(v, 2) for v in os.getloadavg()],
+        }
         print(name, "front_end", out["front_end"], flush=True)
     return out
 
@@ -179,9 +195,25 @@ def main(argv):
     del argv
     variants = {k: v for k, v in VARIANTS.items() if not ONLY.value or k in ONLY.value}
     names = (["kitti"] if KITTI.value else []) + (["car"] if CAR_SCANS.value > 0 else [])
-    out = {"variants": {k: dict(zip(("passes", "first_pass_convergence", "convergence", "max_iterations",
-                                     "voxel_per_range", "one_pass_deskew"), v)) for k, v in variants.items()},
-           "sequences": {}}
+    out = {
+        "variants": {
+            k: dict(
+                zip(
+                    (
+                        "passes",
+                        "first_pass_convergence",
+                        "convergence",
+                        "max_iterations",
+                        "voxel_per_range",
+                        "one_pass_deskew",
+                    ),
+                    v,
+                )
+            )
+            for k, v in variants.items()
+        },
+        "sequences": {},
+    }
     stamped = harness.write(harness.OUT.value, out)
     for name in names:
         out["sequences"][name] = sequence_rows(name, variants)

@@ -56,8 +56,16 @@ flags.DEFINE_list("sections", [], "Run only these sections (default: all).")
 # --out (benchmarks/harness.py, through train_step): the JSON file; default gpu_suite[_smoke].json in $OUT, else in
 # benchmarks/results/.
 
-SECTIONS = ("step_per_stage", "matmul_peak", "fit_vs_step", "demo_gpu", "paper_schedule", "render_map", "bfloat16",
-            "torch_peer")
+SECTIONS = (
+    "step_per_stage",
+    "matmul_peak",
+    "fit_vs_step",
+    "demo_gpu",
+    "paper_schedule",
+    "render_map",
+    "bfloat16",
+    "torch_peer",
+)
 TINY = {"rays": 16, "width": 8, "depth": 2, "skip_layers": (1,), "pos_freqs": 4, "dir_freqs": 2}
 
 
@@ -70,8 +78,12 @@ def extrapolate_schedule(stage_starts: tuple, total: int, rates: list) -> dict:
     ends = list(stage_starts[1:]) + [total]
     steps = [end - start for start, end in zip(stage_starts, ends)]
     seconds = [n / r for n, r in zip(steps, rates)]
-    return {"stage_steps": steps, "stage_seconds": seconds, "total_s": sum(seconds),
-            "mean_steps_per_s": total / sum(seconds)}
+    return {
+        "stage_steps": steps,
+        "stage_seconds": seconds,
+        "total_s": sum(seconds),
+        "mean_steps_per_s": total / sum(seconds),
+    }
 
 
 def ate_m(poses: np.ndarray, start_poses: np.ndarray, gt_poses: np.ndarray, ref_scale: float) -> dict:
@@ -110,11 +122,20 @@ def prepare(path: str, smoke: bool) -> dict:
         config.data.max_rays_per_scan = 256
     _, keyframes = load_keyframes(config.data)
     norm = fit_normalization(keyframes.scans, keyframes.poses, NORMALIZATION_MARGIN)
-    rays = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
-                      seed=config.seed)
+    rays = build_rays(
+        keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None), seed=config.seed
+    )
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    np.savez_compressed(path, directions=rays.directions, ranges_m=rays.ranges, scan_index=rays.scan_index,
-                        poses=keyframes.poses, gt_poses=keyframes.gt_poses, scale=norm.scale, offset=norm.offset)
+    np.savez_compressed(
+        path,
+        directions=rays.directions,
+        ranges_m=rays.ranges,
+        scan_index=rays.scan_index,
+        poses=keyframes.poses,
+        gt_poses=keyframes.gt_poses,
+        scale=norm.scale,
+        offset=norm.offset,
+    )
     return {"path": path, "num_scans": keyframes.num_scans, "num_rays": int(rays.num_rays), "scale": float(norm.scale)}
 
 
@@ -146,8 +167,9 @@ def load_demo(path: str) -> Demo:
         raise FileNotFoundError(f"{path}: no prepared demo; run `python benchmarks/gpu_suite.py --prepare` first")
     d = np.load(path)
     if "ranges_m" not in d:
-        raise FileNotFoundError(f"{path}: a demo prepared in another layout; run `python benchmarks/gpu_suite.py "
-                                "--prepare` again")
+        raise FileNotFoundError(
+            f"{path}: a demo prepared in another layout; run `python benchmarks/gpu_suite.py --prepare` again"
+        )
     rays_m = RaySet(d["directions"], d["ranges_m"], d["scan_index"])
     scale = float(d["scale"])
     num_scans = len(d["poses"])
@@ -161,8 +183,15 @@ def demo_trainer(config, demo: Demo, total_steps: int | None = None):
     """train.make_trainer of the demo's one cube with the config's own pose steps (a run from the input poses)."""
     from neld_jax.training import train
 
-    return train.make_trainer(config, demo.num_scans, 1, train.PoseSteps.from_config(config), demo.start_poses,
-                              total_steps=total_steps, mesh=demo.mesh)
+    return train.make_trainer(
+        config,
+        demo.num_scans,
+        1,
+        train.PoseSteps.from_config(config),
+        demo.start_poses,
+        total_steps=total_steps,
+        mesh=demo.mesh,
+    )
 
 
 class _Enough(Exception):
@@ -189,8 +218,12 @@ class Suite:
     def sizes(self, preset: str, stage: int = 0) -> tuple:
         config, sizes = ts.preset_sizes(preset, stage)
         if self.smoke:
-            sizes.update(TINY, coarse=max(2, sizes["coarse"] // 8), fine=max(1, sizes["fine"] // 8),
-                         guided=min(sizes["guided"], 2))
+            sizes.update(
+                TINY,
+                coarse=max(2, sizes["coarse"] // 8),
+                fine=max(1, sizes["fine"] // 8),
+                guided=min(sizes["guided"], 2),
+            )
         return config, sizes
 
     def config(self, budget: str):
@@ -228,8 +261,18 @@ class Suite:
         for stage in range(3):
             config, sizes = self.sizes("paper", stage)
             r = ts.benchmark_train_step(config, sizes, steps, repeats)
-            out[f"stage{stage}"] = {k: r[k] for k in ("steps_per_s", "step_ms", "achieved_gflops", "compile_s",
-                                                      "mlp_flops_per_step", "xla_flops_per_step", "config")}
+            out[f"stage{stage}"] = {
+                k: r[k]
+                for k in (
+                    "steps_per_s",
+                    "step_ms",
+                    "achieved_gflops",
+                    "compile_s",
+                    "mlp_flops_per_step",
+                    "xla_flops_per_step",
+                    "config",
+                )
+            }
         return out
 
     def matmul_peak(self):
@@ -263,20 +306,38 @@ class Suite:
         probes = []
 
         def probe(state, history, seconds):  # at every checkpoint step and the end: the ATE so far
-            probes.append({"step": int(state.step), "train_s": seconds,
-                           **ate_m(np.asarray(state.params["poses"]), demo.start_poses, demo.gt_poses, demo.scale)})
+            probes.append(
+                {
+                    "step": int(state.step),
+                    "train_s": seconds,
+                    **ate_m(np.asarray(state.params["poses"]), demo.start_poses, demo.gt_poses, demo.scale),
+                }
+            )
 
         plan_of = functools.partial(demo_trainer, config, demo)
         state = train.init_state(config, plan_of(), demo.num_scans, 1)
-        result = train.fit(config, plan_of, train.TrainingData(demo.rays, demo.frames, demo.scale), state,
-                           checkpoint_fn=probe, settings=train.FitSettings(progress=False))
+        result = train.fit(
+            config,
+            plan_of,
+            train.TrainingData(demo.rays, demo.frames, demo.scale),
+            state,
+            checkpoint_fn=probe,
+            settings=train.FitSettings(progress=False),
+        )
         initial = ate_m(np.zeros((demo.num_scans, 6), np.float32), demo.start_poses, demo.gt_poses, demo.scale)
         final = probes[-1]
-        return {"budget": budget, "matmul_dtype": matmul_dtype, "steps": int(result.state.step),
-                "train_s": result.train_seconds, "first_chunk_s": result.history[0]["elapsed_s"],
-                "initial_ate_m": initial["ate_m"], "final_ate_m": final["ate_m"],
-                "ate_fraction_of_initial": final["ate_m"] / initial["ate_m"], "probes": probes,
-                "target": "ATE <= 0.01 x initial within 30 s of training"}
+        return {
+            "budget": budget,
+            "matmul_dtype": matmul_dtype,
+            "steps": int(result.state.step),
+            "train_s": result.train_seconds,
+            "first_chunk_s": result.history[0]["elapsed_s"],
+            "initial_ate_m": initial["ate_m"],
+            "final_ate_m": final["ate_m"],
+            "ate_fraction_of_initial": final["ate_m"] / initial["ate_m"],
+            "probes": probes,
+            "target": "ATE <= 0.01 x initial within 30 s of training",
+        }
 
     def demo_gpu(self):
         return self._demo_run("gpu")
@@ -317,8 +378,14 @@ class Suite:
 
             t = time.perf_counter()
             try:
-                train.fit(config, plan_of, train.TrainingData(demo.rays, demo.frames, demo.scale), state,
-                          checkpoint_fn=mark, settings=train.FitSettings(progress=False))
+                train.fit(
+                    config,
+                    plan_of,
+                    train.TrainingData(demo.rays, demo.frames, demo.scale),
+                    state,
+                    checkpoint_fn=mark,
+                    settings=train.FitSettings(progress=False),
+                )
             except _Enough:
                 pass
             if len(marks) < 2:
@@ -326,10 +393,20 @@ class Suite:
             (first_step, first_t), (last_step, last_t) = marks[0], marks[-1]
             rate = (last_step - first_step) / max(last_t - first_t, 1e-9)
             rates.append(rate)
-            per_stage.append({"start": start, "steps_run": last_step - start, "steps_per_s": rate,
-                              "samples": schedules.samples(start), "wall_s": time.perf_counter() - t})
-        return {"stages": per_stage, **extrapolate_schedule(schedules.stage_starts, schedules.total_steps, rates),
-                "target": "the 160k-step schedule in <= 600 s (>= 270 steps/s)"}
+            per_stage.append(
+                {
+                    "start": start,
+                    "steps_run": last_step - start,
+                    "steps_per_s": rate,
+                    "samples": schedules.samples(start),
+                    "wall_s": time.perf_counter() - t,
+                }
+            )
+        return {
+            "stages": per_stage,
+            **extrapolate_schedule(schedules.stage_starts, schedules.total_steps, rates),
+            "target": "the 160k-step schedule in <= 600 s (>= 270 steps/s)",
+        }
 
     def render_map(self):
         from neld_jax.steps import mapping, refine
@@ -343,13 +420,21 @@ class Suite:
             state = train.init_state(config, trainer, demo.num_scans, 1)
             total = trainer.schedules.total_steps  # every frequency active, as after training
             result = train.FitResult(state.replace(step=state.step + total), [], False, 0.0, trainer.schedules)
-            refined = refine.Refined(result, demo.plan, trainer.field, demo.start_poses, demo.start_poses, np.eye(4),
-                                     np.bincount(demo.rays_m.scan_index, minlength=demo.num_scans))
+            refined = refine.Refined(
+                result,
+                demo.plan,
+                trainer.field,
+                demo.start_poses,
+                demo.start_poses,
+                np.eye(4),
+                np.bincount(demo.rays_m.scan_index, minlength=demo.num_scans),
+            )
             sampler = train.sampler_settings(config.sampling, config.mapping.num_coarse, config.mapping.num_fine)
             rows = []
             # A [rays x 256 samples, width] float32 activation is 4 GiB at 8192 rays and width 512.
             default_batch = mapping.RAYS_PER_BATCH
-            for batch in ((64,) if self.smoke else (4096, 16384, 32768)):
+            for batch in (64,) if self.smoke else (4096, 16384, 32768):
+
                 def render():
                     return mapping.render_map(refined, demo.rays_m, sampler, min_opacity=0.0)
 
@@ -366,10 +451,21 @@ class Suite:
                     continue
                 finally:
                     mapping.RAYS_PER_BATCH = default_batch
-                rows.append({"rays_per_batch": batch, "seconds": seconds,
-                             "rays_per_s": demo.rays_m.num_rays / seconds, "first_call_s": first_s})
-            out[budget] = {"width": config.model.width, "depth": config.model.depth, "rays": demo.rays_m.num_rays,
-                           "samples": [sampler.num_coarse, sampler.num_fine], "batches": rows}
+                rows.append(
+                    {
+                        "rays_per_batch": batch,
+                        "seconds": seconds,
+                        "rays_per_s": demo.rays_m.num_rays / seconds,
+                        "first_call_s": first_s,
+                    }
+                )
+            out[budget] = {
+                "width": config.model.width,
+                "depth": config.model.depth,
+                "rays": demo.rays_m.num_rays,
+                "samples": [sampler.num_coarse, sampler.num_fine],
+                "batches": rows,
+            }
         return out
 
     def bfloat16(self):
@@ -388,12 +484,29 @@ class Suite:
         import torch
 
         cuda = torch.cuda.is_available()
-        args = [sys.executable, os.path.join(ROOT, "benchmarks", "torch_peer.py"),
-                "--torch_device=" + ("cuda" if cuda else "cpu"),
-                "--torch_modes=" + ("eager,tf32,compile" if cuda else "eager")]
-        args += (["--preset=none", "--steps=2", "--repeats=1", "--rays=16", "--coarse=4", "--fine=2", "--width=8",
-                  "--depth=2", "--skip_layers=1", "--scans=2", "--rays_per_scan=64"] if self.smoke
-                 else ["--preset=paper", "--stage=2", "--steps=20", "--repeats=3"])
+        args = [
+            sys.executable,
+            os.path.join(ROOT, "benchmarks", "torch_peer.py"),
+            "--torch_device=" + ("cuda" if cuda else "cpu"),
+            "--torch_modes=" + ("eager,tf32,compile" if cuda else "eager"),
+        ]
+        args += (
+            [
+                "--preset=none",
+                "--steps=2",
+                "--repeats=1",
+                "--rays=16",
+                "--coarse=4",
+                "--fine=2",
+                "--width=8",
+                "--depth=2",
+                "--skip_layers=1",
+                "--scans=2",
+                "--rays_per_scan=64",
+            ]
+            if self.smoke
+            else ["--preset=paper", "--stage=2", "--steps=20", "--repeats=3"]
+        )
         left = max(60.0, self.budget_s + 150 - (time.perf_counter() - self.t0))
         # The peer's process runs a JAX step too: JAX there and here must leave the GPU's memory to torch.
         env = dict(os.environ, XLA_PYTHON_CLIENT_MEM_FRACTION="0.25")
@@ -405,8 +518,9 @@ class Suite:
 
 def main(argv):
     del argv
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                        force=True)
+    logging.basicConfig(
+        level=logging.INFO, stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s", force=True
+    )
     logging.getLogger("neld_jax.training.train").setLevel(logging.WARNING)
     if FLAGS.prepare:
         print(json.dumps(prepare(FLAGS.data, FLAGS.smoke)), flush=True)
@@ -418,8 +532,10 @@ def main(argv):
     out_dir = os.environ.get("OUT") or os.path.join(ROOT, "benchmarks", "results")
     out_path = FLAGS.out or os.path.join(out_dir, "gpu_suite_smoke.json" if FLAGS.smoke else "gpu_suite.json")
     record = Suite(out_path, FLAGS.smoke, FLAGS.budget_s, FLAGS.data).run(names)
-    summary = {name: ("error" if "error" in r else "skipped" if "skipped" in r else "ok")
-               for name, r in record["sections"].items()}
+    summary = {
+        name: ("error" if "error" in r else "skipped" if "skipped" in r else "ok")
+        for name, r in record["sections"].items()
+    }
     print(json.dumps({"out": out_path, "elapsed_s": record.get("elapsed_s"), "sections": summary}), flush=True)
 
 

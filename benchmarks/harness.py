@@ -35,8 +35,9 @@ SCHEMA_VERSION = 1
 SCHEMA_KEYS = ("benchmark", "command", "machine", "results", "schema")
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-OUT = flags.DEFINE_string("out", "", "The JSON file written, in the benchmarks' schema (benchmarks/harness.py); "
-                                     "none if empty.")
+OUT = flags.DEFINE_string(
+    "out", "", "The JSON file written, in the benchmarks' schema (benchmarks/harness.py); none if empty."
+)
 
 
 def default_out(path: str) -> None:
@@ -74,8 +75,13 @@ def _memory_gib() -> float | None:
 def _git_commit() -> str | None:
     try:
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, timeout=10)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
-                               capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     if head.returncode != 0:
@@ -111,10 +117,17 @@ def machine() -> dict:
     except AttributeError:
         usable = os.cpu_count()
     load = [round(v, 2) for v in os.getloadavg()] if hasattr(os, "getloadavg") else None
-    return {"cpu": _cpu_model(), "cores": os.cpu_count(), "usable_cores": usable, "memory_gib": _memory_gib(),
-            "load_average": load, **_versions(), "devices": _devices(),
-            "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-            "git_commit": _git_commit()}
+    return {
+        "cpu": _cpu_model(),
+        "cores": os.cpu_count(),
+        "usable_cores": usable,
+        "memory_gib": _memory_gib(),
+        "load_average": load,
+        **_versions(),
+        "devices": _devices(),
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "git_commit": _git_commit(),
+    }
 
 
 def command(argv: list | None = None) -> str:
@@ -130,12 +143,18 @@ def benchmark_name(argv: list | None = None) -> str:
 
 def record(results, benchmark: str | None = None, argv: list | None = None) -> dict:
     """One record in the schema around a script's payload."""
-    return {"benchmark": benchmark or benchmark_name(argv), "command": command(argv), "machine": machine(),
-            "results": results, "schema": SCHEMA_VERSION}
+    return {
+        "benchmark": benchmark or benchmark_name(argv),
+        "command": command(argv),
+        "machine": machine(),
+        "results": results,
+        "schema": SCHEMA_VERSION,
+    }
 
 
-def write(path: str, results, benchmark: str | None = None, argv: list | None = None, stamped: dict | None = None
-          ) -> dict:
+def write(
+    path: str, results, benchmark: str | None = None, argv: list | None = None, stamped: dict | None = None
+) -> dict:
     """Write `results` in the schema to `path` (folders made; nothing written if `path` is empty) and return the
     record. A script that writes as it goes passes the record of its first write as `stamped`: the machine stamp
     then stays the one from the start, the date included."""

@@ -26,10 +26,12 @@ import numpy as np
 from absl import app, flags
 
 CLOUDS = flags.DEFINE_string("clouds", None, "Folder of KITTI .bin sweeps NNNNNN.bin (frame numbers).", required=True)
-CALIB = flags.DEFINE_string("calib", None, "KITTI calib.txt of the sequence (its Tr: velodyne -> camera 0).",
-                            required=True)
-TRUTH = flags.DEFINE_string("truth", None, "Ground truth with times: 'time r11 .. t3' (13 numbers) per frame.",
-                            required=True)
+CALIB = flags.DEFINE_string(
+    "calib", None, "KITTI calib.txt of the sequence (its Tr: velodyne -> camera 0).", required=True
+)
+TRUTH = flags.DEFINE_string(
+    "truth", None, "Ground truth with times: 'time r11 .. t3' (13 numbers) per frame.", required=True
+)
 FIRST = flags.DEFINE_integer("first", 0, "First frame.")
 LAST = flags.DEFINE_integer("last", 100, "Last frame (included).")
 THIN = flags.DEFINE_integer("thin", 5, "The thinned sequence keeps every THIN-th sweep.")
@@ -69,8 +71,9 @@ def write_kitti(root: str, frames: list[int], times: np.ndarray, camera_poses: n
     os.makedirs(os.path.join(sequence, "velodyne"), exist_ok=True)
     os.makedirs(os.path.join(root, "dataset", "poses"), exist_ok=True)
     for k, frame in enumerate(frames):
-        shutil.copyfile(os.path.join(CLOUDS.value, f"{frame:06d}.bin"), os.path.join(sequence, "velodyne",
-                                                                                     f"{k:06d}.bin"))
+        shutil.copyfile(
+            os.path.join(CLOUDS.value, f"{frame:06d}.bin"), os.path.join(sequence, "velodyne", f"{k:06d}.bin")
+        )
     kept = times[frames] - times[frames[0]]
     with open(os.path.join(sequence, "times.txt"), "w") as f:
         f.writelines(f"{t:.6e}\n" for t in kept)
@@ -104,14 +107,17 @@ def main(argv):
     frames = list(range(FIRST.value, LAST.value + 1))
     missing = [f for f in frames if not os.path.isfile(os.path.join(CLOUDS.value, f"{f:06d}.bin"))]
     if missing or LAST.value >= len(times):
-        raise SystemExit(f"error: {CLOUDS.value}: frames {missing[:5]} missing, or {TRUTH.value} has only "
-                         f"{len(times)} rows")
+        raise SystemExit(
+            f"error: {CLOUDS.value}: frames {missing[:5]} missing, or {TRUTH.value} has only {len(times)} rows"
+        )
     shutil.rmtree(OUT.value, ignore_errors=True)
     write_kitti(os.path.join(OUT.value, "kitti"), frames, times, camera_poses)
     write_generic(os.path.join(OUT.value, "generic"), frames, times, camera_poses, tr)
-    write_kitti(os.path.join(OUT.value, f"every{THIN.value}"), frames[::THIN.value], times, camera_poses)
-    print(f"written: {OUT.value}/kitti, generic, every{THIN.value} ({len(frames)} sweeps, "
-          f"{len(frames[::THIN.value])} thinned)")
+    write_kitti(os.path.join(OUT.value, f"every{THIN.value}"), frames[:: THIN.value], times, camera_poses)
+    print(
+        f"written: {OUT.value}/kitti, generic, every{THIN.value} ({len(frames)} sweeps, "
+        f"{len(frames[:: THIN.value])} thinned)"
+    )
 
 
 if __name__ == "__main__":

@@ -34,9 +34,13 @@ ROUTE_M = flags.DEFINE_float("route_length_m", 600.0, "Length of the closed rout
 STEPS = flags.DEFINE_integer("steps", 0, "train.steps (0: the cpu budget's).")
 SINGLE = flags.DEFINE_bool("single_cube", True, "Also run the single cube on the same route.")
 WITH_SUBMAPS = flags.DEFINE_bool("submaps", True, "Run with submaps (false: only the single cube, with --single_cube).")
-START = flags.DEFINE_enum("start", "input", ["input", "baseline", "crisper"],
-                          "start.poses of both runs: the drifted odometry, the classical baseline's poses (its pose "
-                          "graph closes the loop that the drift hides) or the crisper of the two.")
+START = flags.DEFINE_enum(
+    "start",
+    "input",
+    ["input", "baseline", "crisper"],
+    "start.poses of both runs: the drifted odometry, the classical baseline's poses (its pose "
+    "graph closes the loop that the drift hides) or the crisper of the two.",
+)
 OUTPUT_ROOT = flags.DEFINE_string("output_root", "outputs/long_route", "Run directories below this.")
 flags.DEFINE_alias("output", "out")  # the name the recorded commands give
 OVERRIDES = harness.overrides_flag("submaps.step_rays_factor=2.0 (the accuracy runs)")
@@ -79,15 +83,22 @@ def accuracy() -> dict:
         summary = run(config, progress=False)
         methods, r = summary["evaluation"]["methods"], summary["run"]
         out[name] = {
-            "submaps": r["submaps"], "steps": r["steps"], "train_seconds": r["train_seconds"],
+            "submaps": r["submaps"],
+            "steps": r["steps"],
+            "train_seconds": r["train_seconds"],
             "total_seconds": round(time.perf_counter() - t0, 1),
             "ate_initial_m": methods["initial"]["ate"]["translation_rmse_m"],
             "ate_optimized_m": methods["optimized"]["ate"]["translation_rmse_m"],
             "rot_initial_deg": methods["initial"]["ate"]["rotation_rmse_deg"],
             "rot_optimized_deg": methods["optimized"]["ate"]["rotation_rmse_deg"],
-            "start": START.value, "started_from": r["started_from"], "baseline_seconds": r.get("baseline_seconds"),
-            "crispness": {m: round(v["mean_map_entropy"], 4) for m, v in summary["crispness"].items()
-                          if v.get("mean_map_entropy") is not None},
+            "start": START.value,
+            "started_from": r["started_from"],
+            "baseline_seconds": r.get("baseline_seconds"),
+            "crispness": {
+                m: round(v["mean_map_entropy"], 4)
+                for m, v in summary["crispness"].items()
+                if v.get("mean_map_entropy") is not None
+            },
         }
         if "baseline" in methods and "ate" in methods["baseline"]:
             out[name]["ate_baseline_m"] = methods["baseline"]["ate"]["translation_rmse_m"]
@@ -114,11 +125,14 @@ def split() -> dict:
     cube = 2.0 * NORMALIZATION_MARGIN / float(np.median(plan.scales))
     tiles = submaps.tile_memberships(lower, upper, cube)
     windows = submaps.describe_membership(plan, seq.num_scans)
-    return {"extent_m": round(2.0 * NORMALIZATION_MARGIN / norm.scale, 1),
-            "submaps": int((plan.weight > 0).sum()), "keyframes_per_submap": plan.window,
-            "median_cube_m": round(cube, 1),
-            "submaps_per_keyframe_windows": {int(k): int(v) for k, v in zip(*np.unique(windows, return_counts=True))},
-            "tiles_per_keyframe_same_size": {int(k): int(v) for k, v in zip(*np.unique(tiles, return_counts=True))}}
+    return {
+        "extent_m": round(2.0 * NORMALIZATION_MARGIN / norm.scale, 1),
+        "submaps": int((plan.weight > 0).sum()),
+        "keyframes_per_submap": plan.window,
+        "median_cube_m": round(cube, 1),
+        "submaps_per_keyframe_windows": {int(k): int(v) for k, v in zip(*np.unique(windows, return_counts=True))},
+        "tiles_per_keyframe_same_size": {int(k): int(v) for k, v in zip(*np.unique(tiles, return_counts=True))},
+    }
 
 
 def throughput_worker(devices: int) -> dict:
@@ -141,13 +155,16 @@ def throughput_worker(devices: int) -> dict:
     rays_m = RaySet(rays_n.directions, (rays_n.ranges * metres).astype(np.float32), rays_n.scan_index)
     T_m = np.array(T, np.float64)
     T_m[:, :3, 3] *= metres
-    scans = [rays_m.directions[rays_m.scan_index == s] * rays_m.ranges[rays_m.scan_index == s, None]
-             for s in range(num_scans)]
+    scans = [
+        rays_m.directions[rays_m.scan_index == s] * rays_m.ranges[rays_m.scan_index == s, None]
+        for s in range(num_scans)
+    ]
     plan = submaps.plan_submaps(scans, T_m, window, 1, NORMALIZATION_MARGIN, num_devices=devices)
     mesh = train.make_mesh(devices)
     rays, frames = train.device_data(submaps.submap_arrays(plan, rays_m, T_m), mesh)
-    trainer = train.make_trainer(config, num_scans, plan.num_submaps, train.PoseSteps.from_config(config), T_m,
-                                 mesh=mesh)
+    trainer = train.make_trainer(
+        config, num_scans, plan.num_submaps, train.PoseSteps.from_config(config), T_m, mesh=mesh
+    )
     state = train.init_state(config, trainer, num_scans, plan.num_submaps)
     step = jax.jit(trainer.step, static_argnames=("sampler",), donate_argnums=(0,))
     # The collectives XLA put into the partitioned step (expected: the pose gradient's all-reduce, no all-gather).
@@ -155,8 +172,10 @@ def throughput_worker(devices: int) -> dict:
     compiled = step.lower(state, rays, frames, sampler=trainer.sampler(0)).compile()
     compile_s = time.perf_counter() - t0
     hlo = compiled.as_text()
-    collectives = {op: len(re.findall(rf"\b{op}(?:-start)?\(", hlo))
-                   for op in ("all-reduce", "all-gather", "all-to-all", "collective-permute", "reduce-scatter")}
+    collectives = {
+        op: len(re.findall(rf"\b{op}(?:-start)?\(", hlo))
+        for op in ("all-reduce", "all-gather", "all-to-all", "collective-permute", "reduce-scatter")
+    }
     state, metrics = compiled(state, rays, frames)  # warm-up
     jax.block_until_ready(metrics)
     t0 = time.perf_counter()
@@ -166,18 +185,30 @@ def throughput_worker(devices: int) -> dict:
     seconds = time.perf_counter() - t0
     steps_per_s = TP_STEPS.value / seconds
     per_submap = trainer.batch_rays
-    return {"devices": devices, "submaps": plan.num_submaps, "rays_per_submap": per_submap,
-            "steps_per_s": steps_per_s, "rays_per_s": steps_per_s * plan.num_submaps * per_submap,
-            "compile_s": round(compile_s, 2), "platform": jax.devices()[0].platform, "collectives": collectives,
-            "loss_finite": bool(np.isfinite(float(metrics["loss"])))}
+    return {
+        "devices": devices,
+        "submaps": plan.num_submaps,
+        "rays_per_submap": per_submap,
+        "steps_per_s": steps_per_s,
+        "rays_per_s": steps_per_s * plan.num_submaps * per_submap,
+        "compile_s": round(compile_s, 2),
+        "platform": jax.devices()[0].platform,
+        "collectives": collectives,
+        "loss_finite": bool(np.isfinite(float(metrics["loss"]))),
+    }
 
 
 def throughput() -> list:
     rows = []
     for d in (int(x) for x in DEVICES.value):
         env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={d}")
-        cmd = [sys.executable, os.path.abspath(__file__), f"--worker_devices={d}",
-               f"--throughput_submaps={TP_SUBMAPS.value}", f"--throughput_steps={TP_STEPS.value}"]
+        cmd = [
+            sys.executable,
+            os.path.abspath(__file__),
+            f"--worker_devices={d}",
+            f"--throughput_submaps={TP_SUBMAPS.value}",
+            f"--throughput_steps={TP_STEPS.value}",
+        ]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
         rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
         logging.warning("throughput: %s", rows[-1])
@@ -193,8 +224,7 @@ def main(argv):
     if WORKER.value:
         print(json.dumps(throughput_worker(WORKER.value)))
         return
-    result = {"route": dict(ROUTE, num_scans=NUM_SCANS.value, route_length_m=ROUTE_M.value),
-              "argv": sys.argv[1:]}
+    result = {"route": dict(ROUTE, num_scans=NUM_SCANS.value, route_length_m=ROUTE_M.value), "argv": sys.argv[1:]}
     if "split" in PARTS.value:
         result["split"] = split()
     if "accuracy" in PARTS.value:

@@ -66,16 +66,21 @@ def write_recording(root: Path, num_sweeps: int, beams: int, columns: int, seed:
     stamps, points_written = np.arange(num_sweeps) / RATE_HZ, 0
     for i, stamp in enumerate(stamps):
         column_poses = generator.loop_poses((i + column_fraction) / num_sweeps, defaults.trajectory_radius_m, seed)
-        points, column = generator.cast_sweep(scene, column_poses, directions, defaults.max_range_m,
-                                              defaults.range_noise_m, rng)
+        points, column = generator.cast_sweep(
+            scene, column_poses, directions, defaults.max_range_m, defaults.range_noise_m, rng
+        )
         write_scan(root / "scans" / f"{stamp:.9f}.pcd", points)
         np.save(root / POINT_TIMES_FOLDER / f"{stamp:.9f}.npy", (column_fraction[column] / RATE_HZ).astype(np.float32))
         points_written += len(points)
-    write_tum(root / "gt_poses.txt", stamps, generator.smooth_trajectory(num_sweeps, defaults.trajectory_radius_m,
-                                                                         seed))
+    write_tum(
+        root / "gt_poses.txt", stamps, generator.smooth_trajectory(num_sweeps, defaults.trajectory_radius_m, seed)
+    )
     disk = sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
-    return {"points": int(points_written), "disk_gb": round(disk / 1e9, 3),
-            "seconds": round(time.perf_counter() - started, 1)}
+    return {
+        "points": int(points_written),
+        "disk_gb": round(disk / 1e9, 3),
+        "seconds": round(time.perf_counter() - started, 1),
+    }
 
 
 def tree_rss(process) -> int:
@@ -125,10 +130,16 @@ def run_outcome(out_dir: Path) -> dict:
     metrics = json.loads((out_dir / "metrics.json").read_text())
     r = metrics["run"]
     methods = metrics.get("evaluation", {}).get("methods", {})
-    return {"steps": r["steps"], "started_from": r["started_from"], "answer": r.get("answer"),
-            "crispness_margin": {other: {"mean": m["mean"], "all_draws_agree": m["all_draws_agree"]}
-                                 for other, m in r["crispness_margin"].items()},
-            "ate_m": {name: round(m["ate"]["translation_rmse_m"], 5) for name, m in methods.items() if "ate" in m}}
+    return {
+        "steps": r["steps"],
+        "started_from": r["started_from"],
+        "answer": r.get("answer"),
+        "crispness_margin": {
+            other: {"mean": m["mean"], "all_draws_agree": m["all_draws_agree"]}
+            for other, m in r["crispness_margin"].items()
+        },
+        "ate_m": {name: round(m["ate"]["translation_rmse_m"], 5) for name, m in methods.items() if "ate" in m},
+    }
 
 
 def run_command(root: Path, out_dir: Path, repo: str, max_minutes: float) -> dict:
@@ -136,8 +147,15 @@ def run_command(root: Path, out_dir: Path, repo: str, max_minutes: float) -> dic
     stages."""
     import psutil
 
-    command = [sys.executable, "bin/train.py", "--config=configs/generic.py:cpu", f"--config.data.root={root}",
-               f"--config.output_dir={out_dir}", f"--config.max_minutes={max_minutes}", "--restart"]
+    command = [
+        sys.executable,
+        "bin/train.py",
+        "--config=configs/generic.py:cpu",
+        f"--config.data.root={root}",
+        f"--config.output_dir={out_dir}",
+        f"--config.max_minutes={max_minutes}",
+        "--restart",
+    ]
     env = dict(os.environ, PYTHONPATH=repo)
     log_path = out_dir.parent / f"{out_dir.name}.log"
     started, samples = time.perf_counter(), []
@@ -152,9 +170,15 @@ def run_command(root: Path, out_dir: Path, repo: str, max_minutes: float) -> dic
     text = log_path.read_text(errors="replace")
     if child.returncode != 0:
         raise RuntimeError(f"{' '.join(command)} failed ({child.returncode}); its log: {log_path}\n{text[-2000:]}")
-    return {"peak_rss_gb": round(peak / 1e9, 3), "load_peak_rss_gb": load_peak_gb(samples, text),
-            "wall_s": round(wall, 1), **stage_times(text), "run": run_outcome(out_dir),
-            "command": " ".join(command), "log": str(log_path)}
+    return {
+        "peak_rss_gb": round(peak / 1e9, 3),
+        "load_peak_rss_gb": load_peak_gb(samples, text),
+        "wall_s": round(wall, 1),
+        **stage_times(text),
+        "run": run_outcome(out_dir),
+        "command": " ".join(command),
+        "log": str(log_path),
+    }
 
 
 def main(argv):
@@ -174,9 +198,17 @@ def main(argv):
         measured = run_command(root, work / f"run_{sweeps}_{LABEL.value or 'code'}", CODE.value, MAX_MINUTES.value)
         print(f"{sweeps} sweeps: {measured}", file=sys.stderr, flush=True)
         sizes[str(sweeps)] = {"recording": recording, **measured}
-    result = {"benchmark": "memory", "label": LABEL.value, "repo": CODE.value, "beams": BEAMS.value,
-              "columns": COLUMNS.value, "rate_hz": RATE_HZ, "max_minutes": MAX_MINUTES.value,
-              "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "sizes": sizes}
+    result = {
+        "benchmark": "memory",
+        "label": LABEL.value,
+        "repo": CODE.value,
+        "beams": BEAMS.value,
+        "columns": COLUMNS.value,
+        "rate_hz": RATE_HZ,
+        "max_minutes": MAX_MINUTES.value,
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "sizes": sizes,
+    }
     print(json.dumps(result, indent=2))
     harness.write(harness.OUT.value, result)
 

@@ -68,9 +68,13 @@ from neld_jax.hugepages import reexec_with_huge_page_malloc
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-SEQUENCES = flags.DEFINE_list("sequences", ["synthetic10hz:0"], "Synthetic sequences: raw sweeps "
-                              "synthetic10hz:SEED[:RADIUS_M] (the loop's radius, default 10 m: a 63 m loop), or a "
-                              "car's scans car:SEED.")
+SEQUENCES = flags.DEFINE_list(
+    "sequences",
+    ["synthetic10hz:0"],
+    "Synthetic sequences: raw sweeps "
+    "synthetic10hz:SEED[:RADIUS_M] (the loop's radius, default 10 m: a 63 m loop), or a "
+    "car's scans car:SEED.",
+)
 ROOTS = flags.DEFINE_list("roots", [], "Folders of real raw full-rate sweeps (the layout --config reads).")
 NUM_SCANS = flags.DEFINE_integer("num_scans", 300, "Synthetic: sweeps kept (the first of the loop's).")
 LOOP_SCANS = flags.DEFINE_integer("loop_scans", 300, "Synthetic: sweeps round the whole loop (300: 2.1 m/s).")
@@ -79,21 +83,39 @@ WORK = flags.DEFINE_string("work", "outputs/peers", "The sequences and the runs 
 harness.default_out("outputs/peers/peers.json")  # --out: one entry per sequence
 CONFIG = flags.DEFINE_string("config", "configs/generic.py:cpu", "The run's config, PATH[:BUDGET].")
 OVERRIDES = harness.overrides_flag()
-MAX_RANGE = flags.DEFINE_float("max_range_m", 0.0, "data.max_range_m of real roots (0: the config's); synthetic "
-                               "sequences use their generated range (40 m). --set wins over both.")
-SLAM_SPLITTING = flags.DEFINE_float("slam_splitting_m", 0.0, "KISS-SLAM's local_mapper.splitting_distance [m] "
-                                    "(0: its own default, 100 m).")
+MAX_RANGE = flags.DEFINE_float(
+    "max_range_m",
+    0.0,
+    "data.max_range_m of real roots (0: the config's); synthetic "
+    "sequences use their generated range (40 m). --set wins over both.",
+)
+SLAM_SPLITTING = flags.DEFINE_float(
+    "slam_splitting_m", 0.0, "KISS-SLAM's local_mapper.splitting_distance [m] (0: its own default, 100 m)."
+)
 MINUTES_LIMIT = flags.DEFINE_float("minutes_limit", 10.0, "The target for NeLD-BA's whole run [min].")
-EVAL_FROM_SCAN = flags.DEFINE_integer("eval_from_scan", 0, "The trajectory figures (ATE, path length, KITTI's "
-                                      "relative error) over the input sweeps from this index on (KITTI 00: 15, its "
-                                      "ground truth of the first frames is a constant-velocity fill).")
-PEER_RANGE = flags.DEFINE_enum("peer_range", "own", ["own", "run"], "The ranges KISS-ICP and KISS-SLAM crop to: "
-                               "own (KISS-ICP's KISSConfig defaults, voxel a hundredth of its maximum range) or run "
-                               "(the run's data.min_range_m and data.max_range_m).")
-SEGMENTS_M = flags.DEFINE_list("segments_m", ["10", "20", "30", "40", "50"], "KITTI's relative error: the segment "
-                               "lengths [m] (the devkit's 100, ..., 800 m for whole sequences).")
-SEGMENT_STEP = flags.DEFINE_integer("segment_step", 1, "KITTI's relative error: frames between a segment's first "
-                                    "frames (the devkit's 10).")
+EVAL_FROM_SCAN = flags.DEFINE_integer(
+    "eval_from_scan",
+    0,
+    "The trajectory figures (ATE, path length, KITTI's "
+    "relative error) over the input sweeps from this index on (KITTI 00: 15, its "
+    "ground truth of the first frames is a constant-velocity fill).",
+)
+PEER_RANGE = flags.DEFINE_enum(
+    "peer_range",
+    "own",
+    ["own", "run"],
+    "The ranges KISS-ICP and KISS-SLAM crop to: "
+    "own (KISS-ICP's KISSConfig defaults, voxel a hundredth of its maximum range) or run "
+    "(the run's data.min_range_m and data.max_range_m).",
+)
+SEGMENTS_M = flags.DEFINE_list(
+    "segments_m",
+    ["10", "20", "30", "40", "50"],
+    "KITTI's relative error: the segment lengths [m] (the devkit's 100, ..., 800 m for whole sequences).",
+)
+SEGMENT_STEP = flags.DEFINE_integer(
+    "segment_step", 1, "KITTI's relative error: frames between a segment's first frames (the devkit's 10)."
+)
 
 SYNTHETIC = {"trajectory_radius_m": 10.0, "max_range_m": 40.0}  # a 63 m loop by default
 CAR = {"route": "car", "route_length_m": 320.0, "num_beams": 64, "num_columns": 1024, "max_range_m": 80.0}
@@ -123,14 +145,26 @@ def make_synthetic(seed: int, radius_m: float, root: str) -> None:
 
     from neld_jax.synthetic.generator import make_sequence, write_generic
 
-    spec = {**SYNTHETIC, "trajectory_radius_m": radius_m, "num_scans": LOOP_SCANS.value,
-            "gt_map_points": GT_MAP_POINTS.value, "seed": seed, "kept": NUM_SCANS.value, "rate_hz": RATE_HZ}
+    spec = {
+        **SYNTHETIC,
+        "trajectory_radius_m": radius_m,
+        "num_scans": LOOP_SCANS.value,
+        "gt_map_points": GT_MAP_POINTS.value,
+        "seed": seed,
+        "kept": NUM_SCANS.value,
+        "rate_hz": RATE_HZ,
+    }
 
     def write(folder):
         seq = make_sequence({k: v for k, v in spec.items() if k not in ("kept", "rate_hz")}, rate_hz=RATE_HZ)
         n = min(NUM_SCANS.value, seq.num_scans)
-        seq = dataclasses.replace(seq, scans=seq.scans[:n], point_times=seq.point_times[:n],
-                                  timestamps=seq.timestamps[:n], gt_poses=seq.gt_poses[:n])
+        seq = dataclasses.replace(
+            seq,
+            scans=seq.scans[:n],
+            point_times=seq.point_times[:n],
+            timestamps=seq.timestamps[:n],
+            gt_poses=seq.gt_poses[:n],
+        )
         write_generic(seq, folder)
 
     written_once(spec, root, write)
@@ -297,8 +331,12 @@ def peer_ranges(config, mode: str) -> dict:
         ranges = config.data.min_range_m, config.data.max_range_m
     else:
         raise ValueError(f"peer range mode must be own or run, got {mode!r}")
-    return {"mode": mode, "min_range_m": float(ranges[0]), "max_range_m": float(ranges[1]),
-            "voxel_m": VOXELS_PER_RANGE * float(ranges[1])}
+    return {
+        "mode": mode,
+        "min_range_m": float(ranges[0]),
+        "max_range_m": float(ranges[1]),
+        "voxel_m": VOXELS_PER_RANGE * float(ranges[1]),
+    }
 
 
 def run_peers(seen: dict, ranges: dict, out: str, rows: dict, files: dict, name: str) -> None:
@@ -312,13 +350,15 @@ def run_peers(seen: dict, ranges: dict, out: str, rows: dict, files: dict, name:
         return
     limits = ranges["min_range_m"], ranges["max_range_m"]
     poses, seconds = kiss_icp_poses(seen["raw"], *limits)
-    files["kiss_icp"] = str(write_poses(os.path.join(out, "kiss_icp"), "poses_kiss_icp", seen["raw"].timestamps,
-                                        poses)[0])
+    files["kiss_icp"] = str(
+        write_poses(os.path.join(out, "kiss_icp"), "poses_kiss_icp", seen["raw"].timestamps, poses)[0]
+    )
     rows["kiss_icp"]["wall_s"] = round(seconds, 1)
     try:
         poses, seconds, info = kiss_slam_poses(seen["raw"], *limits, SLAM_SPLITTING.value)
-        files["kiss_slam"] = str(write_poses(os.path.join(out, "kiss_slam"), "poses_kiss_slam",
-                                             seen["raw"].timestamps, poses)[0])
+        files["kiss_slam"] = str(
+            write_poses(os.path.join(out, "kiss_slam"), "poses_kiss_slam", seen["raw"].timestamps, poses)[0]
+        )
         rows["kiss_slam"].update(wall_s=round(seconds, 1), **info)
     except ImportError:
         rows["kiss_slam"]["status"] = NOT_INSTALLED
@@ -341,11 +381,17 @@ def trajectory_figures(est: np.ndarray, gt: np.ndarray, lengths_m, step: int = 1
     def rounded(value, digits):  # NaN (no segment fits) is None in the JSON
         return None if not np.isfinite(value) else round(float(value), digits)
 
-    return {"ate_m": round(rigid["translation_rmse_m"], 4), "ate_rot_deg": round(rigid["rotation_rmse_deg"], 3),
-            "ate_poses": len(est), "ate_sim3_m": round(similar["translation_rmse_m"], 4),
-            "sim3_scale": round(similar["scale"], 6), "path_ratio": rounded(metrics.path_length_ratio(est, gt), 6),
-            "kitti_t_pct": rounded(kitti["translation_pct"], 4),
-            "kitti_r_deg_per_m": rounded(kitti["rotation_deg_per_m"], 5), "kitti_segments": kitti["num_segments"]}
+    return {
+        "ate_m": round(rigid["translation_rmse_m"], 4),
+        "ate_rot_deg": round(rigid["rotation_rmse_deg"], 3),
+        "ate_poses": len(est),
+        "ate_sim3_m": round(similar["translation_rmse_m"], 4),
+        "sim3_scale": round(similar["scale"], 6),
+        "path_ratio": rounded(metrics.path_length_ratio(est, gt), 6),
+        "kitti_t_pct": rounded(kitti["translation_pct"], 4),
+        "kitti_r_deg_per_m": rounded(kitti["rotation_deg_per_m"], 5),
+        "kitti_segments": kitti["num_segments"],
+    }
 
 
 def evaluated_poses(path: str, loaded, from_scan: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -380,12 +426,22 @@ def run_sequence(name: str, root: str, range_m: float | None) -> dict:
     r = summary["run"]
     loaded, keyframes = seen["loaded"], seen["keyframes"]
     ranges = peer_ranges(config, PEER_RANGE.value)
-    entry = {"sequence": name, "root": root, "input_scans": loaded.num_scans, "keyframes": keyframes.num_scans,
-             "steps": r["steps"], "started_from": r.get("started_from"), "peer_range": ranges,
-             "eval_from_scan": EVAL_FROM_SCAN.value, "methods": {}}
+    entry = {
+        "sequence": name,
+        "root": root,
+        "input_scans": loaded.num_scans,
+        "keyframes": keyframes.num_scans,
+        "steps": r["steps"],
+        "started_from": r.get("started_from"),
+        "peer_range": ranges,
+        "eval_from_scan": EVAL_FROM_SCAN.value,
+        "methods": {},
+    }
     rows = {m: {"method": m} for m in METHODS}
-    files = {"odometry": os.path.join(run_dir, "poses_odometry.txt"), "neld_ba": os.path.join(run_dir,
-                                                                                                "poses_optimized.txt")}
+    files = {
+        "odometry": os.path.join(run_dir, "poses_odometry.txt"),
+        "neld_ba": os.path.join(run_dir, "poses_optimized.txt"),
+    }
     if not os.path.exists(files["odometry"]):  # the input came from the layout's own poses after all
         files["odometry"] = os.path.join(run_dir, "poses_initial.txt")
         rows["odometry"]["note"] = "the layout's poses, not the run's odometry"
@@ -408,7 +464,7 @@ def run_sequence(name: str, root: str, range_m: float | None) -> dict:
         for m in methods:
             est, gt = evaluated_poses(files[m], loaded, EVAL_FROM_SCAN.value)
             rows[m].update(trajectory_figures(est, gt, lengths, SEGMENT_STEP.value))
-        entry["gt_path_m"] = round(path_length(loaded.gt_poses[EVAL_FROM_SCAN.value:]), 3)
+        entry["gt_path_m"] = round(path_length(loaded.gt_poses[EVAL_FROM_SCAN.value :]), 3)
     crispness_rows(config, loaded, keyframes, files, rows, methods)
     entry["methods"] = rows
     entry["targets"] = {"peers": real_targets.peer_target_verdicts(entry, MINUTES_LIMIT.value)}
@@ -421,20 +477,25 @@ def crispness_rows(config, loaded, keyframes, files: dict, rows: dict, methods: 
     from neld_jax.judging import judge
     from neld_jax.writing.evaluate import trajectory_at_keyframes
 
-    at_keyframes = {m: trajectory_at_keyframes(files[m], loaded, keyframes, tol=float(config.data.timestamp_tol_s))
-                    for m in methods}
+    at_keyframes = {
+        m: trajectory_at_keyframes(files[m], loaded, keyframes, tol=float(config.data.timestamp_tol_s)) for m in methods
+    }
     crisp, _ = judge.map_crispness(keyframes, at_keyframes, config.eval)
     margins = judge.crispness_margins(keyframes, at_keyframes, config.eval, against="neld_ba", first_draw=crisp)
     every = every_sweep_crispness(loaded, {m: poses_of_every_sweep(files[m], loaded) for m in methods}, config.eval)
     for m in methods:
         s = crisp[m]
         rows[m]["every_sweep_map"] = every[m]
-        rows[m].update(entropy=None if s["mean_map_entropy"] is None else round(s["mean_map_entropy"], 4),
-                       thickness_cm=None if s["mean_plane_thickness_m"] is None
-                       else round(100 * s["mean_plane_thickness_m"], 3))
+        rows[m].update(
+            entropy=None if s["mean_map_entropy"] is None else round(s["mean_map_entropy"], 4),
+            thickness_cm=None if s["mean_plane_thickness_m"] is None else round(100 * s["mean_plane_thickness_m"], 3),
+        )
         if m in margins:
-            rows[m].update(neld_ba_margin=margins[m]["mean"], neld_ba_margin_per_draw=margins[m]["per_draw"],
-                           neld_ba_verdict=real_targets.margin_verdict(margins[m]))
+            rows[m].update(
+                neld_ba_margin=margins[m]["mean"],
+                neld_ba_margin_per_draw=margins[m]["per_draw"],
+                neld_ba_verdict=real_targets.margin_verdict(margins[m]),
+            )
         rows[m]["poses"] = files[m]
 
 
@@ -464,23 +525,36 @@ def every_sweep_crispness(loaded, methods: dict, eval_cfg) -> dict:
     crisp, margins = judge.every_scan_crispness(loaded.scans, methods, eval_cfg, against="neld_ba")
     out = {}
     for m, summary in crisp.items():
-        out[m] = {"entropy": summary["mean_map_entropy"], "thickness_cm": None if summary["mean_plane_thickness_m"]
-                  is None else round(100 * summary["mean_plane_thickness_m"], 3)}
+        out[m] = {
+            "entropy": summary["mean_map_entropy"],
+            "thickness_cm": None
+            if summary["mean_plane_thickness_m"] is None
+            else round(100 * summary["mean_plane_thickness_m"], 3),
+        }
         if m in margins:
-            out[m].update(neld_ba_margin=margins[m]["mean"], neld_ba_margin_per_draw=margins[m]["per_draw"],
-                          neld_ba_verdict=real_targets.margin_verdict(margins[m]))
+            out[m].update(
+                neld_ba_margin=margins[m]["mean"],
+                neld_ba_margin_per_draw=margins[m]["per_draw"],
+                neld_ba_verdict=real_targets.margin_verdict(margins[m]),
+            )
     return out
 
 
 TABLE_COLUMNS = (  # (header, row key, format) of the trajectory's columns
-    ("ATE m", "ate_m", "8.4f"), ("ATE deg", "ate_rot_deg", "8.3f"), ("Sim3 m", "ate_sim3_m", "8.4f"),
-    ("scale", "sim3_scale", "8.5f"), ("path", "path_ratio", "8.5f"), ("KITTI %", "kitti_t_pct", "8.3f"),
-    ("deg/m", "kitti_r_deg_per_m", "8.5f"))
+    ("ATE m", "ate_m", "8.4f"),
+    ("ATE deg", "ate_rot_deg", "8.3f"),
+    ("Sim3 m", "ate_sim3_m", "8.4f"),
+    ("scale", "sim3_scale", "8.5f"),
+    ("path", "path_ratio", "8.5f"),
+    ("KITTI %", "kitti_t_pct", "8.3f"),
+    ("deg/m", "kitti_r_deg_per_m", "8.5f"),
+)
 
 
 def format_table(entry: dict) -> str:
     """The sequence's rows: method, the trajectory's figures (TABLE_COLUMNS), crispness, NeLD-BA's margin, wall time
     (or why a row is empty); then NeLD-BA's ATE over each other method's and its path over the odometry's."""
+
     def cell(value, fmt):
         return "-" if value is None else format(value, fmt)
 
@@ -488,24 +562,33 @@ def format_table(entry: dict) -> str:
         return "" if "neld_ba_margin" not in row else f"{row['neld_ba_margin']:+.4f} {row['neld_ba_verdict']}"
 
     scored = "" if not entry.get("eval_from_scan") else f", scored from sweep {entry['eval_from_scan']}"
-    lines = [f"{entry['sequence']}: {entry['input_scans']} sweeps, {entry['keyframes']} keyframes{scored}",
-             (f"{'method':<10} " + " ".join(f"{h:>8}" for h, _, _ in TABLE_COLUMNS) + f" {'entropy':>8} "
-              f"{'thick cm':>8} {'NeLD-BA margin':>22} {'wall s':>7} {'every sweep: entropy':>20} "
-              f"{'NeLD-BA margin':>22}")]
+    lines = [
+        f"{entry['sequence']}: {entry['input_scans']} sweeps, {entry['keyframes']} keyframes{scored}",
+        (
+            f"{'method':<10} " + " ".join(f"{h:>8}" for h, _, _ in TABLE_COLUMNS) + f" {'entropy':>8} "
+            f"{'thick cm':>8} {'NeLD-BA margin':>22} {'wall s':>7} {'every sweep: entropy':>20} "
+            f"{'NeLD-BA margin':>22}"
+        ),
+    ]
     for m in METHODS:
         row = entry["methods"][m]
         if "status" in row:
             lines.append(f"{m:<10} {row['status']}")
             continue
         every = row.get("every_sweep_map", {})
-        lines.append(f"{m:<10} " + " ".join(cell(row.get(key), fmt).rjust(8) for _, key, fmt in TABLE_COLUMNS)
-                     + f" {cell(row.get('entropy'), '8.4f')} {cell(row.get('thickness_cm'), '8.3f')} "
-                     f"{margin(row):>22} {cell(row.get('wall_s'), '7.1f')} {cell(every.get('entropy'), '20.4f')} "
-                     f"{margin(every):>22}")
+        lines.append(
+            f"{m:<10} "
+            + " ".join(cell(row.get(key), fmt).rjust(8) for _, key, fmt in TABLE_COLUMNS)
+            + f" {cell(row.get('entropy'), '8.4f')} {cell(row.get('thickness_cm'), '8.3f')} "
+            f"{margin(row):>22} {cell(row.get('wall_s'), '7.1f')} {cell(every.get('entropy'), '20.4f')} "
+            f"{margin(every):>22}"
+        )
     targets = entry.get("targets", {}).get("peers", {})
     over = ", ".join(f"{m} {cell(targets.get(f'ate_over_{m}'), '.4f')}" for m in ("kiss_icp", "odometry", "baseline"))
-    lines.append(f"NeLD-BA's ATE over: {over}; its path over the odometry's: "
-                 f"{cell(targets.get('path_scale_vs_odometry'), '.6f')}")
+    lines.append(
+        f"NeLD-BA's ATE over: {over}; its path over the odometry's: "
+        f"{cell(targets.get('path_scale_vs_odometry'), '.6f')}"
+    )
     return "\n".join(lines)
 
 
@@ -523,8 +606,13 @@ def sequences() -> list[tuple[str, str, tuple | None]]:
             raise app.UsageError(f"--sequences item {item!r}: expected synthetic10hz:SEED[:RADIUS_M] or car:SEED")
         radius_m = float(radius or SYNTHETIC["trajectory_radius_m"])
         name = f"synthetic10hz_{seed}_r{radius_m:g}_{NUM_SCANS.value}"
-        out.append((name, os.path.join(WORK.value, name, "data"),
-                    (make_synthetic, (int(seed), radius_m), SYNTHETIC["max_range_m"])))
+        out.append(
+            (
+                name,
+                os.path.join(WORK.value, name, "data"),
+                (make_synthetic, (int(seed), radius_m), SYNTHETIC["max_range_m"]),
+            )
+        )
     for root in ROOTS.value:
         out.append((os.path.basename(os.path.normpath(root)), root, None))
     return out
@@ -552,15 +640,27 @@ def main(argv):
             entry = {"sequence": name, "error": f"{type(e).__name__}: {e}"}
             logging.error("%s failed:\n%s", name, traceback.format_exc())
         results.append(entry)
-        stamped = harness.write(harness.OUT.value, {
-            "config": CONFIG.value, "overrides": OVERRIDES.value, "num_scans": NUM_SCANS.value,
-            "slam_splitting_m": SLAM_SPLITTING.value or None, "peer_range": PEER_RANGE.value,
-            "eval_from_scan": EVAL_FROM_SCAN.value, "segments_m": [float(v) for v in SEGMENTS_M.value],
-            "segment_step": SEGMENT_STEP.value, "sequences": results}, stamped=stamped)
-    print(f"targets (NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's and over theirs, the baseline's and the "
-          f"odometry's, its path within 0.1 % of the odometry's, its raw map crisper than both peers on every draw, "
-          f"the whole run within {MINUTES_LIMIT.value:g} minutes):\n" + real_targets.format_targets(results),
-          flush=True)
+        stamped = harness.write(
+            harness.OUT.value,
+            {
+                "config": CONFIG.value,
+                "overrides": OVERRIDES.value,
+                "num_scans": NUM_SCANS.value,
+                "slam_splitting_m": SLAM_SPLITTING.value or None,
+                "peer_range": PEER_RANGE.value,
+                "eval_from_scan": EVAL_FROM_SCAN.value,
+                "segments_m": [float(v) for v in SEGMENTS_M.value],
+                "segment_step": SEGMENT_STEP.value,
+                "sequences": results,
+            },
+            stamped=stamped,
+        )
+    print(
+        f"targets (NeLD-BA's ATE below KISS-ICP's and KISS-SLAM's and over theirs, the baseline's and the "
+        f"odometry's, its path within 0.1 % of the odometry's, its raw map crisper than both peers on every draw, "
+        f"the whole run within {MINUTES_LIMIT.value:g} minutes):\n" + real_targets.format_targets(results),
+        flush=True,
+    )
     print(f"written to {harness.OUT.value}", flush=True)
 
 

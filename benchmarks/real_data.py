@@ -48,27 +48,39 @@ from neld_jax.hugepages import reexec_with_huge_page_malloc
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 ROOT = flags.DEFINE_string("root", None, "Folder holding one sub-folder per sequence (lio_keyframes layout).")
-SEQUENCES = flags.DEFINE_list("sequences", None,
-                              "Sub-folders of --root to run (default: every sub-folder with Scans/).")
+SEQUENCES = flags.DEFINE_list(
+    "sequences", None, "Sub-folders of --root to run (default: every sub-folder with Scans/)."
+)
 WORK = flags.DEFINE_string("work", "outputs/real_data", "Output folders of the runs go below this.")
 harness.default_out("outputs/real_data/real_data.json")  # --out: one entry per sequence
 BUDGET = flags.DEFINE_string("budget", "cpu", "Config budget (cpu, gpu or paper).")
 MAX_MINUTES = flags.DEFINE_float("max_minutes", -1.0, "Override max_minutes, the whole run's (-1: the budget's).")
-RECORDED_STARTS = flags.DEFINE_list("recorded_starts", ["crisper"],
-                                    "Starts (start.poses) of the runs from the recorded odometry; the first is "
-                                    "also the drift run's.")
+RECORDED_STARTS = flags.DEFINE_list(
+    "recorded_starts",
+    ["crisper"],
+    "Starts (start.poses) of the runs from the recorded odometry; the first is also the drift run's.",
+)
 SKIP_DRIFT = flags.DEFINE_bool("skip_drift", False, "Only the recorded-odometry runs.")
 DRIFT_TRANS = flags.DEFINE_float("drift_trans_m", 0.05, "Injected drift per keyframe: translation sigma [m].")
 DRIFT_ROT = flags.DEFINE_float("drift_rot_deg", 0.5, "Injected drift per keyframe: rotation sigma [deg].")
 SEED = flags.DEFINE_integer("seed", 0, "Seed of the injected drift.")
-KEEP_TILT = flags.DEFINE_bool("keep_tilt", False, "The drift of an IMU-aided odometry: position and heading only "
-                              "(bin/perturb.py --keep_tilt); without it the drift turns all three axes.")
+KEEP_TILT = flags.DEFINE_bool(
+    "keep_tilt",
+    False,
+    "The drift of an IMU-aided odometry: position and heading only "
+    "(bin/perturb.py --keep_tilt); without it the drift turns all three axes.",
+)
 OVERRIDES = harness.overrides_flag()
-DRIFT_RECIPE = flags.DEFINE_enum("drift_recipe", "lio_keyframes", ["lio_keyframes", "generic"],
-                                 "The drift run's config: lio_keyframes (every scan a keyframe) or generic (the "
-                                 "own-data recipe: keyframes by the caps, the other scans registered to the result).")
-MINUTES_LIMIT = flags.DEFINE_float("minutes_limit", 10.0, "The end-to-end time target of a recorded run [min] "
-                                   "(10 on the cpu budget's 2 cores).")
+DRIFT_RECIPE = flags.DEFINE_enum(
+    "drift_recipe",
+    "lio_keyframes",
+    ["lio_keyframes", "generic"],
+    "The drift run's config: lio_keyframes (every scan a keyframe) or generic (the "
+    "own-data recipe: keyframes by the caps, the other scans registered to the result).",
+)
+MINUTES_LIMIT = flags.DEFINE_float(
+    "minutes_limit", 10.0, "The end-to-end time target of a recorded run [min] (10 on the cpu budget's 2 cores)."
+)
 flags.mark_flag_as_required("root")
 
 
@@ -88,9 +100,11 @@ def _config(fmt_config: str, root: str, out_dir: str, recipe: str = "lio_keyfram
 
 
 def _crisp(summary: dict) -> dict:
-    return {name: {"entropy": round(s["mean_map_entropy"], 4),
-                   "thickness_cm": round(100 * s["mean_plane_thickness_m"], 3)}
-            for name, s in summary.items() if s.get("mean_map_entropy") is not None}
+    return {
+        name: {"entropy": round(s["mean_map_entropy"], 4), "thickness_cm": round(100 * s["mean_plane_thickness_m"], 3)}
+        for name, s in summary.items()
+        if s.get("mean_map_entropy") is not None
+    }
 
 
 def _ate(evaluation: dict, method: str):
@@ -137,18 +151,26 @@ def run_sequence(name: str, root: str) -> dict:
         summary = run(config, progress=False)
         r = summary["run"]
         entry["recorded"][start] = {
-            "scans": r["num_input_scans"], "keyframes": r["num_scans"], "steps": r["steps"],
-            "schedule_steps": r["schedule_steps"], "wall_s": round(time.perf_counter() - t0, 1),
-            "map_rays": r["map_rays"], "map_rays_rendered": r["map_rays_rendered"],
-            "baseline_wall_s": r.get("baseline_seconds"), "started_from": r["started_from"],
-            "baseline_tilt": r.get("baseline_tilt"), "baseline_refined_from": r.get("baseline_refined_from"),
+            "scans": r["num_input_scans"],
+            "keyframes": r["num_scans"],
+            "steps": r["steps"],
+            "schedule_steps": r["schedule_steps"],
+            "wall_s": round(time.perf_counter() - t0, 1),
+            "map_rays": r["map_rays"],
+            "map_rays_rendered": r["map_rays_rendered"],
+            "baseline_wall_s": r.get("baseline_seconds"),
+            "started_from": r["started_from"],
+            "baseline_tilt": r.get("baseline_tilt"),
+            "baseline_refined_from": r.get("baseline_refined_from"),
             "baseline_rounds_done": r.get("baseline_rounds_done"),
             "baseline_departure_m": r.get("baseline_departure_m"),
-            "crispness": _crisp(summary["crispness"]), "crispness_margin": r["crispness_margin"],
+            "crispness": _crisp(summary["crispness"]),
+            "crispness_margin": r["crispness_margin"],
             "pose_lines": len(read_tum(os.path.join(out, f"recorded_{start}", "poses_optimized.txt"))[0]),
             "final_range_err_m": round(r["final"].get("range_err_m", float("nan")), 4),
             "final_range_residual_median_m": round(r["final"].get("range_residual_median_m", float("nan")), 4),
-            "every_scan_map": every_scan_map(config, os.path.join(out, f"recorded_{start}"))}
+            "every_scan_map": every_scan_map(config, os.path.join(out, f"recorded_{start}")),
+        }
         print(json.dumps(entry), flush=True)
     if SKIP_DRIFT.value:
         return entry
@@ -164,19 +186,33 @@ def run_sequence(name: str, root: str) -> dict:
     t_neld = time.perf_counter() - t0
     evaluation, r = summary["evaluation"], summary["run"]
     entry["drift"] = {
-        "drift_per_keyframe": {"trans_m": DRIFT_TRANS.value, "rot_deg": DRIFT_ROT.value, "seed": SEED.value,
-                               "keep_tilt": KEEP_TILT.value},
+        "drift_per_keyframe": {
+            "trans_m": DRIFT_TRANS.value,
+            "rot_deg": DRIFT_ROT.value,
+            "seed": SEED.value,
+            "keep_tilt": KEEP_TILT.value,
+        },
         "ate_vs_odometry_m": {m: _ate(evaluation, m) for m in ("initial", "baseline", "optimized")},
-        "crispness": _crisp(summary["crispness"]), "crispness_margin": r["crispness_margin"],
-        "neld_wall_s": round(t_neld, 1), "baseline_wall_s": r.get("baseline_seconds"),
-        "map_rays": r["map_rays"], "map_rays_rendered": r["map_rays_rendered"],
-        "steps": r["steps"], "schedule_steps": r["schedule_steps"], "start": drift_start,
-        "recipe": DRIFT_RECIPE.value, "scans": r["num_input_scans"], "keyframes": r["num_scans"],
-        "started_from": r["started_from"], "baseline_tilt": r.get("baseline_tilt"),
-        "baseline_refined_from": r.get("baseline_refined_from"), "baseline_rounds_done": r.get("baseline_rounds_done"),
+        "crispness": _crisp(summary["crispness"]),
+        "crispness_margin": r["crispness_margin"],
+        "neld_wall_s": round(t_neld, 1),
+        "baseline_wall_s": r.get("baseline_seconds"),
+        "map_rays": r["map_rays"],
+        "map_rays_rendered": r["map_rays_rendered"],
+        "steps": r["steps"],
+        "schedule_steps": r["schedule_steps"],
+        "start": drift_start,
+        "recipe": DRIFT_RECIPE.value,
+        "scans": r["num_input_scans"],
+        "keyframes": r["num_scans"],
+        "started_from": r["started_from"],
+        "baseline_tilt": r.get("baseline_tilt"),
+        "baseline_refined_from": r.get("baseline_refined_from"),
+        "baseline_rounds_done": r.get("baseline_rounds_done"),
         "baseline_departure_m": r.get("baseline_departure_m"),
         "every_scan_map": every_scan_map(config, os.path.join(out, "drift")),
     }
+
     def apart(method: str, recorded_run: str) -> float:
         _, T_rec = read_tum(os.path.join(out, recorded_run, f"poses_{method}.txt"))
         _, T_drift = read_tum(os.path.join(out, "drift", f"poses_{method}.txt"))
@@ -192,8 +228,10 @@ def run_sequence(name: str, root: str) -> dict:
         # Why NeLD-BA's ATE against the odometry differs from the baseline's it started from (ate_change.py)
         from ate_change import ate_change_terms  # this folder's benchmarks/ate_change.py
 
-        T = {m: read_tum(os.path.join(out, "drift", f"poses_{m}.txt"))[1]
-             for m in ("gt", "baseline", "optimized", "initial")}
+        T = {
+            m: read_tum(os.path.join(out, "drift", f"poses_{m}.txt"))[1]
+            for m in ("gt", "baseline", "optimized", "initial")
+        }
         terms = ate_change_terms(T["baseline"], T["optimized"], T["gt"], T["initial"])
         entry["drift"]["ate_change_vs_odometry"] = {k: round(v, 6) for k, v in terms.items()}
     print(json.dumps(entry), flush=True)
@@ -203,8 +241,9 @@ def run_sequence(name: str, root: str) -> dict:
 def main(argv):
     del argv
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    names = SEQUENCES.value or sorted(d for d in os.listdir(ROOT.value)
-                                      if os.path.isdir(os.path.join(ROOT.value, d, "Scans")))
+    names = SEQUENCES.value or sorted(
+        d for d in os.listdir(ROOT.value) if os.path.isdir(os.path.join(ROOT.value, d, "Scans"))
+    )
     results, stamped = [], None
     if os.path.exists(harness.OUT.value):  # the other sequences of an earlier run stay
         results = [r for r in harness.load(harness.OUT.value).get("sequences", []) if r["sequence"] not in names]
@@ -217,9 +256,17 @@ def main(argv):
             logging.error("%s failed:\n%s", name, traceback.format_exc())
             print(json.dumps(entry), flush=True)
         results.append(entry)
-        stamped = harness.write(harness.OUT.value, {
-            "budget": BUDGET.value, "overrides": OVERRIDES.value, "keep_tilt": KEEP_TILT.value,
-            "drift_recipe": DRIFT_RECIPE.value, "sequences": results}, stamped=stamped)
+        stamped = harness.write(
+            harness.OUT.value,
+            {
+                "budget": BUDGET.value,
+                "overrides": OVERRIDES.value,
+                "keep_tilt": KEEP_TILT.value,
+                "drift_recipe": DRIFT_RECIPE.value,
+                "sequences": results,
+            },
+            stamped=stamped,
+        )
     print("targets for real recordings (benchmarks/RESULTS.md):\n" + real_targets.format_targets(results), flush=True)
 
 

@@ -42,18 +42,28 @@ EVALUATE = flags.DEFINE_bool("evaluate", False, "Judge --trained against --run_d
 RUN_DIR = flags.DEFINE_string("run_dir", "", "A finished bin/train.py run (config.json, start_poses.npz).")
 NAME = flags.DEFINE_string("name", "", "The prepared sequence's name (default: --run_dir's folder name).")
 DATA = flags.DEFINE_string("data", os.path.join(REPO, ".gpu_data"), "Folder of the prepared sequences.")
-CONFIG = flags.DEFINE_string("config", "configs/lio_keyframes.py", "The config file the run used (its get_config; "
-                             "relative to the repository).")
+CONFIG = flags.DEFINE_string(
+    "config", "configs/lio_keyframes.py", "The config file the run used (its get_config; relative to the repository)."
+)
 BUDGET = flags.DEFINE_string("budget", "gpu", "The budget of --config to train with.")
-SET = flags.DEFINE_multi_string("set", [], "Config overrides KEY=VALUE (neld_jax.config.apply_overrides): with "
-                                "--prepare on the run's config, in training on the prepared one (a variant; the "
-                                "pose steps stay the prepared ones).")
+SET = flags.DEFINE_multi_string(
+    "set",
+    [],
+    "Config overrides KEY=VALUE (neld_jax.config.apply_overrides): with "
+    "--prepare on the run's config, in training on the prepared one (a variant; the "
+    "pose steps stay the prepared ones).",
+)
 TRAINED = flags.DEFINE_string("trained", "", "--evaluate: a <name>_trained.npz the GPU wrote.")
-OUT_DIR = flags.DEFINE_string("out_dir", "", "--evaluate: folder for the poses files and evaluation.json; "
-                              "training: folder for <name>_trained.npz and real_gpu.json (default $OUT).")
+OUT_DIR = flags.DEFINE_string(
+    "out_dir",
+    "",
+    "--evaluate: folder for the poses files and evaluation.json; "
+    "training: folder for <name>_trained.npz and real_gpu.json (default $OUT).",
+)
 NAMES = flags.DEFINE_list("names", [], "Training: the prepared sequences to train, in this order (default: all).")
-MAX_TRAIN_S = flags.DEFINE_float("max_train_s", 150.0, "Training: each sequence's training time, seconds (the "
-                                 "schedule is compressed to it).")
+MAX_TRAIN_S = flags.DEFINE_float(
+    "max_train_s", 150.0, "Training: each sequence's training time, seconds (the schedule is compressed to it)."
+)
 BUDGET_S = flags.DEFINE_float("budget_s", 480.0, "Training: start no sequence after this many seconds.")
 
 
@@ -87,8 +97,7 @@ def read_start(run_dir: str, input_poses: np.ndarray) -> tuple[np.ndarray, str, 
     with np.load(path) as saved:
         meta = json.loads(str(saved["meta"]))
         saved_input = saved["input_poses"]
-        if saved_input.shape != np.shape(input_poses) or not np.allclose(saved_input, input_poses, rtol=0.0,
-                                                                          atol=1e-9):
+        if saved_input.shape != np.shape(input_poses) or not np.allclose(saved_input, input_poses, rtol=0.0, atol=1e-9):
             raise SystemExit(f"{path}: its input poses are not this sequence's keyframes (another sequence's run?)")
         return saved["poses"], meta["chosen"], saved["baseline_poses"]
 
@@ -128,20 +137,35 @@ def prepare(run_dir: str, name: str) -> dict:
     _, keyframes = load_keyframes(config.data)
     T_start, chosen, _ = read_start(run_dir, keyframes.poses)
     pose_steps = pose_steps_for(config, keyframes, chosen, T_start)
-    rays = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None),
-                      seed=config.seed)
-    prepared = {"name": name, "config": config.to_dict(), "chosen": chosen, "T_start": T_start,
-                "pose_steps": pose_steps.to_dict(), "poses": keyframes.poses, "timestamps": keyframes.timestamps,
-                "source": keyframes.source, "points": pack_points(rays.directions * rays.ranges[:, None]),
-                "counts": np.bincount(rays.scan_index, minlength=keyframes.num_scans)}
+    rays = build_rays(
+        keyframes, Normalization(1.0), max_rays_per_scan=(config.data.max_rays_per_scan or None), seed=config.seed
+    )
+    prepared = {
+        "name": name,
+        "config": config.to_dict(),
+        "chosen": chosen,
+        "T_start": T_start,
+        "pose_steps": pose_steps.to_dict(),
+        "poses": keyframes.poses,
+        "timestamps": keyframes.timestamps,
+        "source": keyframes.source,
+        "points": pack_points(rays.directions * rays.ranges[:, None]),
+        "counts": np.bincount(rays.scan_index, minlength=keyframes.num_scans),
+    }
     # The plan the training will make on one device (it plans on the devices it finds)
     plan = submaps.plan_from_config(dataclasses.replace(prepared_keyframes(prepared), poses=T_start), config)
     os.makedirs(DATA.value, exist_ok=True)
     path = os.path.join(DATA.value, f"{name}.pkl")
     with open(path, "wb") as f:
         pickle.dump(prepared, f, protocol=pickle.HIGHEST_PROTOCOL)
-    return {"path": path, "keyframes": keyframes.num_scans, "rays": int(rays.num_rays), "start": chosen,
-            "submaps": plan.num_submaps, "megabytes": round(os.path.getsize(path) / 1e6, 1)}
+    return {
+        "path": path,
+        "keyframes": keyframes.num_scans,
+        "rays": int(rays.num_rays),
+        "start": chosen,
+        "submaps": plan.num_submaps,
+        "megabytes": round(os.path.getsize(path) / 1e6, 1),
+    }
 
 
 def add_missing_fields(config, defaults, prefix: str = "") -> list:
@@ -182,19 +206,31 @@ def train_prepared(path: str, out_dir: str, max_seconds: float) -> dict:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as scratch:  # its checkpoints
         context = refine.TrainingContext(scratch, outputs.config_hash(config), max_seconds, progress=False)
-        refined = refine.refine_keyframes(refine.TrainingSettings.from_config(config), keyframes, d["T_start"],
-                                          PoseSteps(**d["pose_steps"]), context)
+        refined = refine.refine_keyframes(
+            refine.TrainingSettings.from_config(config), keyframes, d["T_start"], PoseSteps(**d["pose_steps"]), context
+        )
     wall_s = time.perf_counter() - t0
     result = refined.result
-    figures = {"name": d["name"], "device": str(jax.devices()[0]), "jax": jax.__version__,
-               "keyframes": keyframes.num_scans, "rays": int(refined.rays_per_keyframe.sum()), "start": d["chosen"],
-               "submaps": int((refined.plan.weight > 0).sum()), "steps": int(result.state.step),
-               "schedule_steps": int(result.schedules.total_steps), "overrides": list(SET.value),
-               "defaults_added": added, "stopped_early": bool(result.stopped_early),
-               "train_seconds": round(result.train_seconds, 2), "wall_seconds_with_compile": round(wall_s, 2),
-               "final": result.history[-1] if result.history else {}}
-    np.savez(os.path.join(out_dir, f"{d['name']}_trained.npz"), T_opt=refined.poses,
-             figures=np.array(json.dumps(figures)))
+    figures = {
+        "name": d["name"],
+        "device": str(jax.devices()[0]),
+        "jax": jax.__version__,
+        "keyframes": keyframes.num_scans,
+        "rays": int(refined.rays_per_keyframe.sum()),
+        "start": d["chosen"],
+        "submaps": int((refined.plan.weight > 0).sum()),
+        "steps": int(result.state.step),
+        "schedule_steps": int(result.schedules.total_steps),
+        "overrides": list(SET.value),
+        "defaults_added": added,
+        "stopped_early": bool(result.stopped_early),
+        "train_seconds": round(result.train_seconds, 2),
+        "wall_seconds_with_compile": round(wall_s, 2),
+        "final": result.history[-1] if result.history else {},
+    }
+    np.savez(
+        os.path.join(out_dir, f"{d['name']}_trained.npz"), T_opt=refined.poses, figures=np.array(json.dumps(figures))
+    )
     return figures
 
 
@@ -249,19 +285,35 @@ def evaluate(run_dir: str, trained_path: str, out_dir: str) -> dict:
     T_all = propagate_corrections(loaded.poses, seq.loaded_index, saved["T_opt"], loaded.timestamps)
     export.write_poses(out_dir, "poses_optimized", loaded.timestamps, T_all)
     if baseline is not None:
-        export.write_poses(out_dir, "poses_baseline", loaded.timestamps, propagate_corrections(
-            loaded.poses, seq.loaded_index, baseline, loaded.timestamps))
+        export.write_poses(
+            out_dir,
+            "poses_baseline",
+            loaded.timestamps,
+            propagate_corrections(loaded.poses, seq.loaded_index, baseline, loaded.timestamps),
+        )
     if seq.gt_poses is not None:  # a synthetic or pseudo-ground-truth sequence: the ATE too (SE(3)-aligned)
         from neld_jax.judging import metrics
 
         for method, poses in methods.items():
             ate = metrics.ate(poses, seq.gt_poses)
             crisp[method]["ate_m"], crisp[method]["ate_deg"] = ate["translation_rmse_m"], ate["rotation_rmse_deg"]
-    result = {"sequence": config.data.root, "run_dir": run_dir, "started_from": chosen, "training": figures,
-              "num_input_scans": loaded.num_scans, "poses_optimized_lines": len(T_all),
-              "crispness": {m: {k: crisp[m][k] for k in ("mean_map_entropy", "mean_plane_thickness_m", "ate_m",
-                                                        "ate_deg") if k in crisp[m]} for m in crisp},
-              "optimized_minus": margins}
+    result = {
+        "sequence": config.data.root,
+        "run_dir": run_dir,
+        "started_from": chosen,
+        "training": figures,
+        "num_input_scans": loaded.num_scans,
+        "poses_optimized_lines": len(T_all),
+        "crispness": {
+            m: {
+                k: crisp[m][k]
+                for k in ("mean_map_entropy", "mean_plane_thickness_m", "ate_m", "ate_deg")
+                if k in crisp[m]
+            }
+            for m in crisp
+        },
+        "optimized_minus": margins,
+    }
     export.write_json(os.path.join(out_dir, "evaluation.json"), result)
     return result
 
@@ -273,8 +325,9 @@ def main(argv):
         if not RUN_DIR.value:
             raise SystemExit("--prepare and --evaluate need --run_dir")
         if EVALUATE.value and not os.path.isfile(TRAINED.value):
-            raise SystemExit(f"--evaluate needs --trained, a <name>_trained.npz the training wrote "
-                             f"(got {TRAINED.value!r})")
+            raise SystemExit(
+                f"--evaluate needs --trained, a <name>_trained.npz the training wrote (got {TRAINED.value!r})"
+            )
         name = NAME.value or os.path.basename(os.path.normpath(RUN_DIR.value))
         if PREPARE.value:
             print(json.dumps(prepare(RUN_DIR.value, name)))

@@ -29,6 +29,7 @@ def target_verdicts(entry: dict, start: str, minutes_limit: float = 10.0) -> dic
     recorded run from `start` (start.poses; the drift run's own), and {"drift": {...}} when there is a drift
     run. Each target is True / False, a margin's verdict ("every draw", "a tie", "blurrier"), or None where the
     entry lacks what it needs."""
+
     def entropy(crispness: dict, method: str):
         return crispness.get(method, {}).get("entropy")
 
@@ -41,8 +42,9 @@ def target_verdicts(entry: dict, start: str, minutes_limit: float = 10.0) -> dic
         crisp = recorded["crispness"]
         out["recorded"] = {
             "within_minutes": recorded["wall_s"] <= 60 * minutes_limit,
-            "every_scan_a_pose": (None if recorded.get("pose_lines") is None
-                                  else recorded["pose_lines"] == recorded["scans"]),
+            "every_scan_a_pose": (
+                None if recorded.get("pose_lines") is None else recorded["pose_lines"] == recorded["scans"]
+            ),
             "crisper_than_odometry": below(entropy(crisp, "optimized"), entropy(crisp, "initial"), strictly=True),
             "crisper_than_baseline": margin_verdict((recorded.get("crispness_margin") or {}).get("baseline")),
         }
@@ -51,19 +53,26 @@ def target_verdicts(entry: dict, start: str, minutes_limit: float = 10.0) -> dic
         apart = drift.get("optimized_apart_from_recorded_m")
         # The ATE split's own figures where there are (unrounded: the two ATEs differ by hundredths of a mm)
         split = drift.get("ate_change_vs_odometry") or {}
-        ate = ({"baseline": split["ate_baseline_mm"], "optimized": split["ate_optimized_mm"]}
-               if "ate_optimized_mm" in split else drift["ate_vs_odometry_m"])
+        ate = (
+            {"baseline": split["ate_baseline_mm"], "optimized": split["ate_optimized_mm"]}
+            if "ate_optimized_mm" in split
+            else drift["ate_vs_odometry_m"]
+        )
         out["drift"] = {
             "within_2cm_of_recorded_answer": below(apart, 0.02),
-            "as_crisp_as_odometry": below(entropy(drift["crispness"], "optimized"),
-                                          None if recorded is None else entropy(recorded["crispness"], "initial")),
+            "as_crisp_as_odometry": below(
+                entropy(drift["crispness"], "optimized"),
+                None if recorded is None else entropy(recorded["crispness"], "initial"),
+            ),
             "ate_at_or_below_baseline": below(ate.get("optimized"), ate.get("baseline")),
             "crisper_than_baseline": margin_verdict((drift.get("crispness_margin") or {}).get("baseline")),
         }
         if "every_scan_map" in drift:  # every input scan's map, not only the keyframes'
             margin = drift["every_scan_map"]["margin"]
-            out["drift"].update(every_scan_map_crisper_than_odometry=margin_verdict(margin.get("initial")),
-                                every_scan_map_crisper_than_baseline=margin_verdict(margin.get("baseline")))
+            out["drift"].update(
+                every_scan_map_crisper_than_odometry=margin_verdict(margin.get("initial")),
+                every_scan_map_crisper_than_baseline=margin_verdict(margin.get("baseline")),
+            )
     return out
 
 
@@ -89,16 +98,20 @@ def peer_target_verdicts(entry: dict, minutes_limit: float = 10.0) -> dict:
         return None if a is None or not b else round(a / b, 4 if key == "ate_m" else 6)
 
     scale = over("odometry", "path_ratio")
-    return {"ate_below_kiss_icp": below("kiss_icp"), "ate_below_kiss_slam": below("kiss_slam"),
-            "ate_over_kiss_icp": over("kiss_icp"), "ate_over_baseline": over("baseline"),
-            "ate_over_odometry": over("odometry"), "path_scale_vs_odometry": scale,
-            "path_scale_within_0.1pct": None if scale is None else abs(scale - 1.0) <= PATH_SCALE_TOLERANCE,
-            "crisper_than_kiss_icp": rows["kiss_icp"].get("neld_ba_verdict"),
-            "crisper_than_kiss_slam": rows["kiss_slam"].get("neld_ba_verdict"),
-            "every_sweep_map_crisper_than_kiss_icp": rows["kiss_icp"].get("every_sweep_map", {}).get("neld_ba_verdict"),
-            "every_sweep_map_crisper_than_kiss_slam": rows["kiss_slam"].get("every_sweep_map", {}).get(
-                "neld_ba_verdict"),
-            "within_minutes": None if neld.get("wall_s") is None else neld["wall_s"] <= 60 * minutes_limit}
+    return {
+        "ate_below_kiss_icp": below("kiss_icp"),
+        "ate_below_kiss_slam": below("kiss_slam"),
+        "ate_over_kiss_icp": over("kiss_icp"),
+        "ate_over_baseline": over("baseline"),
+        "ate_over_odometry": over("odometry"),
+        "path_scale_vs_odometry": scale,
+        "path_scale_within_0.1pct": None if scale is None else abs(scale - 1.0) <= PATH_SCALE_TOLERANCE,
+        "crisper_than_kiss_icp": rows["kiss_icp"].get("neld_ba_verdict"),
+        "crisper_than_kiss_slam": rows["kiss_slam"].get("neld_ba_verdict"),
+        "every_sweep_map_crisper_than_kiss_icp": rows["kiss_icp"].get("every_sweep_map", {}).get("neld_ba_verdict"),
+        "every_sweep_map_crisper_than_kiss_slam": rows["kiss_slam"].get("every_sweep_map", {}).get("neld_ba_verdict"),
+        "within_minutes": None if neld.get("wall_s") is None else neld["wall_s"] <= 60 * minutes_limit,
+    }
 
 
 def format_targets(results: list[dict]) -> str:
@@ -109,7 +122,8 @@ def format_targets(results: list[dict]) -> str:
             lines.append(f"{entry['sequence']}: failed: {entry['error']}")
             continue
         for group, verdicts in entry.get("targets", {}).items():
-            cells = ", ".join(f"{name} {'yes' if v is True else 'NO' if v is False else v}"
-                              for name, v in verdicts.items())
+            cells = ", ".join(
+                f"{name} {'yes' if v is True else 'NO' if v is False else v}" for name, v in verdicts.items()
+            )
             lines.append(f"{entry['sequence']} ({group}): {cells}")
     return "\n".join(lines)

@@ -56,8 +56,12 @@ SKIP_ALONE = flags.DEFINE_bool("skip_alone", False, "Run the merged run only (no
 SPLIT_ROOT = flags.DEFINE_string("split_root", "", "A lio_keyframes folder whose two halves are the visits.")
 MAX_ATE_M = flags.DEFINE_float("max_ate_m", 0.01, "Target: each visit's ATE under the shared alignment.")
 MINUTES_LIMIT = flags.DEFINE_float("minutes_limit", 15.0, "Target: the merged run's wall time.")
-OVERLAP_M = flags.DEFINE_float("overlap_m", 5.0, "Same-points crispness: a keyframe within this distance [m] of "
-                               "another visit's keyframe is where the visits overlap.")
+OVERLAP_M = flags.DEFINE_float(
+    "overlap_m",
+    5.0,
+    "Same-points crispness: a keyframe within this distance [m] of "
+    "another visit's keyframe is where the visits overlap.",
+)
 PLACING_ICP_M = (1.0, 0.3, 0.1)  # the alone maps' rigid placing: point-to-plane ICP, coarse to fine
 
 
@@ -99,8 +103,10 @@ def split_in_two(root: str, work: str) -> list[str]:
         shutil.rmtree(folder, ignore_errors=True)
         os.makedirs(os.path.join(folder, "Scans"))
         for k, i in enumerate(range(len(poses))[part]):
-            os.symlink(os.path.join(os.path.abspath(root), "Scans", f"{i:06d}.pcd"),
-                       os.path.join(folder, "Scans", f"{k:06d}.pcd"))
+            os.symlink(
+                os.path.join(os.path.abspath(root), "Scans", f"{i:06d}.pcd"),
+                os.path.join(folder, "Scans", f"{k:06d}.pcd"),
+            )
         moved = np.linalg.inv(frame) @ poses[part]
         np.savetxt(os.path.join(folder, "odom_poses.txt"), moved[:, :3, :].reshape(-1, 12))
         with open(os.path.join(folder, "times.txt"), "w") as f:
@@ -125,23 +131,45 @@ def measure(visits: list, roots: list[str]) -> dict:
     alone = []
     for k, root in enumerate(roots if not SKIP_ALONE.value else []):
         m, seconds = timed_run(root, os.path.join(work, f"alone{k}"))
-        ate = {name: method["ate"]["translation_rmse_m"] for name, method in
-               m.get("evaluation", {}).get("methods", {}).items() if "ate" in method}
-        alone.append({"ate_m": ate.get("optimized"), "input_ate_m": ate.get("initial"),
-                      "mean_map_entropy": m["crispness"]["optimized"]["mean_map_entropy"],
-                      "started_from": m["run"]["started_from"], "wall_s": round(seconds, 1)})
+        ate = {
+            name: method["ate"]["translation_rmse_m"]
+            for name, method in m.get("evaluation", {}).get("methods", {}).items()
+            if "ate" in method
+        }
+        alone.append(
+            {
+                "ate_m": ate.get("optimized"),
+                "input_ate_m": ate.get("initial"),
+                "mean_map_entropy": m["crispness"]["optimized"]["mean_map_entropy"],
+                "started_from": m["run"]["started_from"],
+                "wall_s": round(seconds, 1),
+            }
+        )
     m, seconds = timed_run(",".join(roots), os.path.join(work, "merged"))
     merged = []
     for k, entry in enumerate(m["sessions"]["recordings"]):
         files = os.path.join(work, "merged", "sessions", entry["name"], "poses_optimized.txt")
         shared = {name: ate["translation_rmse_m"] for name, ate in entry.get("ate_shared_alignment", {}).items()}
-        merged.append({"name": entry["name"], "closures": entry["closures"],
-                       "ate_shared_alignment_m": shared.get("optimized"), "input_ate_shared_alignment_m":
-                       shared.get("initial"), "ate_own_alignment_m": own_alignment_ate(files, visits[k]),
-                       "crispness": entry["crispness"]})
-    result = {"alone": alone, "merged": {"visits": merged, "wall_s": round(seconds, 1),
-                                         "started_from": m["run"]["started_from"], "steps": m["run"]["steps"],
-                                         "mean_map_entropy": m["crispness"]["optimized"]["mean_map_entropy"]}}
+        merged.append(
+            {
+                "name": entry["name"],
+                "closures": entry["closures"],
+                "ate_shared_alignment_m": shared.get("optimized"),
+                "input_ate_shared_alignment_m": shared.get("initial"),
+                "ate_own_alignment_m": own_alignment_ate(files, visits[k]),
+                "crispness": entry["crispness"],
+            }
+        )
+    result = {
+        "alone": alone,
+        "merged": {
+            "visits": merged,
+            "wall_s": round(seconds, 1),
+            "started_from": m["run"]["started_from"],
+            "steps": m["run"]["steps"],
+            "mean_map_entropy": m["crispness"]["optimized"]["mean_map_entropy"],
+        },
+    }
     if alone:
         result["same_points"] = same_points_crispness(roots, work, m)
     return result
@@ -167,8 +195,8 @@ def placed_rigidly(moving: np.ndarray, fixed: np.ndarray) -> np.ndarray:
     source, target, transform = cloud(moving), cloud(fixed), np.eye(4)
     for distance in PLACING_ICP_M:
         transform = o3d.pipelines.registration.registration_icp(
-            source, target, distance, transform,
-            o3d.pipelines.registration.TransformationEstimationPointToPlane()).transformation
+            source, target, distance, transform, o3d.pipelines.registration.TransformationEstimationPointToPlane()
+        ).transformation
     return np.asarray(transform)
 
 
@@ -189,14 +217,20 @@ def same_points_crispness(roots: list[str], work: str, merged_metrics: dict) -> 
     scans, merged, alone, labels, per_visit = [], [], [], [], []
     for k, (root, entry) in enumerate(zip(roots, merged_metrics["sessions"]["recordings"])):
         loaded, kf = visit_keyframes(root)
-        ours = trajectory_at_keyframes(os.path.join(work, "merged", "sessions", entry["name"], "poses_optimized.txt"),
-                                       loaded, kf)
+        ours = trajectory_at_keyframes(
+            os.path.join(work, "merged", "sessions", entry["name"], "poses_optimized.txt"), loaded, kf
+        )
         own = trajectory_at_keyframes(os.path.join(work, f"alone{k}", "poses_optimized.txt"), loaded, kf)
         poses = {"merged": ours, "alone": own}
         crisp, _ = judge.map_crispness(kf, poses, eval_cfg)
         margin = judge.crispness_margins(kf, poses, eval_cfg, against="merged", first_draw=crisp).get("alone")
-        per_visit.append({"merged_entropy": crisp["merged"]["mean_map_entropy"],
-                          "alone_entropy": crisp["alone"]["mean_map_entropy"], "merged_margin": margin})
+        per_visit.append(
+            {
+                "merged_entropy": crisp["merged"]["mean_map_entropy"],
+                "alone_entropy": crisp["alone"]["mean_map_entropy"],
+                "merged_margin": margin,
+            }
+        )
         placing = np.asarray(entry["to_first"])  # placed the visit's input; then its map alone on the first's
         if k:
             own_map, first_map = register_scans(kf.scans, placing @ own), register_scans(scans[0], alone[0])
@@ -211,11 +245,17 @@ def same_points_crispness(roots: list[str], work: str, merged_metrics: dict) -> 
     crisp, per_keyframe = judge.map_crispness(together, poses, eval_cfg)
     margin = judge.crispness_margins(together, poses, eval_cfg, against="merged", first_draw=crisp).get("alone_placed")
     near = overlapping_keyframes(poses["merged"][:, :3, 3], labels, OVERLAP_M.value)
-    return {"per_visit": per_visit, "together": {
-        "merged_entropy": crisp["merged"]["mean_map_entropy"], "alone_placed_entropy":
-        crisp["alone_placed"]["mean_map_entropy"], "merged_margin": margin, "overlap_keyframes": int(near.sum()),
-        "overlap_merged_entropy": float(np.nanmean(per_keyframe["merged"][near])),
-        "overlap_alone_placed_entropy": float(np.nanmean(per_keyframe["alone_placed"][near]))}}
+    return {
+        "per_visit": per_visit,
+        "together": {
+            "merged_entropy": crisp["merged"]["mean_map_entropy"],
+            "alone_placed_entropy": crisp["alone_placed"]["mean_map_entropy"],
+            "merged_margin": margin,
+            "overlap_keyframes": int(near.sum()),
+            "overlap_merged_entropy": float(np.nanmean(per_keyframe["merged"][near])),
+            "overlap_alone_placed_entropy": float(np.nanmean(per_keyframe["alone_placed"][near])),
+        },
+    }
 
 
 def overlapping_keyframes(positions: np.ndarray, labels: np.ndarray, distance_m: float) -> np.ndarray:
@@ -230,13 +270,19 @@ def targets(result: dict) -> dict:
     if any(v["ate_shared_alignment_m"] is None for v in merged):  # no ground truth: the crispness is the measure
         same = result.get("same_points")  # None without the runs alone
         parts = [] if same is None else same["per_visit"] + [same["together"]]
-        return {"merged_as_crisp_as_alone": None if same is None else [
-                    real_targets.margin_verdict(part["merged_margin"]) for part in parts],
-                "within_minutes": result["merged"]["wall_s"] <= 60 * MINUTES_LIMIT.value}
-    return {"shared_ate_at_most_m": all(v["ate_shared_alignment_m"] <= MAX_ATE_M.value for v in merged),
-            "merged_no_worse_than_alone": (None if not alone else all(
-                v["ate_shared_alignment_m"] <= a["ate_m"] for v, a in zip(merged, alone))),
-            "within_minutes": result["merged"]["wall_s"] <= 60 * MINUTES_LIMIT.value}
+        return {
+            "merged_as_crisp_as_alone": None
+            if same is None
+            else [real_targets.margin_verdict(part["merged_margin"]) for part in parts],
+            "within_minutes": result["merged"]["wall_s"] <= 60 * MINUTES_LIMIT.value,
+        }
+    return {
+        "shared_ate_at_most_m": all(v["ate_shared_alignment_m"] <= MAX_ATE_M.value for v in merged),
+        "merged_no_worse_than_alone": (
+            None if not alone else all(v["ate_shared_alignment_m"] <= a["ate_m"] for v, a in zip(merged, alone))
+        ),
+        "within_minutes": result["merged"]["wall_s"] <= 60 * MINUTES_LIMIT.value,
+    }
 
 
 def _cm(metres: float | None) -> str:
@@ -265,19 +311,28 @@ def main(argv):
     harness.write(harness.OUT.value, result)
     for k, v in enumerate(result["merged"]["visits"]):
         a = result["alone"][k] if result["alone"] else {}
-        print(f"{v['name']}: ATE alone {_cm(a.get('ate_m'))}, merged (shared alignment) "
-              f"{_cm(v['ate_shared_alignment_m'])}, merged (own) {_cm(v['ate_own_alignment_m'])}; "
-              f"entropy alone {v['crispness']['alone_keyframe_entropy']:.3f}, in the merged map "
-              f"{v['crispness']['in_merged_keyframe_entropy']:.3f}", flush=True)
+        print(
+            f"{v['name']}: ATE alone {_cm(a.get('ate_m'))}, merged (shared alignment) "
+            f"{_cm(v['ate_shared_alignment_m'])}, merged (own) {_cm(v['ate_own_alignment_m'])}; "
+            f"entropy alone {v['crispness']['alone_keyframe_entropy']:.3f}, in the merged map "
+            f"{v['crispness']['in_merged_keyframe_entropy']:.3f}",
+            flush=True,
+        )
     for k, part in enumerate(result.get("same_points", {}).get("per_visit", [])):
-        print(f"visit {k}'s own keyframes, same points: merged {part['merged_entropy']:.3f}, alone "
-              f"{part['alone_entropy']:.3f}, margin {part['merged_margin']}", flush=True)
+        print(
+            f"visit {k}'s own keyframes, same points: merged {part['merged_entropy']:.3f}, alone "
+            f"{part['alone_entropy']:.3f}, margin {part['merged_margin']}",
+            flush=True,
+        )
     if "same_points" in result:
         t = result["same_points"]["together"]
-        print(f"every visit's keyframes, same points: merged {t['merged_entropy']:.3f}, alone and placed "
-              f"{t['alone_placed_entropy']:.3f}, margin {t['merged_margin']}; the {t['overlap_keyframes']} keyframes "
-              f"where the visits overlap: {t['overlap_merged_entropy']:.3f} against "
-              f"{t['overlap_alone_placed_entropy']:.3f}", flush=True)
+        print(
+            f"every visit's keyframes, same points: merged {t['merged_entropy']:.3f}, alone and placed "
+            f"{t['alone_placed_entropy']:.3f}, margin {t['merged_margin']}; the {t['overlap_keyframes']} keyframes "
+            f"where the visits overlap: {t['overlap_merged_entropy']:.3f} against "
+            f"{t['overlap_alone_placed_entropy']:.3f}",
+            flush=True,
+        )
     print(f"merged run {result['merged']['wall_s']:.0f} s; targets {result['targets']}; written to {harness.OUT.value}")
 
 

@@ -26,9 +26,12 @@ def stretch_figures(est, gt) -> dict:
     """est, gt: [K, 4, 4] matched poses -> {"ate_m", "sim3_scale", "path_ratio", "poses"}."""
     from neld_jax.judging import metrics
 
-    return {"ate_m": round(metrics.ate(est, gt)["translation_rmse_m"], 4),
-            "sim3_scale": round(metrics.ate(est, gt, align="sim3")["scale"], 5),
-            "path_ratio": round(float(metrics.path_length_ratio(est, gt)), 5), "poses": len(est)}
+    return {
+        "ate_m": round(metrics.ate(est, gt)["translation_rmse_m"], 4),
+        "sim3_scale": round(metrics.ate(est, gt, align="sim3")["scale"], 5),
+        "path_ratio": round(float(metrics.path_length_ratio(est, gt)), 5),
+        "poses": len(est),
+    }
 
 
 def matched(path: str, loaded):
@@ -66,7 +69,7 @@ def main(argv):
             if "poses" not in row:
                 continue
             est, gt = matched(row["poses"], loaded)
-            rows[method] = {f"{a}-{b}": stretch_figures(est[a:b + 1], gt[a:b + 1]) for a, b in stretches}
+            rows[method] = {f"{a}-{b}": stretch_figures(est[a : b + 1], gt[a : b + 1]) for a, b in stretches}
             print(entry["sequence"], method, rows[method], flush=True)
         out["sequences"].append({"sequence": entry["sequence"], "methods": rows})
     harness.write(harness.OUT.value, out)

@@ -90,8 +90,7 @@ def build_peer(torch, sizes: dict, rays_np, T_init_np, device: str, reevaluate_c
             super().__init__()
             enc, enc_dir = 3 * (1 + 2 * L), 3 * (1 + 2 * Ld)
             dims = [enc] + [width] * depth
-            self.hidden = nn.ModuleList(
-                nn.Linear(dims[i] + (enc if i in skips else 0), width) for i in range(depth))
+            self.hidden = nn.ModuleList(nn.Linear(dims[i] + (enc if i in skips else 0), width) for i in range(depth))
             self.density_hidden = nn.Linear(width + enc_dir, width // 2)
             self.out = nn.Linear(width // 2, 1)
             nn.init.normal_(self.out.weight, std=1e-2 / math.sqrt(width // 2))
@@ -118,8 +117,9 @@ def build_peer(torch, sizes: dict, rays_np, T_init_np, device: str, reevaluate_c
         safe2 = torch.where(small, torch.ones_like(theta2), theta2)
         c = torch.where(small, 1 / 6 - theta2 / 120, (theta - torch.sin(theta)) / (safe2 * theta))
         zero = torch.zeros_like(theta2)
-        K = torch.stack([zero, -omega[:, 2], omega[:, 1], omega[:, 2], zero, -omega[:, 0],
-                         -omega[:, 1], omega[:, 0], zero], -1).reshape(-1, 3, 3)
+        K = torch.stack(
+            [zero, -omega[:, 2], omega[:, 1], omega[:, 2], zero, -omega[:, 0], -omega[:, 1], omega[:, 0], zero], -1
+        ).reshape(-1, 3, 3)
         eye = torch.eye(3, device=xi.device, dtype=xi.dtype).expand_as(K)
         K2 = K @ K
         R = eye + a[:, None, None] * K + b[:, None, None] * K2
@@ -252,8 +252,9 @@ def main(argv):
         raise app.UsageError(f"unknown --torch_modes {sorted(unknown)}: eager, tf32, compile")
     device = FLAGS.torch_device
 
-    runner = train_step.StepRunner(config, sizes, FLAGS.steps * FLAGS.repeats + 2, FLAGS.scans, FLAGS.rays_per_scan,
-                                   FLAGS.seed)
+    runner = train_step.StepRunner(
+        config, sizes, FLAGS.steps * FLAGS.repeats + 2, FLAGS.scans, FLAGS.rays_per_scan, FLAGS.seed
+    )
     jax_loss = float(runner.run(1)["loss"])
     from neld_jax.training.rays import sphere_scene_rays
 
@@ -301,11 +302,19 @@ def main(argv):
         "torch_warmup": warm,
         **train_step.device_info(),
         "torch_version": torch.__version__,
-        "torch_device": (str(torch.cuda.get_device_name(0)) if device == "cuda"
-                         else f"cpu ({torch.get_num_threads()} threads)"),
-        "config": {**sizes, "skip_layers": list(sizes["skip_layers"]), "steps": FLAGS.steps, "repeats": FLAGS.repeats,
-                   "scans": FLAGS.scans, "rays_per_scan": FLAGS.rays_per_scan,
-                   "reevaluate_coarse": FLAGS.reevaluate_coarse, "modes": modes},
+        "torch_device": (
+            str(torch.cuda.get_device_name(0)) if device == "cuda" else f"cpu ({torch.get_num_threads()} threads)"
+        ),
+        "config": {
+            **sizes,
+            "skip_layers": list(sizes["skip_layers"]),
+            "steps": FLAGS.steps,
+            "repeats": FLAGS.repeats,
+            "scans": FLAGS.scans,
+            "rays_per_scan": FLAGS.rays_per_scan,
+            "reevaluate_coarse": FLAGS.reevaluate_coarse,
+            "modes": modes,
+        },
     }
     print(json.dumps(record), flush=True)
     harness.write(FLAGS.out, record)

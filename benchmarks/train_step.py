@@ -83,9 +83,12 @@ SIZE_FLAGS = ("rays", "coarse", "fine", "guided", "width", "depth", "skip_layers
 # model.matmul_dtype: taken from --matmul_dtype whatever the preset (the presets are all float32).
 
 FLAGS = flags.FLAGS
-flags.DEFINE_enum("preset", "none", ["cpu", "gpu", "paper", "none"],
-                  "cpu, gpu, paper: the sizes of with_budget(defaults(), preset) (paper: defaults() itself); "
-                  "none: the flags only.")
+flags.DEFINE_enum(
+    "preset",
+    "none",
+    ["cpu", "gpu", "paper", "none"],
+    "cpu, gpu, paper: the sizes of with_budget(defaults(), preset) (paper: defaults() itself); none: the flags only.",
+)
 flags.DEFINE_integer("stage", 0, "Which sample-count stage of the preset (index into sampling.coarse_stages).")
 flags.DEFINE_integer("rays", 512, "Rays per step (train.batch_rays).")
 flags.DEFINE_integer("coarse", 32, "Stratified coarse samples per ray.")
@@ -96,16 +99,24 @@ flags.DEFINE_integer("depth", 4, "Hidden layers of the MLP.")
 flags.DEFINE_list("skip_layers", ["2"], "Hidden layers whose input gets the encoded position again.")
 flags.DEFINE_integer("pos_freqs", 10, "Fourier frequencies of the position encoding.")
 flags.DEFINE_integer("dir_freqs", 2, "Fourier frequencies of the view-direction encoding.")
-flags.DEFINE_enum("matmul_dtype", "float32", ["float32", "bfloat16"],
-                  "model.matmul_dtype: bfloat16 = the MLP's matmuls on bfloat16 inputs, float32 parameters and sums.")
+flags.DEFINE_enum(
+    "matmul_dtype",
+    "float32",
+    ["float32", "bfloat16"],
+    "model.matmul_dtype: bfloat16 = the MLP's matmuls on bfloat16 inputs, float32 parameters and sums.",
+)
 flags.DEFINE_integer("steps", 20, "Timed steps per repeat.")
 flags.DEFINE_integer("repeats", 5, "Timed repeats; the median is reported.")
 flags.DEFINE_integer("scans", 8, "Scans in the synthetic ray set.")
 flags.DEFINE_integer("rays_per_scan", 4096, "Rays per scan in the synthetic ray set.")
 flags.DEFINE_integer("seed", 0, "Seed of the synthetic rays and the parameters.")
 flags.DEFINE_bool("matmul_peak", False, "Measure float32 matmul GFLOP/s instead of the train step.")
-flags.DEFINE_bool("efficiency", False, "Time the step and the matmul peak alternately in this process and report "
-                  "the step's GFLOP/s as a fraction of the peak (median over --repeats rounds).")
+flags.DEFINE_bool(
+    "efficiency",
+    False,
+    "Time the step and the matmul peak alternately in this process and report "
+    "the step's GFLOP/s as a fraction of the peak (median over --repeats rounds).",
+)
 flags.DEFINE_bool("fit", False, "Time train.fit (the fused loop) against the bare step, alternately (see --fit above).")
 flags.DEFINE_bool("viewer", False, "Time train.fit with the live viewer's hook against fit without it (--viewer).")
 flags.DEFINE_integer("log_every", 0, "--fit, --viewer: train.log_every, the steps per device call (0: the preset's).")
@@ -178,11 +189,19 @@ def synthetic_rays(num_scans: int, rays_per_scan: int, seed: int = 0) -> Synthet
     return SyntheticCube(placed, frames, T_m, mesh)
 
 
-def trainer_for(config: ml_collections.ConfigDict, cube: SyntheticCube, total_steps: int | None = None
-                ) -> train.Trainer:
+def trainer_for(
+    config: ml_collections.ConfigDict, cube: SyntheticCube, total_steps: int | None = None
+) -> train.Trainer:
     """train.make_trainer of one cube with the config's own pose steps, as a run from its input poses builds it."""
-    return train.make_trainer(config, len(cube.start_poses), 1, train.PoseSteps.from_config(config),
-                              cube.start_poses, total_steps=total_steps, mesh=cube.mesh)
+    return train.make_trainer(
+        config,
+        len(cube.start_poses),
+        1,
+        train.PoseSteps.from_config(config),
+        cube.start_poses,
+        total_steps=total_steps,
+        mesh=cube.mesh,
+    )
 
 
 def points_per_step(sizes: dict) -> int:
@@ -199,8 +218,11 @@ def mlp_shaped_matmul(sizes: dict) -> tuple[str, tuple[int, int, int]]:
 def mlp_flops_per_point(field_params) -> int:
     """Forward FLOPs of the MLP's dense layers for one point: sum over [in, out] kernels of 2 * in * out (kernels
     stacked over cubes, [M, in, out], count once per cube)."""
-    kernels = [leaf for path, leaf in jax.tree_util.tree_leaves_with_path(field_params)
-               if getattr(path[-1], "key", None) == "kernel"]
+    kernels = [
+        leaf
+        for path, leaf in jax.tree_util.tree_leaves_with_path(field_params)
+        if getattr(path[-1], "key", None) == "kernel"
+    ]
     return int(sum(2 * math.prod(k.shape) for k in kernels))
 
 
@@ -221,8 +243,12 @@ def median_seconds(run: Callable[[], object], repeats: int) -> tuple[float, list
 
 def device_info() -> dict:
     dev = jax.devices()[0]
-    return {"device": f"{dev.platform}:{dev.device_kind}", "num_devices": jax.device_count(),
-            "cpu_count": os.cpu_count(), "jax_version": jax.__version__}
+    return {
+        "device": f"{dev.platform}:{dev.device_kind}",
+        "num_devices": jax.device_count(),
+        "cpu_count": os.cpu_count(),
+        "jax_version": jax.__version__,
+    }
 
 
 def xla_flops(compiled) -> float | None:
@@ -343,8 +369,15 @@ class StepRunner:
     the next) and blocks until they are done; it returns the last step's metrics.
     """
 
-    def __init__(self, config: ml_collections.ConfigDict, sizes: dict, train_steps: int, num_scans: int = 8,
-                 rays_per_scan: int = 4096, seed: int = 0):
+    def __init__(
+        self,
+        config: ml_collections.ConfigDict,
+        sizes: dict,
+        train_steps: int,
+        num_scans: int = 8,
+        rays_per_scan: int = 4096,
+        seed: int = 0,
+    ):
         self.sizes = sizes
         self.config = configure(config, sizes, train_steps=train_steps)
         self.config.seed = seed
@@ -371,9 +404,18 @@ class StepRunner:
         return 3 * points_per_step(self.sizes) * self.mlp_flops_per_point
 
 
-def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int,
-                         num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0,
-                         profile_dir: str = "", profile_steps: int = 5, dump_hlo: str = "") -> dict:
+def benchmark_train_step(
+    config: ml_collections.ConfigDict,
+    sizes: dict,
+    steps: int,
+    repeats: int,
+    num_scans: int = 8,
+    rays_per_scan: int = 4096,
+    seed: int = 0,
+    profile_dir: str = "",
+    profile_steps: int = 5,
+    dump_hlo: str = "",
+) -> dict:
     """Compile, warm up and time the trainer's jitted step at `sizes`; returns the JSON-ready record."""
     runner = StepRunner(config, sizes, steps * repeats + profile_steps + 1, num_scans, rays_per_scan, seed)
     if dump_hlo:
@@ -392,8 +434,9 @@ def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: 
         with jax.profiler.trace(profile_dir):
             runner.run(profile_steps)
         logger.info("profile of %d steps written under %s", profile_steps, profile_dir)
-        traces = sorted(glob.glob(os.path.join(profile_dir, "plugins", "profile", "*", "*.xplane.pb")),
-                        key=os.path.getmtime)
+        traces = sorted(
+            glob.glob(os.path.join(profile_dir, "plugins", "profile", "*", "*.xplane.pb")), key=os.path.getmtime
+        )
         if traces:
             profile = summarize_profile(traces[-1], runner.compiled.as_text(), profile_steps)
 
@@ -418,15 +461,29 @@ def benchmark_train_step(config: ml_collections.ConfigDict, sizes: dict, steps: 
         "loss_after_warmup": loss,
         "profile": profile,
         **device_info(),
-        "config": {**sizes, "skip_layers": list(runner.config.model.skip_layers), "samples_per_ray": samples_per_ray,
-                   "steps": steps, "repeats": repeats, "scans": num_scans, "rays_per_scan": rays_per_scan,
-                   "hierarchical": str(runner.config.sampling.hierarchical)},
+        "config": {
+            **sizes,
+            "skip_layers": list(runner.config.model.skip_layers),
+            "samples_per_ray": samples_per_ray,
+            "steps": steps,
+            "repeats": repeats,
+            "scans": num_scans,
+            "rays_per_scan": rays_per_scan,
+            "hierarchical": str(runner.config.sampling.hierarchical),
+        },
     }
 
 
-def benchmark_efficiency(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int,
-                         square_sizes: list[int], num_scans: int = 8, rays_per_scan: int = 4096,
-                         seed: int = 0) -> dict:
+def benchmark_efficiency(
+    config: ml_collections.ConfigDict,
+    sizes: dict,
+    steps: int,
+    repeats: int,
+    square_sizes: list[int],
+    num_scans: int = 8,
+    rays_per_scan: int = 4096,
+    seed: int = 0,
+) -> dict:
     """The step's GFLOP/s as a fraction of the matmul peak, both timed in this process, alternately.
 
     Each of `repeats` rounds times `steps` train steps, then each peak matmul (the square `square_sizes` and
@@ -444,8 +501,9 @@ def benchmark_efficiency(config: ml_collections.ConfigDict, sizes: dict, steps: 
         step_s, _, _ = median_seconds(lambda: runner.run(steps), 1)
         rates = {name: timer.gflops() for name, timer in matmuls.items()}
         achieved, peak = flops * steps / step_s / 1e9, max(rates.values())
-        rounds.append({"achieved_gflops": achieved, "peak_gflops": peak, "matmul_gflops": rates,
-                       "efficiency": achieved / peak})
+        rounds.append(
+            {"achieved_gflops": achieved, "peak_gflops": peak, "matmul_gflops": rates, "efficiency": achieved / peak}
+        )
     median = lambda key: statistics.median(r[key] for r in rounds)  # noqa: E731
     return {
         "benchmark": "efficiency",
@@ -457,13 +515,26 @@ def benchmark_efficiency(config: ml_collections.ConfigDict, sizes: dict, steps: 
         "rounds": rounds,
         "compile_s": runner.compile_s,
         **device_info(),
-        "config": {**sizes, "skip_layers": list(runner.config.model.skip_layers), "steps": steps,
-                   "repeats": repeats, "square_sizes": list(square_sizes)},
+        "config": {
+            **sizes,
+            "skip_layers": list(runner.config.model.skip_layers),
+            "steps": steps,
+            "repeats": repeats,
+            "square_sizes": list(square_sizes),
+        },
     }
 
 
-def fit_setup(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
-              num_scans: int, rays_per_scan: int, seed: int):
+def fit_setup(
+    config: ml_collections.ConfigDict,
+    sizes: dict,
+    steps: int,
+    repeats: int,
+    log_every: int,
+    num_scans: int,
+    rays_per_scan: int,
+    seed: int,
+):
     """(runner, the fit config, plan_of, fit_steps, timed_steps) for timing train.fit in chunks of log_every steps
     (the first chunk compiles and is not timed)."""
     log_every = max(int(log_every), 1)
@@ -481,8 +552,13 @@ def fit_setup(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeat
     return runner, fit_config, functools.partial(trainer_for, fit_config, runner.cube), fit_steps, timed_steps
 
 
-def timed_fit(fit_config: ml_collections.ConfigDict, plan_of: Callable, runner: "StepRunner", fit_steps: int,
-              on_log: Callable | None = None) -> dict:
+def timed_fit(
+    fit_config: ml_collections.ConfigDict,
+    plan_of: Callable,
+    runner: "StepRunner",
+    fit_steps: int,
+    on_log: Callable | None = None,
+) -> dict:
     """One train.fit from a fresh state; its rate from the wall and CPU clocks between the first and the last chunk
     end (a checkpoint_fn hook, called once a chunk's metrics are fetched and on_log has run)."""
     marks = []  # (step, wall s, process CPU s) at each chunk end
@@ -492,28 +568,54 @@ def timed_fit(fit_config: ml_collections.ConfigDict, plan_of: Callable, runner: 
 
     state = train.init_state(fit_config, plan_of(fit_steps), len(runner.cube.start_poses), 1)
     t0 = time.perf_counter()
-    result = train.fit(fit_config, plan_of, train.TrainingData(runner.rays, runner.frames, SYNTHETIC_SCALE), state,
-                       checkpoint_fn=mark, settings=train.FitSettings(progress=False, on_log=on_log))
+    result = train.fit(
+        fit_config,
+        plan_of,
+        train.TrainingData(runner.rays, runner.frames, SYNTHETIC_SCALE),
+        state,
+        checkpoint_fn=mark,
+        settings=train.FitSettings(progress=False, on_log=on_log),
+    )
     (first_step, first_wall, first_cpu), (last_step, last_wall, last_cpu) = marks[0], marks[-1]
-    return {"steps_per_s": (last_step - first_step) / (last_wall - first_wall),
-            "cpu_ms_per_step": 1e3 * (last_cpu - first_cpu) / (last_step - first_step),
-            "total_s": time.perf_counter() - t0, "final_loss": result.history[-1]["loss"]}
+    return {
+        "steps_per_s": (last_step - first_step) / (last_wall - first_wall),
+        "cpu_ms_per_step": 1e3 * (last_cpu - first_cpu) / (last_step - first_step),
+        "total_s": time.perf_counter() - t0,
+        "final_loss": result.history[-1]["loss"],
+    }
 
 
-def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
-                  num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0) -> dict:
+def benchmark_fit(
+    config: ml_collections.ConfigDict,
+    sizes: dict,
+    steps: int,
+    repeats: int,
+    log_every: int,
+    num_scans: int = 8,
+    rays_per_scan: int = 4096,
+    seed: int = 0,
+) -> dict:
     """Steps/s of train.fit against the bare jitted step at `sizes`, alternately (module docstring, --fit)."""
-    runner, fit_config, plan_of, fit_steps, timed_steps = fit_setup(config, sizes, steps, repeats, log_every,
-                                                                    num_scans, rays_per_scan, seed)
+    runner, fit_config, plan_of, fit_steps, timed_steps = fit_setup(
+        config, sizes, steps, repeats, log_every, num_scans, rays_per_scan, seed
+    )
     rounds = []
     for _ in range(max(repeats, 1)):
         fitted = timed_fit(fit_config, plan_of, runner, fit_steps)
         step_s, _, step_cpu_s = median_seconds(lambda: runner.run(timed_steps), 1)
         step_rate, step_cpu_ms = timed_steps / step_s, 1e3 * step_cpu_s / timed_steps
-        rounds.append({"fit_steps_per_s": fitted["steps_per_s"], "step_steps_per_s": step_rate,
-                       "ratio": fitted["steps_per_s"] / step_rate, "fit_cpu_ms_per_step": fitted["cpu_ms_per_step"],
-                       "step_cpu_ms_per_step": step_cpu_ms, "cpu_ratio": step_cpu_ms / fitted["cpu_ms_per_step"],
-                       "fit_total_s": fitted["total_s"], "fit_final_loss": fitted["final_loss"]})
+        rounds.append(
+            {
+                "fit_steps_per_s": fitted["steps_per_s"],
+                "step_steps_per_s": step_rate,
+                "ratio": fitted["steps_per_s"] / step_rate,
+                "fit_cpu_ms_per_step": fitted["cpu_ms_per_step"],
+                "step_cpu_ms_per_step": step_cpu_ms,
+                "cpu_ratio": step_cpu_ms / fitted["cpu_ms_per_step"],
+                "fit_total_s": fitted["total_s"],
+                "fit_final_loss": fitted["final_loss"],
+            }
+        )
     median = lambda key: statistics.median(r[key] for r in rounds)  # noqa: E731
     return {
         "benchmark": "fit",
@@ -528,14 +630,29 @@ def benchmark_fit(config: ml_collections.ConfigDict, sizes: dict, steps: int, re
         "rounds": rounds,
         "compile_s": runner.compile_s,
         **device_info(),
-        "config": {**sizes, "skip_layers": list(runner.config.model.skip_layers), "log_every": log_every,
-                   "fit_steps": fit_steps, "timed_steps": timed_steps, "repeats": repeats,
-                   "scans": len(runner.cube.start_poses), "rays_per_scan": rays_per_scan},
+        "config": {
+            **sizes,
+            "skip_layers": list(runner.config.model.skip_layers),
+            "log_every": log_every,
+            "fit_steps": fit_steps,
+            "timed_steps": timed_steps,
+            "repeats": repeats,
+            "scans": len(runner.cube.start_poses),
+            "rays_per_scan": rays_per_scan,
+        },
     }
 
 
-def benchmark_viewer(config: ml_collections.ConfigDict, sizes: dict, steps: int, repeats: int, log_every: int,
-                     num_scans: int = 8, rays_per_scan: int = 4096, seed: int = 0) -> dict:
+def benchmark_viewer(
+    config: ml_collections.ConfigDict,
+    sizes: dict,
+    steps: int,
+    repeats: int,
+    log_every: int,
+    num_scans: int = 8,
+    rays_per_scan: int = 4096,
+    seed: int = 0,
+) -> dict:
     """Steps/s of train.fit with the live viewer's hook against fit without it, alternately (--viewer): the hook a
     run with viz.live gets (neld_jax.writing.viewer: run.rrd and a gRPC server on a free local port; the training curves
     and the keyframes' poses at every log, as neld_jax.steps.refine hands them over)."""
@@ -545,8 +662,9 @@ def benchmark_viewer(config: ml_collections.ConfigDict, sizes: dict, steps: int,
     from neld_jax.steps.refine import posed
     from neld_jax.writing import viewer
 
-    runner, fit_config, plan_of, fit_steps, timed_steps = fit_setup(config, sizes, steps, repeats, log_every,
-                                                                    num_scans, rays_per_scan, seed)
+    runner, fit_config, plan_of, fit_steps, timed_steps = fit_setup(
+        config, sizes, steps, repeats, log_every, num_scans, rays_per_scan, seed
+    )
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         viewer.LIVE_PORT = s.getsockname()[1]
@@ -559,11 +677,15 @@ def benchmark_viewer(config: ml_collections.ConfigDict, sizes: dict, steps: int,
         for r in range(max(repeats, 1)):
             order = (None, on_log) if r % 2 == 0 else (on_log, None)
             timed = {("live" if h else "plain"): timed_fit(fit_config, plan_of, runner, fit_steps, h) for h in order}
-            rounds.append({"plain_steps_per_s": timed["plain"]["steps_per_s"],
-                           "live_steps_per_s": timed["live"]["steps_per_s"],
-                           "slowdown": timed["plain"]["steps_per_s"] / timed["live"]["steps_per_s"] - 1.0,
-                           "plain_cpu_ms_per_step": timed["plain"]["cpu_ms_per_step"],
-                           "live_cpu_ms_per_step": timed["live"]["cpu_ms_per_step"]})
+            rounds.append(
+                {
+                    "plain_steps_per_s": timed["plain"]["steps_per_s"],
+                    "live_steps_per_s": timed["live"]["steps_per_s"],
+                    "slowdown": timed["plain"]["steps_per_s"] / timed["live"]["steps_per_s"] - 1.0,
+                    "plain_cpu_ms_per_step": timed["plain"]["cpu_ms_per_step"],
+                    "live_cpu_ms_per_step": timed["live"]["cpu_ms_per_step"],
+                }
+            )
         live.close()
     median = lambda key: statistics.median(r[key] for r in rounds)  # noqa: E731
     return {
@@ -575,8 +697,15 @@ def benchmark_viewer(config: ml_collections.ConfigDict, sizes: dict, steps: int,
         "viewer_seconds": live.seconds,
         "rounds": rounds,
         **device_info(),
-        "config": {**sizes, "log_every": log_every, "fit_steps": fit_steps, "timed_steps": timed_steps,
-                   "repeats": repeats, "scans": len(start_poses), "rays_per_scan": rays_per_scan},
+        "config": {
+            **sizes,
+            "log_every": log_every,
+            "fit_steps": fit_steps,
+            "timed_steps": timed_steps,
+            "repeats": repeats,
+            "scans": len(start_poses),
+            "rays_per_scan": rays_per_scan,
+        },
     }
 
 
@@ -610,8 +739,9 @@ class MatmulTimer:
         return self.flops * self.calls / median_s / 1e9, self.flops * self.calls / median_cpu_s / 1e9
 
 
-def matmul_gflops(m: int, k: int, n: int, repeats: int, min_seconds: float = 0.05, seed: int = 0,
-                  dtype: str = "float32") -> tuple[float, float]:
+def matmul_gflops(
+    m: int, k: int, n: int, repeats: int, min_seconds: float = 0.05, seed: int = 0, dtype: str = "float32"
+) -> tuple[float, float]:
     """(GFLOP/s, GFLOP per CPU second) of a jitted [m, k] @ [k, n] (2 m k n FLOPs), medians of `repeats` batches
     of calls lasting >= min_seconds each."""
     return MatmulTimer(m, k, n, seed, min_seconds, dtype).rates(repeats)
@@ -673,15 +803,34 @@ def main(argv):
         preset = "cpu" if FLAGS.preset == "none" else FLAGS.preset
         log_every = FLAGS.log_every or int(preset_sizes(preset)[0].train.log_every)
         record = (benchmark_viewer if FLAGS.viewer else benchmark_fit)(
-            config, sizes, FLAGS.steps, FLAGS.repeats, log_every, FLAGS.scans, FLAGS.rays_per_scan, FLAGS.seed)
+            config, sizes, FLAGS.steps, FLAGS.repeats, log_every, FLAGS.scans, FLAGS.rays_per_scan, FLAGS.seed
+        )
     elif FLAGS.matmul_peak:
         record = benchmark_matmul_peak(sizes, [int(n) for n in FLAGS.matmul_sizes], FLAGS.repeats, FLAGS.matmul_dtype)
     elif FLAGS.efficiency:
-        record = benchmark_efficiency(config, sizes, FLAGS.steps, FLAGS.repeats, [int(n) for n in FLAGS.matmul_sizes],
-                                      FLAGS.scans, FLAGS.rays_per_scan, FLAGS.seed)
+        record = benchmark_efficiency(
+            config,
+            sizes,
+            FLAGS.steps,
+            FLAGS.repeats,
+            [int(n) for n in FLAGS.matmul_sizes],
+            FLAGS.scans,
+            FLAGS.rays_per_scan,
+            FLAGS.seed,
+        )
     else:
-        record = benchmark_train_step(config, sizes, FLAGS.steps, FLAGS.repeats, FLAGS.scans, FLAGS.rays_per_scan,
-                                      FLAGS.seed, FLAGS.profile_dir, FLAGS.profile_steps, FLAGS.dump_hlo)
+        record = benchmark_train_step(
+            config,
+            sizes,
+            FLAGS.steps,
+            FLAGS.repeats,
+            FLAGS.scans,
+            FLAGS.rays_per_scan,
+            FLAGS.seed,
+            FLAGS.profile_dir,
+            FLAGS.profile_steps,
+            FLAGS.dump_hlo,
+        )
     record["preset"] = FLAGS.preset
     print(json.dumps(record), flush=True)  # the one line of stdout a caller parses
     harness.write(FLAGS.out, record)

@@ -61,14 +61,19 @@ def main_with_config(job: Callable, doc: str | None = None) -> None:
 
     from neld_jax.config import validate
 
-    config_flags.DEFINE_config_file("config", None, "Config file (configs/*.py), optionally with ':budget'.",
-                                    lock_config=True)
+    config_flags.DEFINE_config_file(
+        "config", None, "Config file (configs/*.py), optionally with ':budget'.", lock_config=True
+    )
     flags.mark_flags_as_required(["config"])
 
     def main(argv):
-        _run_guarded(argv, lambda: job(validate(flags.FLAGS.config)), logging.INFO,
-                     "%(asctime)s %(levelname)s %(name)s: %(message)s",
-                     "interrupted; rerun the same command to resume from the last checkpoint")
+        _run_guarded(
+            argv,
+            lambda: job(validate(flags.FLAGS.config)),
+            logging.INFO,
+            "%(asctime)s %(levelname)s %(name)s: %(message)s",
+            "interrupted; rerun the same command to resume from the last checkpoint",
+        )
 
     app.run(main, flags_parser=_parse_flags)
 
@@ -79,6 +84,7 @@ def main_with_flags(job: Callable[[], int | None], log_level: int = logging.INFO
     from absl import app
 
     _usage(doc)
+
     def main(argv):
         return _run_guarded(argv, job, log_level, "%(levelname)s %(name)s: %(message)s", "interrupted")
 
@@ -99,12 +105,13 @@ def _parse_flags(argv):
         where = _line_in_file(e, config_file) if config_file else ""
         if where and not isinstance(e, NeldError):
             message = e.msg if isinstance(e, SyntaxError) else _short(e)  # a syntax error's text less its position
-            _fail(f"{where}: {e.__class__.__name__}: {message} (the config file; {TRACEBACK_VARIABLE}=1 shows the "
-                  "traceback)")
+            _fail(
+                f"{where}: {e.__class__.__name__}: {message} (the config file; {TRACEBACK_VARIABLE}=1 shows the "
+                "traceback)"
+            )
         if isinstance(e, (KeyError, AttributeError)) and not where:
             _fail(_unknown_field(e, argv))
-        if isinstance(e, (flags.Error, KeyError, AttributeError, ValueError, TypeError, FileNotFoundError,
-                          NeldError)):
+        if isinstance(e, (flags.Error, KeyError, AttributeError, ValueError, TypeError, FileNotFoundError, NeldError)):
             _fail(f"{where + ': ' if where else ''}{_short(e)}")
         raise
 
@@ -115,10 +122,10 @@ def _unknown_field(e: Exception, argv) -> str:
     key_error = e if isinstance(e, KeyError) else e.__context__
     lines = str(key_error.args[0] if isinstance(key_error, KeyError) and key_error.args else e).splitlines()
     name = lines[0].strip("'\"") if lines else ""
-    given = [arg.split("=", 1)[0][len("--config."):].split(".") for arg in argv if arg.startswith("--config.")]
+    given = [arg.split("=", 1)[0][len("--config.") :].split(".") for arg in argv if arg.startswith("--config.")]
     parts = next((p for p in given if name in p), [name])
     guess = f" ({lines[-1].strip()})" if len(lines) > 1 else ""
-    return f"--config.{'.'.join(parts)}: the config has no field {'.'.join(parts[:parts.index(name) + 1])}{guess}"
+    return f"--config.{'.'.join(parts)}: the config has no field {'.'.join(parts[: parts.index(name) + 1])}{guess}"
 
 
 def _config_file(argv) -> str:
@@ -134,7 +141,7 @@ def _config_file(argv) -> str:
 
 
 def _line_in_file(e: BaseException, path: str) -> str:
-    """"FILE:LINE" of the deepest line of `path` where e (or the exception it came from) was raised: a syntax
+    """ "FILE:LINE" of the deepest line of `path` where e (or the exception it came from) was raised: a syntax
     error's own position, else the traceback's frames; "" when none of them is in the file."""
     while e is not None:
         if isinstance(e, SyntaxError) and e.filename and os.path.abspath(e.filename) == path:

@@ -71,7 +71,8 @@ class Rule:
             if not isinstance(value, (tuple, list)) or (self.nonempty and not value):
                 return False
             return (not self.lengths or len(value) in self.lengths) and all(
-                self._accepts_one(v, self.kind[:-1]) for v in value)
+                self._accepts_one(v, self.kind[:-1]) for v in value
+            )
         return self._accepts_one(value, self.kind)
 
     def _accepts_one(self, value, kind: str) -> bool:
@@ -149,18 +150,18 @@ GROUPS = {
     "": "the run: where it writes, its seed and its clock",
     "data": "the sequence and its keyframes (neld_jax.steps.inputs, neld_jax.data)",
     "data.synthetic": 'the generated sequence, data.format="synthetic" (neld_jax.synthetic.generator owns the '
-                      "defaults)",
+    "defaults)",
     "model": "the field (neld_jax.field.density)",
     "sampling": "the samples along a ray (neld_jax.field.sampling)",
     "loss": "the loss terms' weights (eq. 13)",
     "train": "the schedule and the steps of the field and the poses (neld_jax.training.train)",
     "start": "where training starts (neld_jax.steps.start): the input, the classical baseline's poses, or the "
-             "crisper of the two",
+    "crisper of the two",
     "submaps": "a sequence larger than one cube split into overlapping windows of keyframes "
-               "(neld_jax.training.submaps); the fields marked (M > 1) apply to a plan of several submaps only",
+    "(neld_jax.training.submaps); the fields marked (M > 1) apply to a plan of several submaps only",
     "mapping": "the rendered map (neld_jax.steps.mapping)",
     "baseline": "the classical baseline (neld_jax.baseline): scan-to-map ICP, a loop-closed pose graph, multi-view "
-                "refinement; BaselineSettings owns these defaults and the baseline's other settings",
+    "refinement; BaselineSettings owns these defaults and the baseline's other settings",
     "eval": "the judging of the result: the ground-truth map's alignment, the raw map's crispness",
     "viz": "Rerun (neld_jax.writing.viewer): the run's trajectories, maps and training in Rerun's viewer",
 }
@@ -172,84 +173,138 @@ _SYNTHETIC = synthetic_defaults()
 SETTINGS = (
     Setting("output_dir", "outputs/run", TEXT, "where the run writes (a rerun resumes from its checkpoints)"),
     Setting("seed", 0, COUNT, "the field's initialisation, the rays drawn, the batches"),
-    Setting("budget", "paper", _choice(*BUDGETS, any_case=True),
-            "the budget the preset applied; a record, not read by the run"),
+    Setting(
+        "budget",
+        "paper",
+        _choice(*BUDGETS, any_case=True),
+        "the budget the preset applied; a record, not read by the run",
+    ),
     Setting("max_minutes", 0.0, NON_NEGATIVE, "the whole run's wall-clock budget (neld_jax.training.budget); 0: none"),
-
     Setting("data.format", "generic", _choice(*FORMATS, any_case=True), "the layout the sequence arrives in"),
     Setting("data.root", "", TEXT, "the sequence's folder"),
-    Setting("data.initial_poses", "", TEXT,
-            f'"": the layout\'s poses; {KISS_ICP}: KISS-ICP from the scans; lio_keyframes: a file'),
-    Setting("data.drop_unmatched_tail", False, FLAG,
-            "drop up to 5 trailing scans without a pose or stamp instead of failing"),
-    Setting("data.scans_in_world_frame", False, FLAG,
-            "the scans are registered already: move them into their sensors' frames"),
+    Setting(
+        "data.initial_poses",
+        "",
+        TEXT,
+        f'"": the layout\'s poses; {KISS_ICP}: KISS-ICP from the scans; lio_keyframes: a file',
+    ),
+    Setting(
+        "data.drop_unmatched_tail",
+        False,
+        FLAG,
+        "drop up to 5 trailing scans without a pose or stamp instead of failing",
+    ),
+    Setting(
+        "data.scans_in_world_frame",
+        False,
+        FLAG,
+        "the scans are registered already: move them into their sensors' frames",
+    ),
     Setting("data.invert_poses", False, FLAG, "the poses file holds world -> sensor transforms"),
-    Setting("data.keyframe_interval_s", 3.0, _number(),
-            "keyframes at most this many seconds apart (<= 0: cap off) ..."),
-    Setting("data.keyframe_distance_m", 0.0, _number(),
-            "... this far apart (0: a tenth of max_range_m with the time cap, else off) ..."),
-    Setting("data.keyframe_angle_deg", 0.0, _number(),
-            "... and turned this far (0: 30 with the time cap, else off; all off: every scan)"),
+    Setting(
+        "data.keyframe_interval_s", 3.0, _number(), "keyframes at most this many seconds apart (<= 0: cap off) ..."
+    ),
+    Setting(
+        "data.keyframe_distance_m",
+        0.0,
+        _number(),
+        "... this far apart (0: a tenth of max_range_m with the time cap, else off) ...",
+    ),
+    Setting(
+        "data.keyframe_angle_deg",
+        0.0,
+        _number(),
+        "... and turned this far (0: 30 with the time cap, else off; all off: every scan)",
+    ),
     Setting("data.min_range_m", 0.5, NON_NEGATIVE, "points nearer the sensor are dropped"),
     Setting("data.max_range_m", 80.0, POSITIVE, "points further away are dropped"),
-    Setting("data.deskew", "auto", _choice(*DESKEW_CHOICES, any_case=True),
-            "scans without point times: measured (auto), deskewed already, or raw sweeps (raw_<start>_<turning>)"),
+    Setting(
+        "data.deskew",
+        "auto",
+        _choice(*DESKEW_CHOICES, any_case=True),
+        "scans without point times: measured (auto), deskewed already, or raw sweeps (raw_<start>_<turning>)",
+    ),
     Setting("data.voxel_size_m", 0.05, NON_NEGATIVE, "each keyframe's points on this grid"),
     Setting("data.first_scan", 0, COUNT, "keyframes from this input scan on ..."),
     Setting("data.max_scans", 0, COUNT, "... and at most this many (0: all): a long sequence in pieces"),
     Setting("data.max_rays_per_scan", 0, COUNT, "training rays per keyframe, a random subset (0: every point)"),
     Setting("data.timestamp_tol_s", 0.05, NON_NEGATIVE, "scans and poses match by time within this"),
-    Setting("data.gt_poses_path", "", TEXT,
-            "ground-truth trajectory (TUM, or Newer College .csv) in place of the layout's"),
+    Setting(
+        "data.gt_poses_path", "", TEXT, "ground-truth trajectory (TUM, or Newer College .csv) in place of the layout's"
+    ),
     Setting("data.gt_map_path", "", TEXT, "ground-truth map (.pcd / .ply) in place of the layout's"),
-    Setting("data.gt_from_scan", (), Rule("floats", lengths=(0, 7)),
-            "the scan frame's pose in the ground truth's body frame (tx ty tz qx qy qz qw)"),
-    Setting("data.scan_frame", "", _choice("", *sorted({f for frames in SCAN_FRAMES.values() for f in frames})),
-            "the published extrinsic of the ground truth (data.ground_truth.SCAN_FRAMES)"),
+    Setting(
+        "data.gt_from_scan",
+        (),
+        Rule("floats", lengths=(0, 7)),
+        "the scan frame's pose in the ground truth's body frame (tx ty tz qx qy qz qw)",
+    ),
+    Setting(
+        "data.scan_frame",
+        "",
+        _choice("", *sorted({f for frames in SCAN_FRAMES.values() for f in frames})),
+        "the published extrinsic of the ground truth (data.ground_truth.SCAN_FRAMES)",
+    ),
     Setting("data.gt_time_offset_s", 0.0, _number(), "added to the scan stamps when matching ground truth"),
-
     Setting("data.synthetic.seed", _SYNTHETIC.seed, COUNT, "the scene, the drift and the noise drawn"),
-    Setting("data.synthetic.route", _SYNTHETIC.route, _choice("loop", "courtyards"),
-            "a loop round one courtyard, or a route through several"),
+    Setting(
+        "data.synthetic.route",
+        _SYNTHETIC.route,
+        _choice("loop", "courtyards"),
+        "a loop round one courtyard, or a route through several",
+    ),
     Setting("data.synthetic.route_length_m", _SYNTHETIC.route_length_m, POSITIVE, "the courtyards route's length"),
     Setting("data.synthetic.num_scans", _SYNTHETIC.num_scans, AT_LEAST_ONE, "scans generated (each a keyframe)"),
     Setting("data.synthetic.scene_size_m", _SYNTHETIC.scene_size_m, POSITIVE, "the courtyard's width"),
     Setting("data.synthetic.trajectory_radius_m", _SYNTHETIC.trajectory_radius_m, POSITIVE, "the loop's radius"),
     Setting("data.synthetic.num_beams", _SYNTHETIC.num_beams, AT_LEAST_ONE, "the spinning LiDAR's rows ..."),
     Setting("data.synthetic.num_columns", _SYNTHETIC.num_columns, AT_LEAST_ONE, "... and columns"),
-    Setting("data.synthetic.max_range_m", _SYNTHETIC.max_range_m, _number(MIN_RANGE_M, above=True),
-            "the LiDAR's reach (beyond its minimum range, synthetic.lidar.MIN_RANGE_M)"),
+    Setting(
+        "data.synthetic.max_range_m",
+        _SYNTHETIC.max_range_m,
+        _number(MIN_RANGE_M, above=True),
+        "the LiDAR's reach (beyond its minimum range, synthetic.lidar.MIN_RANGE_M)",
+    ),
     Setting("data.synthetic.range_noise_m", _SYNTHETIC.range_noise_m, NON_NEGATIVE, "the ranges' noise (sigma)"),
-    Setting("data.synthetic.drift_trans_m", _SYNTHETIC.drift_trans_m, NON_NEGATIVE,
-            "the initial poses' random walk: translation a step ..."),
+    Setting(
+        "data.synthetic.drift_trans_m",
+        _SYNTHETIC.drift_trans_m,
+        NON_NEGATIVE,
+        "the initial poses' random walk: translation a step ...",
+    ),
     Setting("data.synthetic.drift_rot_deg", _SYNTHETIC.drift_rot_deg, NON_NEGATIVE, "... and rotation a step"),
     Setting("data.synthetic.gt_map_points", _SYNTHETIC.gt_map_points, COUNT, "points of the ground-truth map"),
-
     Setting("model.width", 512, _integer(2), "hidden layer width (the density head is width // 2 wide)"),
     Setting("model.depth", 8, AT_LEAST_ONE, "hidden layers"),
     Setting("model.skip_layers", (4,), Rule("ints", low=0), "hidden layers that get the encoded position again"),
     Setting("model.pos_freqs", 15, AT_LEAST_ONE, "L of the position encoding"),
     Setting("model.dir_freqs", 4, COUNT, "L of the view direction's encoding"),
     Setting("model.surrogate_gradient", True, FLAG, "eq. 9 (ablation: False)"),
-    Setting("model.matmul_dtype", "float32", _choice(*MATMUL_DTYPES),
-            "the hidden matmuls' inputs (parameters stay float32)"),
-
+    Setting(
+        "model.matmul_dtype", "float32", _choice(*MATMUL_DTYPES), "the hidden matmuls' inputs (parameters stay float32)"
+    ),
     Setting("sampling.z_low_m", 0.3, POSITIVE, "eq. 7's lower bound"),
     Setting("sampling.z_up_m", 200.0, POSITIVE, "eq. 7's upper bound (beyond the cube: the cube bound decides)"),
     Setting("sampling.cube_bound", True, FLAG, "samples only inside [-1, 1]^3 (ablation: False)"),
-    Setting("sampling.hierarchical", "before", _choice(*HIERARCHICAL),
-            "before (NeLD-BA) | nerf (ablation) | none (ablation)"),
-    Setting("sampling.coarse_stages", (32, 48, 64), Rule("ints", low=1, nonempty=True),
-            "coarse samples per ray, one stage each (ramp over train.c2f_end_fraction)"),
-    Setting("sampling.fine_stages", (16, 24, 32), Rule("ints", low=0, nonempty=True),
-            "fine samples per ray, one stage each"),
+    Setting(
+        "sampling.hierarchical",
+        "before",
+        _choice(*HIERARCHICAL),
+        "before (NeLD-BA) | nerf (ablation) | none (ablation)",
+    ),
+    Setting(
+        "sampling.coarse_stages",
+        (32, 48, 64),
+        Rule("ints", low=1, nonempty=True),
+        "coarse samples per ray, one stage each (ramp over train.c2f_end_fraction)",
+    ),
+    Setting(
+        "sampling.fine_stages", (16, 24, 32), Rule("ints", low=0, nonempty=True), "fine samples per ray, one stage each"
+    ),
     Setting("sampling.guided_samples", 0, COUNT, "coarse samples within 1 m of the measured range (0: the paper)"),
-
     Setting("loss.lambda_coarse", 0.1, NON_NEGATIVE, "eq. 13"),
     Setting("loss.lambda_range", 1.0, NON_NEGATIVE, "eq. 13"),
     Setting("loss.lambda_termination", 1.0, NON_NEGATIVE, "eq. 13 (ablation: 0)"),
-
     Setting("train.steps", 160_000, AT_LEAST_ONE, "optimiser steps"),
     Setting("train.batch_rays", 1024, AT_LEAST_ONE, "rays a step (over every submap)"),
     Setting("train.field_lr_init", 5e-5, NON_NEGATIVE, "the field's Adam learning rate, decaying exponentially ..."),
@@ -258,64 +313,109 @@ SETTINGS = (
     Setting("train.pose_lr_rot_final", 2e-5, NON_NEGATIVE, "... decaying to this"),
     Setting("train.pose_lr_trans_init", 5e-5, NON_NEGATIVE, "... and translation learning rate"),
     Setting("train.pose_lr_trans_final", 2e-5, NON_NEGATIVE, "... decaying to this"),
-    Setting("train.c2f_end_fraction", 0.75, _number(0, 1),
-            "coarse-to-fine: every frequency active after this fraction of the steps"),
+    Setting(
+        "train.c2f_end_fraction",
+        0.75,
+        _number(0, 1),
+        "coarse-to-fine: every frequency active after this fraction of the steps",
+    ),
     Setting("train.pose_start_freq", 6, COUNT, "k*: the poses move once this frequency is active"),
-    Setting("train.fixed_scans", (0,), Rule("ints"),
-            "scans that never move, negative from the last back (the gauge; (): every pose free, anchored on scan "
-            "0 after)"),
+    Setting(
+        "train.fixed_scans",
+        (0,),
+        Rule("ints"),
+        "scans that never move, negative from the last back (the gauge; (): every pose free, anchored on scan 0 after)",
+    ),
     Setting("train.checkpoint_every", 5000, AT_LEAST_ONE, "steps"),
-    Setting("train.log_every", 100, AT_LEAST_ONE,
-            "steps a device call runs (the log, the progress bar and the clock move in these)"),
-
+    Setting(
+        "train.log_every",
+        100,
+        AT_LEAST_ONE,
+        "steps a device call runs (the log, the progress bar and the clock move in these)",
+    ),
     Setting("start.poses", "input", _choice(*START_POSES, any_case=True), "input | baseline | crisper"),
-    Setting("start.pose_lr_from_baseline", REFINE_POSE_LR, Rule("floats", low=0, lengths=(0, 2)),
-            "from the baseline: pose learning rates at most these"),
-    Setting("start.prior_from_baseline", 3000.0, NON_NEGATIVE,
-            "... and a pull of each pose toward its start (0: none)"),
-
+    Setting(
+        "start.pose_lr_from_baseline",
+        REFINE_POSE_LR,
+        Rule("floats", low=0, lengths=(0, 2)),
+        "from the baseline: pose learning rates at most these",
+    ),
+    Setting(
+        "start.prior_from_baseline", 3000.0, NON_NEGATIVE, "... and a pull of each pose toward its start (0: none)"
+    ),
     # submaps_wanted reads the flag's words too
-    Setting("submaps.enabled", "auto", _choice("auto", "on", "off", "true", "false", "1", "0", any_case=True),
-            "auto (when one cube's finest detail exceeds max_detail_m) | on | off"),
+    Setting(
+        "submaps.enabled",
+        "auto",
+        _choice("auto", "on", "off", "true", "false", "1", "0", any_case=True),
+        "auto (when one cube's finest detail exceeds max_detail_m) | on | off",
+    ),
     Setting("submaps.max_detail_m", 0.25, POSITIVE, "the finest Fourier period one cube may have"),
     Setting("submaps.keyframes", 0, COUNT, "keyframes a submap (0: the most whose cube keeps max_detail_m)"),
     Setting("submaps.overlap", 2, COUNT, "keyframes neighbouring submaps share"),
-    Setting("submaps.closure_radius_m", 10.0, NON_NEGATIVE,
-            "a revisit within this distance gets a submap of both visits (0: none)"),
+    Setting(
+        "submaps.closure_radius_m",
+        10.0,
+        NON_NEGATIVE,
+        "a revisit within this distance gets a submap of both visits (0: none)",
+    ),
     Setting("submaps.max_submaps", 0, COUNT, "at most this many submaps (longer windows, coarser cubes; 0: no limit)"),
     Setting("submaps.width", 0, COUNT, "(M > 1) each submap's field width (0: model.width)"),
-    Setting("submaps.step_rays_factor", 1.0, POSITIVE,
-            "(M > 1) a step's rays over every submap, in units of train.batch_rays"),
-    Setting("submaps.lambda_termination", 0.0, NON_NEGATIVE,
-            "(M > 1) the termination loss's weight (0: loss.lambda_termination)"),
-    Setting("submaps.field_lr_from_steps", (), Rule("floats", low=0, above=True, lengths=(0, 2)),
-            "(M > 1) (N, f): a plan of N steps or more trains the fields at f x the rate"),
-
+    Setting(
+        "submaps.step_rays_factor",
+        1.0,
+        POSITIVE,
+        "(M > 1) a step's rays over every submap, in units of train.batch_rays",
+    ),
+    Setting(
+        "submaps.lambda_termination",
+        0.0,
+        NON_NEGATIVE,
+        "(M > 1) the termination loss's weight (0: loss.lambda_termination)",
+    ),
+    Setting(
+        "submaps.field_lr_from_steps",
+        (),
+        Rule("floats", low=0, above=True, lengths=(0, 2)),
+        "(M > 1) (N, f): a plan of N steps or more trains the fields at f x the rate",
+    ),
     Setting("mapping.enabled", True, FLAG, "render map_rendered.ply"),
     Setting("mapping.num_coarse", 128, AT_LEAST_ONE, "samples per ray of the rendered map (eq. 14) ..."),
     Setting("mapping.num_fine", 128, COUNT, "... coarse and fine"),
     Setting("mapping.max_rays_per_scan", 0, COUNT, "rays per keyframe (0: every ray) ..."),
-    Setting("mapping.max_rays", 0, COUNT,
-            "... and over the sequence (0: no limit; each keyframe an equal share, >= 256)"),
+    Setting(
+        "mapping.max_rays", 0, COUNT, "... and over the sequence (0: no limit; each keyframe an equal share, >= 256)"
+    ),
     Setting("mapping.voxel_size_m", 0.05, NON_NEGATIVE, "the written maps' grid (0: none)"),
     Setting("mapping.min_opacity", 0.5, _number(0, 1), "rays less opaque than this end nowhere"),
     Setting("mapping.max_seconds", 0.0, NON_NEGATIVE, "the render's share of max_minutes (0: no limit)"),
-
     Setting("baseline.voxel_size_m", _BASELINE.voxel_size_m, NON_NEGATIVE, "the scans' grid for ICP"),
-    Setting("baseline.loop_radius_m", _BASELINE.loop_radius_m, NON_NEGATIVE,
-            "loop-closure candidates within this distance"),
-    Setting("baseline.global_loops_per_scan", _BASELINE.global_loops_per_scan, COUNT,
-            "FPFH + RANSAC closures where ICP cannot reach (0: none)"),
+    Setting(
+        "baseline.loop_radius_m", _BASELINE.loop_radius_m, NON_NEGATIVE, "loop-closure candidates within this distance"
+    ),
+    Setting(
+        "baseline.global_loops_per_scan",
+        _BASELINE.global_loops_per_scan,
+        COUNT,
+        "FPFH + RANSAC closures where ICP cannot reach (0: none)",
+    ),
     Setting("baseline.map_rounds", _BASELINE.map_rounds, COUNT, "rounds of multi-view refinement (0: none)"),
-
-    Setting("eval.map_icp_m", 0.0, NON_NEGATIVE,
-            "> 0: refine the ground-truth map's alignment by ICP at this distance"),
-    Setting("eval.crispness_radius_m", crispness.DEFAULT_RADIUS_M, POSITIVE,
-            "the raw map's crispness: neighbourhood radius ..."),
+    Setting(
+        "eval.map_icp_m", 0.0, NON_NEGATIVE, "> 0: refine the ground-truth map's alignment by ICP at this distance"
+    ),
+    Setting(
+        "eval.crispness_radius_m",
+        crispness.DEFAULT_RADIUS_M,
+        POSITIVE,
+        "the raw map's crispness: neighbourhood radius ...",
+    ),
     Setting("eval.crispness_queries", crispness.DEFAULT_MAX_QUERIES, AT_LEAST_ONE, "... and query points"),
-    Setting("eval.crispness_draws", crispness.DEFAULT_DRAWS, COUNT,
-            "draws of the query points that say how sure a comparison is (< 2: none)"),
-
+    Setting(
+        "eval.crispness_draws",
+        crispness.DEFAULT_DRAWS,
+        COUNT,
+        "draws of the query points that say how sure a comparison is (< 2: none)",
+    ),
     Setting("viz.record", True, FLAG, "write run.rrd in the output folder"),
     Setting("viz.live", False, FLAG, "also serve the run on 127.0.0.1:9876 while it trains (`rerun rerun+http://...`)"),
 )
@@ -354,10 +454,18 @@ def settings_reference() -> str:
     parts = []
     for group, about in GROUPS.items():
         # bold lines, not headings: the hand-written sections of the same names keep their anchors
-        parts += [f"**{group or 'The run'}**: {about}.", "",
-                  "| field | type | default | accepts | what it does |", "|---|---|---|---|---|"]
-        parts += [f"| `{s.name}` | {s.rule.type_name} | `{_cell(repr(s.default))}` | {_cell(s.rule.describe())} | "
-                  f"{_cell(s.why)} |" for s in SETTINGS if s.group == group]
+        parts += [
+            f"**{group or 'The run'}**: {about}.",
+            "",
+            "| field | type | default | accepts | what it does |",
+            "|---|---|---|---|---|",
+        ]
+        parts += [
+            f"| `{s.name}` | {s.rule.type_name} | `{_cell(repr(s.default))}` | {_cell(s.rule.describe())} | "
+            f"{_cell(s.why)} |"
+            for s in SETTINGS
+            if s.group == group
+        ]
         parts.append("")
     return "\n".join(parts)
 
@@ -388,34 +496,74 @@ def _loop_fits(s) -> bool:
 # What fields accept together: (the field named, what it accepts, the test on the config).
 RELATIONS = (
     ("data.max_range_m", "more than data.min_range_m", lambda c: c.data.max_range_m > c.data.min_range_m),
-    ("data.root", "a folder (data.format is not synthetic)", lambda c: bool(c.data.root) or
-     c.data.format.lower() == "synthetic"),
-    ("data.initial_poses", f"'' or {KISS_ICP} (a pose file's name only with data.format=lio_keyframes)",
-     lambda c: c.data.initial_poses in ("", KISS_ICP) or c.data.format.lower() == "lio_keyframes"),
-    ("data.scans_in_world_frame", f"False with data.initial_poses={KISS_ICP} (it needs the layout's own poses)",
-     lambda c: not c.data.scans_in_world_frame or c.data.initial_poses != KISS_ICP),
-    ("data.invert_poses", f"False with data.initial_poses={KISS_ICP} (it needs the layout's own poses)",
-     lambda c: not c.data.invert_poses or c.data.initial_poses != KISS_ICP),
-    ("data.scan_frame", "'' or a published frame of data.format (fusionportable: body_imu | ouster00; newer_college: "
-     "os_sensor | os_imu)", lambda c: c.data.scan_frame in ("",) + SCAN_FRAMES.get(c.data.format.lower(), ())),
-    ("data.gt_from_scan", "() or (tx, ty, tz, qx, qy, qz, qw) with a unit quaternion",
-     lambda c: _unit_quaternion(c.data.gt_from_scan)),
-    ("data.synthetic.trajectory_radius_m", f"a loop inside the courtyard ({1 + PATH_WOBBLE:g} x the radius < "
-     "data.synthetic.scene_size_m / 2 - 1)", lambda c: _loop_fits(c.data.synthetic)),
-    ("data.synthetic.route_length_m", "at least 100 with data.synthetic.route=courtyards",
-     lambda c: c.data.synthetic.route != "courtyards" or c.data.synthetic.route_length_m >= 100),
-    ("model.skip_layers", "hidden layers below model.depth", lambda c: all(k < c.model.depth for k in
-                                                                           c.model.skip_layers)),
+    (
+        "data.root",
+        "a folder (data.format is not synthetic)",
+        lambda c: bool(c.data.root) or c.data.format.lower() == "synthetic",
+    ),
+    (
+        "data.initial_poses",
+        f"'' or {KISS_ICP} (a pose file's name only with data.format=lio_keyframes)",
+        lambda c: c.data.initial_poses in ("", KISS_ICP) or c.data.format.lower() == "lio_keyframes",
+    ),
+    (
+        "data.scans_in_world_frame",
+        f"False with data.initial_poses={KISS_ICP} (it needs the layout's own poses)",
+        lambda c: not c.data.scans_in_world_frame or c.data.initial_poses != KISS_ICP,
+    ),
+    (
+        "data.invert_poses",
+        f"False with data.initial_poses={KISS_ICP} (it needs the layout's own poses)",
+        lambda c: not c.data.invert_poses or c.data.initial_poses != KISS_ICP,
+    ),
+    (
+        "data.scan_frame",
+        "'' or a published frame of data.format (fusionportable: body_imu | ouster00; newer_college: "
+        "os_sensor | os_imu)",
+        lambda c: c.data.scan_frame in ("",) + SCAN_FRAMES.get(c.data.format.lower(), ()),
+    ),
+    (
+        "data.gt_from_scan",
+        "() or (tx, ty, tz, qx, qy, qz, qw) with a unit quaternion",
+        lambda c: _unit_quaternion(c.data.gt_from_scan),
+    ),
+    (
+        "data.synthetic.trajectory_radius_m",
+        f"a loop inside the courtyard ({1 + PATH_WOBBLE:g} x the radius < data.synthetic.scene_size_m / 2 - 1)",
+        lambda c: _loop_fits(c.data.synthetic),
+    ),
+    (
+        "data.synthetic.route_length_m",
+        "at least 100 with data.synthetic.route=courtyards",
+        lambda c: c.data.synthetic.route != "courtyards" or c.data.synthetic.route_length_m >= 100,
+    ),
+    (
+        "model.skip_layers",
+        "hidden layers below model.depth",
+        lambda c: all(k < c.model.depth for k in c.model.skip_layers),
+    ),
     ("sampling.z_up_m", "more than sampling.z_low_m", lambda c: c.sampling.z_up_m > c.sampling.z_low_m),
-    ("sampling.fine_stages", "as many stages as sampling.coarse_stages",
-     lambda c: len(c.sampling.fine_stages) == len(c.sampling.coarse_stages)),
+    (
+        "sampling.fine_stages",
+        "as many stages as sampling.coarse_stages",
+        lambda c: len(c.sampling.fine_stages) == len(c.sampling.coarse_stages),
+    ),
     ("sampling.coarse_stages", "at least 3 samples a stage with sampling.hierarchical=nerf", _nerf_needs_three),
-    ("mapping.num_coarse", "at least 3 with sampling.hierarchical=nerf",
-     lambda c: c.sampling.hierarchical != "nerf" or c.mapping.num_coarse >= 3),
-    ("submaps.overlap", "fewer than submaps.keyframes (when that is set)",
-     lambda c: c.submaps.keyframes <= 0 or c.submaps.overlap < c.submaps.keyframes),
-    ("train.fixed_scans", "keyframes below data.max_scans (when that is set)",
-     lambda c: c.data.max_scans <= 0 or all(-c.data.max_scans <= s < c.data.max_scans for s in c.train.fixed_scans)),
+    (
+        "mapping.num_coarse",
+        "at least 3 with sampling.hierarchical=nerf",
+        lambda c: c.sampling.hierarchical != "nerf" or c.mapping.num_coarse >= 3,
+    ),
+    (
+        "submaps.overlap",
+        "fewer than submaps.keyframes (when that is set)",
+        lambda c: c.submaps.keyframes <= 0 or c.submaps.overlap < c.submaps.keyframes,
+    ),
+    (
+        "train.fixed_scans",
+        "keyframes below data.max_scans (when that is set)",
+        lambda c: c.data.max_scans <= 0 or all(-c.data.max_scans <= s < c.data.max_scans for s in c.train.fixed_scans),
+    ),
 )
 
 
@@ -462,12 +610,24 @@ def with_budget(c: ml_collections.ConfigDict, budget: str) -> ml_collections.Con
     c.model.update(width=128, depth=4, skip_layers=(2,), pos_freqs=10, dir_freqs=2)
     c.data.max_rays_per_scan = 8192
     c.sampling.update(coarse_stages=(32,), fine_stages=(16,), guided_samples=16)
-    c.train.update(steps=1500, batch_rays=512, field_lr_init=5e-3, field_lr_final=5e-4, c2f_end_fraction=0.5,
-                   pose_lr_rot_init=1e-3, pose_lr_rot_final=1e-5, pose_lr_trans_init=1e-3, pose_lr_trans_final=1e-5,
-                   fixed_scans=(), checkpoint_every=500, log_every=25)
+    c.train.update(
+        steps=1500,
+        batch_rays=512,
+        field_lr_init=5e-3,
+        field_lr_final=5e-4,
+        c2f_end_fraction=0.5,
+        pose_lr_rot_init=1e-3,
+        pose_lr_rot_final=1e-5,
+        pose_lr_trans_init=1e-3,
+        pose_lr_trans_final=1e-5,
+        fixed_scans=(),
+        checkpoint_every=500,
+        log_every=25,
+    )
     c.max_minutes = 9.5
-    c.mapping.update(num_coarse=64, num_fine=64, max_rays_per_scan=2048, max_rays=262_144, voxel_size_m=0.1,
-                     max_seconds=60.0)
+    c.mapping.update(
+        num_coarse=64, num_fine=64, max_rays_per_scan=2048, max_rays=262_144, voxel_size_m=0.1, max_seconds=60.0
+    )
     c.submaps.update(max_submaps=32, width=64, step_rays_factor=3.0)
     c.data.synthetic.gt_map_points = 100_000
     if budget == "gpu":
@@ -493,8 +653,12 @@ def recording(budget: str = "") -> ml_collections.ConfigDict:
     c = with_budget(defaults(), budget)
     if c.budget == "paper":
         return c
-    c.train.update(pose_lr_rot_init=REFINE_POSE_LR[0], pose_lr_rot_final=REFINE_POSE_LR[1],
-                   pose_lr_trans_init=REFINE_POSE_LR[0], pose_lr_trans_final=REFINE_POSE_LR[1])
+    c.train.update(
+        pose_lr_rot_init=REFINE_POSE_LR[0],
+        pose_lr_rot_final=REFINE_POSE_LR[1],
+        pose_lr_trans_init=REFINE_POSE_LR[0],
+        pose_lr_trans_final=REFINE_POSE_LR[1],
+    )
     c.data.max_range_m = 40.0
     c.start.poses = "crisper"
     if c.budget == "cpu":
@@ -523,6 +687,7 @@ def cpu_training_hours(c: ml_collections.ConfigDict, cores: int | None = None) -
     """About how long c's training takes on `cores` CPU cores (None: this machine's): the paper-size step's
     measured time scaled by the MLP work of a step (rays x samples x width^2 x depth, at the last sample stage) and
     by the cores, times train.steps. A lower bound for small models, whose step has overheads besides the MLP."""
+
     def work(rays, samples, width, depth):
         return rays * samples * width * width * depth
 
@@ -547,9 +712,11 @@ def slow_run_warning(c: ml_collections.ConfigDict, backend: str = "", cores: int
         return ""
     took = f"{hours / 24:.0f} days" if hours >= 48 else f"{hours:.1f} hours"
     cpu_budget = "" if c.budget == "cpu" else "; the cpu budget (:cpu, the default on a CPU) ends within 10 minutes"
-    return (f"the {c.budget} budget trains {c.train.steps} steps of a field {c.model.width} wide and {c.model.depth} "
-            f"deep with no time limit (max_minutes=0): about {took} on this CPU's {cores or os.cpu_count()} cores"
-            f"{cpu_budget}; --config.max_minutes=M fits the schedule to M minutes")
+    return (
+        f"the {c.budget} budget trains {c.train.steps} steps of a field {c.model.width} wide and {c.model.depth} "
+        f"deep with no time limit (max_minutes=0): about {took} on this CPU's {cores or os.cpu_count()} cores"
+        f"{cpu_budget}; --config.max_minutes=M fits the schedule to M minutes"
+    )
 
 
 def from_file(path: str, argument: str = "") -> ml_collections.ConfigDict:
@@ -597,8 +764,14 @@ def main(argv=None) -> int:
     import argparse
 
     parser = argparse.ArgumentParser(prog="python -m neld_jax.config", description=main.__doc__)
-    parser.add_argument("--docs", nargs="?", const=DOCS_PATH, default="", metavar="PATH",
-                        help="rewrite the generated settings reference of this file (default: docs/defaults.md)")
+    parser.add_argument(
+        "--docs",
+        nargs="?",
+        const=DOCS_PATH,
+        default="",
+        metavar="PATH",
+        help="rewrite the generated settings reference of this file (default: docs/defaults.md)",
+    )
     args = parser.parse_args(argv)
     if not args.docs:
         parser.print_help()

@@ -95,8 +95,10 @@ def moved_enough(last: np.ndarray, pose: np.ndarray, distance_m: float, angle_de
     """The spatial keyframe rule: pose [4, 4] lies at least distance_m from last [4, 4], or has turned at least
     angle_deg from it. A rule whose threshold is <= 0 is off (both off: False)."""
     relative = invert_poses(last) @ pose
-    return bool((distance_m > 0 and np.linalg.norm(relative[:3, 3]) >= distance_m)
-                or (angle_deg > 0 and rotation_angles_deg(relative[:3, :3]) >= angle_deg))
+    return bool(
+        (distance_m > 0 and np.linalg.norm(relative[:3, 3]) >= distance_m)
+        or (angle_deg > 0 and rotation_angles_deg(relative[:3, :3]) >= angle_deg)
+    )
 
 
 def register_scans(scans: list[np.ndarray], poses: np.ndarray) -> np.ndarray:

@@ -53,8 +53,9 @@ def needs_reexec(environ: dict, libc: tuple[int, int] | None, thp_mode: str | No
 
 def reexec_with_huge_page_malloc() -> None:
     """Replace this process with the same command line and glibc's huge-page tunable set (once); else return."""
-    if not sys.platform.startswith("linux") or not needs_reexec(dict(os.environ), glibc_version(),
-                                                                 transparent_huge_page_mode()):
+    if not sys.platform.startswith("linux") or not needs_reexec(
+        dict(os.environ), glibc_version(), transparent_huge_page_mode()
+    ):
         return
     tunables = os.environ.get("GLIBC_TUNABLES", "")
     env = dict(os.environ, GLIBC_TUNABLES=f"{tunables}:{TUNABLE}" if tunables else TUNABLE)

@@ -42,8 +42,9 @@ def run(config: ml_collections.ConfigDict, progress: bool = True, restart: bool 
     return summary
 
 
-def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudget, viewer: RunViewer,
-              progress: bool = True) -> dict:
+def run_steps(
+    config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudget, viewer: RunViewer, progress: bool = True
+) -> dict:
     """The steps of `run` in its prepared output folder."""
     config_hash = outputs.config_hash(config)
 
@@ -56,29 +57,40 @@ def run_steps(config: ml_collections.ConfigDict, out_dir: str, budget: TimeBudge
     # 2. Choose the start and its pose steps: the input's or the baseline's poses (steps.start); a resume keeps it.
     begin = start.Start.resumed(out_dir, config_hash, keyframes.poses)
     if begin is None:
-        begin = start.choose_start(start.StartSettings.from_config(config), keyframes, budget.baseline_deadline(),
-                                   progress, recordings)
+        begin = start.choose_start(
+            start.StartSettings.from_config(config), keyframes, budget.baseline_deadline(), progress, recordings
+        )
         begin.save(out_dir, config_hash, keyframes.poses)
     viewer.log_start(loaded, keyframes, begin)
 
     # 3. Train the field(s) and the poses (neld_jax.steps.refine: one cube, or submaps for a sequence larger than one).
-    context = refine.TrainingContext(out_dir, config_hash, budget.training_seconds(), progress, viewer.training_hook(),
-                                     functools.partial(output_folder.record_seconds, out_dir, budget))
-    refined = refine.refine_keyframes(refine.TrainingSettings.from_config(config), keyframes, begin.poses,
-                                      begin.pose_steps, context)
+    context = refine.TrainingContext(
+        out_dir,
+        config_hash,
+        budget.training_seconds(),
+        progress,
+        viewer.training_hook(),
+        functools.partial(output_folder.record_seconds, out_dir, budget),
+    )
+    refined = refine.refine_keyframes(
+        refine.TrainingSettings.from_config(config), keyframes, begin.poses, begin.pose_steps, context
+    )
 
     # 4. Render the map (neld_jax.steps.mapping; none with mapping.enabled off).
-    render = mapping.rendered_map(config.mapping, config.sampling, refined, keyframes, config.seed + 1,
-                                  budget.render_seconds(), progress)
+    render = mapping.rendered_map(
+        config.mapping, config.sampling, refined, keyframes, config.seed + 1, budget.render_seconds(), progress
+    )
     viewer.log_rendered(render)
 
     # 5. Register every other input scan to the keyframes' refined map, from its interpolated correction.
     settings = registration.RegistrationSettings.from_groups(config.data, config.baseline)
-    registered = registration.register_every_scan(loaded, keyframes, refined.poses, settings, progress,
-                                                  budget.registration_deadline())
+    registered = registration.register_every_scan(
+        loaded, keyframes, refined.poses, settings, progress, budget.registration_deadline()
+    )
     # ... and the distance travelled checked against the input's on every scan's map (judging.answer).
-    made = answer.keep_travel_of_input(outputs.RunSteps(loaded, keyframes, begin, refined, render, registered),
-                                       config.eval)
+    made = answer.keep_travel_of_input(
+        outputs.RunSteps(loaded, keyframes, begin, refined, render, registered), config.eval
+    )
 
     # 6. Judge the crispness; the answer: NeLD-BA's poses unless they blurred the start's (judging.answer); write
     #    poses, maps, per-scan report, metrics.json (writing.outputs), each recording's (writing.session_outputs).

@@ -19,8 +19,9 @@ from neld_jax import lie
 from neld_jax.geometry import cumulative_path, invert_poses
 
 
-def propagate_corrections(T_input: np.ndarray, keyframe_index: np.ndarray, T_keyframes: np.ndarray,
-                          times: np.ndarray | None = None) -> np.ndarray:
+def propagate_corrections(
+    T_input: np.ndarray, keyframe_index: np.ndarray, T_keyframes: np.ndarray, times: np.ndarray | None = None
+) -> np.ndarray:
     """Refined poses [S, 4, 4] of every input scan.
 
     T_input: [S, 4, 4] input poses of all scans; keyframe_index: [K] increasing indices into them;

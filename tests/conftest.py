@@ -15,8 +15,10 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # Each run a test makes builds its jitted functions anew, so the in-memory cache misses and the same small train
 # steps compile again and again: JAX's persistent compilation cache, shared by both xdist workers and by the runs and
 # notebook kernels the tests start as subprocesses (they inherit the environment), compiles each program once.
-os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
-                      os.path.join(tempfile.gettempdir(), f"neld_jax_tests_{os.getuid()}", "jax_compilation_cache"))
+os.environ.setdefault(
+    "JAX_COMPILATION_CACHE_DIR",
+    os.path.join(tempfile.gettempdir(), f"neld_jax_tests_{os.getuid()}", "jax_compilation_cache"),
+)
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.1")
 # The tests' programs are tiny: compiling them costs more than running them, and LLVM's optimisation of the CPU code
 # is most of the compile (a tiny run: 45 s -> 32 s without it). What a program computes is the same.
@@ -93,9 +95,17 @@ def tiny_synthetic_sequence(num_scans: int = 4):
 
     from neld_jax.synthetic.generator import make_sequence
 
-    cfg = ml_collections.ConfigDict({"num_scans": num_scans, "num_beams": 8, "num_columns": 64,
-                                     "gt_map_points": 1000, "scene_size_m": 30.0, "trajectory_radius_m": 5.0,
-                                     "max_range_m": 30.0})
+    cfg = ml_collections.ConfigDict(
+        {
+            "num_scans": num_scans,
+            "num_beams": 8,
+            "num_columns": 64,
+            "gt_map_points": 1000,
+            "scene_size_m": 30.0,
+            "trajectory_radius_m": 5.0,
+            "max_range_m": 30.0,
+        }
+    )
     return make_sequence(cfg)
 
 
@@ -128,9 +138,15 @@ def first_sweeps_of_the_loop(num_sweeps: int, loop_sweeps: int = 300, seed: int 
         points, column = cast_sweep(scene, column_poses, directions, cfg.max_range_m, cfg.range_noise_m, rng)
         scans.append(points)
         point_times.append(column_fraction[column] / rate_hz)
-    return Sequence(scans=scans, poses=None, timestamps=np.arange(num_sweeps) / rate_hz,
-                    gt_poses=loop_poses(np.arange(num_sweeps) / loop_sweeps, cfg.trajectory_radius_m, seed),
-                    name=f"synthetic_seed{seed}_{rate_hz:g}hz", source="synthetic", point_times=point_times)
+    return Sequence(
+        scans=scans,
+        poses=None,
+        timestamps=np.arange(num_sweeps) / rate_hz,
+        gt_poses=loop_poses(np.arange(num_sweeps) / loop_sweeps, cfg.trajectory_radius_m, seed),
+        name=f"synthetic_seed{seed}_{rate_hz:g}hz",
+        source="synthetic",
+        point_times=point_times,
+    )
 
 
 def similarity_scale(T_moved, T_start) -> float:
@@ -185,12 +201,14 @@ def free_gauge_run(tmp_path_factory) -> Path:
     """The output folder of one whole run (run.run) of free_gauge_config, 12 steps, the Rerun recording included."""
     from neld_jax import run
 
-    return made_once(tmp_path_factory, "free_gauge_run",
-                     lambda folder: run.run(free_gauge_config(str(folder)), progress=False))
+    return made_once(
+        tmp_path_factory, "free_gauge_run", lambda folder: run.run(free_gauge_config(str(folder)), progress=False)
+    )
 
 
-def sphere_plan(num_scans: int = 3, per_scan: int = 64, seed: int = 0, window: int = 0, overlap: int = 1,
-                num_devices: int = 1):
+def sphere_plan(
+    num_scans: int = 3, per_scan: int = 64, seed: int = 0, window: int = 0, overlap: int = 1, num_devices: int = 1
+):
     """The sphere scene (sensors within 0.2 of the origin looking at a sphere of radius 0.8; metres are the cube's
     units) as the trainer's data: one cube (window 0) or windows of `window` keyframes sharing `overlap`.
     Returns (rays, frames, plan, T [S, 4, 4]) with rays and frames on a mesh of the plan's size."""
@@ -201,8 +219,9 @@ def sphere_plan(num_scans: int = 3, per_scan: int = 64, seed: int = 0, window: i
 
     rays, T = sphere_scene_rays(num_scans, per_scan, seed, spread=0.2)
     if window:
-        scans = [rays.directions[rays.scan_index == s] * rays.ranges[rays.scan_index == s, None]
-                 for s in range(num_scans)]
+        scans = [
+            rays.directions[rays.scan_index == s] * rays.ranges[rays.scan_index == s, None] for s in range(num_scans)
+        ]
         plan = submaps.plan_submaps(scans, T, window, overlap, 0.9, num_devices=num_devices)
     else:
         plan = submaps.one_cube_plan(num_scans, Normalization(1.0))
@@ -221,10 +240,28 @@ def train_a_download_briefly(config_file: str, root, output_dir) -> subprocess.C
     making the poses, with a field and a schedule so small that it ends in seconds, and every other scan registered
     on COARSE_REGISTRATION_GRID_M; its output is captured."""
     return subprocess.run(
-        [sys.executable, str(REPO / "bin" / "train.py"), f"--config={REPO / 'configs' / config_file}:cpu",
-         f"--config.data.root={root}", f"--config.output_dir={output_dir}", "--config.data.max_range_m=40",
-         "--config.data.keyframe_interval_s=1", "--config.data.max_rays_per_scan=256", "--config.train.steps=2",
-         "--config.train.batch_rays=32", "--config.model.width=16", "--config.model.depth=2",
-         "--config.model.skip_layers=(1,)", "--config.start.poses=input", "--config.mapping.enabled=False",
-         "--config.viz.record=False", f"--config.baseline.voxel_size_m={COARSE_REGISTRATION_GRID_M}"],
-        check=False, capture_output=True, text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"), timeout=600)
+        [
+            sys.executable,
+            str(REPO / "bin" / "train.py"),
+            f"--config={REPO / 'configs' / config_file}:cpu",
+            f"--config.data.root={root}",
+            f"--config.output_dir={output_dir}",
+            "--config.data.max_range_m=40",
+            "--config.data.keyframe_interval_s=1",
+            "--config.data.max_rays_per_scan=256",
+            "--config.train.steps=2",
+            "--config.train.batch_rays=32",
+            "--config.model.width=16",
+            "--config.model.depth=2",
+            "--config.model.skip_layers=(1,)",
+            "--config.start.poses=input",
+            "--config.mapping.enabled=False",
+            "--config.viz.record=False",
+            f"--config.baseline.voxel_size_m={COARSE_REGISTRATION_GRID_M}",
+        ],
+        check=False,
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+        timeout=600,
+    )

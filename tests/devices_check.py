@@ -20,6 +20,7 @@ from neld_jax.training.checkpoint import Checkpointer  # noqa: E402
 
 def main(tmp: str) -> None:
     import time
+
     t0 = time.perf_counter()
     assert len(jax.devices()) == 8
     cfg = make_tiny_config("", steps=10)
@@ -44,8 +45,9 @@ def main(tmp: str) -> None:
         a, ma = step1(a, rays1, frames1, sampler)
         b, mb = step8(b, rays8, frames8, sampler)
     for (path, x), y in zip(jax.tree_util.tree_flatten_with_path(a.params)[0], jax.tree.leaves(b.params)):
-        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6,
-                                   err_msg=jax.tree_util.keystr(path))
+        np.testing.assert_allclose(
+            np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6, err_msg=jax.tree_util.keystr(path)
+        )
     np.testing.assert_allclose(float(ma["loss"]), float(mb["loss"]), rtol=1e-5)
     assert np.abs(np.asarray(a.params["poses"])).max() > 0  # the poses moved, so they were compared too
     field_leaf = jax.tree.leaves(b.params["fields"])[0]

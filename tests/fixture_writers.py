@@ -35,8 +35,17 @@ def write_newer_college_csv(path: str | os.PathLike, timestamps: np.ndarray, pos
 
 # The Ouster driver's point: x, y, z (padded to 16 bytes), intensity, t (ns since the sweep's start), reflectivity,
 # ring, ambient, range; (name, offset, PointField datatype). 48 bytes a point with the driver's alignment.
-OUSTER_FIELDS = (("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 16, 7), ("t", 20, 6), ("reflectivity", 24, 4),
-                 ("ring", 26, 4), ("ambient", 28, 4), ("range", 32, 6))
+OUSTER_FIELDS = (
+    ("x", 0, 7),
+    ("y", 4, 7),
+    ("z", 8, 7),
+    ("intensity", 16, 7),
+    ("t", 20, 6),
+    ("reflectivity", 24, 4),
+    ("ring", 26, 4),
+    ("ambient", 28, 4),
+    ("range", 32, 6),
+)
 OUSTER_POINT_STEP = 48
 
 
@@ -46,8 +55,14 @@ def _ouster_cloud(store, stamp_ns: int, frame_id: str, points: np.ndarray, times
     n = points.shape[0]
     height = rows if rows > 1 and n % rows == 0 else 1
     fields = [f for f in OUSTER_FIELDS if times is not None or f[0] != "t"]
-    dtype = np.dtype({"names": [f[0] for f in fields], "formats": ["<" + POINTFIELD_TYPES[f[2]] for f in fields],
-                      "offsets": [f[1] for f in fields], "itemsize": OUSTER_POINT_STEP})
+    dtype = np.dtype(
+        {
+            "names": [f[0] for f in fields],
+            "formats": ["<" + POINTFIELD_TYPES[f[2]] for f in fields],
+            "offsets": [f[1] for f in fields],
+            "itemsize": OUSTER_POINT_STEP,
+        }
+    )
     data = np.zeros(n, dtype=dtype)
     for i, axis in enumerate("xyz"):
         data[axis] = points[:, i]
@@ -60,17 +75,26 @@ def _ouster_cloud(store, stamp_ns: int, frame_id: str, points: np.ndarray, times
     types = store.types
     point_field = types["sensor_msgs/msg/PointField"]
     header = types["std_msgs/msg/Header"](
-        seq=0, stamp=types["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000,
-                                                          nanosec=stamp_ns % 1_000_000_000), frame_id=frame_id)
+        seq=0,
+        stamp=types["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000),
+        frame_id=frame_id,
+    )
     return types["sensor_msgs/msg/PointCloud2"](
-        header=header, height=height, width=n // height,
+        header=header,
+        height=height,
+        width=n // height,
         fields=[point_field(name=name, offset=offset, datatype=datatype, count=1) for name, offset, datatype in fields],
-        is_bigendian=False, point_step=OUSTER_POINT_STEP, row_step=OUSTER_POINT_STEP * (n // height),
-        data=data.view(np.uint8).reshape(-1), is_dense=False)
+        is_bigendian=False,
+        point_step=OUSTER_POINT_STEP,
+        row_step=OUSTER_POINT_STEP * (n // height),
+        data=data.view(np.uint8).reshape(-1),
+        is_dense=False,
+    )
 
 
-def write_lidar_bag(bag: str | os.PathLike, topic: str, frame_id: str, timestamps, scans, point_times=None,
-                    rows: int = 1) -> Path:
+def write_lidar_bag(
+    bag: str | os.PathLike, topic: str, frame_id: str, timestamps, scans, point_times=None, rows: int = 1
+) -> Path:
     """Write a ROS1 .bag with one sensor_msgs/PointCloud2 per scan on `topic`, laid out as the Ouster driver's
     clouds (OUSTER_FIELDS), header stamp = bag time = the scan's timestamp.
 

@@ -26,8 +26,9 @@ def _gt_body(gt_poses: np.ndarray, release: str, frame: str) -> np.ndarray:
     return np.asarray(gt_poses, dtype=np.float64) @ invert_poses(published_offset(release, frame))
 
 
-def write_fusionportable_download(root: str | os.PathLike, sequence_name: str, timestamps, scans, point_times,
-                                  gt_poses, rows: int = 1) -> Path:
+def write_fusionportable_download(
+    root: str | os.PathLike, sequence_name: str, timestamps, scans, point_times, gt_poses, rows: int = 1
+) -> Path:
     """Write ROOT/sensor_data/handheld/<sequence>/<sequence>.bag (the Ouster's sweeps on
     fusionportable.LIDAR_TOPICS[0], frame ouster00) and ROOT/groundtruth/traj/<sequence>.txt (TUM).
 
@@ -36,16 +37,35 @@ def write_fusionportable_download(root: str | os.PathLike, sequence_name: str, t
     Returns the sequence folder (the data.root to load)."""
     root = Path(root)
     folder = root / "sensor_data" / "handheld" / sequence_name
-    write_lidar_bag(folder / f"{sequence_name}.bag", fusionportable.LIDAR_TOPICS[0], fusionportable.LIDAR_FRAME,
-                    timestamps, scans, point_times, rows=rows)
+    write_lidar_bag(
+        folder / f"{sequence_name}.bag",
+        fusionportable.LIDAR_TOPICS[0],
+        fusionportable.LIDAR_FRAME,
+        timestamps,
+        scans,
+        point_times,
+        rows=rows,
+    )
     if gt_poses is not None:
-        write_tum(root / "groundtruth" / "traj" / f"{sequence_name}.txt", np.asarray(timestamps, dtype=np.float64),
-                  _gt_body(gt_poses, "fusionportable", fusionportable.LIDAR_FRAME))
+        write_tum(
+            root / "groundtruth" / "traj" / f"{sequence_name}.txt",
+            np.asarray(timestamps, dtype=np.float64),
+            _gt_body(gt_poses, "fusionportable", fusionportable.LIDAR_FRAME),
+        )
     return folder
 
 
-def write_newer_college_download(root: str | os.PathLike, name: str, timestamps, scans, point_times, gt_poses,
-                                 parts: int = 1, rows: int = 1, start: str = "2021-07-01-10-37-38") -> Path:
+def write_newer_college_download(
+    root: str | os.PathLike,
+    name: str,
+    timestamps,
+    scans,
+    point_times,
+    gt_poses,
+    parts: int = 1,
+    rows: int = 1,
+    start: str = "2021-07-01-10-37-38",
+) -> Path:
     """Write a Newer College 2021 sequence `name` (e.g. quad-easy) into the folder ROOT: its bag
     <start>-<name>.bag, or `parts` bags <start>_<k>-<name>.bag of consecutive sweeps (newer_college.LIDAR_TOPIC,
     frame os_sensor), and gt-nc-<name>.csv (sec,nsec,x,y,z,qx,qy,qz,qw, the base frame).
@@ -56,10 +76,17 @@ def write_newer_college_download(root: str | os.PathLike, name: str, timestamps,
     chunks = np.array_split(np.arange(len(scans)), max(parts, 1))
     for k, chunk in enumerate(chunks):
         bag = root / (f"{start}-{name}.bag" if parts <= 1 else f"{start}_{k}-{name}.bag")
-        write_lidar_bag(bag, newer_college.LIDAR_TOPIC, newer_college.LIDAR_FRAME, timestamps[chunk],
-                        [scans[i] for i in chunk], None if point_times is None else [point_times[i] for i in chunk],
-                        rows=rows)
+        write_lidar_bag(
+            bag,
+            newer_college.LIDAR_TOPIC,
+            newer_college.LIDAR_FRAME,
+            timestamps[chunk],
+            [scans[i] for i in chunk],
+            None if point_times is None else [point_times[i] for i in chunk],
+            rows=rows,
+        )
     if gt_poses is not None:
-        write_newer_college_csv(root / f"gt-nc-{name}.csv", timestamps,
-                                _gt_body(gt_poses, "newer_college_2021", newer_college.LIDAR_FRAME))
+        write_newer_college_csv(
+            root / f"gt-nc-{name}.csv", timestamps, _gt_body(gt_poses, "newer_college_2021", newer_college.LIDAR_FRAME)
+        )
     return root

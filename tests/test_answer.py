@@ -17,16 +17,23 @@ from neld_jax.lie import se3_exp_float64
 
 def _margin(per_draw):
     per_draw = np.asarray(per_draw, dtype=np.float64)
-    return {"per_draw": per_draw.tolist(), "mean": float(per_draw.mean()), "std": float(per_draw.std(ddof=1)),
-            "all_draws_agree": bool((per_draw > 0).all() or (per_draw < 0).all())}
+    return {
+        "per_draw": per_draw.tolist(),
+        "mean": float(per_draw.mean()),
+        "std": float(per_draw.std(ddof=1)),
+        "all_draws_agree": bool((per_draw > 0).all() or (per_draw < 0).all()),
+    }
 
 
-@pytest.mark.parametrize("per_draw, chosen, blurred", [
-    ([0.02, 0.01, 0.03], "baseline", True),  # blurrier than the start on every draw
-    ([0.02, -0.01, 0.03], "baseline", False),  # the draws disagree: a tie keeps NeLD-BA's
-    ([-0.02, -0.01, -0.03], "baseline", False),  # crisper
-    ([0.02, 0.01, 0.03], "input", False),  # blurrier than the baseline, but training started from the input
-])
+@pytest.mark.parametrize(
+    "per_draw, chosen, blurred",
+    [
+        ([0.02, 0.01, 0.03], "baseline", True),  # blurrier than the start on every draw
+        ([0.02, -0.01, 0.03], "baseline", False),  # the draws disagree: a tie keeps NeLD-BA's
+        ([-0.02, -0.01, -0.03], "baseline", False),  # crisper
+        ([0.02, 0.01, 0.03], "input", False),  # blurrier than the baseline, but training started from the input
+    ],
+)
 def test_the_start_is_kept_only_where_every_draw_says_it_was_crisper(per_draw, chosen, blurred):
     margins = {"baseline": _margin(per_draw), "initial": _margin([-0.5, -0.4, -0.6])}
     assert answer.blurred_the_start(margins, chosen) is blurred
@@ -34,8 +41,11 @@ def test_the_start_is_kept_only_where_every_draw_says_it_was_crisper(per_draw, c
 
 
 def test_the_start_as_answer_moves_the_figures_and_the_margins_to_it():
-    crisp = {"initial": {"mean_map_entropy": -2.0}, "baseline": {"mean_map_entropy": -3.0},
-             "optimized": {"mean_map_entropy": -2.9}}
+    crisp = {
+        "initial": {"mean_map_entropy": -2.0},
+        "baseline": {"mean_map_entropy": -3.0},
+        "optimized": {"mean_map_entropy": -2.9},
+    }
     per_scan = {name: np.full(3, s["mean_map_entropy"]) for name, s in crisp.items()}
     margins = {"initial": _margin([-0.9, -0.8]), "baseline": _margin([0.1, 0.05])}  # optimized minus each
     crisp2, per_scan2, margins2 = answer.start_as_answer((crisp, per_scan, margins), "baseline")
@@ -142,8 +152,7 @@ def test_the_kept_travel_reaches_every_output_of_the_run():
 
     truth = np.stack([sensor_pose(2.0 * k - 6.0) for k in range(6)])
     scans = scans_along(raycasting_scene(street_meshes()), truth)
-    loaded = dataclasses.make_dataclass("Loaded", ["scans", "poses", "timestamps", "num_scans"])(
-        scans, truth, None, 6)
+    loaded = dataclasses.make_dataclass("Loaded", ["scans", "poses", "timestamps", "num_scans"])(scans, truth, None, 6)
     keyframes = dataclasses.make_dataclass("Keyframes", ["loaded_index"])(np.array([0, 5]))
     refined = dataclasses.make_dataclass("Refined", ["poses"])(_scaled(truth, 0.97)[[0, 5]])
     made = RunSteps(loaded, keyframes, None, refined)

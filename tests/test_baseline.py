@@ -41,8 +41,19 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def drifted_sequence():
-    seq = make_sequence(dict(num_scans=6, num_beams=32, num_columns=512, gt_map_points=0, scene_size_m=40.0,
-                             trajectory_radius_m=8.0, max_range_m=30.0, drift_trans_m=0.15, drift_rot_deg=1.0))
+    seq = make_sequence(
+        dict(
+            num_scans=6,
+            num_beams=32,
+            num_columns=512,
+            gt_map_points=0,
+            scene_size_m=40.0,
+            trajectory_radius_m=8.0,
+            max_range_m=30.0,
+            drift_trans_m=0.15,
+            drift_rot_deg=1.0,
+        )
+    )
     return preprocess(seq, KeyframeSettings(keyframe_interval_s=0.0, min_range=0.5, max_range=30.0, voxel_size=0.1))
 
 
@@ -65,8 +76,9 @@ def test_register_sequence_reduces_ate(drifted_sequence, registered):
     assert after["rotation_rmse_deg"] < 0.25 * before["rotation_rmse_deg"]
     np.testing.assert_allclose(refined[0], seq.poses[0], atol=1e-9)  # the gauge scan does not move
     rotations = refined[:, :3, :3]
-    np.testing.assert_allclose(np.einsum("sji,sjk->sik", rotations, rotations), np.tile(np.eye(3), (6, 1, 1)),
-                               atol=1e-10)
+    np.testing.assert_allclose(
+        np.einsum("sji,sjk->sik", rotations, rotations), np.tile(np.eye(3), (6, 1, 1)), atol=1e-10
+    )
 
 
 def test_progress_bars_follow_each_step_of_the_baseline_only_when_asked(drifted_sequence, registered, capsys):
@@ -154,15 +166,18 @@ def test_icp_steps_and_information_are_open3ds(drifted_sequence):
     guess = invert_poses(drifted_sequence.poses[2]) @ drifted_sequence.poses[1]
     registration = o3d.pipelines.registration
     expected = registration.get_information_matrix_from_point_clouds(source, target, 0.25, guess)
-    np.testing.assert_allclose(information(source, target, guess, SETTINGS), expected, rtol=1e-12,
-                               atol=1e-12 * np.abs(expected).max())
+    np.testing.assert_allclose(
+        information(source, target, guess, SETTINGS), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max()
+    )
     moved = np.asarray(source.points) @ guess[:3, :3].T + guess[:3, 3]
     nearest, _ = TargetIndex(target, 0.5).nearest(moved, 0.5)
     pairs = np.stack([np.flatnonzero(nearest >= 0), nearest[nearest >= 0]], axis=1).astype(np.int32)
     expected = registration.TransformationEstimationPointToPlane().compute_transformation(
-        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(moved)), target, o3d.utility.Vector2iVector(pairs))
-    step = point_to_plane_step(moved[pairs[:, 0]], np.asarray(target.points)[pairs[:, 1]],
-                                np.asarray(target.normals)[pairs[:, 1]])
+        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(moved)), target, o3d.utility.Vector2iVector(pairs)
+    )
+    step = point_to_plane_step(
+        moved[pairs[:, 0]], np.asarray(target.points)[pairs[:, 1]], np.asarray(target.normals)[pairs[:, 1]]
+    )
     assert np.linalg.norm(expected[:3, 3]) > 0.01  # a real step
     np.testing.assert_allclose(step, expected, atol=1e-12)
 
@@ -202,27 +217,50 @@ def test_single_scan_is_returned_unchanged():
 
 def test_cli_writes_baseline_outputs_and_table(tmp_path):
     out = tmp_path / "run"
-    args = [sys.executable, str(REPO / "bin" / "baseline.py"), f"--config={REPO / 'configs' / 'demo.py'}",
-            f"--config.output_dir={out}", "--config.data.voxel_size_m=0.2",
-            "--config.data.synthetic.num_scans=4", "--config.data.synthetic.num_beams=16",
-            "--config.data.synthetic.num_columns=256", "--config.data.synthetic.gt_map_points=5000",
-            "--config.data.synthetic.scene_size_m=30.0", "--config.data.synthetic.trajectory_radius_m=5.0",
-            "--config.data.synthetic.max_range_m=30.0", "--config.mapping.voxel_size_m=0.0"]
-    done = subprocess.run(args, capture_output=True, text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"),
-                          timeout=300)
+    args = [
+        sys.executable,
+        str(REPO / "bin" / "baseline.py"),
+        f"--config={REPO / 'configs' / 'demo.py'}",
+        f"--config.output_dir={out}",
+        "--config.data.voxel_size_m=0.2",
+        "--config.data.synthetic.num_scans=4",
+        "--config.data.synthetic.num_beams=16",
+        "--config.data.synthetic.num_columns=256",
+        "--config.data.synthetic.gt_map_points=5000",
+        "--config.data.synthetic.scene_size_m=30.0",
+        "--config.data.synthetic.trajectory_radius_m=5.0",
+        "--config.data.synthetic.max_range_m=30.0",
+        "--config.mapping.voxel_size_m=0.0",
+    ]
+    done = subprocess.run(args, capture_output=True, text=True, env=dict(os.environ, JAX_PLATFORMS="cpu"), timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
-    for name in ("poses_baseline.txt", "poses_baseline.kitti", "map_raw_baseline.ply", "poses_initial.txt",
-                 "map_raw_initial.ply", "poses_gt.txt", "map_gt.ply", "metrics.json"):
+    for name in (
+        "poses_baseline.txt",
+        "poses_baseline.kitti",
+        "map_raw_baseline.ply",
+        "poses_initial.txt",
+        "map_raw_initial.ply",
+        "poses_gt.txt",
+        "map_gt.ply",
+        "metrics.json",
+    ):
         assert (out / name).is_file(), name
     assert "baseline" in done.stdout and "initial" in done.stdout
     evaluation = json.loads((out / "metrics.json").read_text())["evaluation"]
     assert set(evaluation["methods"]) == {"initial", "baseline"}
     assert evaluation["methods"]["baseline"]["raw_map"]["num_est"] > 0
 
-    bad = subprocess.run(args[:2] + [f"--config={REPO / 'configs' / 'generic.py'}",
-                                     f"--config.data.root={tmp_path / 'no_such_sequence'}",
-                                     f"--config.output_dir={tmp_path / 'bad'}"],
-                         capture_output=True, text=True, timeout=120)
+    bad = subprocess.run(
+        args[:2]
+        + [
+            f"--config={REPO / 'configs' / 'generic.py'}",
+            f"--config.data.root={tmp_path / 'no_such_sequence'}",
+            f"--config.output_dir={tmp_path / 'bad'}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert bad.returncode == 1
     assert bad.stderr.startswith("error: ") and "Traceback" not in bad.stderr
 
@@ -272,16 +310,17 @@ def test_chain_keeps_the_odometry_increment_when_icp_slides_far(drifted_sequence
     class Result:
         fitness = 0.9
 
-    monkeypatch.setattr(baseline.chain, "multiscale_icp",
-                        lambda source, target, guess, settings: (guess @ slide, Result()))
+    monkeypatch.setattr(
+        baseline.chain, "multiscale_icp", lambda source, target, guess, settings: (guess @ slide, Result())
+    )
     chain, fitness = baseline.scan_to_map_chain(clouds, seq.poses, SETTINGS)
     np.testing.assert_allclose(chain, seq.poses, atol=1e-9)  # every link kept the odometry's increment
     warned = [r.getMessage() for r in caplog.records if "max_link_correction_m" in r.getMessage()]
     assert len(warned) == 1 and f"moved {len(clouds) - 1} scan(s)" in warned[0]  # one line for all of them
     chain, _ = baseline.scan_to_map_chain(clouds, seq.poses, dataclasses.replace(SETTINGS, max_link_correction_m=3.0))
-    np.testing.assert_allclose(np.linalg.inv(seq.poses[0]) @ chain[1],
-                               np.linalg.inv(seq.poses[0]) @ seq.poses[1] @ slide,
-                               atol=1e-9)  # under a looser bound the slide is taken
+    np.testing.assert_allclose(
+        np.linalg.inv(seq.poses[0]) @ chain[1], np.linalg.inv(seq.poses[0]) @ seq.poses[1] @ slide, atol=1e-9
+    )  # under a looser bound the slide is taken
 
 
 def test_a_link_icp_moves_far_is_kept_where_the_features_find_the_same_pose(drifted_sequence, monkeypatch):
@@ -351,8 +390,9 @@ def test_a_chain_still_running_at_the_deadline_is_given_up(drifted_sequence, mon
         raise AssertionError("no pose graph without a chain")
 
     monkeypatch.setattr(baseline.pipeline, "loop_closed_graph", not_called)
-    result = register_sequence(seq.scans, seq.poses, dataclasses.replace(SETTINGS, map_rounds=2),
-                               deadline=time.perf_counter() - 1.0)
+    result = register_sequence(
+        seq.scans, seq.poses, dataclasses.replace(SETTINGS, map_rounds=2), deadline=time.perf_counter() - 1.0
+    )
     np.testing.assert_allclose(result.poses, seq.poses, atol=1e-9)
     assert result.chain_given_up and result.refined_from == "input"
     assert result.map_rounds_done == 0 and result.stopped_at_deadline
@@ -407,8 +447,9 @@ def test_the_placings_links_join_the_recordings_in_the_pose_graph(drifted_sequen
 def test_over_joined_recordings_the_refinement_starts_from_the_graph(drifted_sequence):
     seq = drifted_sequence
     init, _ = _two_recordings(seq)
-    result = register_sequence(seq.scans, init, dataclasses.replace(SETTINGS, map_rounds=1),
-                               segments=Segments(starts=(3,)))
+    result = register_sequence(
+        seq.scans, init, dataclasses.replace(SETTINGS, map_rounds=1), segments=Segments(starts=(3,))
+    )
     assert result.refined_from == "graph" and result.start_entropy is None
 
 
@@ -435,8 +476,7 @@ def test_multi_view_refinement_pulls_a_scan_onto_the_others_map_and_gates_a_far_
     settings = dataclasses.replace(SETTINGS, map_rounds=2)
     clouds = prepare_clouds(seq.scans, settings)
     seen = []
-    refined, refinement = refine_against_map(clouds, start, settings,
-                                             on_round=lambda r, poses: seen.append((r, poses)))
+    refined, refinement = refine_against_map(clouds, start, settings, on_round=lambda r, poses: seen.append((r, poses)))
     # on_round sees each round's poses (copies), the last of them the result
     assert [r for r, _ in seen] == [1, 2]
     np.testing.assert_array_equal(seen[-1][1], refined)
@@ -510,8 +550,13 @@ def test_icp_does_not_pair_the_two_faces_of_a_thin_wall():
     plain = np.eye(4)
     for distance in settings.icp_distances_m:
         plain = o3d.pipelines.registration.registration_icp(
-            source, target, distance, plain, o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30)).transformation
+            source,
+            target,
+            distance,
+            plain,
+            o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30),
+        ).transformation
     assert plain[0, 3] < -0.1  # what the normal check prevents
 
     # Map normals of unknown sign (oriented=False) pair by |cosine|: a flipped target still registers, and a
@@ -526,8 +571,19 @@ def test_icp_does_not_pair_the_two_faces_of_a_thin_wall():
 
 @pytest.fixture(scope="module")
 def short_courtyard_route():
-    seq = make_sequence(dict(route="courtyards", route_length_m=100.0, num_scans=34, num_beams=32, num_columns=512,
-                             gt_map_points=0, max_range_m=30.0, drift_trans_m=0.0, drift_rot_deg=0.0))
+    seq = make_sequence(
+        dict(
+            route="courtyards",
+            route_length_m=100.0,
+            num_scans=34,
+            num_beams=32,
+            num_columns=512,
+            gt_map_points=0,
+            max_range_m=30.0,
+            drift_trans_m=0.0,
+            drift_rot_deg=0.0,
+        )
+    )
     return preprocess(seq, KeyframeSettings(keyframe_interval_s=0.0, min_range=0.5, max_range=30.0, voxel_size=0.1))
 
 
@@ -602,8 +658,10 @@ def test_loop_closures_between_linked_recordings_pass_the_loop_gates(short_court
     link_error = np.eye(4)
     link_error[:3, :3] = Rotation.from_euler("z", 0.3, degrees=True).as_matrix()
     link_error[:3, 3] = [0.018, -0.024, 0.0]
-    links = tuple((i, j, link_error @ np.linalg.inv(seq.gt_poses[j]) @ seq.gt_poses[i])
-                  for i, j in ((half, half - 1), (half + 1, half - 2)))
+    links = tuple(
+        (i, j, link_error @ np.linalg.inv(seq.gt_poses[j]) @ seq.gt_poses[i])
+        for i, j in ((half, half - 1), (half + 1, half - 2))
+    )
     _, unlinked = loop_closed_graph(clouds, chain, settings, segments=Segments((half,)))
     poses, linked = loop_closed_graph(clouds, chain, settings, segments=Segments((half,), links))
     assert unlinked.across_tried > 0 and unlinked.across_kept == 0

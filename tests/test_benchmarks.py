@@ -23,10 +23,40 @@ import harness  # noqa: E402
 
 SCRIPT = ROOT / "benchmarks" / "train_step.py"
 
-TINY = ["--steps", "2", "--repeats", "1", "--rays", "16", "--coarse", "4", "--fine", "2", "--width", "8",
-        "--depth", "1", "--scans", "2", "--rays_per_scan", "64"]
-STEP_KEYS = {"steps_per_s", "rays_per_s", "samples_per_s", "compile_s", "mlp_flops_per_step", "achieved_gflops",
-             "device", "jax_version", "config", "cpu_ms_per_step", "xla_flops_per_step", "profile"}
+TINY = [
+    "--steps",
+    "2",
+    "--repeats",
+    "1",
+    "--rays",
+    "16",
+    "--coarse",
+    "4",
+    "--fine",
+    "2",
+    "--width",
+    "8",
+    "--depth",
+    "1",
+    "--scans",
+    "2",
+    "--rays_per_scan",
+    "64",
+]
+STEP_KEYS = {
+    "steps_per_s",
+    "rays_per_s",
+    "samples_per_s",
+    "compile_s",
+    "mlp_flops_per_step",
+    "achieved_gflops",
+    "device",
+    "jax_version",
+    "config",
+    "cpu_ms_per_step",
+    "xla_flops_per_step",
+    "profile",
+}
 
 
 def _load_benchmark_module():
@@ -43,8 +73,9 @@ def test_tiny_run_prints_one_json_line_with_the_promised_keys(tmp_path):
     hlo_file = tmp_path / "step.hlo"
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     args = TINY + ["--profile_dir", str(tmp_path / "trace"), "--profile_steps", "1", "--dump_hlo", str(hlo_file)]
-    result = subprocess.run([sys.executable, str(SCRIPT), *args], cwd=ROOT, env=env, capture_output=True,
-                            text=True, timeout=600)
+    result = subprocess.run(
+        [sys.executable, str(SCRIPT), *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     lines = [line for line in result.stdout.splitlines() if line.strip()]
     assert len(lines) == 1, result.stdout
@@ -108,8 +139,9 @@ def test_hlo_categories_find_the_matmul_and_the_sine():
 def test_efficiency_mode_times_step_and_peak_alternately():
     config, sizes = bench.preset_sizes("cpu")
     sizes = dict(sizes, rays=16, coarse=4, guided=0, fine=2, width=8, depth=1)
-    record = bench.benchmark_efficiency(config, sizes, steps=1, repeats=3, square_sizes=[32], num_scans=2,
-                                        rays_per_scan=64)
+    record = bench.benchmark_efficiency(
+        config, sizes, steps=1, repeats=3, square_sizes=[32], num_scans=2, rays_per_scan=64
+    )
     assert record["benchmark"] == "efficiency" and len(record["rounds"]) == 3
     for r in record["rounds"]:
         assert set(r["matmul_gflops"]) == {"32", "96x8x8"}
@@ -206,8 +238,16 @@ def test_gpu_suite_loads_the_prepared_demo_as_one_cube(tmp_path):
     poses[:, :3, 3] = T[:, :3, 3] / 0.5 + offset
     gt[:, :3, 3] = poses[:, :3, 3] + np.array([[0.0, 0.0, 0.0], [0.02, 0.0, 0.0], [0.0, -0.03, 0.01]])
     path = tmp_path / "demo.npz"
-    np.savez(path, directions=rays.directions, ranges_m=rays.ranges / 0.5, scan_index=rays.scan_index, poses=poses,
-             gt_poses=gt, scale=0.5, offset=offset)
+    np.savez(
+        path,
+        directions=rays.directions,
+        ranges_m=rays.ranges / 0.5,
+        scan_index=rays.scan_index,
+        poses=poses,
+        gt_poses=gt,
+        scale=0.5,
+        offset=offset,
+    )
     demo = suite.load_demo(str(path))
     assert demo.num_scans == 3 and demo.plan.num_submaps == 1 and demo.scale == 0.5
     assert demo.rays.directions.shape == (1, 96, 3)
@@ -306,38 +346,72 @@ def _real_targets_module():
 
 
 def _margin(*per_draw):
-    return {"per_draw": list(per_draw), "mean": sum(per_draw) / len(per_draw),
-            "all_draws_agree": all(d < 0 for d in per_draw) or all(d > 0 for d in per_draw)}
+    return {
+        "per_draw": list(per_draw),
+        "mean": sum(per_draw) / len(per_draw),
+        "all_draws_agree": all(d < 0 for d in per_draw) or all(d > 0 for d in per_draw),
+    }
 
 
 def test_real_targets_read_the_targets_off_an_entry():
     # benchmarks/real_targets.py: each target of a real_data.py entry passes on good figures and fails when one
     # figure crosses its line; missing figures give None, not a verdict.
     targets = _real_targets_module()
-    entry = {"sequence": "seq", "recorded": {"crisper": {
-        "scans": 3, "pose_lines": 3, "wall_s": 550.0,
-        "crispness": {"initial": {"entropy": -3.40}, "baseline": {"entropy": -3.50}, "optimized": {"entropy": -3.51}},
-        "crispness_margin": {"baseline": _margin(-0.002, -0.001, -0.003)}}},
-        "drift": {"ate_vs_odometry_m": {"initial": 1.0, "baseline": 0.0365, "optimized": 0.0364},
-                  "optimized_apart_from_recorded_m": 0.0022,
-                  "crispness": {"initial": {"entropy": -2.2}, "optimized": {"entropy": -3.51}},
-                  "crispness_margin": {"baseline": _margin(-0.002, 0.001, -0.003)}}}
+    entry = {
+        "sequence": "seq",
+        "recorded": {
+            "crisper": {
+                "scans": 3,
+                "pose_lines": 3,
+                "wall_s": 550.0,
+                "crispness": {
+                    "initial": {"entropy": -3.40},
+                    "baseline": {"entropy": -3.50},
+                    "optimized": {"entropy": -3.51},
+                },
+                "crispness_margin": {"baseline": _margin(-0.002, -0.001, -0.003)},
+            }
+        },
+        "drift": {
+            "ate_vs_odometry_m": {"initial": 1.0, "baseline": 0.0365, "optimized": 0.0364},
+            "optimized_apart_from_recorded_m": 0.0022,
+            "crispness": {"initial": {"entropy": -2.2}, "optimized": {"entropy": -3.51}},
+            "crispness_margin": {"baseline": _margin(-0.002, 0.001, -0.003)},
+        },
+    }
     got = targets.target_verdicts(entry, "crisper", minutes_limit=10)
-    assert got == {"recorded": {"within_minutes": True, "every_scan_a_pose": True, "crisper_than_odometry": True,
-                                "crisper_than_baseline": "every draw"},
-                   "drift": {"within_2cm_of_recorded_answer": True, "as_crisp_as_odometry": True,
-                             "ate_at_or_below_baseline": True, "crisper_than_baseline": "a tie"}}
-    entry["recorded"]["crisper"].update(wall_s=601.0, pose_lines=2,
-                                        crispness_margin={"baseline": _margin(0.001, 0.002, 0.001)})
+    assert got == {
+        "recorded": {
+            "within_minutes": True,
+            "every_scan_a_pose": True,
+            "crisper_than_odometry": True,
+            "crisper_than_baseline": "every draw",
+        },
+        "drift": {
+            "within_2cm_of_recorded_answer": True,
+            "as_crisp_as_odometry": True,
+            "ate_at_or_below_baseline": True,
+            "crisper_than_baseline": "a tie",
+        },
+    }
+    entry["recorded"]["crisper"].update(
+        wall_s=601.0, pose_lines=2, crispness_margin={"baseline": _margin(0.001, 0.002, 0.001)}
+    )
     entry["recorded"]["crisper"]["crispness"]["optimized"]["entropy"] = -3.40  # equal is not crisper
-    entry["drift"].update(optimized_apart_from_recorded_m=0.021,
-                          ate_vs_odometry_m={"initial": 1.0, "baseline": 0.0365, "optimized": 0.0366})
+    entry["drift"].update(
+        optimized_apart_from_recorded_m=0.021,
+        ate_vs_odometry_m={"initial": 1.0, "baseline": 0.0365, "optimized": 0.0366},
+    )
     entry["drift"]["crispness"]["optimized"]["entropy"] = -3.39  # blurrier than the recorded odometry's -3.40
     entry["drift"]["ate_change_vs_odometry"] = {"ate_baseline_mm": 36.44, "ate_optimized_mm": 36.45}
     entry["drift"]["ate_vs_odometry_m"]["optimized"] = 0.0364  # rounded: the split's own figures decide
     got = targets.target_verdicts(entry, "crisper", minutes_limit=10)
-    assert got["recorded"] == {"within_minutes": False, "every_scan_a_pose": False, "crisper_than_odometry": False,
-                               "crisper_than_baseline": "blurrier"}
+    assert got["recorded"] == {
+        "within_minutes": False,
+        "every_scan_a_pose": False,
+        "crisper_than_odometry": False,
+        "crisper_than_baseline": "blurrier",
+    }
     assert got["drift"]["within_2cm_of_recorded_answer"] is False
     assert got["drift"]["as_crisp_as_odometry"] is False
     assert got["drift"]["ate_at_or_below_baseline"] is False
@@ -357,10 +431,22 @@ def test_real_targets_read_the_targets_off_an_entry():
 
 def _peer_entry(**neld):
     """An entry of benchmarks/peers.py with every method's figures; neld overrides NeLD-BA's row."""
-    rows = {m: {"ate_m": ate, "path_ratio": ratio, "wall_s": 10.0, "neld_ba_verdict": "every draw",
-                "every_sweep_map": {"neld_ba_verdict": "a tie"}}
-            for m, ate, ratio in (("kiss_icp", 0.20, 0.9950), ("kiss_slam", 0.25, 0.9940), ("odometry", 0.10, 0.9953),
-                                  ("baseline", 0.08, 0.9951), ("neld_ba", 0.06, 0.9945))}
+    rows = {
+        m: {
+            "ate_m": ate,
+            "path_ratio": ratio,
+            "wall_s": 10.0,
+            "neld_ba_verdict": "every draw",
+            "every_sweep_map": {"neld_ba_verdict": "a tie"},
+        }
+        for m, ate, ratio in (
+            ("kiss_icp", 0.20, 0.9950),
+            ("kiss_slam", 0.25, 0.9940),
+            ("odometry", 0.10, 0.9953),
+            ("baseline", 0.08, 0.9951),
+            ("neld_ba", 0.06, 0.9945),
+        )
+    }
     rows["neld_ba"].update({"wall_s": 500.0, **neld})
     return {"sequence": "kitti00", "methods": rows}
 
@@ -381,8 +467,9 @@ def test_peer_targets_read_neld_ba_against_its_start_and_its_peers():
     got = targets.peer_target_verdicts(_peer_entry(path_ratio=None, ate_m=None))  # no ground truth
     assert got["path_scale_vs_odometry"] is None and got["path_scale_within_0.1pct"] is None
     assert got["ate_over_baseline"] is None and got["ate_below_kiss_icp"] is None
-    assert "kitti00 (peers): ate_below_kiss_icp None" in targets.format_targets([{**_peer_entry(), "targets": {
-        "peers": got}}])
+    assert "kitti00 (peers): ate_below_kiss_icp None" in targets.format_targets(
+        [{**_peer_entry(), "targets": {"peers": got}}]
+    )
 
 
 def test_peers_compares_the_methods_on_the_same_sweeps(tmp_path):
@@ -391,15 +478,39 @@ def test_peers_compares_the_methods_on_the_same_sweeps(tmp_path):
     # time, NeLD-BA's margin to each peer, and the targets. KISS-SLAM is an optional extra (neld-jax[peers]): where it
     # is missing its row says so and the others still compare.
     out = tmp_path / "peers.json"
-    tiny = ["data.keyframe_interval_s=0.5", "data.max_rays_per_scan=256", "train.steps=2", "train.batch_rays=32",
-            "model.width=16", "model.depth=2", "model.skip_layers=(1,)", "mapping.enabled=False", "viz.record=False",
-            "eval.crispness_queries=2000", "eval.crispness_draws=3",
-            f"baseline.voxel_size_m={COARSE_REGISTRATION_GRID_M}"]
+    tiny = [
+        "data.keyframe_interval_s=0.5",
+        "data.max_rays_per_scan=256",
+        "train.steps=2",
+        "train.batch_rays=32",
+        "model.width=16",
+        "model.depth=2",
+        "model.skip_layers=(1,)",
+        "mapping.enabled=False",
+        "viz.record=False",
+        "eval.crispness_queries=2000",
+        "eval.crispness_draws=3",
+        f"baseline.voxel_size_m={COARSE_REGISTRATION_GRID_M}",
+    ]
     result = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "peers.py"), "--sequences=synthetic10hz:0", "--num_scans=30",
-         "--gt_map_points=2000", f"--work={tmp_path / 'work'}", f"--out={out}", "--eval_from_scan=5",
-         "--segments_m=1,2", *[f"--set={s}" for s in tiny]],
-        cwd=ROOT, env=dict(os.environ, JAX_PLATFORMS="cpu"), capture_output=True, text=True, timeout=600)
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "peers.py"),
+            "--sequences=synthetic10hz:0",
+            "--num_scans=30",
+            "--gt_map_points=2000",
+            f"--work={tmp_path / 'work'}",
+            f"--out={out}",
+            "--eval_from_scan=5",
+            "--segments_m=1,2",
+            *[f"--set={s}" for s in tiny],
+        ],
+        cwd=ROOT,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     record = json.loads(out.read_text())  # the benchmarks' schema (benchmarks/harness.py) around the payload
     assert set(record) == set(harness.SCHEMA_KEYS) and record["benchmark"] == "peers"
@@ -437,11 +548,22 @@ def test_peers_compares_the_methods_on_the_same_sweeps(tmp_path):
     for method in ("kiss_icp", "baseline", "odometry"):
         assert peers[f"ate_over_{method}"] == pytest.approx(rows["neld_ba"]["ate_m"] / rows[method]["ate_m"], rel=1e-3)
     assert peers["path_scale_vs_odometry"] == pytest.approx(
-        rows["neld_ba"]["path_ratio"] / rows["odometry"]["path_ratio"], abs=1e-6)
+        rows["neld_ba"]["path_ratio"] / rows["odometry"]["path_ratio"], abs=1e-6
+    )
     assert set(peers) == {
-        "ate_below_kiss_icp", "ate_below_kiss_slam", "ate_over_kiss_icp", "ate_over_baseline", "ate_over_odometry",
-        "path_scale_vs_odometry", "path_scale_within_0.1pct", "crisper_than_kiss_icp", "crisper_than_kiss_slam",
-        "every_sweep_map_crisper_than_kiss_icp", "every_sweep_map_crisper_than_kiss_slam", "within_minutes"}
+        "ate_below_kiss_icp",
+        "ate_below_kiss_slam",
+        "ate_over_kiss_icp",
+        "ate_over_baseline",
+        "ate_over_odometry",
+        "path_scale_vs_odometry",
+        "path_scale_within_0.1pct",
+        "crisper_than_kiss_icp",
+        "crisper_than_kiss_slam",
+        "every_sweep_map_crisper_than_kiss_icp",
+        "every_sweep_map_crisper_than_kiss_slam",
+        "within_minutes",
+    }
     assert entry["targets"]["peers"]["within_minutes"] is True
     assert "kiss_icp" in result.stdout and "targets" in result.stdout and "iteration=" not in result.stdout
     assert "Sim3 m" in result.stdout and "KITTI %" in result.stdout and "NeLD-BA's ATE over: kiss_icp" in result.stdout

@@ -85,8 +85,9 @@ def test_a_recording_too_long_for_its_budget_is_told_up_front_with_the_budget_it
     from neld_jax.training import stage_plan
 
     # 1,000 raw 64 x 1024 sweeps on the cpu budget: the odometry alone took 438 s of the 570 (benchmarks/RESULTS.md)
-    plan = stage_plan.plan_stages(stage_plan.Recording(1000, 34, 40_000, odometry=True), 570.0,
-                                  stage_plan.Work(baseline=True, render_s=60.0))
+    plan = stage_plan.plan_stages(
+        stage_plan.Recording(1000, 34, 40_000, odometry=True), 570.0, stage_plan.Work(baseline=True, render_s=60.0)
+    )
     assert not plan.fits and plan.seconds == {} and plan.needed_minutes > 2 * 9.5
     assert plan.needed["load"] == pytest.approx(1000 * 0.44 * 40_000 / 65_536)  # forecast from the odometry's rate
     assert stage_plan.plan_stages(plan.recording, 60.0 * plan.needed_minutes, plan.work).fits  # what it says suffices
@@ -127,8 +128,12 @@ def test_an_unlimited_budget_plans_no_limits(caplog):
     scans = types.SimpleNamespace(num_scans=1000, poses_from="kiss_icp")
     keyframes = types.SimpleNamespace(num_scans=34, scans=[np.zeros((40_000, 3))] * 34)
     with caplog.at_level(logging.INFO, logger=stage_plan.__name__):
-        budget = stage_plan.planned(stage_plan.PlanSettings(stage_plan.Work(), "paper", "cpu"), scans, keyframes,
-                                    TimeBudget(0.0, 0.0, time.perf_counter()))
+        budget = stage_plan.planned(
+            stage_plan.PlanSettings(stage_plan.Work(), "paper", "cpu"),
+            scans,
+            keyframes,
+            TimeBudget(0.0, 0.0, time.perf_counter()),
+        )
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert budget.registration_s == 0.0 and budget.judging_s == JUDGING_S and budget.baseline_deadline() is None
     assert any("with no time limit" in r.getMessage() for r in caplog.records)

@@ -94,8 +94,10 @@ def test_paper_budget_is_the_papers_schedule():
     assert (c.model.width, c.model.depth, c.model.pos_freqs) == (512, 8, 15)
     assert tuple(c.sampling.coarse_stages) == (32, 48, 64) and c.sampling.guided_samples == 0
     assert c.start.poses == "input" and c.max_minutes == 0
-    assert c.to_dict() == with_budget(defaults(), "paper").to_dict() | {"data": c.data.to_dict(),
-                                                                        "output_dir": c.output_dir}
+    assert c.to_dict() == with_budget(defaults(), "paper").to_dict() | {
+        "data": c.data.to_dict(),
+        "output_dir": c.output_dir,
+    }
 
 
 def test_gpu_budget_is_the_cpu_recipe_run_longer():
@@ -178,15 +180,22 @@ def test_from_file_reads_a_config_with_its_budget():
 
 
 def test_overrides_parse_literals_and_bare_strings():
-    c = apply_overrides(defaults(), ["train.steps=20", "start.poses=baseline", "sampling.coarse_stages=(16, 8)",
-                                     "sampling.z_low_m=0.25"])
+    c = apply_overrides(
+        defaults(),
+        ["train.steps=20", "start.poses=baseline", "sampling.coarse_stages=(16, 8)", "sampling.z_low_m=0.25"],
+    )
     assert c.train.steps == 20 and c.start.poses == "baseline"
     assert tuple(c.sampling.coarse_stages) == (16, 8) and c.sampling.z_low_m == 0.25
 
 
-@pytest.mark.parametrize("item, message", [("train.stepz=3", "no field train.stepz"),
-                                           ("nosuch.steps=3", "no field nosuch.steps"),
-                                           ("train.steps", "expected KEY=VALUE")])
+@pytest.mark.parametrize(
+    "item, message",
+    [
+        ("train.stepz=3", "no field train.stepz"),
+        ("nosuch.steps=3", "no field nosuch.steps"),
+        ("train.steps", "expected KEY=VALUE"),
+    ],
+)
 def test_bad_overrides_name_the_field(item, message):
     with pytest.raises(ConfigError, match=message):
         apply_overrides(defaults(), [item])
@@ -208,27 +217,30 @@ def test_every_field_has_a_rule_and_every_shipped_config_passes():
             config_module.validate(_valid(f"{name}:{budget}"))
 
 
-@pytest.mark.parametrize("field, value, expected", [
-    ("sampling.hierarchical", "nerff", "expected one of before | nerf | none"),
-    ("submaps.enabled", "maybe", "expected one of auto | on | off"),
-    ("train.fixed_scans", (0, 1.5), "expected a tuple of integers"),
-    ("train.steps", 0, "expected an integer >= 1"),
-    ("train.c2f_end_fraction", 1.5, "expected a number >= 0 and <= 1"),
-    ("model.matmul_dtype", "float16", "expected one of float32 | bfloat16"),
-    ("data.format", "kitti360", "expected one of generic | fusionportable"),
-    ("data.gt_from_scan", (1.0, 2.0), "expected () or a tuple of 7 numbers"),
-    ("start.pose_lr_from_baseline", (1e-5,), "expected () or a tuple of 2 numbers >= 0"),
-    ("submaps.field_lr_from_steps", (6000, 0), "expected () or a tuple of 2 numbers > 0"),
-    ("max_minutes", -1.0, "expected a number >= 0"),
-    ("model.surrogate_gradient", 1, "expected True or False"),
-    # what fields accept together
-    ("data.max_range_m", 0.4, "expected more than data.min_range_m"),
-    ("sampling.fine_stages", (16, 8), "expected as many stages as sampling.coarse_stages"),
-    ("model.skip_layers", (4,), "expected hidden layers below model.depth"),
-    ("data.scan_frame", "os_imu", "expected '' or a published frame of data.format"),
-    ("data.initial_poses", "odom.txt", "a pose file's name only with data.format=lio_keyframes"),
-    ("data.gt_from_scan", (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0), "with a unit quaternion"),
-])
+@pytest.mark.parametrize(
+    "field, value, expected",
+    [
+        ("sampling.hierarchical", "nerff", "expected one of before | nerf | none"),
+        ("submaps.enabled", "maybe", "expected one of auto | on | off"),
+        ("train.fixed_scans", (0, 1.5), "expected a tuple of integers"),
+        ("train.steps", 0, "expected an integer >= 1"),
+        ("train.c2f_end_fraction", 1.5, "expected a number >= 0 and <= 1"),
+        ("model.matmul_dtype", "float16", "expected one of float32 | bfloat16"),
+        ("data.format", "kitti360", "expected one of generic | fusionportable"),
+        ("data.gt_from_scan", (1.0, 2.0), "expected () or a tuple of 7 numbers"),
+        ("start.pose_lr_from_baseline", (1e-5,), "expected () or a tuple of 2 numbers >= 0"),
+        ("submaps.field_lr_from_steps", (6000, 0), "expected () or a tuple of 2 numbers > 0"),
+        ("max_minutes", -1.0, "expected a number >= 0"),
+        ("model.surrogate_gradient", 1, "expected True or False"),
+        # what fields accept together
+        ("data.max_range_m", 0.4, "expected more than data.min_range_m"),
+        ("sampling.fine_stages", (16, 8), "expected as many stages as sampling.coarse_stages"),
+        ("model.skip_layers", (4,), "expected hidden layers below model.depth"),
+        ("data.scan_frame", "os_imu", "expected '' or a published frame of data.format"),
+        ("data.initial_poses", "odom.txt", "a pose file's name only with data.format=lio_keyframes"),
+        ("data.gt_from_scan", (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0), "with a unit quaternion"),
+    ],
+)
 def test_a_bad_value_is_one_line_naming_the_field_its_value_and_what_it_accepts(field, value, expected):
     c = _valid("fusionportable.py:cpu")
     *parents, leaf = field.split(".")
@@ -257,6 +269,7 @@ def test_a_field_the_defaults_lack_and_fields_that_do_not_go_together_are_errors
         config_module.validate(c)
     c = _valid()
     c.data.initial_poses, c.data.invert_poses = "kiss_icp", True
-    with pytest.raises(ConfigError,
-                       match=r"^data.invert_poses = True: expected False with data.initial_poses=kiss_icp"):
+    with pytest.raises(
+        ConfigError, match=r"^data.invert_poses = True: expected False with data.initial_poses=kiss_icp"
+    ):
         config_module.validate(c)

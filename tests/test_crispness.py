@@ -66,8 +66,10 @@ def test_misregistration_makes_the_map_less_crisp():
 def test_entropy_over_query_draws_pairs_the_maps_on_each_draw(capsys):
     rng = np.random.default_rng(4)
     wall = np.c_[rng.uniform(0, 4, (3000, 2)), rng.normal(0, 0.005, 3000)]
-    maps = {"aligned": np.concatenate([wall, wall + rng.normal(0, 0.005, wall.shape)]),
-            "smeared": np.concatenate([wall, wall + [0.0, 0.0, 0.03]])}
+    maps = {
+        "aligned": np.concatenate([wall, wall + rng.normal(0, 0.005, wall.shape)]),
+        "smeared": np.concatenate([wall, wall + [0.0, 0.0, 0.03]]),
+    }
     entropy = entropy_over_query_draws(maps, seeds=[0, 5, 9], max_queries=400, radius=0.3)
     assert set(entropy) == {"aligned", "smeared"} and entropy["aligned"].shape == (3,)
     # each draw is crispness() on that seed's queries, the same points for both maps
@@ -120,8 +122,9 @@ def test_the_map_of_every_scan_keeps_the_same_points_of_each_scan_for_every_meth
     off = good.copy()
     off[3, 2, 3] = 0.03
     eval_cfg = {"crispness_draws": 3, "crispness_queries": 500, "crispness_radius_m": 0.3}
-    crisp, margins = every_scan_crispness(scans, {"odometry": off, "refined": good}, eval_cfg, against="refined",
-                                          points_per_scan=300)
+    crisp, margins = every_scan_crispness(
+        scans, {"odometry": off, "refined": good}, eval_cfg, against="refined", points_per_scan=300
+    )
     assert crisp["refined"]["mean_map_entropy"] < crisp["odometry"]["mean_map_entropy"]
     assert margins["odometry"]["all_draws_agree"] and margins["odometry"]["mean"] < 0
     # the same points: a map of the scans cut to those 300 points by hand scores the same
@@ -139,8 +142,9 @@ def test_the_margins_stop_drawing_at_the_runs_deadline(caplog):
     methods = {"initial": np.tile(np.eye(4), (2, 1, 1)), "optimized": np.tile(np.eye(4), (2, 1, 1))}
     eval_cfg = {"crispness_draws": 4, "crispness_queries": 300, "crispness_radius_m": 0.3}
     past = time.perf_counter() - 1.0
-    assert {name: len(v) for name, v in entropy_over_query_draws(
-        {"a": wall, "b": wall}, [0, 1], 300, deadline=past).items()} == {"a": 0, "b": 0}
+    assert {
+        name: len(v) for name, v in entropy_over_query_draws({"a": wall, "b": wall}, [0, 1], 300, deadline=past).items()
+    } == {"a": 0, "b": 0}
     summaries, _ = map_crispness(seq, methods, eval_cfg)
     with caplog.at_level("WARNING", logger="neld_jax.judging.judge"):
         assert crispness_margins(seq, methods, eval_cfg, first_draw=summaries, deadline=past) == {}
@@ -193,8 +197,11 @@ def test_query_sampling_and_per_scan_means():
 
 
 def test_a_run_names_the_crispest_poses_and_warns_when_they_are_not_its_own(caplog):
-    summaries = {"initial": {"mean_map_entropy": -3.42}, "baseline": {"mean_map_entropy": -3.49},
-                 "optimized": {"mean_map_entropy": -3.475}}
+    summaries = {
+        "initial": {"mean_map_entropy": -3.42},
+        "baseline": {"mean_map_entropy": -3.49},
+        "optimized": {"mean_map_entropy": -3.475},
+    }
     with caplog.at_level("WARNING", logger="neld_jax.judging.judge"):
         assert warn_if_not_crispest(summaries) == "baseline"
     assert "poses_baseline.txt" in caplog.text and "-3.490" in caplog.text and "-3.475" in caplog.text
@@ -208,10 +215,15 @@ def test_a_run_names_the_crispest_poses_and_warns_when_they_are_not_its_own(capl
 
 def test_the_crispest_poses_are_judged_over_the_query_draws_and_a_tie_is_not_warned_about(caplog):
     # Draw 0 alone puts the baseline ahead (-3.49 against -3.475); over five draws the difference changes sign.
-    summaries = {"initial": {"mean_map_entropy": -3.42}, "baseline": {"mean_map_entropy": -3.49},
-                 "optimized": {"mean_map_entropy": -3.475}}
-    tie = {"initial": margin_over_draws([-0.05, -0.04, -0.06, -0.05, -0.05]),
-           "baseline": margin_over_draws([0.015, -0.002, -0.001, 0.001, -0.003])}
+    summaries = {
+        "initial": {"mean_map_entropy": -3.42},
+        "baseline": {"mean_map_entropy": -3.49},
+        "optimized": {"mean_map_entropy": -3.475},
+    }
+    tie = {
+        "initial": margin_over_draws([-0.05, -0.04, -0.06, -0.05, -0.05]),
+        "baseline": margin_over_draws([0.015, -0.002, -0.001, 0.001, -0.003]),
+    }
     with caplog.at_level("INFO", logger="neld_jax.judging.judge"):
         assert warn_if_not_crispest(summaries, margins=tie) == "baseline"  # the lower mean, but a tie
     assert "WARNING" not in caplog.text and "a tie" in caplog.text and "poses_baseline.txt" in caplog.text

@@ -36,8 +36,12 @@ def _write_run(tmp_path, num_scans: int = 4):
 
 
 def _margin(*args):
-    return subprocess.run([sys.executable, os.path.join(REPO, "benchmarks", "crispness_margin.py"), *args],
-                          capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, os.path.join(REPO, "benchmarks", "crispness_margin.py"), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def test_margin_pairs_the_maps_on_every_draw(tmp_path):
@@ -87,8 +91,11 @@ def test_mean_of_seeds_judges_the_mean_correction(tmp_path):
         assert result.returncode == 0, result.stderr[-2000:]
         margins.append(json.loads(out.read_text())["results"])
     assert margins[0]["mean_of"] == [str(other)]
-    np.testing.assert_allclose(margins[0]["optimized_minus"]["initial"]["per_draw"],
-                               margins[1]["optimized_minus"]["initial"]["per_draw"], atol=1e-6)
+    np.testing.assert_allclose(
+        margins[0]["optimized_minus"]["initial"]["per_draw"],
+        margins[1]["optimized_minus"]["initial"]["per_draw"],
+        atol=1e-6,
+    )
     assert all(d < 0 for d in margins[0]["optimized_minus"]["initial"]["per_draw"])
 
 

@@ -79,17 +79,26 @@ def test_load_generic_matches_timestamp_names_when_counts_differ(tmp_path):
 def test_load_generic_count_mismatch_says_which_side_is_short(tmp_path):
     write_generic_folder(tmp_path, make_scans(3), make_poses(5), np.arange(5.0))
     # zero-padded frame numbers are not timestamps, so there is no matching by time
-    with pytest.raises(DataError, match=r"poses\.txt has 5 poses but scans/ has 3 scans: the last 2 pose\(s\) "
-                                        r"\(t=3\.000000, t=4\.000000\) have no scan; delete them or add"):
+    with pytest.raises(
+        DataError,
+        match=r"poses\.txt has 5 poses but scans/ has 3 scans: the last 2 pose\(s\) "
+        r"\(t=3\.000000, t=4\.000000\) have no scan; delete them or add",
+    ):
         load_generic(tmp_path)
 
 
 def test_load_generic_one_scan_more_than_poses_names_the_scan(tmp_path):
     """The end of a real recording: 332 scans and stamps, 331 poses (here 4 and 3)."""
     write_generic_folder(tmp_path, make_scans(4), make_poses(3), np.arange(3.0))
-    with pytest.raises(DataError, match=r"^" + re.escape(f"{tmp_path}: poses.txt has 3 poses but scans/ has 4 "
-                                                          "scans: the last 1 scan(s) (scans/000003.npy) have no "
-                                                          "pose; delete them or add poses")):
+    with pytest.raises(
+        DataError,
+        match=r"^"
+        + re.escape(
+            f"{tmp_path}: poses.txt has 3 poses but scans/ has 4 "
+            "scans: the last 1 scan(s) (scans/000003.npy) have no "
+            "pose; delete them or add poses"
+        ),
+    ):
         load_generic(tmp_path)
 
 
@@ -107,8 +116,9 @@ def test_load_generic_drop_unmatched_tail_drops_and_names_the_scan(tmp_path, cap
 def test_align_poses_drop_unmatched_tail_is_limited_and_works_for_extra_poses(tmp_path, caplog):
     files = [tmp_path / "scans" / f"{i:06d}.pcd" for i in range(20)]
     with pytest.raises(DataError, match=r"the last 8 scan\(s\).*drops at most 5, not 8"):
-        align_poses(make_poses(12), np.arange(12.0), tmp_path / "poses.txt", files, drop_unmatched_tail=True,
-                    root=tmp_path)
+        align_poses(
+            make_poses(12), np.arange(12.0), tmp_path / "poses.txt", files, drop_unmatched_tail=True, root=tmp_path
+        )
     # more poses than scans: the trailing poses go, every scan stays; without times the poses are numbered
     with caplog.at_level(logging.WARNING, logger="neld_jax.data.layout"):
         out = align_poses(make_poses(21), None, tmp_path / "poses.kitti", files, drop_unmatched_tail=True)
@@ -119,8 +129,11 @@ def test_align_poses_drop_unmatched_tail_is_limited_and_works_for_extra_poses(tm
 
 def test_load_generic_unsorted_pose_times_by_order_is_an_error(tmp_path):
     write_generic_folder(tmp_path, make_scans(3), make_poses(3), np.array([0.0, 2.0, 1.0]))
-    with pytest.raises(DataError, match=r"poses\.txt: timestamps are not in time order \(pose 3 at t=1\.000000 "
-                                        r"comes after t=2\.000000.*sort it"):
+    with pytest.raises(
+        DataError,
+        match=r"poses\.txt: timestamps are not in time order \(pose 3 at t=1\.000000 "
+        r"comes after t=2\.000000.*sort it",
+    ):
         load_generic(tmp_path)
 
 
@@ -171,8 +184,10 @@ def test_load_generic_zero_and_infinite_points_are_dropped_and_counted(tmp_path,
         seq = load_generic(tmp_path)
     assert len(seq.scans[1]) == len(scans[1]) - 5 and np.isfinite(seq.scans[1]).all()
     assert seq.scans[1].any(axis=1).all()
-    assert any("dropped 5 of" in r.getMessage() and "1 NaN/infinite (in 1 scans), 4 at (0, 0, 0)" in r.getMessage()
-               for r in caplog.records)
+    assert any(
+        "dropped 5 of" in r.getMessage() and "1 NaN/infinite (in 1 scans), 4 at (0, 0, 0)" in r.getMessage()
+        for r in caplog.records
+    )
 
 
 def test_load_generic_empty_scan_file_names_it(tmp_path):
@@ -339,8 +354,13 @@ def test_load_sequence_dispatch(tmp_path):
     cfg = ml_collections.ConfigDict({"format": "generic", "root": str(tmp_path)})
     assert load_sequence(cfg).num_scans == 2
 
-    cfg = ml_collections.ConfigDict({"format": "synthetic", "root": "", "synthetic": {
-        "num_scans": 2, "num_beams": 4, "num_columns": 32, "gt_map_points": 100}})
+    cfg = ml_collections.ConfigDict(
+        {
+            "format": "synthetic",
+            "root": "",
+            "synthetic": {"num_scans": 2, "num_beams": 4, "num_columns": 32, "gt_map_points": 100},
+        }
+    )
     seq = load_sequence(cfg)
     assert seq.num_scans == 2 and seq.source == "synthetic" and seq.gt_map.shape == (100, 3)
 
@@ -420,8 +440,12 @@ def test_timestamp_tolerance_is_a_config_field_set_from_the_command_line(tmp_pat
     poses = make_poses(3)
     write_generic_folder(tmp_path, make_scans(2), poses, np.array([100.0, 101.0, 102.0]), names=names)
     configs = Path(__file__).resolve().parent.parent / "configs"
-    argv = ["train.py", f"--config={configs / 'generic.py'}", f"--config.data.root={tmp_path}",
-            "--config.data.timestamp_tol_s=0.1"]
+    argv = [
+        "train.py",
+        f"--config={configs / 'generic.py'}",
+        f"--config.data.root={tmp_path}",
+        "--config.data.timestamp_tol_s=0.1",
+    ]
     flag_values = flags.FlagValues()  # as bin/train.py parses it: a locked config
     config_flags.DEFINE_config_file("config", None, "", flag_values=flag_values, lock_config=True, sys_argv=argv)
     flag_values(argv)

@@ -98,10 +98,13 @@ def test_npy_with_zero_points_is_an_error(tmp_path):
         read_scan(tmp_path / "none.npy")
 
 
-PCD_HEADER_0_POINTS = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 0\n"
-                       "HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 0\nDATA ascii\n")
-PLY_HEADER_0_POINTS = ("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
-                       "property float z\nend_header\n")
+PCD_HEADER_0_POINTS = (
+    "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 0\n"
+    "HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 0\nDATA ascii\n"
+)
+PLY_HEADER_0_POINTS = (
+    "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+)
 
 
 @pytest.mark.parametrize("name, text", [("zero.pcd", PCD_HEADER_0_POINTS), ("zero.ply", PLY_HEADER_0_POINTS)])
@@ -139,8 +142,11 @@ def test_all_zero_or_infinite_scan_is_an_error(tmp_path):
     points = np.zeros((6, 3))
     points[:2] = np.inf
     np.save(tmp_path / "noreturn.npy", points)
-    with pytest.raises(DataError, match=r"noreturn\.npy: scan has no valid points \(all 6 points were NaN or "
-                                        r"infinite \(2\) or at \(0, 0, 0\) \(4\)"):
+    with pytest.raises(
+        DataError,
+        match=r"noreturn\.npy: scan has no valid points \(all 6 points were NaN or "
+        r"infinite \(2\) or at \(0, 0, 0\) \(4\)",
+    ):
         read_scan(tmp_path / "noreturn.npy")
 
 
@@ -249,11 +255,21 @@ def test_tum_non_numeric_names_line(tmp_path):
         read_tum(tmp_path / "p.txt")
 
 
-@pytest.mark.parametrize("reader, lines", [
-    (read_tum, ["# t x y z qx qy qz qw", "0.5 0 0 0 0 0 0 1", "1.0 0 0 0 0 0 0 1", "0.5 1 0 0 0 0 0 1"]),
-    (read_newer_college_csv, ["#sec,nsec,x,y,z,qx,qy,qz,qw", "0,500000000,0,0,0,0,0,0,1", "1,0,0,0,0,0,0,0,1",
-                              "0,500000000,1,0,0,0,0,0,1"]),
-])
+@pytest.mark.parametrize(
+    "reader, lines",
+    [
+        (read_tum, ["# t x y z qx qy qz qw", "0.5 0 0 0 0 0 0 1", "1.0 0 0 0 0 0 0 1", "0.5 1 0 0 0 0 0 1"]),
+        (
+            read_newer_college_csv,
+            [
+                "#sec,nsec,x,y,z,qx,qy,qz,qw",
+                "0,500000000,0,0,0,0,0,0,1",
+                "1,0,0,0,0,0,0,0,1",
+                "0,500000000,1,0,0,0,0,0,1",
+            ],
+        ),
+    ],
+)
 def test_duplicate_timestamp_names_file_and_both_lines(tmp_path, reader, lines):
     (tmp_path / "p.txt").write_text("\n".join(lines) + "\n")
     with pytest.raises(DataError, match=r"p\.txt, lines 2 and 4: the same timestamp 0\.500000000 twice"):

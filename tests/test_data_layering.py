@@ -41,11 +41,20 @@ def _graph():
 
 def test_data_imports_nothing_above_it_and_no_private_names():
     graph = _graph()
-    outside = {(m, target) for m, imports in graph.items() for target, _ in imports
-               if not target.startswith("neld_jax.data") and target not in ALLOWED_OUTSIDE}
+    outside = {
+        (m, target)
+        for m, imports in graph.items()
+        for target, _ in imports
+        if not target.startswith("neld_jax.data") and target not in ALLOWED_OUTSIDE
+    }
     assert not outside, f"neld_jax.data imports from a higher layer: {sorted(outside)}"
-    private = {(m, target, name) for m, imports in graph.items() for target, names in imports for name in names
-               if name.startswith("_")}
+    private = {
+        (m, target, name)
+        for m, imports in graph.items()
+        for target, names in imports
+        for name in names
+        if name.startswith("_")
+    }
     assert not private, f"private names imported across modules: {sorted(private)}"
 
 

@@ -68,9 +68,11 @@ def write_fusionportable(base, scans, body_poses, times, gt_lidar=None, gt_times
     points = root / "algorithm_result" / "ouster00_undistort" / "points"
     (points / "data").mkdir(parents=True)
     for i, scan in enumerate(scans):
-        header = ("# .PCD v.7 - Point Cloud Data file format\nVERSION .7\nFIELDS x y z intensity\nSIZE 4 4 4 4\n"
-                  f"TYPE F F F F\nCOUNT 1 1 1 1\nWIDTH {len(scan)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
-                  f"POINTS {len(scan)}\nDATA ascii\n")
+        header = (
+            "# .PCD v.7 - Point Cloud Data file format\nVERSION .7\nFIELDS x y z intensity\nSIZE 4 4 4 4\n"
+            f"TYPE F F F F\nCOUNT 1 1 1 1\nWIDTH {len(scan)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+            f"POINTS {len(scan)}\nDATA ascii\n"
+        )
         rows = "".join(f"{np.float32(x)} {np.float32(y)} {np.float32(z)} 7.0\n" for x, y, z in scan)
         (points / "data" / f"{i:06d}.pcd").write_text(header + rows)
     (points / "timestamps.txt").write_text("".join("{}.{:09d}\n".format(*_stamp(t)) for t in times))
@@ -78,8 +80,12 @@ def write_fusionportable(base, scans, body_poses, times, gt_lidar=None, gt_times
     lines = []
     for t, pose in zip(times, body_poses):
         q = Rotation.from_matrix(pose[:3, :3]).as_quat()
-        lines.append("{}.{:09d} ".format(*_stamp(t)) + "".join("{:3f} ".format(v) for v in pose[:3, 3])
-                     + "".join("{:3f} ".format(v) for v in q) + "\n")
+        lines.append(
+            "{}.{:09d} ".format(*_stamp(t))
+            + "".join("{:3f} ".format(v) for v in pose[:3, 3])
+            + "".join("{:3f} ".format(v) for v in q)
+            + "\n"
+        )
     (root / "algorithm_result" / "odometry" / "odometry.txt").write_text("".join(lines))
     if gt_lidar is not None:
         write_tum(base / "groundtruth" / "traj" / f"{SEQ}.txt", gt_times, gt_lidar)
@@ -124,15 +130,24 @@ def test_explicit_ground_truth_paths_and_what_is_missing(tmp_path, caplog):
     # explicit files anywhere, with an explicit offset (identity here)
     write_tum(tmp_path / "elsewhere" / "gt.txt", times, body)
     write_scan(tmp_path / "elsewhere" / "map.ply", np.ones((10, 3)))
-    seq = load_sequence(_data_cfg("fusionportable", root, gt_poses_path=str(tmp_path / "elsewhere" / "gt.txt"),
-                                  gt_map_path=str(tmp_path / "elsewhere" / "map.ply"),
-                                  gt_from_scan=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)))
+    seq = load_sequence(
+        _data_cfg(
+            "fusionportable",
+            root,
+            gt_poses_path=str(tmp_path / "elsewhere" / "gt.txt"),
+            gt_map_path=str(tmp_path / "elsewhere" / "map.ply"),
+            gt_from_scan=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
+        )
+    )
     np.testing.assert_allclose(seq.gt_poses, body, atol=1e-9)
     assert seq.gt_map.shape == (10, 3)
     # ground truth that stops before the last scan: the scan is named, never paired with a neighbour's pose
     write_tum(tmp_path / "short.txt", times[:-1], body[:-1])
-    with pytest.raises(DataError, match=r"short.txt: 1 of 4 scans have no pose within 0.05 s \(first: "
-                                        r"algorithm_result/ouster00_undistort/points/data/000003.pcd"):
+    with pytest.raises(
+        DataError,
+        match=r"short.txt: 1 of 4 scans have no pose within 0.05 s \(first: "
+        r"algorithm_result/ouster00_undistort/points/data/000003.pcd",
+    ):
         load_sequence(_data_cfg("fusionportable", root, gt_poses_path=str(tmp_path / "short.txt")))
     with pytest.raises(ConfigError, match="data.gt_from_scan: expected 7 numbers"):
         load_sequence(_data_cfg("fusionportable", root, gt_from_scan=(0.0, 1.0)))
@@ -181,8 +196,11 @@ def test_hba_layout(tmp_path):
     write_hba_poses(tmp_path / "park" / "pose.json", poses)
     line = (tmp_path / "park" / "pose.json").read_text().splitlines()[1].split()
     q = Rotation.from_matrix(poses[1, :3, :3]).as_quat()
-    np.testing.assert_allclose([float(v) for v in line[3:]], [q[3], q[0], q[1], q[2]] if q[3] >= 0
-                               else [-q[3], -q[0], -q[1], -q[2]], atol=1e-12)  # qw first
+    np.testing.assert_allclose(
+        [float(v) for v in line[3:]],
+        [q[3], q[0], q[1], q[2]] if q[3] >= 0 else [-q[3], -q[0], -q[1], -q[2]],
+        atol=1e-12,
+    )  # qw first
     seq = load_sequence(_data_cfg("hba", tmp_path / "park"))
     assert seq.files == [f"pcd/{i:05d}.pcd" for i in range(n)] and seq.timestamps is None
     np.testing.assert_allclose(seq.poses, poses, atol=1e-9)
@@ -201,23 +219,59 @@ def test_fusionportable_download_to_train_end_to_end(tmp_path):
     configs/fusionportable.py reads it, finds the ground truth above the sequence folder and evaluates."""
     from neld_jax.synthetic.generator import make_sequence
 
-    syn = make_sequence(ml_collections.ConfigDict({"num_scans": 4, "num_beams": 8, "num_columns": 64,
-                                                   "gt_map_points": 2000, "scene_size_m": 30.0,
-                                                   "trajectory_radius_m": 5.0, "max_range_m": 30.0}))
+    syn = make_sequence(
+        ml_collections.ConfigDict(
+            {
+                "num_scans": 4,
+                "num_beams": 8,
+                "num_columns": 64,
+                "gt_map_points": 2000,
+                "scene_size_m": 30.0,
+                "trajectory_radius_m": 5.0,
+                "max_range_m": 30.0,
+            }
+        )
+    )
     times = T0 + 0.5 * np.arange(4)
     T_lidar_body = published_offset("fusionportable", "body_imu")
-    root = write_fusionportable(tmp_path / "FusionPortable", syn.scans, syn.poses, times,
-                                syn.gt_poses @ invert_poses(T_lidar_body), times, syn.gt_map)
+    root = write_fusionportable(
+        tmp_path / "FusionPortable",
+        syn.scans,
+        syn.poses,
+        times,
+        syn.gt_poses @ invert_poses(T_lidar_body),
+        times,
+        syn.gt_map,
+    )
     out = tmp_path / "out"
-    args = ["--config=configs/fusionportable.py:cpu", f"--config.data.root={root}", f"--config.output_dir={out}",
-            "--config.data.keyframe_interval_s=0", "--config.model.width=16", "--config.model.depth=2",
-            "--config.model.skip_layers=(1,)", "--config.model.pos_freqs=6", "--config.model.dir_freqs=2",
-            "--config.sampling.coarse_stages=(8,)", "--config.sampling.fine_stages=(4,)", "--config.train.steps=8",
-            "--config.train.batch_rays=32", "--config.train.log_every=4", "--config.data.max_rays_per_scan=128",
-            "--config.mapping.enabled=False",
-            "--config.eval.crispness_queries=300", "--config.eval.crispness_radius_m=3.0"]
-    result = subprocess.run([sys.executable, os.path.join(REPO, "bin", "train.py"), *args], capture_output=True,
-                            text=True, timeout=600, cwd=REPO, env={**os.environ, "NELD_JAX_HUGEPAGES": "0"})
+    args = [
+        "--config=configs/fusionportable.py:cpu",
+        f"--config.data.root={root}",
+        f"--config.output_dir={out}",
+        "--config.data.keyframe_interval_s=0",
+        "--config.model.width=16",
+        "--config.model.depth=2",
+        "--config.model.skip_layers=(1,)",
+        "--config.model.pos_freqs=6",
+        "--config.model.dir_freqs=2",
+        "--config.sampling.coarse_stages=(8,)",
+        "--config.sampling.fine_stages=(4,)",
+        "--config.train.steps=8",
+        "--config.train.batch_rays=32",
+        "--config.train.log_every=4",
+        "--config.data.max_rays_per_scan=128",
+        "--config.mapping.enabled=False",
+        "--config.eval.crispness_queries=300",
+        "--config.eval.crispness_radius_m=3.0",
+    ]
+    result = subprocess.run(
+        [sys.executable, os.path.join(REPO, "bin", "train.py"), *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=REPO,
+        env={**os.environ, "NELD_JAX_HUGEPAGES": "0"},
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     evaluation = json.loads((out / "metrics.json").read_text())["evaluation"]
     assert evaluation["gt_poses"].endswith("poses_gt.txt") and evaluation["map_icp_m"] == 1.0
@@ -242,9 +296,13 @@ def test_ground_truth_fields_from_the_command_line(tmp_path):
     T_lidar_body = published_offset("fusionportable", "body_imu")
     write_tum(tmp_path / "groundtruth" / "traj" / f"{SEQ}.txt", times, body @ invert_poses(T_lidar_body))
     configs = Path(REPO) / "configs"
-    argv = ["train.py", f"--config={configs / 'generic.py'}", f"--config.data.root={tmp_path / 'run'}",
-            f"--config.data.gt_poses_path={tmp_path / 'groundtruth' / 'traj' / f'{SEQ}.txt'}",
-            "--config.data.gt_from_scan=(-0.037354, 0.006824, -0.020190, 0.004028, -0.002505, 0.003725, 0.999982)"]
+    argv = [
+        "train.py",
+        f"--config={configs / 'generic.py'}",
+        f"--config.data.root={tmp_path / 'run'}",
+        f"--config.data.gt_poses_path={tmp_path / 'groundtruth' / 'traj' / f'{SEQ}.txt'}",
+        "--config.data.gt_from_scan=(-0.037354, 0.006824, -0.020190, 0.004028, -0.002505, 0.003725, 0.999982)",
+    ]
     flag_values = flags.FlagValues()
     config_flags.DEFINE_config_file("config", None, "", flag_values=flag_values, lock_config=True, sys_argv=argv)
     flag_values(argv)
@@ -261,12 +319,16 @@ def test_fusionportable_raw_ouster_export_in_the_lidar_frame(tmp_path):
     (points / "data").mkdir(parents=True)
     scans = [np.random.default_rng(i).uniform(1, 9, (2, 3, 3)) for i in range(n)]
     for i, scan in enumerate(scans):
-        header = ("# .PCD v.7 - Point Cloud Data file format\nVERSION .7\n"
-                  "FIELDS x y z intensity t reflectivity ring ambient range\nSIZE 4 4 4 4 4 2 1 2 4\n"
-                  "TYPE F F F F U U U U U\nCOUNT 1 1 1 1 1 1 1 1 1\nWIDTH 3\nHEIGHT 2\nVIEWPOINT 0 0 0 1 0 0 0\n"
-                  "POINTS 6\nDATA ascii\n")
-        rows = "".join(f"{np.float32(x)} {np.float32(y)} {np.float32(z)} 3.0 1234 7 {k} 9 1000\n"
-                       for k, (x, y, z) in enumerate(scan.reshape(-1, 3)))
+        header = (
+            "# .PCD v.7 - Point Cloud Data file format\nVERSION .7\n"
+            "FIELDS x y z intensity t reflectivity ring ambient range\nSIZE 4 4 4 4 4 2 1 2 4\n"
+            "TYPE F F F F U U U U U\nCOUNT 1 1 1 1 1 1 1 1 1\nWIDTH 3\nHEIGHT 2\nVIEWPOINT 0 0 0 1 0 0 0\n"
+            "POINTS 6\nDATA ascii\n"
+        )
+        rows = "".join(
+            f"{np.float32(x)} {np.float32(y)} {np.float32(z)} 3.0 1234 7 {k} 9 1000\n"
+            for k, (x, y, z) in enumerate(scan.reshape(-1, 3))
+        )
         (points / "data" / f"{i:06d}.pcd").write_text(header + rows)
     times = T0 + 0.1 * np.arange(n)
     (points / "timestamps.txt").write_text("".join("{}.{:09d}\n".format(*_stamp(t)) for t in times))

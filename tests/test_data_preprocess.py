@@ -98,7 +98,7 @@ def test_voxel_downsample_one_point_per_voxel():
     down = voxel_downsample(points, 1.0)
     assert down.shape == (3, 3)
     # each output is the centroid of its voxel's points
-    expected = np.array([points[i * 50:(i + 1) * 50].mean(axis=0) for i in range(3)])
+    expected = np.array([points[i * 50 : (i + 1) * 50].mean(axis=0) for i in range(3)])
     order = np.lexsort(down.T[::-1])
     np.testing.assert_allclose(down[order], expected[np.lexsort(expected.T[::-1])], atol=1e-9)
     np.testing.assert_array_equal(voxel_downsample(points, 0.0), points)
@@ -108,8 +108,9 @@ def test_preprocess_subsets_everything_and_logs(caplog):
     times = np.array([0.0, 1.0, 3.0, 4.0, 6.5])
     seq = make_sequence(timestamps=times)
     with caplog.at_level(logging.INFO, logger="neld_jax.data.preprocess"):
-        out = preprocess(seq, KeyframeSettings(keyframe_interval_s=3.0, min_range=1.0, max_range=25.0, voxel_size=2.0,
-                                               max_scans=2))
+        out = preprocess(
+            seq, KeyframeSettings(keyframe_interval_s=3.0, min_range=1.0, max_range=25.0, voxel_size=2.0, max_scans=2)
+        )
     assert out.num_scans == 2
     np.testing.assert_array_equal(out.timestamps, [0.0, 3.0])
     np.testing.assert_array_equal(out.poses, seq.poses[[0, 2]])
@@ -141,8 +142,12 @@ def test_preprocess_scan_left_empty_names_its_file_and_time_after_keyframes(tmp_
     src.scans[4] = np.random.default_rng(1).uniform(-0.2, 0.2, size=(500, 3))  # all within 0.5 m
     write_generic(src, tmp_path)
     seq = load_generic(tmp_path)
-    with pytest.raises(DataError, match=re.escape(f"{tmp_path}: scans/000004.pcd (t=6.000000) has no points left "
-                                                  "within 0.5-80.0 m (it had 500 points, ")):
+    with pytest.raises(
+        DataError,
+        match=re.escape(
+            f"{tmp_path}: scans/000004.pcd (t=6.000000) has no points left within 0.5-80.0 m (it had 500 points, "
+        ),
+    ):
         preprocess(seq, KeyframeSettings(keyframe_interval_s=3.0))
 
 

@@ -66,10 +66,9 @@ def test_trajectory_is_smooth_level_and_follows_motion():
 
 def test_drift_starts_exact_and_grows_with_length():
     gt = smooth_trajectory(40, 15.0, seed=0)
-    errors = np.array([
-        np.linalg.norm(add_odometry_drift(gt, 0.05, 0.5, seed)[:, :3, 3] - gt[:, :3, 3], axis=1)
-        for seed in range(30)
-    ])
+    errors = np.array(
+        [np.linalg.norm(add_odometry_drift(gt, 0.05, 0.5, seed)[:, :3, 3] - gt[:, :3, 3], axis=1) for seed in range(30)]
+    )
     assert np.all(errors[:, 0] == 0.0)
     mean = errors.mean(axis=0)
     assert mean[1] > 0.0
@@ -207,8 +206,15 @@ def test_a_handheld_walk_turns_40_to_50_degrees_between_scans_at_2_hz():
 
 
 def test_a_car_route_is_long_with_turns_at_10_hz(tmp_path):
-    cfg = {**SMALL, "route": "car", "num_scans": 400, "route_length_m": 320.0, "num_beams": 4, "num_columns": 32,
-           "gt_map_points": 0}
+    cfg = {
+        **SMALL,
+        "route": "car",
+        "num_scans": 400,
+        "route_length_m": 320.0,
+        "num_beams": 4,
+        "num_columns": 32,
+        "gt_map_points": 0,
+    }
     seq = make_sequence(cfg)
     assert seq.poses is None and seq.name == "synthetic_seed0_car_10hz"
     np.testing.assert_allclose(np.diff(seq.timestamps), 0.1)

@@ -90,7 +90,8 @@ def test_evaluate_run_measures_and_aligns(tmp_path):
     saved = json.loads((run / "metrics.json").read_text())
     assert saved["run"] == {"steps": 5}  # the trainer's section is kept
     assert saved["evaluation"]["methods"]["optimized"]["ate"]["translation_rmse_m"] == pytest.approx(
-        optimized["ate"]["translation_rmse_m"])
+        optimized["ate"]["translation_rmse_m"]
+    )
     for name in ("trajectory.png", "pose_error.png", "error_histogram.png"):
         assert (run / name).stat().st_size > 1000
         assert name in result["plots"]
@@ -109,14 +110,22 @@ def test_the_arrays_a_run_holds_measure_as_the_files_it_wrote(tmp_path):
     gt, stamps = _scene_and_run(run)
     from_files = evaluate_run(run, write_plots=False)
     read = __import__("open3d").io.read_point_cloud
-    maps = {"optimized": {"raw": np.asarray(read(str(run / "map_raw.ply")).points),
-                          "rendered": np.asarray(read(str(run / "map_rendered.ply")).points)},
-            "initial": {"raw": np.asarray(read(str(run / "map_raw_initial.ply")).points)}}
+    maps = {
+        "optimized": {
+            "raw": np.asarray(read(str(run / "map_raw.ply")).points),
+            "rendered": np.asarray(read(str(run / "map_rendered.ply")).points),
+        },
+        "initial": {"raw": np.asarray(read(str(run / "map_raw_initial.ply")).points)},
+    }
     from neld_jax.data.poses import read_kitti
 
     gt_map = np.asarray(read(str(run / "map_gt.ply")).points)
-    artifacts = RunArtifacts({name: Trajectory(stamps, read_kitti(run / f"poses_{name}.kitti"))
-                              for name in ("initial", "optimized")}, maps, Trajectory(stamps, gt), gt_map)
+    artifacts = RunArtifacts(
+        {name: Trajectory(stamps, read_kitti(run / f"poses_{name}.kitti")) for name in ("initial", "optimized")},
+        maps,
+        Trajectory(stamps, gt),
+        gt_map,
+    )
     in_memory = evaluate(artifacts).result
     assert set(in_memory) == {"threshold_m", "raw_cutoff_m", "map_icp_m", "methods"}
     assert list(in_memory["methods"]) == list(from_files["methods"]) == ["initial", "optimized"]
@@ -157,8 +166,16 @@ def test_without_ground_truth_only_trajectories_are_listed(tmp_path):
 
 
 def test_discovery_of_methods_and_maps(tmp_path):
-    for name in ("poses_gt.txt", "poses_zeta.txt", "poses_optimized.txt", "poses_baseline.txt", "poses_initial.txt",
-                 "map_raw.ply", "map_raw_baseline.ply", "map_rendered.ply"):
+    for name in (
+        "poses_gt.txt",
+        "poses_zeta.txt",
+        "poses_optimized.txt",
+        "poses_baseline.txt",
+        "poses_initial.txt",
+        "map_raw.ply",
+        "map_raw_baseline.ply",
+        "map_rendered.ply",
+    ):
         (tmp_path / name).write_text("")
     assert list(find_trajectories(tmp_path)) == ["initial", "baseline", "optimized", "zeta"]
     assert set(map_files(tmp_path, "optimized")) == {"raw", "rendered"}
@@ -182,8 +199,9 @@ def test_missing_folder_or_poses_are_data_errors(tmp_path):
 
 def _run_cli(*args):
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    return subprocess.run([sys.executable, str(REPO / "bin" / "evaluate.py"), *args], capture_output=True,
-                          text=True, env=env, timeout=120)
+    return subprocess.run(
+        [sys.executable, str(REPO / "bin" / "evaluate.py"), *args], capture_output=True, text=True, env=env, timeout=120
+    )
 
 
 def test_cli_prints_table_and_one_line_errors(tmp_path):

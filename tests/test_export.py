@@ -101,8 +101,9 @@ def test_write_raw_map_registers_and_downsamples(tmp_path):
 def test_write_json_merges_and_converts(tmp_path):
     path = tmp_path / "metrics.json"
     export.write_json(path, {"run": {"steps": np.int64(10)}})
-    export.write_json(path, {"evaluation": {"rmse": np.float32(0.5), "curve": np.arange(3), "bad": float("nan"),
-                                            "where": tmp_path}})
+    export.write_json(
+        path, {"evaluation": {"rmse": np.float32(0.5), "curve": np.arange(3), "bad": float("nan"), "where": tmp_path}}
+    )
     data = json.loads(path.read_text())
     assert data["run"] == {"steps": 10}
     assert data["evaluation"] == {"rmse": 0.5, "curve": [0, 1, 2], "bad": None, "where": str(tmp_path)}

@@ -124,15 +124,17 @@ def test_field_from_config_sets_every_architecture_field():
     model = defaults().model
     names = {"surrogate": "surrogate_gradient"}
     # initial_density is a constant of the architecture, not a setting
-    options = [f.name for f in dataclasses.fields(DensityField)
-               if f.name not in ("dtype", "parent", "name", "initial_density")]
+    options = [
+        f.name for f in dataclasses.fields(DensityField) if f.name not in ("dtype", "parent", "name", "initial_density")
+    ]
     assert set(options) >= {"width", "depth", "skip_layers", "matmul_dtype"}
     # Every option's default is the config's default ...
     default = field_from_config(model)
     assert default == DensityField(), [o for o in options if getattr(default, o) != getattr(DensityField(), o)]
     # ... and a changed config value changes the module.
-    changed = dict(width=8, depth=2, skip_layers=[1], pos_freqs=3, dir_freqs=1, surrogate_gradient=False,
-                   matmul_dtype="bfloat16")
+    changed = dict(
+        width=8, depth=2, skip_layers=[1], pos_freqs=3, dir_freqs=1, surrogate_gradient=False, matmul_dtype="bfloat16"
+    )
     assert {names.get(o, o) for o in options} == set(changed)
     model.update(changed)
     field = field_from_config(model)

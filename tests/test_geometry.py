@@ -22,8 +22,9 @@ def test_the_result_has_the_references_up_axis_and_keeps_position_and_heading():
     # The world's up, seen from the sensor (third row of R), is the reference's; positions do not move.
     np.testing.assert_allclose(levelled[:, 2, :3], reference[:, 2, :3], atol=1e-12)
     np.testing.assert_array_equal(levelled[:, :3, 3], poses[:, :3, 3])
-    np.testing.assert_allclose(np.einsum("sji,sjk->sik", levelled[:, :3, :3], levelled[:, :3, :3]),
-                               np.tile(np.eye(3), (64, 1, 1)), atol=1e-12)
+    np.testing.assert_allclose(
+        np.einsum("sji,sjk->sik", levelled[:, :3, :3], levelled[:, :3, :3]), np.tile(np.eye(3), (64, 1, 1)), atol=1e-12
+    )
     # The turn applied is about a horizontal axis (no heading change) and is the smallest one: the angle between
     # the two up axes.
     turn = levelled[:, :3, :3] @ np.swapaxes(poses[:, :3, :3], 1, 2)

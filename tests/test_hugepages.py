@@ -39,17 +39,20 @@ def test_a_script_reexecutes_once_with_the_tunable_and_keeps_its_arguments(tmp_p
     """Run a script that calls the helper: it must finish with its arguments intact, and re-execute exactly
     once where the helper says it should (printing twice would mean no exec, or an exec loop)."""
     script = tmp_path / "entry.py"
-    script.write_text(textwrap.dedent(f"""
+    script.write_text(
+        textwrap.dedent(f"""
         import os, sys
         sys.path.insert(0, {str(ROOT)!r})
         print("start", os.environ.get("GLIBC_TUNABLES", ""), flush=True)
         from neld_jax.hugepages import reexec_with_huge_page_malloc
         reexec_with_huge_page_malloc()
         print("args", sys.argv[1:], flush=True)
-    """))
+    """)
+    )
     env = {k: v for k, v in os.environ.items() if k not in ("GLIBC_TUNABLES", "NELD_JAX_HUGEPAGES")}
-    result = subprocess.run([sys.executable, "-u", str(script), "--x=1", "two words"], env=env,
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "-u", str(script), "--x=1", "two words"], env=env, capture_output=True, text=True, timeout=60
+    )
     assert result.returncode == 0, result.stderr
     starts = [line for line in result.stdout.splitlines() if line.startswith("start")]
     expected = hugepages.needs_reexec(env, hugepages.glibc_version(), hugepages.transparent_huge_page_mode())
@@ -58,6 +61,7 @@ def test_a_script_reexecutes_once_with_the_tunable_and_keeps_its_arguments(tmp_p
         assert starts[1] == f"start {hugepages.TUNABLE}"
     assert result.stdout.splitlines()[-1] == "args ['--x=1', 'two words']"
 
-    opted_out = subprocess.run([sys.executable, str(script)], env=dict(env, NELD_JAX_HUGEPAGES="0"),
-                               capture_output=True, text=True, timeout=60)
+    opted_out = subprocess.run(
+        [sys.executable, str(script)], env=dict(env, NELD_JAX_HUGEPAGES="0"), capture_output=True, text=True, timeout=60
+    )
     assert [line for line in opted_out.stdout.splitlines() if line.startswith("start")] == ["start "]

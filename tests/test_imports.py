@@ -69,9 +69,13 @@ def _layer(module: str) -> int:
 def test_imports_only_go_down_and_never_in_a_circle():
     modules = _modules()
     graph = {name: _imports(path, modules) - {name} for name, path in modules.items()}
-    upward = [f"{a} ({LAYERS[_layer(a)][0]}) imports {b} ({LAYERS[_layer(b)][0]})"
-              for a, targets in graph.items() if a != "neld_jax" for b in targets
-              if b != "neld_jax" and _layer(b) > _layer(a)]
+    upward = [
+        f"{a} ({LAYERS[_layer(a)][0]}) imports {b} ({LAYERS[_layer(b)][0]})"
+        for a, targets in graph.items()
+        if a != "neld_jax"
+        for b in targets
+        if b != "neld_jax" and _layer(b) > _layer(a)
+    ]
     assert not upward, upward
     # A circle: a module reachable from itself (packages' own __init__ aside)
     circles = []
@@ -105,16 +109,23 @@ def _imports_without(blocked: tuple, code: str):
 
 def test_the_field_and_training_import_no_io_library():
     names = sorted(m for m in _modules() if m.split(".")[1:2] in (["field"], ["training"]))
-    code = (f"import {', '.join(names)}\n"
-            f"bad = [m for m in sys.modules if m.split('.')[0] in {IO_LIBRARIES!r}]\nassert not bad, bad\nprint('ok')")
+    code = (
+        f"import {', '.join(names)}\n"
+        f"bad = [m for m in sys.modules if m.split('.')[0] in {IO_LIBRARIES!r}]\nassert not bad, bad\nprint('ok')"
+    )
     result = _imports_without(IO_LIBRARIES, code)
     assert len(names) > 10 and result.returncode == 0 and result.stdout.strip() == "ok", result.stderr[-2000:]
 
 
 def test_data_imports_neither_the_frontend_nor_the_synthetic_generator():
     modules = _modules()
-    wrong = [f"{a} imports {b}" for a, path in modules.items() if a.startswith("neld_jax.data")
-             for b in _imports(path, modules) if b.startswith(("neld_jax.frontend", "neld_jax.synthetic"))]
+    wrong = [
+        f"{a} imports {b}"
+        for a, path in modules.items()
+        if a.startswith("neld_jax.data")
+        for b in _imports(path, modules)
+        if b.startswith(("neld_jax.frontend", "neld_jax.synthetic"))
+    ]
     assert not wrong, wrong
 
 
@@ -122,8 +133,13 @@ def test_no_wing_imports_the_steps_or_the_run():
     modules = _modules()
     # the edge: the config offers the steps' choices (steps.choices, steps.inputs.FORMATS)
     edge = ("neld_jax.steps", "neld_jax.run", "neld_jax.commands", "neld_jax.cli", "neld_jax.config")
-    wrong = [f"{a} imports {b}" for a, path in modules.items() if not a.startswith(edge)
-             for b in _imports(path, modules) if b.startswith(("neld_jax.steps", "neld_jax.run"))]
+    wrong = [
+        f"{a} imports {b}"
+        for a, path in modules.items()
+        if not a.startswith(edge)
+        for b in _imports(path, modules)
+        if b.startswith(("neld_jax.steps", "neld_jax.run"))
+    ]
     assert not wrong, wrong
 
 
@@ -137,9 +153,11 @@ def test_few_loose_modules_and_no_two_modules_share_a_name():
 
 def test_the_training_step_of_a_run_imports_without_open3d():
     """refine.refine_keyframes is what a GPU image without open3d runs (benchmarks/real_gpu.py); the config too."""
-    code = ("import neld_jax.steps.refine, neld_jax.config, neld_jax.steps.mapping\n"
-            "assert callable(neld_jax.steps.refine.refine_keyframes)\n"
-            "assert neld_jax.config.synthetic('cpu').budget == 'cpu'\n"
-            "print('ok')")
+    code = (
+        "import neld_jax.steps.refine, neld_jax.config, neld_jax.steps.mapping\n"
+        "assert callable(neld_jax.steps.refine.refine_keyframes)\n"
+        "assert neld_jax.config.synthetic('cpu').budget == 'cpu'\n"
+        "print('ok')"
+    )
     result = _imports_without(("open3d",), code)
     assert result.returncode == 0 and result.stdout.strip() == "ok", result.stderr[-2000:]

@@ -2,7 +2,6 @@
 the stamps, the ground truth moved from camera 0 into the LiDAR frame, KISS-ICP's poses, one clear line for each kind
 of broken download, and a run through bin/train.py."""
 
-
 import numpy as np
 import pytest
 from conftest import make_tiny_config, train_a_download_briefly
@@ -68,8 +67,7 @@ def test_a_download_gets_kiss_icp_poses_without_deskewing(scans, download, caplo
 
 
 def test_a_broken_download_is_one_line_naming_the_file(scans, tmp_path):
-    few = type(scans)(scans=scans.scans[:3], poses=None, timestamps=scans.timestamps[:3],
-                      gt_poses=scans.gt_poses[:3])
+    few = type(scans)(scans=scans.scans[:3], poses=None, timestamps=scans.timestamps[:3], gt_poses=scans.gt_poses[:3])
     root = write_kitti_download(tmp_path / "a", few)
     calib = (root / "calib.txt").read_text()
 
@@ -113,8 +111,9 @@ def test_a_download_without_ground_truth_needs_no_calibration(scans, tmp_path):
 
 
 def test_a_download_runs_through_the_command(scans, tmp_path):
-    half = type(scans)(scans=scans.scans[:20], poses=None, timestamps=scans.timestamps[:20],
-                       gt_poses=scans.gt_poses[:20])
+    half = type(scans)(
+        scans=scans.scans[:20], poses=None, timestamps=scans.timestamps[:20], gt_poses=scans.gt_poses[:20]
+    )
     download = write_kitti_download(tmp_path / "download", half)
     out = tmp_path / "run"
     done = train_a_download_briefly("kitti.py", download, out)

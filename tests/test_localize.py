@@ -15,8 +15,16 @@ from neld_jax import lie, run
 from neld_jax.data.poses import read_kitti, read_tum
 from neld_jax.synthetic.generator import make_sequence, write_generic
 
-SCENE = {"num_scans": 6, "num_beams": 32, "num_columns": 512, "gt_map_points": 1000, "scene_size_m": 40.0,
-         "trajectory_radius_m": 6.0, "max_range_m": 30.0, "range_noise_m": 0.0}
+SCENE = {
+    "num_scans": 6,
+    "num_beams": 32,
+    "num_columns": 512,
+    "gt_map_points": 1000,
+    "scene_size_m": 40.0,
+    "trajectory_radius_m": 6.0,
+    "max_range_m": 30.0,
+    "range_noise_m": 0.0,
+}
 # The other recording's world: turned 40 deg and 6 m away from the run's
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OTHER_FRAME = lie.se3_exp_float64(np.array([[6.0, -3.0, 0.5, 0.0, 0.0, np.radians(40.0)]]))[0]
@@ -62,9 +70,21 @@ def test_localize_poses_scans_of_another_frame_in_the_run_map(finished_run):
     other = dataclasses.replace(seq, poses=OTHER_FRAME @ seq.gt_poses @ noise, gt_poses=None, gt_map=None)
     write_generic(other, root / "other")
     out = root / "localized"
-    done = subprocess.run([sys.executable, "bin/localize.py", f"--run={root / 'run'}", "--config=configs/generic.py",
-                           f"--config.data.root={root / 'other'}", f"--config.output_dir={out}",
-                           "--config.data.max_range_m=30.0"], capture_output=True, text=True, timeout=600, cwd=REPO)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "bin/localize.py",
+            f"--run={root / 'run'}",
+            "--config=configs/generic.py",
+            f"--config.data.root={root / 'other'}",
+            f"--config.output_dir={out}",
+            "--config.data.max_range_m=30.0",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=REPO,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert "6 of 6 scans registered" in done.stdout and "global registration" in done.stdout
 
@@ -79,9 +99,20 @@ def test_localize_poses_scans_of_another_frame_in_the_run_map(finished_run):
 
 
 def test_localize_without_a_finished_run_is_one_error_line(tmp_path):
-    done = subprocess.run([sys.executable, "bin/localize.py", f"--run={tmp_path}", "--config=configs/demo.py",
-                           f"--config.output_dir={tmp_path / 'out'}"], capture_output=True, text=True, timeout=300,
-                          cwd=REPO)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "bin/localize.py",
+            f"--run={tmp_path}",
+            "--config=configs/demo.py",
+            f"--config.output_dir={tmp_path / 'out'}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=REPO,
+    )
     assert done.returncode == 1
-    assert done.stderr.strip().splitlines() == [f"error: --run: {tmp_path / 'map_raw.ply'} not found (give a "
-                                                "finished run's output folder)"]
+    assert done.stderr.strip().splitlines() == [
+        f"error: --run: {tmp_path / 'map_raw.ply'} not found (give a finished run's output folder)"
+    ]

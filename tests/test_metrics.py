@@ -79,6 +79,7 @@ def test_ate_matches_evo(tum_pair):
 
     # Our side reads the same files through neld_jax's reader.
     from neld_jax.data.poses import read_tum
+
     stamps_gt, gt = read_tum(gt_path)
     stamps_est, est = read_tum(est_path)
     est_idx, gt_idx = metrics.associate_timestamps(stamps_est, stamps_gt)
@@ -90,8 +91,9 @@ def test_ate_matches_evo(tum_pair):
     assert ours["translation_mean_m"] == pytest.approx(evo_stats["mean"], abs=1e-6)
     assert ours["translation_median_m"] == pytest.approx(evo_stats["median"], abs=1e-6)
     assert ours["translation_max_m"] == pytest.approx(evo_stats["max"], abs=1e-6)
-    assert ours["rotation_rmse_deg"] == pytest.approx(ape_rotation.get_statistic(evo_metrics.StatisticsType.rmse),
-                                                      abs=1e-6)
+    assert ours["rotation_rmse_deg"] == pytest.approx(
+        ape_rotation.get_statistic(evo_metrics.StatisticsType.rmse), abs=1e-6
+    )
 
 
 def test_sim3_ate_matches_evo(tum_pair):
@@ -120,8 +122,9 @@ def test_rpe_matches_evo_all_pairs(tum_pair):
     traj_ref = file_interface.read_tum_trajectory_file(str(gt_path))
     traj_est = file_interface.read_tum_trajectory_file(str(est_path))
     for delta in (1, 3):
-        rpe = evo_metrics.RPE(evo_metrics.PoseRelation.translation_part, delta=delta,
-                              delta_unit=evo_metrics.Unit.frames, all_pairs=True)
+        rpe = evo_metrics.RPE(
+            evo_metrics.PoseRelation.translation_part, delta=delta, delta_unit=evo_metrics.Unit.frames, all_pairs=True
+        )
         rpe.process_data((traj_ref, traj_est))
         ours = metrics.rpe(est, gt, delta=delta)
         assert ours["num_pairs"] == len(gt) - delta
@@ -148,7 +151,8 @@ def test_path_length_matches_evo(tum_pair):
     _, _, gt, est = tum_pair
     assert metrics.path_length(gt) == pytest.approx(PosePath3D(poses_se3=list(gt)).path_length, rel=1e-12)
     assert metrics.path_length_ratio(est, gt) == pytest.approx(
-        PosePath3D(poses_se3=list(est)).path_length / PosePath3D(poses_se3=list(gt)).path_length, rel=1e-12)
+        PosePath3D(poses_se3=list(est)).path_length / PosePath3D(poses_se3=list(gt)).path_length, rel=1e-12
+    )
     assert metrics.path_length(gt[:1]) == 0.0
     assert np.isnan(metrics.path_length_ratio(gt[:1], gt[:1]))
 
@@ -174,10 +178,18 @@ def test_kitti_relative_error_matches_evo_rpe_in_meters():
     ours = metrics.kitti_relative_error(est, gt, lengths, step=1)
     for length in lengths:
         mine = ours["per_length"][f"{length:g}"]
-        for relation, key, factor in ((evo_metrics.PoseRelation.translation_part, "translation_pct", 100.0),
-                                      (evo_metrics.PoseRelation.rotation_angle_deg, "rotation_deg_per_m", 1.0)):
-            rpe = evo_metrics.RPE(relation, delta=length, delta_unit=evo_metrics.Unit.meters, rel_delta_tol=0.02,
-                                  all_pairs=True, pairs_from_reference=True)
+        for relation, key, factor in (
+            (evo_metrics.PoseRelation.translation_part, "translation_pct", 100.0),
+            (evo_metrics.PoseRelation.rotation_angle_deg, "rotation_deg_per_m", 1.0),
+        ):
+            rpe = evo_metrics.RPE(
+                relation,
+                delta=length,
+                delta_unit=evo_metrics.Unit.meters,
+                rel_delta_tol=0.02,
+                all_pairs=True,
+                pairs_from_reference=True,
+            )
             rpe.process_data((PosePath3D(poses_se3=list(gt)), PosePath3D(poses_se3=list(est))))
             assert mine["num_segments"] == len(rpe.error) == len(gt) - int(np.ceil(length))
             assert mine[key] == pytest.approx(factor * np.mean(rpe.error) / length, rel=1e-9)
@@ -254,8 +266,9 @@ def test_collinear_trajectory_falls_back_to_translation():
 
 
 def test_associate_timestamps_nearest_within_tolerance():
-    est_idx, gt_idx = metrics.associate_timestamps(np.array([0.0, 1.0, 2.004, 5.0]),
-                                                   np.array([0.001, 0.5, 1.0, 2.0, 3.0]), max_diff=0.01)
+    est_idx, gt_idx = metrics.associate_timestamps(
+        np.array([0.0, 1.0, 2.004, 5.0]), np.array([0.001, 0.5, 1.0, 2.0, 3.0]), max_diff=0.01
+    )
     np.testing.assert_array_equal(est_idx, [0, 1, 2])
     np.testing.assert_array_equal(gt_idx, [0, 2, 3])
 
@@ -277,8 +290,11 @@ def _grid(step=0.1, size=20):
 
 def _map_metrics(est_points, gt_points, **settings) -> dict:
     """metrics.map_metrics_from_distances of two maps [N, 3], [M, 3] (the evaluation's nearest neighbours)."""
-    return metrics.map_metrics_from_distances(metrics.nearest_neighbor_distances(est_points, gt_points),
-                                              metrics.nearest_neighbor_distances(gt_points, est_points), **settings)
+    return metrics.map_metrics_from_distances(
+        metrics.nearest_neighbor_distances(est_points, gt_points),
+        metrics.nearest_neighbor_distances(gt_points, est_points),
+        **settings,
+    )
 
 
 def test_identical_maps():
@@ -339,5 +355,4 @@ def test_transform_points_applies_the_transform():
     transform = np.eye(4)
     transform[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
     transform[:3, 3] = [1.0, 0.0, 0.0]
-    np.testing.assert_allclose(transform_points(np.array([[1.0, 0.0, 0.0]]), transform), [[1.0, 1.0, 0.0]],
-                               atol=1e-12)
+    np.testing.assert_allclose(transform_points(np.array([[1.0, 0.0, 0.0]]), transform), [[1.0, 1.0, 0.0]], atol=1e-12)

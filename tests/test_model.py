@@ -69,11 +69,13 @@ def test_a_shared_correction_is_the_same_motion_in_every_cube():
     xi = rng.normal(0, 0.01, (3, 6))
     ref_scale = 0.05
     expected = world_poses(T, xi, ref_scale)
-    np.testing.assert_allclose(expected, T @ np.asarray(lie.se3_exp(np.concatenate([xi[:, :3] / ref_scale,
-                                                                                     xi[:, 3:]], 1))), atol=1e-9)
+    np.testing.assert_allclose(
+        expected, T @ np.asarray(lie.se3_exp(np.concatenate([xi[:, :3] / ref_scale, xi[:, 3:]], 1))), atol=1e-9
+    )
     for scale, offset in ((0.05, np.zeros(3)), (0.11, np.array([5.0, -3.0, 1.0]))):
         norm = Normalization(scale, offset)
         with jax.enable_x64(True):
-            in_cube = corrected_poses(jnp.asarray(xi), jnp.asarray(norm.poses_to_normalized(T)), jnp.arange(3),
-                                      scale / ref_scale)
+            in_cube = corrected_poses(
+                jnp.asarray(xi), jnp.asarray(norm.poses_to_normalized(T)), jnp.arange(3), scale / ref_scale
+            )
         np.testing.assert_allclose(poses_to_world(norm, np.asarray(in_cube)), expected, atol=1e-9)

@@ -96,8 +96,7 @@ def test_two_passes_hold_fast_sweeps_that_kiss_icps_own_deskewing_lets_swing():
     # and a second run gives the same poses bit for bit (odometry.POSE_DECIMALS)
     again = odometry.two_pass_odometry(fast.scans, fast.point_times, fast.timestamps, labels, (0.5, 40.0))
     assert np.array_equal(again, two_passes), np.abs(again - two_passes).max()
-    poses, _, offsets = odometry.kiss_icp_odometry(fast.scans, fast.point_times, labels, (0.5, 40.0),
-                                                   keep_sweeps=False)
+    poses, _, offsets = odometry.kiss_icp_odometry(fast.scans, fast.point_times, labels, (0.5, 40.0), keep_sweeps=False)
     its_own = odometry.poses_at_stamps(fast.timestamps, offsets, poses)
     errors = [metrics.ate(p, fast.gt_poses)["translation_rmse_m"] for p in (two_passes, its_own)]
     assert errors[0] < 0.05 and errors[0] < 0.5 * errors[1], errors
@@ -110,8 +109,10 @@ def test_kiss_icp_registers_within_the_sensors_range_and_the_scans_keep_the_fiel
     assert odometry.sensor_range_m([4.0 * scan for scan in rigid.scans]) == 100.0  # at most KISS-ICP's default
     with caplog.at_level(logging.INFO, logger="neld_jax.frontend.odometry"):
         posed = odometry.with_kiss_icp_poses(rigid, 2.0, 20.0, progress=False)
-    assert "KISS-ICP registers the points within 39.9 m (measured: the 99.9th percentile of the point distances of 8 " \
-           "scans evenly spaced, at most KISS-ICP's default 100 m), voxel 0.40 m" in caplog.text
+    assert (
+        "KISS-ICP registers the points within 39.9 m (measured: the 99.9th percentile of the point distances of 8 "
+        "scans evenly spaced, at most KISS-ICP's default 100 m), voxel 0.40 m" in caplog.text
+    )
     assert "registered within 0.0-39.9 m, voxel 0.40 m; scans kept within 2.0-20.0 m" in caplog.text
     distances = np.linalg.norm(posed.scans[3], axis=1)
     assert distances.min() >= 2.0 and distances.max() <= 20.0  # the field's crop, not KISS-ICP's range
@@ -123,8 +124,13 @@ def test_kiss_icp_registers_within_the_sensors_range_and_the_scans_keep_the_fiel
 
 
 def test_the_deskew_decision_is_a_setting(sweeps, tmp_path, caplog):
-    first = dataclasses.replace(sweeps, scans=sweeps.scans[:10], timestamps=sweeps.timestamps[:10],
-                                gt_poses=sweeps.gt_poses[:10], point_times=None)
+    first = dataclasses.replace(
+        sweeps,
+        scans=sweeps.scans[:10],
+        timestamps=sweeps.timestamps[:10],
+        gt_poses=sweeps.gt_poses[:10],
+        point_times=None,
+    )
     write_generic(first, tmp_path)  # no poses.txt, no point times
     with caplog.at_level(logging.INFO):
         loaded = load_sequence(_data(tmp_path, deskew="deskewed"))
@@ -146,8 +152,12 @@ def test_odometry_that_loses_track_for_good_names_the_scan(sweeps, tmp_path):
     # Twenty sweeps of one courtyard, then twenty of another: the 21st sweep jumps, and registering it again from
     # features or from any motion guess finds no pose where it overlaps the 20th.
     other = _sweeps(seed=7)
-    jumped = dataclasses.replace(sweeps, scans=sweeps.scans[:20] + other.scans[20:],
-                                 point_times=sweeps.point_times[:20] + other.point_times[20:], gt_poses=None)
+    jumped = dataclasses.replace(
+        sweeps,
+        scans=sweeps.scans[:20] + other.scans[20:],
+        point_times=sweeps.point_times[:20] + other.point_times[20:],
+        gt_poses=None,
+    )
     write_generic(jumped, tmp_path)
     with pytest.raises(DataError, match=r"^scans/2\.000000000\.pcd \(t=2\.000000\): KISS-ICP lost track here"):
         load_sequence(_data(tmp_path))
@@ -231,8 +241,14 @@ def test_a_run_from_scans_alone_writes_the_odometry(folder_of_sweeps, tmp_path):
 
 def test_a_fusionportable_download_runs_through_the_command(sweeps, tmp_path):
     """The dataset's bag of raw sweeps and its ground truth, in its own layout, through bin/train.py."""
-    root = write_fusionportable_download(tmp_path / "download", "20220216_garden_day", sweeps.timestamps + 1.6e9,
-                                         sweeps.scans, sweeps.point_times, sweeps.gt_poses)
+    root = write_fusionportable_download(
+        tmp_path / "download",
+        "20220216_garden_day",
+        sweeps.timestamps + 1.6e9,
+        sweeps.scans,
+        sweeps.point_times,
+        sweeps.gt_poses,
+    )
     out = tmp_path / "run"
     done = train_a_download_briefly("fusionportable.py", root, out)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -244,8 +260,9 @@ def test_a_fusionportable_download_runs_through_the_command(sweeps, tmp_path):
 
 
 def test_a_newer_college_download_in_two_bags_loads_as_raw_sweeps(sweeps, tmp_path):
-    root = write_newer_college_download(tmp_path, "quad-easy", sweeps.timestamps + 1.6e9, sweeps.scans,
-                                        sweeps.point_times, sweeps.gt_poses, parts=2)
+    root = write_newer_college_download(
+        tmp_path, "quad-easy", sweeps.timestamps + 1.6e9, sweeps.scans, sweeps.point_times, sweeps.gt_poses, parts=2
+    )
     data = _data(root, format="newer_college")
     loaded = load_sequence(data)
     assert loaded.poses_from == "kiss_icp" and loaded.num_scans == NUM_SWEEPS

@@ -59,13 +59,17 @@ def test_the_loops_odometry_and_truth_agree_with_global_registration(loop):
 
 def test_the_evidence_is_logged_in_one_line(loop, caplog):
     posed, sweeps, _ = loop
-    rigid = dataclasses.replace(sweeps, scans=sweeps.scans[:8], point_times=None, timestamps=sweeps.timestamps[:8],
-                                gt_poses=sweeps.gt_poses[:8])
+    rigid = dataclasses.replace(
+        sweeps, scans=sweeps.scans[:8], point_times=None, timestamps=sweeps.timestamps[:8], gt_poses=sweeps.gt_poses[:8]
+    )
     with caplog.at_level(logging.INFO, logger="neld_jax.frontend.odometry_check"):
         odometry.with_kiss_icp_poses(rigid, 0.5, 40.0, progress=False, odometry_range_m=RANGES[1])
-    line = re.search(r"KISS-ICP's steps against global registration from no guess: 7 pairs of consecutive scans "
-                     r"checked, 7 converged \(fitness >= 0\.6\), 7 moving; KISS-ICP's step over the global step "
-                     r"(\d\.\d+) in the median", caplog.text)
+    line = re.search(
+        r"KISS-ICP's steps against global registration from no guess: 7 pairs of consecutive scans "
+        r"checked, 7 converged \(fitness >= 0\.6\), 7 moving; KISS-ICP's step over the global step "
+        r"(\d\.\d+) in the median",
+        caplog.text,
+    )
     # KISS-ICP's first steps from rest are short (0.72-0.90 of the true ones, measured the same within 0.01 here):
     # 0.885 in the median, within the tolerance
     assert line and 0.8 < float(line.group(1)) < odometry_check.STEP_TOLERANCE, caplog.text
@@ -86,10 +90,13 @@ def test_a_path_that_slid_is_found_and_its_scans_named(loop):
     assert not short.within_tolerance and not short.backed_by_the_scans and short.agrees
     assert "the scans fit KISS-ICP's steps about as well as the global ones: kept" in short.summary()
     # run again, it slides again: one line naming the recording and the scans
-    with pytest.raises(DataError, match=r"^the loop: KISS-ICP's steps are [34]\d% of what global registration "
-                                        r"\(FPFH features and RANSAC, then ICP, from no guess\) finds between "
-                                        r"consecutive scans in the median and its path \d+% of theirs over 9 pairs "
-                                        r"\(sweep 0000\d\d to sweep 0000\d\d: 0\.\d\d m against 0\.\d\d m; ") as error:
+    with pytest.raises(
+        DataError,
+        match=r"^the loop: KISS-ICP's steps are [34]\d% of what global registration "
+        r"\(FPFH features and RANSAC, then ICP, from no guess\) finds between "
+        r"consecutive scans in the median and its path \d+% of theirs over 9 pairs "
+        r"\(sweep 0000\d\d to sweep 0000\d\d: 0\.\d\d m against 0\.\d\d m; ",
+    ) as error:
         odometry_check.checked_odometry(scans, lambda guesses, seen: (slid,), _labels(10), RANGES, VOXEL_M, "the loop")
     assert "\n" not in str(error.value)
 
@@ -112,8 +119,11 @@ def test_kiss_icp_that_slid_from_rest_is_run_again_from_the_global_steps(caplog)
     alone, _, _ = odometry.kiss_icp_odometry(fast.scans, None, _labels(12), RANGES, keep_sweeps=False)
     with caplog.at_level(logging.INFO, logger="neld_jax.frontend.odometry_check"):
         posed = odometry.with_kiss_icp_poses(fast, 0.5, 40.0, progress=False, odometry_range_m=RANGES[1])
-    assert re.search(r"disagree with global registration .* 1 single steps slid .*\); scan 0 \(t=0\.000000\) to "
-                     r"scan 1 \(t=0\.100000\): 0\.\d\d m against 1\.\d\d m", caplog.text), caplog.text
+    assert re.search(
+        r"disagree with global registration .* 1 single steps slid .*\); scan 0 \(t=0\.000000\) to "
+        r"scan 1 \(t=0\.100000\): 0\.\d\d m against 1\.\d\d m",
+        caplog.text,
+    ), caplog.text
     assert "KISS-ICP run again from the global steps; its steps against global registration: 11 pairs" in caplog.text
     errors = [metrics.ate(poses, fast.gt_poses)["translation_rmse_m"] for poses in (alone, posed.poses)]
     assert errors[0] > 0.8 and errors[1] < 0.5 * errors[0], errors  # measured 1.15 and 0.29 m
@@ -132,6 +142,9 @@ def test_the_sample_spans_the_recording_and_the_second_lies_between():
     first, between = odometry_check.sampled_pairs(101), odometry_check.sampled_pairs(101, between=True)
     assert len(first) == odometry_check.CHECK_PAIRS and first[0] == 0 and first[-1] == 99
     assert not set(first[:-1]) & set(between) and np.all(np.diff(between) > 0)
-    assert odometry_check.sampled_pairs(12).tolist() == list(range(11)) == odometry_check.sampled_pairs(
-        12, between=True).tolist()  # a short recording: every pair, both times
+    assert (
+        odometry_check.sampled_pairs(12).tolist()
+        == list(range(11))
+        == odometry_check.sampled_pairs(12, between=True).tolist()
+    )  # a short recording: every pair, both times
     assert len(odometry_check.sampled_pairs(1)) == 0

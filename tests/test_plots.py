@@ -32,8 +32,12 @@ def test_plots_write_pngs(tmp_path):
 
 def _walls(rng, xs, length, per_wall=4000):
     """Points [len(xs) * per_wall, 3] on vertical walls x = const, y in [0, length], z in [0, 3]."""
-    return np.concatenate([np.column_stack([np.full(per_wall, x), rng.uniform(0, length, per_wall),
-                                            rng.uniform(0, 3, per_wall)]) for x in xs])
+    return np.concatenate(
+        [
+            np.column_stack([np.full(per_wall, x), rng.uniform(0, length, per_wall), rng.uniform(0, 3, per_wall)])
+            for x in xs
+        ]
+    )
 
 
 def test_map_topdown_close_up_goes_where_the_maps_differ(tmp_path):

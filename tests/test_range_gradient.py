@@ -91,10 +91,12 @@ def test_fine_samples_before_give_a_more_accurate_range_gradient_than_nerf_resam
     errors = {}
     for scheme in ("before", "nerf"):
         deterministic = np.abs(np.asarray(_range_gradient(*rays, scheme=scheme)) - dense)
-        jittered = np.concatenate([
-            np.abs(np.asarray(_range_gradient(*rays, scheme=scheme, key=jax.random.key(seed))) - dense)
-            for seed in range(3)
-        ])
+        jittered = np.concatenate(
+            [
+                np.abs(np.asarray(_range_gradient(*rays, scheme=scheme, key=jax.random.key(seed))) - dense)
+                for seed in range(3)
+            ]
+        )
         errors[scheme] = {
             "deterministic_mean": deterministic.mean(),
             "deterministic_median": np.median(deterministic),

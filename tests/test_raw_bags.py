@@ -28,8 +28,9 @@ def _sweeps(n, seed=0):
     for _ in range(n):
         azimuth = np.tile(np.linspace(0, 2 * np.pi, COLUMNS, endpoint=False), ROWS)
         elevation = np.repeat(np.linspace(-0.4, 0.2, ROWS), COLUMNS)
-        direction = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
-                              np.sin(elevation)], axis=1)
+        direction = np.stack(
+            [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], axis=1
+        )
         # distance to the first of: floor z = -1.5, walls x = +-6 (and y = +-8)
         with np.errstate(divide="ignore"):
             candidates = np.stack([-1.5 / direction[:, 2], 6 / np.abs(direction[:, 0]), 8 / np.abs(direction[:, 1])])
@@ -105,8 +106,9 @@ def test_fusionportable_download_loads_from_the_bag(tmp_path):
     n = 4
     stamps, scans, times = _sweeps(n)
     gt = _poses(n)
-    folder = write_fusionportable_download(tmp_path / "FusionPortable", "20220216_canteen_day", stamps, scans, times,
-                                           gt, rows=ROWS)
+    folder = write_fusionportable_download(
+        tmp_path / "FusionPortable", "20220216_canteen_day", stamps, scans, times, gt, rows=ROWS
+    )
     seq = fusionportable.load(_data_cfg("fusionportable", folder))
     assert seq.poses is None and seq.num_scans == n and seq.name == "20220216_canteen_day"
     assert seq.files[2] == f"20220216_canteen_day.bag:{fusionportable.LIDAR_TOPICS[0]}#000002"

@@ -23,9 +23,11 @@ def test_the_two_commands_are_in_the_first_40_lines():
 def test_the_library_example_runs():
     code = re.search(r"```python\n(.*?)```", _readme(), re.S).group(1)
     code = code.replace("range(config.train.steps)", "range(3)")
-    code = code.replace('make_sequence(config.data.synthetic)',
-                        'make_sequence({"num_scans": 3, "num_beams": 8, "num_columns": 64, "gt_map_points": 0, '
-                        '"scene_size_m": 30.0, "trajectory_radius_m": 5.0, "max_range_m": 30.0})')
+    code = code.replace(
+        "make_sequence(config.data.synthetic)",
+        'make_sequence({"num_scans": 3, "num_beams": 8, "num_columns": 64, "gt_map_points": 0, '
+        '"scene_size_m": 30.0, "trajectory_radius_m": 5.0, "max_range_m": 30.0})',
+    )
     assert code.count("range(3)") == 1 and "num_scans" in code  # the example still has the lines replaced
     scope = {}
     exec(compile(code, "README.md", "exec"), scope)
@@ -90,15 +92,25 @@ def _real_recordings():
     """The six recordings end to end on the cpu budget: minutes, crisper than the odometry, crisper than the
     baseline on every draw."""
     runs = [s["recorded"]["crisper"] for s in _result("real_data_cpu_handheld.json", "sequences")]
-    out = [(r["wall_s"] / 60, r["crispness_margin"]["initial"]["mean"] < 0,
-            r["crispness_margin"]["baseline"]["mean"] < 0 and r["crispness_margin"]["baseline"]["all_draws_agree"])
-           for r in runs]
+    out = [
+        (
+            r["wall_s"] / 60,
+            r["crispness_margin"]["initial"]["mean"] < 0,
+            r["crispness_margin"]["baseline"]["mean"] < 0 and r["crispness_margin"]["baseline"]["all_draws_agree"],
+        )
+        for r in runs
+    ]
     for part in ("recorded_281", "recorded_331"):
         r = _result("real_data_cpu_riverside02.json", part)
         e = r["entropy_thickness"]
         margin = r["margin_vs_baseline"]
-        out.append((r["total_seconds"] / 60, e["optimized"][0] < e["initial"][0],
-                    margin["mean"] < 0 and margin["all_draws_agree"]))
+        out.append(
+            (
+                r["total_seconds"] / 60,
+                e["optimized"][0] < e["initial"][0],
+                margin["mean"] < 0 and margin["all_draws_agree"],
+            )
+        )
     return out
 
 
@@ -109,8 +121,10 @@ def _prose_figures() -> list:
     run_minutes = [m for m, _, _ in recordings]
     long_runs = [r["total_seconds"] / 60 for r in _result("real_data_cpu_6000_steps.json", "end_to_end_alone").values()]
     gpu = [r["training"]["train_seconds"] for r in _result("real_data_gpu.json", "runs") if r["name"] != "hard"]
-    visits = [[100 * v["ate_shared_alignment_m"] for v in _result(file, "merged.visits")]
-              for file in ("sessions_cpu.json", "sessions_merged_3000_steps_cpu.json")]
+    visits = [
+        [100 * v["ate_shared_alignment_m"] for v in _result(file, "merged.visits")]
+        for file in ("sessions_cpu.json", "sessions_merged_3000_steps_cpu.json")
+    ]
     alone = [100 * a["ate_m"] for a in _result("sessions_cpu.json", "alone")]
     return [
         f"the whole run takes {min(minutes):.1f}-{max(minutes):.1f} minutes on 2 cores",
@@ -127,9 +141,11 @@ def _prose_figures() -> list:
 
 def test_the_demo_table_quotes_the_results_files():
     readme = _readme()
-    wrong = [(row, column, _table_cell(readme, row, column), _formatted(file, path, form))
-             for row, column, file, path, form in DEMO_TABLE
-             if _table_cell(readme, row, column) != _formatted(file, path, form)]
+    wrong = [
+        (row, column, _table_cell(readme, row, column), _formatted(file, path, form))
+        for row, column, file, path, form in DEMO_TABLE
+        if _table_cell(readme, row, column) != _formatted(file, path, form)
+    ]
     assert wrong == [], "README cell != results file: " + repr(wrong)
 
 

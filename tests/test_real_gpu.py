@@ -19,10 +19,19 @@ from neld_jax.synthetic.pseudo_gt import with_drift
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPT = os.path.join(REPO, "benchmarks", "real_gpu.py")
-SIZES = ["--budget=cpu", "--set=train.steps=4", "--set=train.log_every=2", "--set=model.width=16",
-         "--set=model.depth=2", "--set=model.skip_layers=()", "--set=train.batch_rays=32",
-         "--set=data.max_rays_per_scan=64", "--set=eval.crispness_queries=300", "--set=eval.crispness_draws=2",
-         "--set=start.poses='input'"]
+SIZES = [
+    "--budget=cpu",
+    "--set=train.steps=4",
+    "--set=train.log_every=2",
+    "--set=model.width=16",
+    "--set=model.depth=2",
+    "--set=model.skip_layers=()",
+    "--set=train.batch_rays=32",
+    "--set=data.max_rays_per_scan=64",
+    "--set=eval.crispness_queries=300",
+    "--set=eval.crispness_draws=2",
+    "--set=start.poses='input'",
+]
 # Run a script with every import of open3d failing, as on a GPU image that lacks it.
 WITHOUT_OPEN3D = """
 import runpy, sys
@@ -91,7 +100,7 @@ def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
 
     config = get_config("cpu")
     config.data.root = json.loads((run_dir / "config.json").read_text())["data"]["root"]
-    config = apply_overrides(config, [s[len("--set="):] for s in SIZES if s.startswith("--set=")])
+    config = apply_overrides(config, [s[len("--set=") :] for s in SIZES if s.startswith("--set=")])
     _, keyframes = load_keyframes(config.data)
     with open(data / "tiny.pkl", "rb") as f:
         d = pickle.load(f)
@@ -117,16 +126,22 @@ def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
     with open(older / "tiny.pkl", "wb") as f:
         pickle.dump(d, f)
     overrides = ["train.steps=2", "viz.record=False"]
-    variant = _real_gpu(f"--data={older}", f"--out_dir={tmp_path / 'variant'}", "--max_train_s=300",
-                        *[f"--set={o}" for o in overrides], without_open3d=True)
+    variant = _real_gpu(
+        f"--data={older}",
+        f"--out_dir={tmp_path / 'variant'}",
+        "--max_train_s=300",
+        *[f"--set={o}" for o in overrides],
+        without_open3d=True,
+    )
     assert variant.returncode == 0, variant.stderr[-3000:]
     varied = json.loads((tmp_path / "variant" / "real_gpu.json").read_text())[0]
     assert "error" not in varied, varied
     assert varied["steps"] == varied["schedule_steps"] == 2 and varied["overrides"] == overrides
     assert varied["defaults_added"] == ["viz.record"]
 
-    judged_run = _real_gpu("--evaluate", f"--run_dir={run_dir}", f"--trained={out / 'tiny_trained.npz'}",
-                           f"--out_dir={judged}", *SIZES)
+    judged_run = _real_gpu(
+        "--evaluate", f"--run_dir={run_dir}", f"--trained={out / 'tiny_trained.npz'}", f"--out_dir={judged}", *SIZES
+    )
     assert judged_run.returncode == 0, judged_run.stderr[-3000:]
     evaluation = json.loads((judged / "evaluation.json").read_text())
     assert evaluation["poses_optimized_lines"] == evaluation["num_input_scans"] == 5
@@ -134,8 +149,10 @@ def test_prepare_train_without_open3d_and_evaluate(finished_run, tmp_path):
     # the run's own answer (the truth here) is crisper than the drifted odometry, on both draws
     versus = evaluation["optimized_minus"]
     assert set(versus) == {"initial", "run_optimized"} and len(versus["initial"]["per_draw"]) == 2
-    truth_minus_drift = (evaluation["crispness"]["run_optimized"]["mean_map_entropy"]
-                         - evaluation["crispness"]["initial"]["mean_map_entropy"])
+    truth_minus_drift = (
+        evaluation["crispness"]["run_optimized"]["mean_map_entropy"]
+        - evaluation["crispness"]["initial"]["mean_map_entropy"]
+    )
     assert truth_minus_drift < 0
 
 
@@ -147,7 +164,8 @@ def test_prepare_names_a_run_of_another_sequence(finished_run, tmp_path):
     from neld_jax.steps.start import Start
     from neld_jax.training.train import PoseSteps
 
-    Start(seq.poses[:3], "baseline", PoseSteps(), baseline_poses=seq.poses[:3], baseline_seconds=1.0,
-          departure_m=0.0).save(str(other), "0" * 12, seq.poses[:3])
+    Start(
+        seq.poses[:3], "baseline", PoseSteps(), baseline_poses=seq.poses[:3], baseline_seconds=1.0, departure_m=0.0
+    ).save(str(other), "0" * 12, seq.poses[:3])
     result = _real_gpu("--prepare", f"--run_dir={other}", f"--data={tmp_path}", *SIZES)
     assert result.returncode != 0 and "not this sequence's keyframes" in result.stderr

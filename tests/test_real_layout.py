@@ -42,8 +42,11 @@ def test_lio_keyframes_layout_reads_scans_poses_and_stamps(tmp_path):
     np.testing.assert_allclose(loaded.poses, seq.poses, atol=1e-6)
     np.testing.assert_allclose(loaded.timestamps, 1.6e9 + np.array([0.1, 7.4, 7.8, 9.0]))
     assert loaded.gt_poses is None
-    via_config = load_sequence(ml_collections.ConfigDict({"format": "lio_keyframes", "root": str(tmp_path),
-                                                          "initial_poses": "", "drop_unmatched_tail": False}))
+    via_config = load_sequence(
+        ml_collections.ConfigDict(
+            {"format": "lio_keyframes", "root": str(tmp_path), "initial_poses": "", "drop_unmatched_tail": False}
+        )
+    )
     np.testing.assert_allclose(via_config.poses, loaded.poses)
 
 
@@ -75,8 +78,9 @@ def test_spatial_keyframes_and_any_rule():
     # Caps on the gap between neighbouring keyframes: each keyframe is the last scan within them of the one before.
     np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, distance_m=0.5), [0, 1, 2])
     np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, angle_deg=15.0), [0, 3, 4, 5])
-    np.testing.assert_array_equal(select_keyframes(None, 0.0, poses=poses, distance_m=0.5, angle_deg=15.0),
-                                  [0, 1, 2, 3, 4, 5])
+    np.testing.assert_array_equal(
+        select_keyframes(None, 0.0, poses=poses, distance_m=0.5, angle_deg=15.0), [0, 1, 2, 3, 4, 5]
+    )
     times = np.arange(6) * 1.0
     np.testing.assert_array_equal(select_keyframes(times, 3.0, poses=poses, distance_m=0.5), [0, 1, 2])
 
@@ -92,9 +96,14 @@ def test_robust_outliers_and_report_rows():
     metres, degrees = report.pose_corrections(T, T_after)
     np.testing.assert_allclose(metres, [0, 0.05, 0], atol=1e-12)
     np.testing.assert_allclose(degrees, [0, 2.0, 0], atol=1e-9)
-    rows = report.scan_report(report.ScanList(3, np.array([0, 2]), ["a.pcd", "b.pcd", "c.pcd"]),
-                              report.KeyframeMeasures(np.array([10, 20]), np.array([0.1, 0.2]), np.array([-3.0, -3.1]),
-                                                      np.array([-3.2, -3.3])), metres, degrees)
+    rows = report.scan_report(
+        report.ScanList(3, np.array([0, 2]), ["a.pcd", "b.pcd", "c.pcd"]),
+        report.KeyframeMeasures(
+            np.array([10, 20]), np.array([0.1, 0.2]), np.array([-3.0, -3.1]), np.array([-3.2, -3.3])
+        ),
+        metres,
+        degrees,
+    )
     assert [r["keyframe"] for r in rows] == [1, 0, 1] and rows[1]["rays"] == 0 and rows[1]["entropy_after"] is None
     assert rows[2]["median_residual_m"] == pytest.approx(0.2) and rows[1]["correction_cm"] == pytest.approx(5.0)
     # Without a start of its own the refinement is the correction from the input (keyframes only)
@@ -112,16 +121,19 @@ def test_the_report_flags_the_bundle_adjustments_own_moves_not_its_starts():
     scans = report.ScanList(keyframes, np.arange(keyframes))
     by_correction = report.scan_report(scans, report.KeyframeMeasures(flat, flat, flat, flat), correction_m, zeros)
     assert [r["scan"] for r in by_correction if r["flag"]] == [7, 8, 9, 10, 11]  # the start's upper group
-    rows = report.scan_report(scans, report.KeyframeMeasures(flat, flat, flat, flat, refinement_m, zeros), correction_m,
-                              zeros)
+    rows = report.scan_report(
+        scans, report.KeyframeMeasures(flat, flat, flat, flat, refinement_m, zeros), correction_m, zeros
+    )
     assert [r["scan"] for r in rows if r["flag"]] == [7] and rows[7]["flag"] == "refinement"
-    assert rows[7]["refinement_cm"] == pytest.approx(2.0) and rows[7]["correction_cm"] == pytest.approx(4.0 + 0.0583,
-                                                                                                        abs=1e-3)
+    assert rows[7]["refinement_cm"] == pytest.approx(2.0) and rows[7]["correction_cm"] == pytest.approx(
+        4.0 + 0.0583, abs=1e-3
+    )
     summary = report.summarize(rows)
     assert [f["scan"] for f in summary["flagged"]] == [7] and summary["flagged"][0]["refinement_cm"] == 2.0
     # An outlier among sub-millimetre moves is below the floor (REFINEMENT_FLOOR_M): not flagged
-    tiny = report.scan_report(scans, report.KeyframeMeasures(flat, flat, flat, flat, refinement_m / 10, zeros),
-                              correction_m, zeros)
+    tiny = report.scan_report(
+        scans, report.KeyframeMeasures(flat, flat, flat, flat, refinement_m / 10, zeros), correction_m, zeros
+    )
     assert not any(r["flag"] for r in tiny)
 
 
@@ -130,8 +142,12 @@ def test_the_report_flags_residuals_only_well_above_the_rest():
     flat, zeros = np.full(keyframes, 0.1), np.zeros(keyframes)
 
     def flagged(residual_m):
-        rows = report.scan_report(report.ScanList(keyframes, np.arange(keyframes)),
-                                  report.KeyframeMeasures(flat, residual_m, flat, flat), zeros, zeros)
+        rows = report.scan_report(
+            report.ScanList(keyframes, np.arange(keyframes)),
+            report.KeyframeMeasures(flat, residual_m, flat, flat),
+            zeros,
+            zeros,
+        )
         return [r["scan"] for r in rows if r["flag"]]
 
     # Noise-free synthetic scans (the demo): residuals 1.1-1.2 cm and one at 1.37 cm, above median + 3 MADs but
@@ -148,6 +164,7 @@ def test_the_report_flags_residuals_only_well_above_the_rest():
 
 def test_aligned_corrections_remove_the_trajectorys_rigid_motion():
     from neld_jax.judging.report import aligned_corrections
+
     T = np.tile(np.eye(4), (4, 1, 1))
     T[:, 0, 3] = np.arange(4.0)
     moved = T.copy()
@@ -168,8 +185,13 @@ def test_pseudo_ground_truth_keeps_the_recording_as_gt():
 
 
 def _cli(script, *args):
-    return subprocess.run([sys.executable, os.path.join(REPO, "bin", script), *args], capture_output=True,
-                          text=True, timeout=600, env={**os.environ, "NELD_JAX_HUGEPAGES": "0"})
+    return subprocess.run(
+        [sys.executable, os.path.join(REPO, "bin", script), *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "NELD_JAX_HUGEPAGES": "0"},
+    )
 
 
 def test_train_on_the_layout_writes_every_input_scan_and_quality(tmp_path):
@@ -177,21 +199,41 @@ def test_train_on_the_layout_writes_every_input_scan_and_quality(tmp_path):
     bin/perturb.py; every input scan gets a pose, the crispness and the per-scan report are written."""
     seq = tiny_synthetic_sequence(6)
     _write_layout(tmp_path / "rec", seq, times=np.arange(6) * 1.0)
-    perturbed = _cli("perturb.py", "--config=configs/lio_keyframes.py", f"--config.data.root={tmp_path / 'rec'}",
-                     f"--out={tmp_path / 'drift'}", "--trans_m=0.02", "--rot_deg=0.2")
+    perturbed = _cli(
+        "perturb.py",
+        "--config=configs/lio_keyframes.py",
+        f"--config.data.root={tmp_path / 'rec'}",
+        f"--out={tmp_path / 'drift'}",
+        "--trans_m=0.02",
+        "--rot_deg=0.2",
+    )
     assert perturbed.returncode == 0, perturbed.stderr[-2000:]
     assert "wrote 6 scans" in perturbed.stdout
     out = tmp_path / "out"
-    args = ["--config=configs/generic.py:paper", f"--config.data.root={tmp_path / 'drift'}",
-            f"--config.output_dir={out}",
-            "--config.data.keyframe_interval_s=2.0", "--config.data.keyframe_angle_deg=360",  # 60 degrees a scan
-            "--config.data.keyframe_distance_m=1000", "--config.model.width=16", "--config.model.depth=2",
-            "--config.model.skip_layers=(1,)", "--config.model.pos_freqs=6", "--config.model.dir_freqs=2",
-            "--config.sampling.coarse_stages=(8,)", "--config.sampling.fine_stages=(4,)",
-            "--config.train.steps=12", "--config.train.batch_rays=32", "--config.train.log_every=4",
-            "--config.data.max_rays_per_scan=128", "--config.mapping.num_coarse=8", "--config.mapping.num_fine=8",
-            "--config.mapping.max_rays_per_scan=32", "--config.eval.crispness_queries=500",
-            "--config.eval.crispness_radius_m=3.0"]  # sparse 8-beam scans: a wide neighbourhood
+    args = [
+        "--config=configs/generic.py:paper",
+        f"--config.data.root={tmp_path / 'drift'}",
+        f"--config.output_dir={out}",
+        "--config.data.keyframe_interval_s=2.0",
+        "--config.data.keyframe_angle_deg=360",  # 60 degrees a scan
+        "--config.data.keyframe_distance_m=1000",
+        "--config.model.width=16",
+        "--config.model.depth=2",
+        "--config.model.skip_layers=(1,)",
+        "--config.model.pos_freqs=6",
+        "--config.model.dir_freqs=2",
+        "--config.sampling.coarse_stages=(8,)",
+        "--config.sampling.fine_stages=(4,)",
+        "--config.train.steps=12",
+        "--config.train.batch_rays=32",
+        "--config.train.log_every=4",
+        "--config.data.max_rays_per_scan=128",
+        "--config.mapping.num_coarse=8",
+        "--config.mapping.num_fine=8",
+        "--config.mapping.max_rays_per_scan=32",
+        "--config.eval.crispness_queries=500",
+        "--config.eval.crispness_radius_m=3.0",
+    ]  # sparse 8-beam scans: a wide neighbourhood
     result = _cli("train.py", *args)
     assert result.returncode == 0, result.stderr[-3000:]
     said = result.stdout + result.stderr
@@ -221,13 +263,38 @@ def test_entropy_trajectory_benchmark_follows_the_poses(tmp_path):
     once they do; one record per --every steps and one at the end."""
     _write_layout(tmp_path / "seq", tiny_synthetic_sequence(num_scans=4))
     out = tmp_path / "trajectory.json"
-    tiny = ["model.width=16", "model.depth=2", "model.skip_layers=(1,)", "model.pos_freqs=6", "model.dir_freqs=2",
-            "sampling.coarse_stages=(8,)", "sampling.fine_stages=(4,)", "sampling.guided_samples=4", "train.steps=8",
-            "train.batch_rays=64", "train.log_every=4", "data.max_rays_per_scan=128", "eval.crispness_queries=300",
-            "eval.crispness_radius_m=3.0", "train.pose_lr_trans_init=1e-3", "train.pose_lr_rot_init=1e-3"]
-    proc = subprocess.run([sys.executable, os.path.join(REPO, "benchmarks", "entropy_trajectory.py"),
-                           f"--root={tmp_path / 'seq'}", "--every=4", f"--out={out}", *[f"--set={s}" for s in tiny]],
-                          capture_output=True, text=True, cwd=REPO, timeout=300)
+    tiny = [
+        "model.width=16",
+        "model.depth=2",
+        "model.skip_layers=(1,)",
+        "model.pos_freqs=6",
+        "model.dir_freqs=2",
+        "sampling.coarse_stages=(8,)",
+        "sampling.fine_stages=(4,)",
+        "sampling.guided_samples=4",
+        "train.steps=8",
+        "train.batch_rays=64",
+        "train.log_every=4",
+        "data.max_rays_per_scan=128",
+        "eval.crispness_queries=300",
+        "eval.crispness_radius_m=3.0",
+        "train.pose_lr_trans_init=1e-3",
+        "train.pose_lr_rot_init=1e-3",
+    ]
+    proc = subprocess.run(
+        [
+            sys.executable,
+            os.path.join(REPO, "benchmarks", "entropy_trajectory.py"),
+            f"--root={tmp_path / 'seq'}",
+            "--every=4",
+            f"--out={out}",
+            *[f"--set={s}" for s in tiny],
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     result = json.loads(out.read_text())["results"]  # the payload of the benchmarks' schema (benchmarks/harness.py)
     records = result["records"]
@@ -261,16 +328,24 @@ def test_another_trajectory_is_matched_to_the_keyframes_by_time_or_by_order(tmp_
     write_tum(tmp_path / "other.txt", np.arange(6)[order] + 0.01, other[order])
     np.testing.assert_allclose(trajectory_at_keyframes(tmp_path / "other.txt", loaded, keyframes), other[[0, 2, 4]])
     write_kitti(tmp_path / "all.kitti", other)  # by order: one pose per input scan ...
-    np.testing.assert_allclose(trajectory_at_keyframes(tmp_path / "all.kitti", loaded, keyframes), other[[0, 2, 4]],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        trajectory_at_keyframes(tmp_path / "all.kitti", loaded, keyframes), other[[0, 2, 4]], atol=1e-6
+    )
     write_kitti(tmp_path / "keyframes.kitti", other[[0, 2, 4]])  # ... or one per keyframe
-    np.testing.assert_allclose(trajectory_at_keyframes(tmp_path / "keyframes.kitti", loaded, keyframes),
-                               other[[0, 2, 4]], atol=1e-6)
-    np.testing.assert_allclose(trajectory_at_keyframes(tmp_path / "all.kitti", loaded, keyframes, invert=True),
-                               np.linalg.inv(other[[0, 2, 4]]), atol=1e-6)
+    np.testing.assert_allclose(
+        trajectory_at_keyframes(tmp_path / "keyframes.kitti", loaded, keyframes), other[[0, 2, 4]], atol=1e-6
+    )
+    np.testing.assert_allclose(
+        trajectory_at_keyframes(tmp_path / "all.kitti", loaded, keyframes, invert=True),
+        np.linalg.inv(other[[0, 2, 4]]),
+        atol=1e-6,
+    )
     write_kitti(tmp_path / "short.kitti", other[:5])
-    with pytest.raises(DataError, match=r"short.kitti: 5 poses for 6 input scans \(3 keyframes\); the file has no "
-                                        r"timestamps, so it must hold one pose per input scan or per keyframe"):
+    with pytest.raises(
+        DataError,
+        match=r"short.kitti: 5 poses for 6 input scans \(3 keyframes\); the file has no "
+        r"timestamps, so it must hold one pose per input scan or per keyframe",
+    ):
         trajectory_at_keyframes(tmp_path / "short.kitti", loaded, keyframes)
     write_tum(tmp_path / "late.txt", np.arange(6) + 0.5, other)
     with pytest.raises(DataError, match=r"late.txt: 3 of 3 scans have no pose within 0.05 s \(first: Scans/0+.pcd"):
@@ -302,13 +377,18 @@ def test_crispness_cli_judges_files_against_the_input_and_refuses_a_bad_one(tmp_
     seq = tiny_synthetic_sequence(4)
     _write_layout(tmp_path / "rec", seq)
     write_kitti(tmp_path / "true.kitti", seq.gt_poses)
-    common = ["--config=configs/lio_keyframes.py:cpu", f"--config.data.root={tmp_path / 'rec'}",
-              "--config.eval.crispness_radius_m=3.0", "--config.eval.crispness_queries=800"]
+    common = [
+        "--config=configs/lio_keyframes.py:cpu",
+        f"--config.data.root={tmp_path / 'rec'}",
+        "--config.eval.crispness_radius_m=3.0",
+        "--config.eval.crispness_queries=800",
+    ]
     run = tmp_path / "run"  # a run's output folder stands for its answer, poses_optimized.txt
     run.mkdir()
     write_tum(run / "poses_optimized.txt", seq.timestamps, seq.poses)
-    result = _cli("crispness.py", *common, f"--poses={tmp_path / 'true.kitti'},run={run}",
-                  f"--out={tmp_path / 'j.json'}")
+    result = _cli(
+        "crispness.py", *common, f"--poses={tmp_path / 'true.kitti'},run={run}", f"--out={tmp_path / 'j.json'}"
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     assert "crispest: true" in result.stdout and "against the input poses' map" in result.stdout
     rows = [line.split() for line in result.stdout.splitlines() if line.split()[:1] in (["input"], ["true"], ["run"])]
@@ -318,7 +398,8 @@ def test_crispness_cli_judges_files_against_the_input_and_refuses_a_bad_one(tmp_
     assert judged["crispest"] == "true" and judged["keyframes"] == 4
     assert set(judged["crispness"]) == {"input", "true", "run"}  # the run's answer here: the input's own poses
     assert judged["crispness"]["run"]["mean_map_entropy"] == pytest.approx(
-        judged["crispness"]["input"]["mean_map_entropy"], abs=1e-6)
+        judged["crispness"]["input"]["mean_map_entropy"], abs=1e-6
+    )
     assert len(judged["margins"]["input"]["per_draw"]) == 5
     write_kitti(tmp_path / "short.kitti", seq.gt_poses[:3])
     bad = _cli("crispness.py", *common, f"--poses=other={tmp_path / 'short.kitti'}")

@@ -13,8 +13,16 @@ from neld_jax.judging import report
 from neld_jax.steps import registration
 from neld_jax.synthetic.generator import make_sequence
 
-SCENE = {"num_scans": 8, "num_beams": 16, "num_columns": 256, "gt_map_points": 1000, "scene_size_m": 40.0,
-         "trajectory_radius_m": 6.0, "max_range_m": 30.0, "range_noise_m": 0.0}
+SCENE = {
+    "num_scans": 8,
+    "num_beams": 16,
+    "num_columns": 256,
+    "gt_map_points": 1000,
+    "scene_size_m": 40.0,
+    "trajectory_radius_m": 6.0,
+    "max_range_m": 30.0,
+    "range_noise_m": 0.0,
+}
 KEYFRAMES = np.array([0, 2, 4, 6])
 
 
@@ -47,8 +55,9 @@ def test_perturbed_scans_between_keyframes_are_registered_back_to_the_truth(scen
 
     assert result.registered.all(), result.flag
     assert position_errors(result.poses, scene.gt_poses[others]).max() < 0.02
-    angles = np.degrees(np.linalg.norm(lie.se3_log_float64(
-        np.linalg.inv(scene.gt_poses[others]) @ result.poses)[:, 3:], axis=1))
+    angles = np.degrees(
+        np.linalg.norm(lie.se3_log_float64(np.linalg.inv(scene.gt_poses[others]) @ result.poses)[:, 3:], axis=1)
+    )
     assert angles.max() < 0.2
     assert np.all(result.residual_m < 0.05) and np.all(result.fitness > 0.5)
 
@@ -79,9 +88,14 @@ def test_every_scan_but_the_keyframes_is_registered_from_its_interpolated_correc
     others = np.setdiff1d(np.arange(scene.num_scans), KEYFRAMES)
     inputs[others] = perturbed(scene.gt_poses[others], seed=2, trans_m=0.1, rot_deg=1.0)
     loaded = dataclasses.replace(scene, poses=inputs)
-    keyframes = dataclasses.replace(scene, scans=[scene.scans[k] for k in KEYFRAMES], poses=inputs[KEYFRAMES],
-                                    timestamps=scene.timestamps[KEYFRAMES], gt_poses=scene.gt_poses[KEYFRAMES],
-                                    source_index=KEYFRAMES)
+    keyframes = dataclasses.replace(
+        scene,
+        scans=[scene.scans[k] for k in KEYFRAMES],
+        poses=inputs[KEYFRAMES],
+        timestamps=scene.timestamps[KEYFRAMES],
+        gt_poses=scene.gt_poses[KEYFRAMES],
+        source_index=KEYFRAMES,
+    )
     settings = registration.RegistrationSettings(max_range_m=30.0)
 
     result = registration.register_every_scan(loaded, keyframes, scene.gt_poses[KEYFRAMES], settings)
@@ -104,8 +118,9 @@ def test_scans_past_the_deadline_keep_their_guesses_flagged_out_of_time(scene):
     target = registration.map_cloud([scene.scans[k] for k in KEYFRAMES], scene.gt_poses[KEYFRAMES], settings)
     guesses = perturbed(scene.gt_poses[[1, 3]], seed=3)
 
-    result = registration.register_to_map([scene.scans[1], scene.scans[3]], guesses, target, settings,
-                                            deadline=0.0)  # long past
+    result = registration.register_to_map(
+        [scene.scans[1], scene.scans[3]], guesses, target, settings, deadline=0.0
+    )  # long past
 
     assert result.flag == [registration.OUT_OF_TIME] * 2 and not result.registered.any()
     np.testing.assert_array_equal(result.poses, guesses)

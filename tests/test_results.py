@@ -57,8 +57,9 @@ def script_flags(path: str) -> frozenset:
     parses a config file; a shell script takes those of the Python script it runs."""
     text = open(path).read()
     if path.endswith(".sh"):
-        return frozenset().union(*(script_flags(os.path.join(REPO, p))
-                                   for p in re.findall(r"python3?\s+(\S+\.py)", text)))
+        return frozenset().union(
+            *(script_flags(os.path.join(REPO, p)) for p in re.findall(r"python3?\s+(\S+\.py)", text))
+        )
     tree = ast.parse(text)
     flags = set()
     for node in ast.walk(tree):
@@ -76,7 +77,7 @@ def script_flags(path: str) -> frozenset:
 def script_of(token: str) -> str | None:
     """The script a command's word runs: benchmarks/x.py, bin/x.py, benchmarks/x.sh or an installed neld-x."""
     if token.startswith("neld-"):
-        return os.path.join(REPO, "neld_jax", "commands", token[len("neld-"):].replace("-", "_") + ".py")
+        return os.path.join(REPO, "neld_jax", "commands", token[len("neld-") :].replace("-", "_") + ".py")
     if token.endswith((".py", ".sh")) and os.path.isfile(os.path.join(REPO, token)):
         return os.path.join(REPO, token)
     return None
@@ -97,7 +98,7 @@ def command_problems(command: str, script: str | None = None) -> list:
         flags = script_flags(script)
         here = os.path.relpath(script, REPO)
         if name.startswith("config.") and "config" in flags:
-            if name[len("config."):] not in FIELDS:
+            if name[len("config.") :] not in FIELDS:
                 problems.append(f"{here}: --{name}: the config has no such field")
         elif name not in flags and not (name.startswith("no") and name[2:] in flags):
             problems.append(f"{here}: --{name}: no such flag")
@@ -130,8 +131,9 @@ def record_problems(record, result_file: str, where: str = "") -> list:
         elif key == "argv":
             problems += [f"{at}: {p}" for p in command_problems(" ".join(value), default_script(result_file))]
         elif key == "overrides":
-            problems += [f"{at}: {item}: the config has no such field" for item in value
-                         if item.split("=", 1)[0] not in FIELDS]
+            problems += [
+                f"{at}: {item}: the config has no such field" for item in value if item.split("=", 1)[0] not in FIELDS
+            ]
         else:
             problems += record_problems(value, result_file, at)
     return problems

@@ -80,7 +80,7 @@ def _derived(section_files: list) -> list:
 
 def _stands_in(figure: str, values: list) -> bool:
     decimals = len(figure.split(".")[1])
-    x, tol = float(figure), 0.5 * 10 ** -decimals + 1e-9
+    x, tol = float(figure), 0.5 * 10**-decimals + 1e-9
     return any(abs(abs(v * s) - abs(x)) <= tol for v in values for s in SCALES)
 
 
@@ -110,8 +110,10 @@ def test_every_table_figure_in_results_md_stands_in_its_json():
 
 
 def test_the_check_catches_a_figure_typed_by_hand():
-    section = ("## Peers\n\nJSON: `results/peers_cpu.json`.\n\n| loop | method | ATE [m] |\n|---|---|---|\n"
-               "| 10 m | KISS-ICP | {} |\n")
+    section = (
+        "## Peers\n\nJSON: `results/peers_cpu.json`.\n\n| loop | method | ATE [m] |\n|---|---|---|\n"
+        "| 10 m | KISS-ICP | {} |\n"
+    )
     assert missing_figures(section.format("0.1229")) == {}  # the JSON's 0.12292..., as the table rounds it
     assert missing_figures(section.format("0.1231")) == {"## Peers": ["0.1231"]}
     unnamed = "## Train step\n\n| step ms | GFLOP/s |\n|---|---|\n| 198 | 73.6 |\n"
@@ -140,8 +142,13 @@ def test_harness_writes_the_schema_and_loads_old_and_new_files(tmp_path):
 @pytest.mark.parametrize("script", sorted(glob.glob(os.path.join(REPO, "benchmarks", "*.py"))), ids=os.path.basename)
 def test_every_benchmark_that_writes_json_writes_it_through_the_harness(script):
     text = open(script).read()
-    if os.path.basename(script) in ("harness.py", "packed_points.py", "real_targets.py", "kitti_layout.py",
-                                    "real_gpu.py"):
+    if os.path.basename(script) in (
+        "harness.py",
+        "packed_points.py",
+        "real_targets.py",
+        "kitti_layout.py",
+        "real_gpu.py",
+    ):
         return  # the harness, two helper modules, a data layout's writer, the GPU runs' own per-run file
     assert "import harness" in text
     assert "json.dump(" not in text.replace("json.dump(spec", ""), "JSON written around the harness"

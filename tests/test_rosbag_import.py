@@ -24,8 +24,10 @@ T0 = 1_650_000_000
 def _header(t, frame):
     sec = int(np.floor(t))
     return STORE.types["std_msgs/msg/Header"](
-        seq=0, stamp=STORE.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9))),
-        frame_id=frame)
+        seq=0,
+        stamp=STORE.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9))),
+        frame_id=frame,
+    )
 
 
 def _cloud(t, points, frame="body", padding=4):
@@ -36,15 +38,25 @@ def _cloud(t, points, frame="body", padding=4):
     data[:, :12] = np.asarray(points, np.float32).view(np.uint8).reshape(len(points), 12)
     fields = [PF(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate(["x", "y", "z", "intensity"])]
     return STORE.types["sensor_msgs/msg/PointCloud2"](
-        header=_header(t, frame), height=1, width=len(points), fields=fields, is_bigendian=False, point_step=step,
-        row_step=step * len(points), data=data.reshape(-1), is_dense=False)
+        header=_header(t, frame),
+        height=1,
+        width=len(points),
+        fields=fields,
+        is_bigendian=False,
+        point_step=step,
+        row_step=step * len(points),
+        data=data.reshape(-1),
+        is_dense=False,
+    )
 
 
 def _pose_msgs(pose):
     q = Rotation.from_matrix(pose[:3, :3]).as_quat()
     G = STORE.types
-    p = G["geometry_msgs/msg/Pose"](position=G["geometry_msgs/msg/Point"](x=pose[0, 3], y=pose[1, 3], z=pose[2, 3]),
-                                    orientation=G["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+    p = G["geometry_msgs/msg/Pose"](
+        position=G["geometry_msgs/msg/Point"](x=pose[0, 3], y=pose[1, 3], z=pose[2, 3]),
+        orientation=G["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+    )
     return p
 
 
@@ -52,12 +64,17 @@ def _odometry(t, pose):
     G = STORE.types
     cov = np.zeros(36)
     return G["nav_msgs/msg/Odometry"](
-        header=_header(t, "camera_init"), child_frame_id="body",
+        header=_header(t, "camera_init"),
+        child_frame_id="body",
         pose=G["geometry_msgs/msg/PoseWithCovariance"](pose=_pose_msgs(pose), covariance=cov),
         twist=G["geometry_msgs/msg/TwistWithCovariance"](
-            twist=G["geometry_msgs/msg/Twist"](linear=G["geometry_msgs/msg/Vector3"](x=0, y=0, z=0),
-                                               angular=G["geometry_msgs/msg/Vector3"](x=0, y=0, z=0)),
-            covariance=cov))
+            twist=G["geometry_msgs/msg/Twist"](
+                linear=G["geometry_msgs/msg/Vector3"](x=0, y=0, z=0),
+                angular=G["geometry_msgs/msg/Vector3"](x=0, y=0, z=0),
+            ),
+            covariance=cov,
+        ),
+    )
 
 
 def _pose_stamped(t, pose):
@@ -143,12 +160,14 @@ def test_world_frame_clouds_are_named_in_the_note_and_load_with_the_option(tmp_p
     times = T0 + 0.1 * np.arange(n)
     entries = []
     for scan, pose, t in zip(scans, poses, times):
-        entries.append(("/cloud_registered", "sensor_msgs/msg/PointCloud2", t,
-                        _cloud(t, scan + pose[:3, 3], frame="camera_init")))
+        entries.append(
+            ("/cloud_registered", "sensor_msgs/msg/PointCloud2", t, _cloud(t, scan + pose[:3, 3], frame="camera_init"))
+        )
         entries.append(("/Odometry", "nav_msgs/msg/Odometry", t, _odometry(t, pose)))
     write_ros1(tmp_path / "w.bag", entries)
-    result = import_bag(tmp_path / "w.bag", tmp_path / "out", ImportSettings(cloud_topic="/cloud_registered"),
-                        progress=False)
+    result = import_bag(
+        tmp_path / "w.bag", tmp_path / "out", ImportSettings(cloud_topic="/cloud_registered"), progress=False
+    )
     assert "registered already" in result.note and "scans_in_world_frame=True" in result.note
     config = ml_collections.ConfigDict({"format": "generic", "root": str(tmp_path / "out")})
     with pytest.raises(DataError, match="registered already"):
@@ -163,8 +182,11 @@ def test_unmatched_cloud_is_named_never_given_a_neighbours_pose(tmp_path):
     scans, poses, times = _scans(n), _poses(n), T0 + 0.1 * np.arange(n)
     entries = [e for e in fastlio_entries(scans, poses, times) if not (e[0] == "/Odometry" and e[2] == times[2])]
     write_ros1(tmp_path / "gap.bag", entries)
-    with pytest.raises(DataError, match=r"gap.bag: 1 of 5 clouds on /cloud_registered_body have no /Odometry stamp "
-                                        r"within 0.01 s: message 2 \(t=1650000000.200000\)"):
+    with pytest.raises(
+        DataError,
+        match=r"gap.bag: 1 of 5 clouds on /cloud_registered_body have no /Odometry stamp "
+        r"within 0.01 s: message 2 \(t=1650000000.200000\)",
+    ):
         import_bag(tmp_path / "gap.bag", tmp_path / "out", progress=False)
     result = import_bag(tmp_path / "gap.bag", tmp_path / "out2", ImportSettings(drop_unmatched=True), progress=False)
     assert result.dropped_unmatched == 1 and result.scans_written == 4
@@ -177,8 +199,11 @@ def test_unmatched_cloud_is_named_never_given_a_neighbours_pose(tmp_path):
 
 def test_missing_topic_lists_the_topics_of_the_bag(tmp_path):
     write_ros1(tmp_path / "b.bag", fastlio_entries(_scans(2), _poses(2), T0 + np.arange(2) * 0.1))
-    with pytest.raises(DataError, match=r"no odometry topic '/odom' in the bag; it has: /Odometry "
-                                        r"\(nav_msgs/msg/Odometry\), /cloud_registered_body"):
+    with pytest.raises(
+        DataError,
+        match=r"no odometry topic '/odom' in the bag; it has: /Odometry "
+        r"\(nav_msgs/msg/Odometry\), /cloud_registered_body",
+    ):
         import_bag(tmp_path / "b.bag", tmp_path / "out", ImportSettings(odometry_topic="/odom"), progress=False)
     with pytest.raises(DataError, match=r"topic '/Odometry' carries nav_msgs/msg/Odometry, not a cloud"):
         import_bag(tmp_path / "b.bag", tmp_path / "out", ImportSettings(cloud_topic="/Odometry"), progress=False)
@@ -194,16 +219,22 @@ def test_ros2_bag_with_pose_stamped_stride_and_time_offset(tmp_path):
     scans, poses = _scans(n), _poses(n)
     cloud_times = T0 + 0.1 * np.arange(n)  # start of sweep
     pose_times = cloud_times + 0.1  # end of sweep
-    entries = [("/points", "sensor_msgs/msg/PointCloud2", t, _cloud(t, s, frame="os_sensor"))
-               for t, s in zip(cloud_times, scans)]
+    entries = [
+        ("/points", "sensor_msgs/msg/PointCloud2", t, _cloud(t, s, frame="os_sensor"))
+        for t, s in zip(cloud_times, scans)
+    ]
     entries += [("/pose", "geometry_msgs/msg/PoseStamped", t, _pose_stamped(t, p)) for t, p in zip(pose_times, poses)]
     write_ros2(tmp_path / "ros2bag", entries)
     # Start-of-sweep stamps against end-of-sweep poses: without the offset the first cloud has no pose near it
     # (named), and the others would pair with the previous sweep's end pose -- which no matcher can tell from
     # the right one at 10 Hz, hence the stated conventions and time_offset_s.
     with pytest.raises(DataError, match=r"1 of 6 clouds on /points have no /pose stamp within 0.01 s: message 0 "):
-        import_bag(tmp_path / "ros2bag", tmp_path / "x", ImportSettings(cloud_topic="/points", odometry_topic="/pose"),
-                   progress=False)
+        import_bag(
+            tmp_path / "ros2bag",
+            tmp_path / "x",
+            ImportSettings(cloud_topic="/points", odometry_topic="/pose"),
+            progress=False,
+        )
     settings = ImportSettings(cloud_topic="/points", odometry_topic="/pose", time_offset_s=0.1, stride=2)
     result = import_bag(tmp_path / "ros2bag", tmp_path / "out", settings, progress=False)
     assert result.scans_written == 3 and result.skipped_by_keyframe_rule == 3 and result.frame == "os_sensor"
@@ -234,12 +265,21 @@ def test_organised_big_endian_float64_cloud_with_row_padding():
         for c in range(3):
             base = c * point_step
             for offset, value in zip((16, 0, 8), xyz[r, c]):  # x at byte 16, y at 0, z at 8
-                data[r, base + offset:base + offset + 8] = np.frombuffer(np.array([value], ">f8").tobytes(),
-                                                                         np.uint8)
-    fields = [SimpleNamespace(name="y", offset=0, datatype=8, count=1), SimpleNamespace(name="z", offset=8, datatype=8,
-              count=1), SimpleNamespace(name="x", offset=16, datatype=8, count=1)]
-    msg = SimpleNamespace(fields=fields, is_bigendian=True, point_step=point_step, row_step=row_step, height=2,
-                          width=3, data=data.reshape(-1))
+                data[r, base + offset : base + offset + 8] = np.frombuffer(np.array([value], ">f8").tobytes(), np.uint8)
+    fields = [
+        SimpleNamespace(name="y", offset=0, datatype=8, count=1),
+        SimpleNamespace(name="z", offset=8, datatype=8, count=1),
+        SimpleNamespace(name="x", offset=16, datatype=8, count=1),
+    ]
+    msg = SimpleNamespace(
+        fields=fields,
+        is_bigendian=True,
+        point_step=point_step,
+        row_step=row_step,
+        height=2,
+        width=3,
+        data=data.reshape(-1),
+    )
     np.testing.assert_array_equal(cloud_xyz(msg), xyz.reshape(-1, 3))
     msg.fields = fields[:2]
     with pytest.raises(ValueError, match="no field x"):
@@ -250,8 +290,9 @@ def test_cli_one_error_line_and_success(tmp_path):
     write_ros1(tmp_path / "b.bag", fastlio_entries(_scans(2), _poses(2), T0 + np.arange(2) * 0.1))
     env = {**os.environ, "NELD_JAX_HUGEPAGES": "0"}
     cmd = [sys.executable, os.path.join(REPO, "bin", "import_rosbag.py"), f"--bag={tmp_path / 'b.bag'}"]
-    bad = subprocess.run(cmd + [f"--out={tmp_path / 'o1'}", "--cloud_topic=/nope"], capture_output=True, text=True,
-                         timeout=120, env=env)
+    bad = subprocess.run(
+        cmd + [f"--out={tmp_path / 'o1'}", "--cloud_topic=/nope"], capture_output=True, text=True, timeout=120, env=env
+    )
     assert bad.returncode == 1
     assert bad.stderr.strip().splitlines()[-1].startswith("error: ") and "it has: /Odometry" in bad.stderr
     ok = subprocess.run(cmd + [f"--out={tmp_path / 'o2'}"], capture_output=True, text=True, timeout=120, env=env)

@@ -48,8 +48,16 @@ def test_run_writes_outputs_and_resumes_after_a_kill(free_gauge_run, tmp_path, m
     assert metrics["run"]["steps"] == 12 and metrics["run"]["started_from"] == "input"
 
     out = tmp_path / "run"
-    for name in ("poses_initial.txt", "poses_initial.kitti", "poses_optimized.txt", "poses_optimized.kitti",
-                 "map_raw.ply", "map_rendered.ply", "metrics.json", "config.json"):
+    for name in (
+        "poses_initial.txt",
+        "poses_initial.kitti",
+        "poses_optimized.txt",
+        "poses_optimized.kitti",
+        "map_raw.ply",
+        "map_rendered.ply",
+        "metrics.json",
+        "config.json",
+    ):
         assert (ref_dir / name).is_file(), name
     t_opt, T_opt = read_tum(ref_dir / "poses_optimized.txt")
     np.testing.assert_allclose(read_kitti(ref_dir / "poses_optimized.kitti")[:, :3], T_opt[:, :3], atol=1e-6)
@@ -93,8 +101,9 @@ def test_run_writes_outputs_and_resumes_after_a_kill(free_gauge_run, tmp_path, m
         keep = slice(0, seq.num_scans - drop)
         poses = seq.poses[keep].copy()
         poses[:, 0, 3] += shift
-        seq = dataclasses.replace(seq, scans=seq.scans[keep], poses=poses, timestamps=None, gt_poses=None,
-                                  source_index=None)
+        seq = dataclasses.replace(
+            seq, scans=seq.scans[keep], poses=poses, timestamps=None, gt_poses=None, source_index=None
+        )
         return seq, seq, None
 
     monkeypatch.setattr(run, "load_sessions", load_changed)
@@ -104,13 +113,19 @@ def test_run_writes_outputs_and_resumes_after_a_kill(free_gauge_run, tmp_path, m
     with pytest.raises(DataError, match=r"checkpoints was written for other data \(4 keyframes, now 3"):
         run.run(free_gauge_config(str(out)), progress=False)
     # config.json holds the settings as given, once: the resumed run wrote the same
-    assert json.loads((out / "config.json").read_text()) == json.loads((ref_dir / "config.json").read_text()) \
-        | {"output_dir": str(out)}
+    assert json.loads((out / "config.json").read_text()) == json.loads((ref_dir / "config.json").read_text()) | {
+        "output_dir": str(out)
+    }
 
 
 def _train_cli(*args):
-    return subprocess.run([sys.executable, os.path.join(REPO, "bin", "train.py"), *args],
-                          capture_output=True, text=True, cwd=REPO, timeout=300)
+    return subprocess.run(
+        [sys.executable, os.path.join(REPO, "bin", "train.py"), *args],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=300,
+    )
 
 
 def test_cli_unknown_budget_is_one_clear_line(tmp_path):
@@ -133,8 +148,9 @@ def test_cli_data_with_errors_is_one_clear_line(tmp_path):
     for i in range(2):
         write_scan(root / "scans" / f"{i:06d}.pcd", rng.uniform(-5, 5, (100, 3)))
     write_tum(root / "poses.txt", np.arange(3.0), np.tile(np.eye(4), (3, 1, 1)))
-    proc = _train_cli("--config=configs/generic.py:cpu", f"--config.data.root={root}",
-                      f"--config.output_dir={tmp_path / 'out'}")
+    proc = _train_cli(
+        "--config=configs/generic.py:cpu", f"--config.data.root={root}", f"--config.output_dir={tmp_path / 'out'}"
+    )
     assert proc.returncode != 0
     assert "Traceback" not in proc.stderr, proc.stderr
     last = proc.stderr.strip().splitlines()[-1]
@@ -158,17 +174,20 @@ def test_run_from_the_baseline_fits_the_cube_to_its_poses(tmp_path, monkeypatch)
     # and the pose steps from there are recorded (config.json stays the user's).
     planned = []
     real_plan = submaps.plan_from_config
-    monkeypatch.setattr(run.refine.submaps, "plan_from_config",
-                        lambda seq, config, num_devices=1: planned.append(np.array(seq.poses)) or real_plan(
-                            seq, config, num_devices))
+    monkeypatch.setattr(
+        run.refine.submaps,
+        "plan_from_config",
+        lambda seq, config, num_devices=1: planned.append(np.array(seq.poses)) or real_plan(seq, config, num_devices),
+    )
     # The run hands the baseline its deadline: one already past stops the refinement rounds before their first
     # registration. It would give the chains up too (test_baseline); the chains here run, so the scans move.
     monkeypatch.setattr(budget.TimeBudget, "baseline_deadline", lambda self: self.started - 1.0)
     chain_deadlines = []
     real_chain = baseline.scan_to_map_chain
 
-    def chain_without_deadline(clouds, init_poses, settings, keep_input_tilt=False, deadline=None, progress=False,
-                               segments=baseline.Segments()):
+    def chain_without_deadline(
+        clouds, init_poses, settings, keep_input_tilt=False, deadline=None, progress=False, segments=baseline.Segments()
+    ):
         chain_deadlines.append(deadline)
         return real_chain(clouds, init_poses, settings, keep_input_tilt, None, progress, segments)
 
@@ -255,16 +274,30 @@ def test_run_reads_as_its_named_steps():
     import ast
     import inspect
 
+    from test_code_shape import statement_count
+
     tree = ast.parse(inspect.getsource(run.run_steps))
-    calls = [ast.unparse(node.func) for node in sorted((n for n in ast.walk(tree) if isinstance(n, ast.Call)),
-                                                        key=lambda n: (n.lineno, n.col_offset))]
-    order = ["load_sessions", "start.choose_start", "refine.refine_keyframes", "mapping.rendered_map",
-             "registration.register_every_scan", "answer.keep_travel_of_input", "answer.keep_the_better",
-             "outputs.judge_crispness",
-             "outputs.write_outputs", "outputs.judge_run"]
+    calls = [
+        ast.unparse(node.func)
+        for node in sorted(
+            (n for n in ast.walk(tree) if isinstance(n, ast.Call)), key=lambda n: (n.lineno, n.col_offset)
+        )
+    ]
+    order = [
+        "load_sessions",
+        "start.choose_start",
+        "refine.refine_keyframes",
+        "mapping.rendered_map",
+        "registration.register_every_scan",
+        "answer.keep_travel_of_input",
+        "answer.keep_the_better",
+        "outputs.judge_crispness",
+        "outputs.write_outputs",
+        "outputs.judge_run",
+    ]
     positions = [calls.index(name) for name in order]
     assert positions == sorted(positions), calls
-    assert len(inspect.getsource(run.run_steps).splitlines()) < 50
+    assert statement_count(tree.body[0]) < 30  # read top to bottom: one call a step
 
 
 def test_no_step_takes_the_whole_config():
@@ -285,17 +318,26 @@ def test_no_step_takes_the_whole_config():
                 continue
             members = [(name, value)] if inspect.isfunction(value) else []
             if inspect.isclass(value):
-                members = [(f"{name}.{key}", getattr(value, key)) for key in vars(value)
-                           if not key.startswith("_") and key != "from_config" and callable(getattr(value, key))]
-            taking += [f"{module.__name__}.{qualified}" for qualified, function in members
-                       if "config" in inspect.signature(function).parameters]
+                members = [
+                    (f"{name}.{key}", getattr(value, key))
+                    for key in vars(value)
+                    if not key.startswith("_") and key != "from_config" and callable(getattr(value, key))
+                ]
+            taking += [
+                f"{module.__name__}.{qualified}"
+                for qualified, function in members
+                if "config" in inspect.signature(function).parameters
+            ]
     assert not taking, f"steps that take the whole config: {taking}"
 
 
 def _folder_state(folder) -> dict:
     """{relative path: (bytes, mtime in ns)} of every file under folder."""
-    return {str(p.relative_to(folder)): (p.read_bytes(), p.stat().st_mtime_ns)
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(folder)): (p.read_bytes(), p.stat().st_mtime_ns)
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def _quick_config(output_dir: str, steps: int = 4):
@@ -312,8 +354,9 @@ def test_a_rerun_resumes_its_own_configuration_refuses_another_and_restarts_when
     # metrics.json is the run's alone: a rerun rewrites it whole, inheriting no section of an earlier one.
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics) == {"run", "scans_report", "crispness", "evaluation"} == set(first)
-    (out / "metrics.json").write_text(json.dumps({**metrics, "baseline": {"seconds": 1.0},
-                                                  "crispness": {**metrics["crispness"], "stale": {}}}))
+    (out / "metrics.json").write_text(
+        json.dumps({**metrics, "baseline": {"seconds": 1.0}, "crispness": {**metrics["crispness"], "stale": {}}})
+    )
     config_bytes = (out / "config.json").read_bytes()
     again = run.run(_quick_config(str(out)), progress=False)  # the same configuration: it resumes (at its end)
     metrics = json.loads((out / "metrics.json").read_text())
@@ -351,12 +394,25 @@ def test_a_rerun_resumes_its_own_configuration_refuses_another_and_restarts_when
 
 
 def test_config_differences_name_dotted_fields_old_and_new():
-    saved = {"seed": 0, "output_dir": "/a", "viz": {"record": True}, "train": {"steps": 4, "fixed_scans": [0]},
-             "data": {"root": "/x"}}
-    now = {"seed": 0, "output_dir": "/b", "viz": {"record": False}, "train": {"steps": 8, "fixed_scans": []},
-           "data": {"root": "/x", "added": 1.5}}
+    saved = {
+        "seed": 0,
+        "output_dir": "/a",
+        "viz": {"record": True},
+        "train": {"steps": 4, "fixed_scans": [0]},
+        "data": {"root": "/x"},
+    }
+    now = {
+        "seed": 0,
+        "output_dir": "/b",
+        "viz": {"record": False},
+        "train": {"steps": 8, "fixed_scans": []},
+        "data": {"root": "/x", "added": 1.5},
+    }
     assert output_folder.config_differences(saved, now) == [
-        "data.added: (absent) -> 1.5", "train.fixed_scans: [0] -> []", "train.steps: 4 -> 8"]
+        "data.added: (absent) -> 1.5",
+        "train.fixed_scans: [0] -> []",
+        "train.steps: 4 -> 8",
+    ]
     assert output_folder.config_differences(saved, saved) == []
     many = output_folder.refusal("/r/config.json", [f"f{i}: 0 -> 1" for i in range(9)])
     assert "f5: 0 -> 1" in many and "f6" not in many and "and 3 more" in many

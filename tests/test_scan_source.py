@@ -18,16 +18,27 @@ from neld_jax.steps import registration
 from neld_jax.synthetic.generator import make_sequence
 
 # 10 raw sweeps at 10 Hz round a 10 m loop, 16 beams x 256 columns: small, and moving enough to deskew
-SWEEPS = {"num_scans": 150, "num_beams": 16, "num_columns": 256, "trajectory_radius_m": 10.0, "max_range_m": 30.0,
-          "gt_map_points": 0}
+SWEEPS = {
+    "num_scans": 150,
+    "num_beams": 16,
+    "num_columns": 256,
+    "trajectory_radius_m": 10.0,
+    "max_range_m": 30.0,
+    "gt_map_points": 0,
+}
 NUM_SWEEPS, RANGES = 10, (0.5, 30.0)
 
 
 @pytest.fixture(scope="module")
 def sweeps():
     seq = make_sequence(SWEEPS, rate_hz=10.0)
-    return dataclasses.replace(seq, scans=seq.scans[:NUM_SWEEPS], point_times=seq.point_times[:NUM_SWEEPS],
-                               timestamps=seq.timestamps[:NUM_SWEEPS], gt_poses=seq.gt_poses[:NUM_SWEEPS])
+    return dataclasses.replace(
+        seq,
+        scans=seq.scans[:NUM_SWEEPS],
+        point_times=seq.point_times[:NUM_SWEEPS],
+        timestamps=seq.timestamps[:NUM_SWEEPS],
+        gt_poses=seq.gt_poses[:NUM_SWEEPS],
+    )
 
 
 @pytest.fixture(scope="module")
@@ -114,6 +125,13 @@ def test_float32_keyframes_move_the_registered_poses_by_micrometres(posed):
     double = _registered(loaded, in_float64)
     assert single.registered.sum() == double.registered.sum() > 0
     moved = np.linalg.norm(single.poses[:, :3, 3] - double.poses[:, :3, 3], axis=1)
-    turned = np.degrees(np.arccos(np.clip((np.trace(np.linalg.inv(single.poses[:, :3, :3]) @ double.poses[:, :3, :3],
-                                                    axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    turned = np.degrees(
+        np.arccos(
+            np.clip(
+                (np.trace(np.linalg.inv(single.poses[:, :3, :3]) @ double.poses[:, :3, :3], axis1=1, axis2=2) - 1) / 2,
+                -1,
+                1,
+            )
+        )
+    )
     assert moved.max() < 1e-4 and turned.max() < 5e-3

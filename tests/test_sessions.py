@@ -36,8 +36,9 @@ def test_a_later_recording_is_placed_by_the_transform_it_was_moved_by():
     keyframes = preprocess(make_sequence(SMALL_VISIT, session=0))
     later_to_first = _yaw_pose(40.0, (6.0, -4.0, 0.3))
     later_poses = invert_poses(later_to_first) @ keyframes.poses  # the same scans, seen from another frame
-    found, closures = session_alignment.align_session((keyframes.scans, keyframes.poses),
-                                                      (keyframes.scans, later_poses), "1_later", "0_first")
+    found, closures = session_alignment.align_session(
+        (keyframes.scans, keyframes.poses), (keyframes.scans, later_poses), "1_later", "0_first"
+    )
     error = invert_poses(later_to_first) @ found
     assert np.linalg.norm(error[:3, 3]) < 0.05
     assert rotation_angles_deg(error[None, :3, :3])[0] < 0.5
@@ -48,16 +49,21 @@ def test_a_recording_of_another_place_is_refused_naming_it_and_its_best_overlap(
     first = preprocess(make_sequence(SMALL_VISIT, session=0))
     elsewhere = preprocess(make_sequence({**SMALL_VISIT, "seed": 7}, session=1))
     with pytest.raises(DataError, match=r"recording 1_elsewhere matches no place of 0_first \(best overlap "):
-        session_alignment.align_session((first.scans, first.poses), (elsewhere.scans, elsewhere.poses),
-                                        "1_elsewhere", "0_first")
+        session_alignment.align_session(
+            (first.scans, first.poses), (elsewhere.scans, elsewhere.poses), "1_elsewhere", "0_first"
+        )
 
 
 def _sequence(num_scans: int, start_s: float, with_gt: bool = True) -> Sequence:
     poses = np.tile(np.eye(4), (num_scans, 1, 1))
     poses[:, 0, 3] = np.arange(num_scans)
-    return Sequence(scans=[np.ones((3, 3)) * k for k in range(num_scans)], poses=poses,
-                    timestamps=start_s + np.arange(num_scans, dtype=np.float64), gt_poses=poses if with_gt else None,
-                    files=[f"{k}.pcd" for k in range(num_scans)])
+    return Sequence(
+        scans=[np.ones((3, 3)) * k for k in range(num_scans)],
+        poses=poses,
+        timestamps=start_s + np.arange(num_scans, dtype=np.float64),
+        gt_poses=poses if with_gt else None,
+        files=[f"{k}.pcd" for k in range(num_scans)],
+    )
 
 
 def test_joined_recordings_keep_their_frames_stamps_and_which_scans_are_whose():
@@ -91,7 +97,7 @@ def test_the_baseline_sees_where_each_later_recording_begins_and_the_closures_th
     segments = start.segments_of(sessions)
     first_of_second = int(sessions.keyframe_bounds[1])
     assert first_of_second == keyframes[0].num_scans and segments.starts == (first_of_second,)
-    (i, j, transform), = segments.links
+    ((i, j, transform),) = segments.links
     assert (i, j) == (first_of_second + 1, 2) and np.array_equal(transform, place)
 
 

@@ -85,8 +85,9 @@ def test_the_crisper_start_is_the_one_with_the_crisper_map(monkeypatch):
 
     truthful = dataclasses.replace(seq, poses=seq.gt_poses)  # an input crisper than a drifted baseline
     for data, baseline_poses, expected in ((seq, seq.gt_poses, "baseline"), (truthful, seq.poses, "input")):
-        monkeypatch.setattr(start, "register_sequence",
-                            lambda scans, poses, settings, **kw: BaselineResult(baseline_poses))
+        monkeypatch.setattr(
+            start, "register_sequence", lambda scans, poses, settings, **kw: BaselineResult(baseline_poses)
+        )
         chosen = start.choose_start(start.StartSettings.from_config(config), data)
         assert chosen.chosen == expected and chosen.baseline_poses is baseline_poses
         assert chosen.pose_steps.keep_scale == (expected == "baseline")

@@ -32,7 +32,7 @@ def test_windows_cover_every_keyframe_with_the_overlap():
         starts = submaps.window_starts(s, w, o)
         covered = np.zeros(s, int)
         for a in starts:
-            covered[a:a + min(w, s)] += 1
+            covered[a : a + min(w, s)] += 1
         assert covered.min() >= 1 and starts[-1] + min(w, s) == s
         assert np.all(np.diff(starts) <= w - o) and np.all(np.diff(starts) >= 1)
     with pytest.raises(ConfigError, match="overlap"):
@@ -129,8 +129,9 @@ def test_submap_arrays_hold_each_window_s_rays_in_its_units():
     for m, (row, norm) in enumerate(zip(plan.members, plan.norms)):
         for slot, s in enumerate(row):
             mine = a.scan_index[m, : a.num_rays[m]] == slot
-            np.testing.assert_allclose(a.ranges[m, : a.num_rays[m]][mine],
-                                       rays.ranges[rays.scan_index == s] * norm.scale, rtol=1e-6)
+            np.testing.assert_allclose(
+                a.ranges[m, : a.num_rays[m]][mine], rays.ranges[rays.scan_index == s] * norm.scale, rtol=1e-6
+            )
 
 
 def test_run_with_submaps_writes_the_single_cube_outputs_within_its_time(tmp_path, monkeypatch):
@@ -178,8 +179,17 @@ def test_long_courtyard_route_switches_submaps_on_by_itself():
     from configs.generic import get_config
     from neld_jax.synthetic.generator import make_sequence
 
-    seq = make_sequence({"route": "courtyards", "route_length_m": 600.0, "num_scans": 100, "num_beams": 4,
-                         "num_columns": 90, "max_range_m": 30.0, "gt_map_points": 0})
+    seq = make_sequence(
+        {
+            "route": "courtyards",
+            "route_length_m": 600.0,
+            "num_scans": 100,
+            "num_beams": 4,
+            "num_columns": 90,
+            "max_range_m": 30.0,
+            "gt_map_points": 0,
+        }
+    )
     steps = np.linalg.norm(np.diff(seq.gt_poses[:, :3, 3], axis=0), axis=1)
     assert np.allclose(steps, 6.0, atol=0.1)  # 600 m in 100 even steps (the loop closes: 99 steps + one back)
     assert np.linalg.norm(seq.gt_poses[0, :3, 3] - seq.gt_poses[-1, :3, 3]) == pytest.approx(6.0, abs=0.1)

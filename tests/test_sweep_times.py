@@ -71,8 +71,9 @@ def rigid_scans(sweeps):
     scene, _ = make_scene(0, cfg.scene_size_m, path_radius_m=SWEEPS["trajectory_radius_m"])
     directions = spinning_lidar_directions(cfg.num_beams, FOV_DEG[1], FOV_DEG[0], cfg.num_columns)
     rng = np.random.default_rng(2)
-    scans = [cast_scan(scene, pose, directions, SWEEPS["max_range_m"], cfg.range_noise_m, rng)
-             for pose in sweeps.gt_poses]
+    scans = [
+        cast_scan(scene, pose, directions, SWEEPS["max_range_m"], cfg.range_noise_m, rng) for pose in sweeps.gt_poses
+    ]
     return dataclasses.replace(sweeps, scans=scans, point_times=None)
 
 
@@ -117,7 +118,8 @@ def test_a_folder_of_sweeps_without_times_is_deskewed_by_derived_times(velodyne_
     np.testing.assert_allclose(derived.poses, true.poses, atol=0.01)
     error_derived = metrics.ate(derived.poses, derived.gt_poses)["translation_rmse_m"]
     assert error_derived < 0.1 and error_derived == pytest.approx(
-        metrics.ate(true.poses, true.gt_poses)["translation_rmse_m"], abs=3e-3)
+        metrics.ate(true.poses, true.gt_poses)["translation_rmse_m"], abs=3e-3
+    )
     for a, b in zip(derived.scans[::5], true.scans[::5]):
         np.testing.assert_allclose(a, b, atol=0.01)  # the same points deskewed the same way (within 3 mm)
 
@@ -152,8 +154,7 @@ def test_a_handheld_walk_at_2_hz_without_stamps_is_deskewed_already(caplog):
 
 
 @pytest.mark.parametrize("mirrored, name", [(False, "front_anticlockwise"), (True, "behind_clockwise")])
-def test_raw_sweeps_are_measured_raw_with_the_convention_they_were_cast_with(sweeps, velodyne_sweeps, mirrored,
-                                                                              name):
+def test_raw_sweeps_are_measured_raw_with_the_convention_they_were_cast_with(sweeps, velodyne_sweeps, mirrored, name):
     raw = velodyne_sweeps if mirrored else sweeps
     assert CONVENTIONS[name] == (VELODYNE if mirrored else SYNTHETIC_SENSOR)
     evidence = measured_deskew(raw.scans, SWEEPS["max_range_m"])

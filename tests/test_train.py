@@ -23,17 +23,26 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def _trainer(config, plan, T, pose_steps=None, steps=None):
-    return train.make_trainer(config, len(T), plan.num_submaps, pose_steps or train.PoseSteps.from_config(config), T,
-                              steps)
+    return train.make_trainer(
+        config, len(T), plan.num_submaps, pose_steps or train.PoseSteps.from_config(config), T, steps
+    )
 
 
 def _fit(config, rays, frames, plan, T, pose_steps=None, max_seconds=0.0, **kwargs):
-    plan_of = functools.partial(train.make_trainer, config, len(T), plan.num_submaps,
-                                pose_steps or train.PoseSteps.from_config(config), T)
-    state = kwargs.pop("state", None) or train.init_state(config, plan_of(int(config.train.steps)), len(T),
-                                                          plan.num_submaps)
-    return train.fit(config, plan_of, train.TrainingData(rays, frames, plan.ref_scale), state,
-                     settings=train.FitSettings(max_seconds, progress=False), **kwargs)
+    plan_of = functools.partial(
+        train.make_trainer, config, len(T), plan.num_submaps, pose_steps or train.PoseSteps.from_config(config), T
+    )
+    state = kwargs.pop("state", None) or train.init_state(
+        config, plan_of(int(config.train.steps)), len(T), plan.num_submaps
+    )
+    return train.fit(
+        config,
+        plan_of,
+        train.TrainingData(rays, frames, plan.ref_scale),
+        state,
+        settings=train.FitSettings(max_seconds, progress=False),
+        **kwargs,
+    )
 
 
 def _assert_trees_equal(a, b):
@@ -277,8 +286,9 @@ def test_fit_logs_the_corrections_in_metres():
     config.sampling.coarse_stages, config.sampling.fine_stages = (8,), (4,)
     config.train.fixed_scans = (0, 1, 2)  # the corrections below stay as set
     rays, frames, plan, T = sphere_plan()
-    xi = np.array([[0.2, -0.1, 0.3, 0.0, 0.0, 1.2], [0.0, 0.4, 0.0, 0.9, 0.0, 0.0], [0.1, 0.1, 0.1, 0.3, -0.5, 0.7]],
-                  np.float32)
+    xi = np.array(
+        [[0.2, -0.1, 0.3, 0.0, 0.0, 1.2], [0.0, 0.4, 0.0, 0.9, 0.0, 0.0], [0.1, 0.1, 0.1, 0.3, -0.5, 0.7]], np.float32
+    )
     state = train.init_state(config, _trainer(config, plan, T), 3, 1)
     state = state.replace(params={**state.params, "poses": jnp.asarray(xi)})
     result = _fit(config, rays, frames, plan, T, state=state)
@@ -325,8 +335,13 @@ def test_fit_in_chunks_equals_single_steps():
     _assert_trees_equal((fitted.state.params, fitted.state.opt_state), (state.params, state.opt_state))
     np.testing.assert_array_equal(jax.random.key_data(fitted.state.key), jax.random.key_data(state.key))
     assert [h["loss"] for h in fitted.history] == [losses[4], losses[9]]  # the last step of each chunk
-    assert set(fitted.history[0]) >= set(metrics) | {"step", "range_err_m", "range_residual_median_m",
-                                                      "pose_trans_mean_m", "elapsed_s"}
+    assert set(fitted.history[0]) >= set(metrics) | {
+        "step",
+        "range_err_m",
+        "range_residual_median_m",
+        "pose_trans_mean_m",
+        "elapsed_s",
+    }
 
 
 def test_several_cubes_take_their_own_width_rays_termination_and_rate():
@@ -348,7 +363,8 @@ def test_several_cubes_take_their_own_width_rays_termination_and_rate():
         schedules = train.make_schedules(cpu, train.PoseSteps.from_config(cpu), steps, factor)
         assert float(schedules.field_lr(0)) == pytest.approx(times * own, rel=1e-6), (steps, cubes)
         assert float(schedules.field_lr(steps) / schedules.field_lr(0)) == pytest.approx(
-            cpu.train.field_lr_final / cpu.train.field_lr_init, rel=1e-4)
+            cpu.train.field_lr_final / cpu.train.field_lr_init, rel=1e-4
+        )
     gpu = with_budget(defaults(), "gpu")
     assert train.make_field(gpu, 5).width == gpu.model.width and train.batch_rays_per_cube(gpu, 4) == 128
     for bad in ((6000,), (0, 0.25), (6000, 0.0)):
@@ -379,8 +395,13 @@ def test_sharded_step_shared_scan_and_resume_on_8_devices(tmp_path):
     # The suite's own XLA flags kept (conftest: unoptimised, 88 -> 43 s here), eight host devices added.
     flags = f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=8".strip()
     env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
-    proc = subprocess.run([sys.executable, os.path.join(HERE, "devices_check.py"), str(tmp_path)],
-                          env=env, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, os.path.join(HERE, "devices_check.py"), str(tmp_path)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     for check in ("sharded step equals unsharded", "shared scan gradient", "resume with sharded state"):
         assert f"OK {check}" in proc.stdout, proc.stdout

@@ -32,11 +32,26 @@ def recorded_run(free_gauge_run):
 
 def test_the_recording_holds_the_runs_entities(recorded_run):
     out, entities = recorded_run
-    expected = {"/world/trajectory/input", "/world/trajectory/refined", "/world/trajectory/gt",
-                "/world/trajectory/training", "/world/scans/input", "/world/scans/refined", "/world/scans/report",
-                "/world/map/raw_input", "/world/map/raw_refined", "/world/map/rendered", "/world/map/gt",
-                "/train/loss", "/train/range_err_m", "/train/frequency", "/train/pose_change_cm",
-                "/train/lr/field", "/train/lr/pose_trans", "/train/lr/pose_rot"}
+    expected = {
+        "/world/trajectory/input",
+        "/world/trajectory/refined",
+        "/world/trajectory/gt",
+        "/world/trajectory/training",
+        "/world/scans/input",
+        "/world/scans/refined",
+        "/world/scans/report",
+        "/world/map/raw_input",
+        "/world/map/raw_refined",
+        "/world/map/rendered",
+        "/world/map/gt",
+        "/train/loss",
+        "/train/range_err_m",
+        "/train/frequency",
+        "/train/pose_change_cm",
+        "/train/lr/field",
+        "/train/lr/pose_trans",
+        "/train/lr/pose_rot",
+    }
     assert expected <= set(entities), sorted(expected - set(entities))
     # no baseline ran (the start is the input): no baseline trajectory
     assert "/world/trajectory/baseline" not in entities
@@ -101,6 +116,7 @@ def test_maps_are_thinned_and_coloured_by_height():
     assert len(thinned) <= 1000 and len(viewer.thin_for_viewing(points, max_points=10_000)) == 5000
     # the voxel is chosen by counting: the count is exactly what Open3D's downsample returns at that size
     from neld_jax.data.preprocess import voxel_downsample
+
     for voxel in (0.05, 0.7, 1.3, 4.0):
         assert viewer.occupied_voxels(points, voxel) == len(voxel_downsample(points, voxel))
     chosen = voxel_downsample(points, 0.02 * 2**6)  # 2 cm doubled to 1.28 m, the first size with <= 1000

@@ -98,8 +98,9 @@ def test_distances_of_the_reference_keep_the_directions():
     moved = with_distances_of(bent, reference, 10.0)
     assert cumulative_path(moved)[-1] == pytest.approx(cumulative_path(reference)[-1], rel=0.02)
     steps, moved_steps = np.diff(bent[:, :3, 3], axis=0), np.diff(moved[:, :3, 3], axis=0)
-    cosines = np.einsum("ij,ij->i", steps, moved_steps) / np.linalg.norm(steps, axis=1) / np.linalg.norm(
-        moved_steps, axis=1)
+    cosines = (
+        np.einsum("ij,ij->i", steps, moved_steps) / np.linalg.norm(steps, axis=1) / np.linalg.norm(moved_steps, axis=1)
+    )
     np.testing.assert_allclose(cosines, 1.0)  # the same directions of travel
     np.testing.assert_array_equal(moved[:, :3, :3], bent[:, :3, :3])
 

@@ -20,9 +20,15 @@ from neld_jax.judging import judge
 logger = logging.getLogger(__name__)
 
 
-def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSettings, keep_input_tilt: bool = False,
-                      deadline: float | None = None, progress: bool = False, segments: Segments = Segments()
-                      ) -> tuple[np.ndarray | None, np.ndarray]:
+def scan_to_map_chain(
+    clouds: list,
+    init_poses: np.ndarray,
+    settings: BaselineSettings,
+    keep_input_tilt: bool = False,
+    deadline: float | None = None,
+    progress: bool = False,
+    segments: Segments = Segments(),
+) -> tuple[np.ndarray | None, np.ndarray]:
     """Register each scan to the local map of the `settings.window` scans before it.
 
     clouds: S Open3D clouds (sensor frame, with normals); init_poses: [S, 4, 4] sensor -> world.
@@ -40,8 +46,9 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
     poses = [np.asarray(init_poses[0], np.float64)]
     fitness = np.ones(len(clouds))
     kept = {"overlap": [], "slide": []}  # links that kept the odometry's increment, by reason: one warning each
-    links = progress_bar(f"scan-to-map chain ({'the input' if keep_input_tilt else 'its own'} tilt)", progress,
-                         range(1, len(clouds)))
+    links = progress_bar(
+        f"scan-to-map chain ({'the input' if keep_input_tilt else 'its own'} tilt)", progress, range(1, len(clouds))
+    )
     for s in links:
         if _given_up(s, len(clouds), fitness, settings, deadline):
             fitness[s:] = np.nan
@@ -49,8 +56,7 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
         if s in segments.starts:  # a later recording: placed in the first one's frame, not linked to the one before
             poses.append(np.asarray(init_poses[s], np.float64))
             continue
-        pose, fitness[s], reason = _link(clouds, poses, init_poses, s, settings, keep_input_tilt,
-                                         segments.first_of(s))
+        pose, fitness[s], reason = _link(clouds, poses, init_poses, s, settings, keep_input_tilt, segments.first_of(s))
         if reason is not None:
             kept[reason[0]].append(reason[1])
         poses.append(pose)
@@ -59,28 +65,42 @@ def scan_to_map_chain(clouds: list, init_poses: np.ndarray, settings: BaselineSe
     return (np.stack(poses) if len(poses) == len(clouds) else None), fitness
 
 
-def _given_up(s: int, num_scans: int, fitness: np.ndarray, settings: BaselineSettings,
-              deadline: float | None) -> bool:
+def _given_up(s: int, num_scans: int, fitness: np.ndarray, settings: BaselineSettings, deadline: float | None) -> bool:
     """Whether the chain stops before link s (fitness [S]: the links' so far): its links overlap too little
     (settings.chain_min_median_overlap) or the deadline passed; one warning says which."""
     if s - 1 >= max(settings.chain_check_links, 1) and np.median(fitness[1:s]) < settings.chain_min_median_overlap:
-        logger.warning("baseline: the first %d chain links overlap their local maps by %.2f%% (median; less "
-                       "than chain_min_median_overlap=%.0f%%: keyframes too far apart for scan-to-map ICP): the "
-                       "chain is given up, the pose graph skipped, and the multi-view refinement starts from the "
-                       "input poses: it sharpens the map locally, but drift the input poses gather along the "
-                       "route stays in the answer",
-                       s - 1, 100 * np.median(fitness[1:s]), 100 * settings.chain_min_median_overlap)
+        logger.warning(
+            "baseline: the first %d chain links overlap their local maps by %.2f%% (median; less "
+            "than chain_min_median_overlap=%.0f%%: keyframes too far apart for scan-to-map ICP): the "
+            "chain is given up, the pose graph skipped, and the multi-view refinement starts from the "
+            "input poses: it sharpens the map locally, but drift the input poses gather along the "
+            "route stays in the answer",
+            s - 1,
+            100 * np.median(fitness[1:s]),
+            100 * settings.chain_min_median_overlap,
+        )
         return True
     if deadline is not None and time.perf_counter() > deadline:
         # A half-registered chain cannot feed the pose graph, and the rounds would stop at once anyway.
-        logger.warning("baseline: the run's deadline passed after %d of the %d chain links: the chain is given up, "
-                       "the pose graph skipped, and the input poses are the baseline's start", s - 1, num_scans - 1)
+        logger.warning(
+            "baseline: the run's deadline passed after %d of the %d chain links: the chain is given up, "
+            "the pose graph skipped, and the input poses are the baseline's start",
+            s - 1,
+            num_scans - 1,
+        )
         return True
     return False
 
 
-def _link(clouds: list, poses: list, init_poses: np.ndarray, s: int, settings: BaselineSettings,
-          keep_input_tilt: bool, first: int = 0) -> tuple[np.ndarray, float, tuple[str, str] | None]:
+def _link(
+    clouds: list,
+    poses: list,
+    init_poses: np.ndarray,
+    s: int,
+    settings: BaselineSettings,
+    keep_input_tilt: bool,
+    first: int = 0,
+) -> tuple[np.ndarray, float, tuple[str, str] | None]:
     """Scan s registered to the local map of the scans before it at poses (s of them, [4, 4]), from scan `first` (its
     recording's first) on -> (its pose [4, 4], the link's fitness, None or (why it kept the odometry's increment:
     "overlap" | "slide", the scan for the log))."""
@@ -109,22 +129,32 @@ def _features_agree(scan, local_map, transform: np.ndarray, settings: BaselineSe
     slid along a corridor landed where its start led it, and the features, which need no start, do not follow it;
     an odometry increment that was wrong (KISS-ICP's first second at speed: 0.54 m on the 20 m synthetic loop) is
     corrected alike by both."""
-    found, _ = global_registration(scan, local_map, fpfh_features(scan, settings), fpfh_features(local_map, settings),
-                                   settings)
+    found, _ = global_registration(
+        scan, local_map, fpfh_features(scan, settings), fpfh_features(local_map, settings), settings
+    )
     return correction_m(transform, found) <= settings.max_loop_correction_m
 
 
 def _warn_kept(kept: dict, settings: BaselineSettings) -> None:
     """One warning per reason a link kept the odometry's increment (kept: {"overlap" | "slide": [scan text]})."""
     if kept["overlap"]:
-        logger.warning("baseline: %d scan(s) overlap the map of the %d scans before them by less than "
-                       "min_chain_fitness=%.0f%% and keep the odometry's increment: %s", len(kept["overlap"]),
-                       settings.window, 100 * settings.min_chain_fitness, first_items(kept["overlap"]))
+        logger.warning(
+            "baseline: %d scan(s) overlap the map of the %d scans before them by less than "
+            "min_chain_fitness=%.0f%% and keep the odometry's increment: %s",
+            len(kept["overlap"]),
+            settings.window,
+            100 * settings.min_chain_fitness,
+            first_items(kept["overlap"]),
+        )
     if kept["slide"]:
-        logger.warning("baseline: ICP moved %d scan(s) further than max_link_correction_m=%.2g m from the odometry's "
-                       "increment, where the global registration put them elsewhere (a slide along a featureless "
-                       "direction?); they keep the increment: %s",
-                       len(kept["slide"]), settings.max_link_correction_m, first_items(kept["slide"]))
+        logger.warning(
+            "baseline: ICP moved %d scan(s) further than max_link_correction_m=%.2g m from the odometry's "
+            "increment, where the global registration put them elsewhere (a slide along a featureless "
+            "direction?); they keep the increment: %s",
+            len(kept["slide"]),
+            settings.max_link_correction_m,
+            first_items(kept["slide"]),
+        )
 
 
 # A chain that keeps the input's tilt is kept unless the free chain's raw map is crisper by more than this (mean map
@@ -145,4 +175,3 @@ def choose_chain(chains: dict, scans: list[np.ndarray], settings: BaselineSettin
     tilt, free = entropy["input tilt"], entropy["free"]
     chosen = "free" if tilt is not None and free is not None and free < tilt - TILT_MARGIN else "input tilt"
     return chosen, entropy
-

@@ -32,8 +32,9 @@ logger = logging.getLogger(__name__)
 NEGLIGIBLE_SCALE = 1e-4
 
 
-def keep_input_distances(scans: list[np.ndarray], poses: np.ndarray, input_poses: np.ndarray,
-                         settings: BaselineSettings) -> tuple[np.ndarray, dict | None]:
+def keep_input_distances(
+    scans: list[np.ndarray], poses: np.ndarray, input_poses: np.ndarray, settings: BaselineSettings
+) -> tuple[np.ndarray, dict | None]:
     """poses [S, 4, 4] with the input's [S, 4, 4] distances travelled (module docstring), unless their own give the
     keyframes' raw map (scans: S arrays [N_i, 3], sensor frame) a crisper map on every one of settings.
     crispness_draws query draws -> (poses [S, 4, 4], {"kept": "input" | "own", "path_ratio": the poses' path over
@@ -47,20 +48,36 @@ def keep_input_distances(scans: list[np.ndarray], poses: np.ndarray, input_poses
     if change < NEGLIGIBLE_SCALE:
         return poses, None
     candidate = with_distances_of(poses, input_poses, settings.distance_window_m)
-    eval_cfg = {"crispness_draws": settings.crispness_draws, "crispness_queries": settings.crispness_queries,
-                "crispness_radius_m": settings.crispness_radius_m}
-    first, _ = judge.compare_maps(scans, {"own": poses, "input": candidate}, settings.crispness_radius_m,
-                                  settings.crispness_queries)
-    margins = judge.crispness_margins(SimpleNamespace(scans=scans), {"own": poses, "input": candidate}, eval_cfg,
-                                      against="own", first_draw=first)
+    eval_cfg = {
+        "crispness_draws": settings.crispness_draws,
+        "crispness_queries": settings.crispness_queries,
+        "crispness_radius_m": settings.crispness_radius_m,
+    }
+    first, _ = judge.compare_maps(
+        scans, {"own": poses, "input": candidate}, settings.crispness_radius_m, settings.crispness_queries
+    )
+    margins = judge.crispness_margins(
+        SimpleNamespace(scans=scans), {"own": poses, "input": candidate}, eval_cfg, against="own", first_draw=first
+    )
     margin = margins.get("input")
     own_crisper = margin is not None and margin["all_draws_agree"] and margin["mean"] < 0
     ratio = path_length_ratio(poses, input_poses)  # the input moves: window_scales differ from 1
-    record = {"kept": "own" if own_crisper else "input", "path_ratio": round(ratio, 6),
-              "largest_window_change": round(change, 6), "margin": None if margin is None else margin["mean"]}
-    logger.info("baseline: its path is %.3f%% %s than the input's (windows of %g m: up to %.3f%%); %s",
-                100 * abs(ratio - 1), "shorter" if ratio < 1 else "longer", settings.distance_window_m, 100 * change,
-                "its own distances give the crisper map on every draw: kept" if own_crisper else
-                "the input's distances travelled are kept (its own gave no crisper map on every draw"
-                + ("" if margin is None else f": {margin['mean']:+.5f} nats") + ")")
+    record = {
+        "kept": "own" if own_crisper else "input",
+        "path_ratio": round(ratio, 6),
+        "largest_window_change": round(change, 6),
+        "margin": None if margin is None else margin["mean"],
+    }
+    logger.info(
+        "baseline: its path is %.3f%% %s than the input's (windows of %g m: up to %.3f%%); %s",
+        100 * abs(ratio - 1),
+        "shorter" if ratio < 1 else "longer",
+        settings.distance_window_m,
+        100 * change,
+        "its own distances give the crisper map on every draw: kept"
+        if own_crisper
+        else "the input's distances travelled are kept (its own gave no crisper map on every draw"
+        + ("" if margin is None else f": {margin['mean']:+.5f} nats")
+        + ")",
+    )
     return (poses if own_crisper else candidate), record

@@ -90,12 +90,19 @@ class TargetIndex:
                 nearest, squared = self._search.knn_search(o3d.core.Tensor(points), 1)
             last = self._last = (distance, np.array(points), nearest.numpy()[:, 0], squared.numpy()[:, 0])
         _, _, nearest, squared = last
-        return np.where(squared <= distance ** 2, nearest, -1), squared
+        return np.where(squared <= distance**2, nearest, -1), squared
 
 
-def point_to_plane_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, guess: np.ndarray,
-                       distance: float, max_iterations: int, min_normal_cos: float | None, oriented: bool,
-                       index: TargetIndex | None = None) -> IcpResult:
+def point_to_plane_icp(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    guess: np.ndarray,
+    distance: float,
+    max_iterations: int,
+    min_normal_cos: float | None,
+    oriented: bool,
+    index: TargetIndex | None = None,
+) -> IcpResult:
     """Point-to-plane ICP whose correspondences must also agree in normal direction.
 
     Open3D's registration_icp pairs each source point with its nearest target point within `distance`, whatever the
@@ -122,15 +129,17 @@ def point_to_plane_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.Poi
         if min_normal_cos is None:
             compatible = within
         else:
-            cosines = np.einsum("ij,ij->i", source_normals[within] @ transform[:3, :3].T,
-                                target_normals[nearest[within]])
+            cosines = np.einsum(
+                "ij,ij->i", source_normals[within] @ transform[:3, :3].T, target_normals[nearest[within]]
+            )
             compatible = np.zeros_like(within)
             compatible[within] = (cosines if oriented else np.abs(cosines)) >= min_normal_cos
         fitness = float(within.mean()) if len(within) else 0.0
         rmse = float(np.sqrt(np.mean(squared[compatible]))) if compatible.any() else 0.0
         result = IcpResult(transform.copy(), fitness, rmse, int(compatible.sum()))
-        converged = previous is not None and (abs(fitness - previous.fitness) < 1e-6
-                                              and abs(rmse - previous.inlier_rmse) < 1e-6)
+        converged = previous is not None and (
+            abs(fitness - previous.fitness) < 1e-6 and abs(rmse - previous.inlier_rmse) < 1e-6
+        )
         if converged or result.num_correspondences < 6 or iteration == max_iterations:
             return result
         previous = result
@@ -160,16 +169,23 @@ def point_to_plane_step(points: np.ndarray, target_points: np.ndarray, target_no
     # Open3D's TransformVector6dToMatrix4d: x = (roll, pitch, yaw, translation), R = Rz(yaw) Ry(pitch) Rx(roll).
     (ca, cb, cc), (sa, sb, sc) = np.cos(x[:3]), np.sin(x[:3])
     step = np.eye(4)
-    step[:3, :3] = (np.array([[cc, -sc, 0.0], [sc, cc, 0.0], [0.0, 0.0, 1.0]])
-                    @ np.array([[cb, 0.0, sb], [0.0, 1.0, 0.0], [-sb, 0.0, cb]])
-                    @ np.array([[1.0, 0.0, 0.0], [0.0, ca, -sa], [0.0, sa, ca]]))
+    step[:3, :3] = (
+        np.array([[cc, -sc, 0.0], [sc, cc, 0.0], [0.0, 0.0, 1.0]])
+        @ np.array([[cb, 0.0, sb], [0.0, 1.0, 0.0], [-sb, 0.0, cb]])
+        @ np.array([[1.0, 0.0, 0.0], [0.0, ca, -sa], [0.0, sa, ca]])
+    )
     step[:3, 3] = x[3:]
     return step
 
 
-def multiscale_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, guess: np.ndarray,
-                   settings: BaselineSettings, oriented: bool = True,
-                   indices: dict | None = None) -> tuple[np.ndarray, IcpResult]:
+def multiscale_icp(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    guess: np.ndarray,
+    settings: BaselineSettings,
+    oriented: bool = True,
+    indices: dict | None = None,
+) -> tuple[np.ndarray, IcpResult]:
     """Point-to-plane ICP (point_to_plane_icp) at each of settings.icp_distances_m in turn, each from the previous
     result: at the distances above settings.normal_check_above_m with its normal check (settings.min_normal_cos), at
     the others pairing as Open3D's registration_icp does. Not registration_icp itself: it sums its steps in an order
@@ -192,12 +208,26 @@ def multiscale_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCl
         if key not in indices:
             indices[key] = TargetIndex(target, reach)
         scan = source if distance == settings.icp_distances_m[-1] else coarse
-        result = point_to_plane_icp(scan, target, transform, distance, settings.icp_iterations,
-                                    settings.min_normal_cos if check else None, oriented, indices[key])
+        result = point_to_plane_icp(
+            scan,
+            target,
+            transform,
+            distance,
+            settings.icp_iterations,
+            settings.min_normal_cos if check else None,
+            oriented,
+            indices[key],
+        )
         transform = result.transformation
     if settings.min_direction_share > 0:
-        held = held_along_weak_directions(source, target, np.asarray(guess, np.float64), np.asarray(transform),
-                                          settings.min_direction_share, indices[key])
+        held = held_along_weak_directions(
+            source,
+            target,
+            np.asarray(guess, np.float64),
+            np.asarray(transform),
+            settings.min_direction_share,
+            indices[key],
+        )
         if held is not transform:
             result = dataclasses.replace(result, transformation=held)
             transform = held
@@ -229,8 +259,7 @@ def information(source, target, transform, settings: BaselineSettings) -> np.nda
     transform [4, 4], from the target points paired within information_distance_m), its sums taken in a fixed order:
     Open3D's threaded sum changes the last bits from run to run (point_to_plane_step)."""
     distance = settings.information_distance_m
-    nearest, _ = TargetIndex(target, distance).nearest(transform_points(np.asarray(source.points), transform),
-                                                       distance)
+    nearest, _ = TargetIndex(target, distance).nearest(transform_points(np.asarray(source.points), transform), distance)
     points = np.ascontiguousarray(np.asarray(target.points)[nearest[nearest >= 0]].T)  # [3, N]
     # Each pair adds G^T G, G = [[p]x^T, I] (3 x 6) at its target point p: [[|p|^2 I - p p^T, [p]x], [[p]x^T, I]].
     x, y, z = points.sum(axis=1)
@@ -241,7 +270,6 @@ def information(source, target, transform, settings: BaselineSettings) -> np.nda
     information[3:, :3] = information[:3, 3:].T
     information[3:, 3:] = np.eye(3) * points.shape[1]
     return information
-
 
 
 def direction_shares(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -261,8 +289,9 @@ def direction_shares(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarra
     return shares, vectors, centroid, lever
 
 
-def held_along_weak_directions(source, target, guess: np.ndarray, transform: np.ndarray, min_share: float,
-                               index: TargetIndex) -> np.ndarray:
+def held_along_weak_directions(
+    source, target, guess: np.ndarray, transform: np.ndarray, min_share: float, index: TargetIndex
+) -> np.ndarray:
     """ICP's transform [4, 4] with its correction of the guess [4, 4] removed along every direction that its final
     pairs fix with a share below min_share (direction_shares), then HELD_STEPS point-to-plane steps in the other
     directions only: along a weak direction the geometry does not say where the scan is, and ICP's answer is where

@@ -40,21 +40,27 @@ class Refinement:
     stopped: bool
 
 
-def choose_refinement_start(graph: np.ndarray, chain: np.ndarray, scans: list[np.ndarray],
-                            settings: BaselineSettings) -> tuple[str, dict]:
+def choose_refinement_start(
+    graph: np.ndarray, chain: np.ndarray, scans: list[np.ndarray], settings: BaselineSettings
+) -> tuple[str, dict]:
     """Where the multi-view refinement starts: the crisper of the graph's and the chain's poses [S, 4, 4] (a tie, or
     no judge, keeps the graph) -> ("graph" | "chain", {name: mean map entropy})."""
-    summaries, _ = judge.compare_maps(scans, {"graph": graph, "chain": chain}, settings.crispness_radius_m,
-                                      settings.crispness_queries)
+    summaries, _ = judge.compare_maps(
+        scans, {"graph": graph, "chain": chain}, settings.crispness_radius_m, settings.crispness_queries
+    )
     entropy = {name: summary["mean_map_entropy"] for name, summary in summaries.items()}
     crisper = judge.crispest(summaries)
     return ("chain" if crisper == "chain" and entropy["chain"] < entropy["graph"] else "graph"), entropy
 
 
-
-def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettings,
-                       on_round: Callable[[int, np.ndarray], None] | None = None,
-                       deadline: float | None = None, progress: bool = False) -> tuple[np.ndarray, Refinement]:
+def refine_against_map(
+    clouds: list,
+    poses: np.ndarray,
+    settings: BaselineSettings,
+    on_round: Callable[[int, np.ndarray], None] | None = None,
+    deadline: float | None = None,
+    progress: bool = False,
+) -> tuple[np.ndarray, Refinement]:
     """`settings.map_rounds` rounds of multi-view refinement (neld_jax.baseline, step 4); scan 0 stays.
 
     clouds: S Open3D clouds (sensor frame); poses: [S, 4, 4] sensor -> world. on_round(r, poses [S, 4, 4]), when
@@ -64,8 +70,9 @@ def refine_against_map(clouds: list, poses: np.ndarray, settings: BaselineSettin
     progress: a progress bar over the scans of all rounds. Returns (poses [S, 4, 4], Refinement)."""
     poses = np.array(poses, dtype=np.float64)
     tried = rejected = 0
-    bar = progress_bar(f"{settings.map_rounds} round(s) of multi-view refinement", progress,
-                       total=settings.map_rounds * len(clouds))
+    bar = progress_bar(
+        f"{settings.map_rounds} round(s) of multi-view refinement", progress, total=settings.map_rounds * len(clouds)
+    )
 
     def report(rounds_done: float, stopped: bool) -> tuple[np.ndarray, Refinement]:
         bar.close()
@@ -106,14 +113,18 @@ class _MapTarget:
         self.points, self.normals = np.asarray(world.points), np.asarray(world.normals)
         self.tree = cKDTree(self.points)
 
-    def register(self, cloud: o3d.geometry.PointCloud, pose: np.ndarray, settings: BaselineSettings
-                 ) -> np.ndarray | None:
+    def register(
+        self, cloud: o3d.geometry.PointCloud, pose: np.ndarray, settings: BaselineSettings
+    ) -> np.ndarray | None:
         """cloud (sensor frame) at pose [4, 4] registered to the map points near it -> its pose [4, 4], or None
         when too few map points are near or the loop closures' gates reject the result."""
         # The target: each scan point's nearest map points (one vectorised query; "missing" ones come back as index
         # len(points)).
-        _, near = self.tree.query(transform_points(np.asarray(cloud.points), pose), k=settings.map_gather_points,
-                                  distance_upper_bound=settings.map_gather_m)
+        _, near = self.tree.query(
+            transform_points(np.asarray(cloud.points), pose),
+            k=settings.map_gather_points,
+            distance_upper_bound=settings.map_gather_m,
+        )
         near = np.unique(near[near < len(self.points)])
         if len(near) < 3:
             return None

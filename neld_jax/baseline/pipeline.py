@@ -55,11 +55,15 @@ class BaselineResult:
         return {name: value for name, value in fields.items() if value is not None or name == "tilt"}
 
 
-def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
-                      settings: BaselineSettings = BaselineSettings(),
-                      on_round: Callable[[int, np.ndarray], None] | None = None,
-                      deadline: float | None = None, progress: bool = False,
-                      segments: Segments = Segments()) -> BaselineResult:
+def register_sequence(
+    scans: list[np.ndarray],
+    init_poses: np.ndarray,
+    settings: BaselineSettings = BaselineSettings(),
+    on_round: Callable[[int, np.ndarray], None] | None = None,
+    deadline: float | None = None,
+    progress: bool = False,
+    segments: Segments = Segments(),
+) -> BaselineResult:
     """The baseline: the scan-to-map chains (the input's tilt kept and free; the crisper goes on), the loop-closed
     pose graph, then the multi-view refinement from the crisper of the graph and the chain (neld_jax.baseline).
 
@@ -95,10 +99,17 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
             t1 = time.perf_counter()
             optimized, loops = loop_closed_graph(clouds, chain, settings, progress, segments)
             seconds["graph"] = time.perf_counter() - t1
-            logger.info("baseline: pose graph with %d of %d loop-closure candidates (overlap >= %.0f%%), %d of them "
-                        "from %d global registrations%s, in %.1f s", loops.kept, loops.tried,
-                        100 * settings.min_loop_fitness, loops.global_kept, loops.global_tried,
-                        _between_recordings(loops) if segments.starts else "", seconds["graph"])
+            logger.info(
+                "baseline: pose graph with %d of %d loop-closure candidates (overlap >= %.0f%%), %d of them "
+                "from %d global registrations%s, in %.1f s",
+                loops.kept,
+                loops.tried,
+                100 * settings.min_loop_fitness,
+                loops.global_kept,
+                loops.global_tried,
+                _between_recordings(loops) if segments.starts else "",
+                seconds["graph"],
+            )
         if settings.map_rounds > 0:
             t2 = time.perf_counter()
             # Joined recordings: from the graph, since the chain leaves each later one where its placing put it, and two
@@ -106,8 +117,7 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
             compared = None if segments.starts else chain
             if segments.starts and chain is not None:
                 decided["refined_from"] = "graph"
-            optimized = _refined(clouds, scans, optimized, compared, settings, (on_round, deadline, progress),
-                                 decided)
+            optimized = _refined(clouds, scans, optimized, compared, settings, (on_round, deadline, progress), decided)
             seconds["refinement"] = time.perf_counter() - t2
     # Re-anchor exactly on scan 0 (the gauge), whatever the optimiser did with the reference node.
     optimized = anchored(optimized, init_poses[0])
@@ -119,34 +129,56 @@ def register_sequence(scans: list[np.ndarray], init_poses: np.ndarray,
 def _log_joined(segments: Segments) -> None:
     """One log line for recordings joined in one sequence (none: nothing)."""
     if segments.starts:
-        logger.info("baseline: %d recordings joined: the chain restarts from the input pose at scan(s) %s (each later "
-                    "recording's first, placed in the first one's frame), and %d links from the placing join them in "
-                    "the pose graph", len(segments.starts) + 1, ", ".join(map(str, segments.starts)),
-                    len(segments.links))
+        logger.info(
+            "baseline: %d recordings joined: the chain restarts from the input pose at scan(s) %s (each later "
+            "recording's first, placed in the first one's frame), and %d links from the placing join them in "
+            "the pose graph",
+            len(segments.starts) + 1,
+            ", ".join(map(str, segments.starts)),
+            len(segments.links),
+        )
 
 
-def _chosen_chain(clouds: list, scans: list[np.ndarray], init_poses: np.ndarray, settings: BaselineSettings,
-                  deadline: float | None, progress: bool, segments: Segments) -> tuple[np.ndarray | None, dict]:
+def _chosen_chain(
+    clouds: list,
+    scans: list[np.ndarray],
+    init_poses: np.ndarray,
+    settings: BaselineSettings,
+    deadline: float | None,
+    progress: bool,
+    segments: Segments,
+) -> tuple[np.ndarray | None, dict]:
     """Both chains (the input's tilt kept, free) and the one that goes on -> (its poses [S, 4, 4], None when given
     up; {"tilt", "chain_entropy", "chain_given_up"} for BaselineResult)."""
     t0 = time.perf_counter()
     chains, fitness = {}, {}
     for name, keep_tilt in (("input tilt", True), ("free", False)):
-        chains[name], fitness[name] = scan_to_map_chain(clouds, init_poses, settings, keep_tilt, deadline, progress,
-                                                        segments)
+        chains[name], fitness[name] = scan_to_map_chain(
+            clouds, init_poses, settings, keep_tilt, deadline, progress, segments
+        )
     chosen, entropy = choose_chain(chains, scans, settings)
     chain = chains[chosen]
     if chain is not None:
-        logger.info("baseline: the chain %s (raw-map entropy: %s; median overlap %.0f%%), %.1f s for both",
-                    "keeps the input's tilt" if chosen == "input tilt" else "finds its own tilt: the input's drifted",
-                    _entropy_text(entropy) or "one chain held", 100 * np.nanmedian(fitness[chosen][1:]),
-                    time.perf_counter() - t0)
+        logger.info(
+            "baseline: the chain %s (raw-map entropy: %s; median overlap %.0f%%), %.1f s for both",
+            "keeps the input's tilt" if chosen == "input tilt" else "finds its own tilt: the input's drifted",
+            _entropy_text(entropy) or "one chain held",
+            100 * np.nanmedian(fitness[chosen][1:]),
+            time.perf_counter() - t0,
+        )
     tilt = None if chain is None else ("input" if chosen == "input tilt" else "free")
     return chain, {"tilt": tilt, "chain_entropy": entropy, "chain_given_up": chain is None}
 
 
-def _refined(clouds: list, scans: list[np.ndarray], optimized: np.ndarray, chain: np.ndarray | None,
-             settings: BaselineSettings, hooks: tuple, decided: dict) -> np.ndarray:
+def _refined(
+    clouds: list,
+    scans: list[np.ndarray],
+    optimized: np.ndarray,
+    chain: np.ndarray | None,
+    settings: BaselineSettings,
+    hooks: tuple,
+    decided: dict,
+) -> np.ndarray:
     """The multi-view refinement from the crisper of the graph's poses `optimized` [S, 4, 4] and the chain [S, 4, 4]
     (the input's when chain is None) -> its poses [S, 4, 4]. hooks: (on_round, deadline, progress) of
     register_sequence; decided: BaselineResult's fields so far, updated with where the rounds started and how many
@@ -157,24 +189,33 @@ def _refined(clouds: list, scans: list[np.ndarray], optimized: np.ndarray, chain
     if chain is not None:
         start, entropy = choose_refinement_start(optimized, _orthonormal(chain), scans, settings)
         decided.update(refined_from=start, start_entropy=entropy)
-        logger.info("baseline: the multi-view refinement starts from the %s's poses (raw-map entropy: %s)",
-                    start, _entropy_text(entropy))
+        logger.info(
+            "baseline: the multi-view refinement starts from the %s's poses (raw-map entropy: %s)",
+            start,
+            _entropy_text(entropy),
+        )
         optimized = _orthonormal(chain) if start == "chain" else optimized
     if on_round is not None:
         on_round(0, optimized.copy())
     t0 = time.perf_counter()
     optimized, refinement = refine_against_map(clouds, optimized, settings, on_round, deadline, progress)
-    logger.info("baseline: %g round(s) of multi-view refinement in %.1f s (%.0f%% of the registrations "
-                "rejected by the gates)", refinement.rounds_done, time.perf_counter() - t0, 100 * refinement.rejected)
+    logger.info(
+        "baseline: %g round(s) of multi-view refinement in %.1f s (%.0f%% of the registrations rejected by the gates)",
+        refinement.rounds_done,
+        time.perf_counter() - t0,
+        100 * refinement.rejected,
+    )
     decided.update(map_rounds_done=refinement.rounds_done, stopped_at_deadline=refinement.stopped)
     return optimized
 
 
 def _between_recordings(loops) -> str:
     """The pose graph's joins between recordings, for the log (loops: graph.LoopClosures)."""
-    return (f"; between recordings {loops.across_kept} of {loops.across_tried} ICP candidates kept (with the global "
-            f"closures) and {loops.linked} links from the placing ({loops.links_in_final_graph} of them left in the "
-            "final graph: a recording joined by a closure keeps the closures)")
+    return (
+        f"; between recordings {loops.across_kept} of {loops.across_tried} ICP candidates kept (with the global "
+        f"closures) and {loops.linked} links from the placing ({loops.links_in_final_graph} of them left in the "
+        "final graph: a recording joined by a closure keeps the closures)"
+    )
 
 
 def _entropy_text(entropy: dict) -> str:

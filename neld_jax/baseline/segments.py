@@ -35,5 +35,7 @@ class Segments:
             raise ValueError(f"segment starts must ascend within 1..{num_scans - 1}, got {starts}")
         for i, j, transform in self.links:
             if not (0 <= i < num_scans and 0 <= j < num_scans) or np.shape(transform) != (4, 4):
-                raise ValueError(f"a link joins scans 0..{num_scans - 1} by a [4, 4] transform, got ({i}, {j}) and "
-                                 f"shape {np.shape(transform)}")
+                raise ValueError(
+                    f"a link joins scans 0..{num_scans - 1} by a [4, 4] transform, got ({i}, {j}) and "
+                    f"shape {np.shape(transform)}"
+                )

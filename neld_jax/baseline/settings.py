@@ -111,9 +111,12 @@ class BaselineSettings:
         unknown = set(fields) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise ValueError(f"config.baseline: unknown field(s) {sorted(unknown)}")
-        return cls(**fields, crispness_radius_m=float(eval_cfg.crispness_radius_m),
-                   crispness_queries=int(eval_cfg.crispness_queries),
-                   crispness_draws=int(eval_cfg.crispness_draws))
+        return cls(
+            **fields,
+            crispness_radius_m=float(eval_cfg.crispness_radius_m),
+            crispness_queries=int(eval_cfg.crispness_queries),
+            crispness_draws=int(eval_cfg.crispness_draws),
+        )
 
 
 def progress_bar(what: str, progress: bool, iterable=None, total: int | None = None):
@@ -121,8 +124,9 @@ def progress_bar(what: str, progress: bool, iterable=None, total: int | None = N
     `progress`."""
     from tqdm.auto import tqdm  # an effect at the edge, as train.fit's bar
 
-    return tqdm(iterable, total=total, desc=f"baseline: {what}", unit=" registrations", disable=not progress,
-                dynamic_ncols=True)
+    return tqdm(
+        iterable, total=total, desc=f"baseline: {what}", unit=" registrations", disable=not progress, dynamic_ncols=True
+    )
 
 
 def first_items(items: list[str], count: int = 12) -> str:

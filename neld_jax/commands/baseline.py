@@ -52,15 +52,20 @@ def run_baseline(config, progress: bool = True) -> dict:
     if not (out / "map_raw_initial.ply").exists():
         write_raw_map(out / "map_raw_initial.ply", keyframes.scans, keyframes.poses, voxel_size=voxel)
     if loaded.gt_poses is not None and not (out / GT_POSES_FILE).exists():
-        write_poses(out, GT_POSES_FILE[:-len(".txt")], loaded.timestamps, loaded.gt_poses)
+        write_poses(out, GT_POSES_FILE[: -len(".txt")], loaded.timestamps, loaded.gt_poses)
     if keyframes.gt_map is not None and not any((out / name).exists() for name in GT_MAP_FILES):
         write_point_cloud(out / GT_MAP_FILES[0], keyframes.gt_map)
     crisp, _ = judge.map_crispness(keyframes, {"initial": keyframes.poses, "baseline": poses}, config.eval)
     # Its sections join the folder's metrics.json (a run's, say): its methods' crispness beside the run's.
     crisp = {**read_json(out / "metrics.json").get("crispness", {}), **crisp}
-    write_json(out / "metrics.json", {"crispness": crisp, "baseline": {"seconds": round(seconds, 2), "decided": report,
-                                                                        "settings": dataclasses.asdict(settings)}},
-               merge=True)
+    write_json(
+        out / "metrics.json",
+        {
+            "crispness": crisp,
+            "baseline": {"seconds": round(seconds, 2), "decided": report, "settings": dataclasses.asdict(settings)},
+        },
+        merge=True,
+    )
     logger.info("baseline outputs written to %s (registration took %.1f s)", out, seconds)
     evaluation = None
     if keyframes.gt_poses is not None or keyframes.gt_map is not None:

@@ -19,9 +19,13 @@ from absl import flags
 
 from neld_jax.cli import main_with_config
 
-POSES = flags.DEFINE_list("poses", [], "Trajectories to judge, NAME=PATH or PATH (named by its file name; a run's "
-                          "output folder stands for its poses_optimized.txt), comma-separated; the sequence's own "
-                          "poses are always judged too, as 'input'.")
+POSES = flags.DEFINE_list(
+    "poses",
+    [],
+    "Trajectories to judge, NAME=PATH or PATH (named by its file name; a run's "
+    "output folder stands for its poses_optimized.txt), comma-separated; the sequence's own "
+    "poses are always judged too, as 'input'.",
+)
 OUT = flags.DEFINE_string("out", "", "JSON file with every figure (none if empty).")
 
 
@@ -60,19 +64,29 @@ def job(config) -> None:
     loaded, keyframes = load_keyframes(config.data)
     methods = {"input": keyframes.poses}
     for name, path in paths.items():
-        methods[name] = trajectory_at_keyframes(path, loaded, keyframes, tol=float(config.data.timestamp_tol_s),
-                                                invert=bool(config.data.invert_poses))
+        methods[name] = trajectory_at_keyframes(
+            path, loaded, keyframes, tol=float(config.data.timestamp_tol_s), invert=bool(config.data.invert_poses)
+        )
     verdict = judge.judge_trajectories(keyframes, methods, config.eval, progress=True)
-    print(f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans "
-          f"({config.data.root or config.data.format})")
+    print(
+        f"{keyframes.num_scans} keyframes of {loaded.num_scans} input scans ({config.data.root or config.data.format})"
+    )
     print(judge.format_crispness_table(verdict["crispness"], ordered=True, digits=4))
     print(f"crispest: {verdict['crispest']}")
     for other, margin in verdict["margins"].items():
         print(judge.describe_margin(other, margin, against=verdict["crispest"]))
     if OUT.value:
-        write_json(OUT.value, {"root": str(config.data.root), "input_scans": loaded.num_scans,
-                               "keyframes": keyframes.num_scans,
-                               "trajectories": {"input": "the sequence's own poses", **paths}, **verdict}, merge=False)
+        write_json(
+            OUT.value,
+            {
+                "root": str(config.data.root),
+                "input_scans": loaded.num_scans,
+                "keyframes": keyframes.num_scans,
+                "trajectories": {"input": "the sequence's own poses", **paths},
+                **verdict,
+            },
+            merge=False,
+        )
         print(f"written to {OUT.value}")
 
 

@@ -23,13 +23,17 @@ from absl import flags
 from neld_jax.cli import main_with_flags
 from neld_jax.data.bags import rosbag_import as ri
 
-BAG = flags.DEFINE_multi_string("bag", None, "ROS1 .bag file or ROS2 bag folder (repeat for a split recording).",
-                                required=True)
+BAG = flags.DEFINE_multi_string(
+    "bag", None, "ROS1 .bag file or ROS2 bag folder (repeat for a split recording).", required=True
+)
 OUT = flags.DEFINE_string("out", None, "Folder to write scans/, poses.txt and import.json to.", required=True)
 CLOUD = flags.DEFINE_string("cloud_topic", ri.DEFAULT_CLOUD_TOPIC, "sensor_msgs/PointCloud2 topic.")
-ODOM = flags.DEFINE_string("odometry_topic", ri.DEFAULT_ODOMETRY_TOPIC,
-                           "nav_msgs/Odometry or geometry_msgs/PoseStamped topic (pose of the clouds' frame); "
-                           "'' for none (raw sweeps; training makes the poses with KISS-ICP).")
+ODOM = flags.DEFINE_string(
+    "odometry_topic",
+    ri.DEFAULT_ODOMETRY_TOPIC,
+    "nav_msgs/Odometry or geometry_msgs/PoseStamped topic (pose of the clouds' frame); "
+    "'' for none (raw sweeps; training makes the poses with KISS-ICP).",
+)
 TOL = flags.DEFINE_float("tolerance_s", ri.DEFAULT_TOLERANCE_S, "Largest cloud-to-odometry stamp gap (seconds).")
 OFFSET = flags.DEFINE_float("time_offset_s", 0.0, "Added to every cloud stamp before matching (seconds).")
 DROP = flags.DEFINE_bool("drop_unmatched", False, "Drop clouds without odometry (counted) instead of failing.")
@@ -39,17 +43,28 @@ ANGLE = flags.DEFINE_float("keyframe_angle_deg", 0.0, "... or after turning this
 
 
 def import_bag() -> int:
-    settings = ri.ImportSettings(cloud_topic=CLOUD.value, odometry_topic=ODOM.value, tolerance_s=TOL.value,
-                                 time_offset_s=OFFSET.value, drop_unmatched=DROP.value, stride=STRIDE.value,
-                                 keyframe_distance_m=DIST.value, keyframe_angle_deg=ANGLE.value)
+    settings = ri.ImportSettings(
+        cloud_topic=CLOUD.value,
+        odometry_topic=ODOM.value,
+        tolerance_s=TOL.value,
+        time_offset_s=OFFSET.value,
+        drop_unmatched=DROP.value,
+        stride=STRIDE.value,
+        keyframe_distance_m=DIST.value,
+        keyframe_angle_deg=ANGLE.value,
+    )
     result = ri.import_bag(BAG.value, OUT.value, settings)
     if not result.odometry_topic:
-        print(f"wrote {result.scans_written} raw sweeps of {result.clouds_read} clouds to {OUT.value} "
-              f"({result.skipped_by_keyframe_rule} skipped by --stride), no poses")
+        print(
+            f"wrote {result.scans_written} raw sweeps of {result.clouds_read} clouds to {OUT.value} "
+            f"({result.skipped_by_keyframe_rule} skipped by --stride), no poses"
+        )
     else:
-        print(f"wrote {result.scans_written} scans of {result.clouds_read} clouds to {OUT.value} "
-              f"({result.dropped_unmatched} without odometry dropped, {result.skipped_by_keyframe_rule} skipped by "
-              f"--stride/--keyframe_*)")
+        print(
+            f"wrote {result.scans_written} scans of {result.clouds_read} clouds to {OUT.value} "
+            f"({result.dropped_unmatched} without odometry dropped, {result.skipped_by_keyframe_rule} skipped by "
+            f"--stride/--keyframe_*)"
+        )
     print(result.note)
     return 0
 

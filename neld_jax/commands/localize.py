@@ -38,21 +38,27 @@ def localize_scans(config, run_dir: str, progress: bool = True) -> dict:
     settings = registration.RegistrationSettings.from_groups(config.data, config.baseline)
     target = registration.cloud_with_normals(read_scan(map_path), settings)
     scans = load_sequence(config.data)
-    registered, how = registration.localize(scans.scans, scans.poses, target, settings, progress,
-                                                scans.scan_label)
+    registered, how = registration.localize(scans.scans, scans.poses, target, settings, progress, scans.scan_label)
     out_dir = os.path.abspath(config.output_dir)
     tum, _ = write_poses(out_dir, "poses_localized", scans.timestamps, registered.poses)
     rows = report.localization_rows(registered, scans.files, scans.timestamps)
     report.write_csv(os.path.join(out_dir, "scans_report.csv"), rows, report.LOCALIZATION_COLUMNS)
-    return {"scans": scans.num_scans, "registered": int(registered.registered.sum()), "first_scan": how,
-            "median_residual_m": float(np.nanmedian(registered.residual_m)), "poses": str(tum)}
+    return {
+        "scans": scans.num_scans,
+        "registered": int(registered.registered.sum()),
+        "first_scan": how,
+        "median_residual_m": float(np.nanmedian(registered.residual_m)),
+        "poses": str(tum),
+    }
 
 
 def job(config) -> None:
     summary = localize_scans(config, RUN.value)
-    print(f"{summary['registered']} of {summary['scans']} scans registered to the map (the first by "
-          f"{'global registration' if summary['first_scan'] == 'global' else 'ICP from its own pose'}; median "
-          f"residual {100 * summary['median_residual_m']:.1f} cm): {summary['poses']}")
+    print(
+        f"{summary['registered']} of {summary['scans']} scans registered to the map (the first by "
+        f"{'global registration' if summary['first_scan'] == 'global' else 'ICP from its own pose'}; median "
+        f"residual {100 * summary['median_residual_m']:.1f} cm): {summary['poses']}"
+    )
 
 
 def main() -> None:

@@ -33,13 +33,18 @@ from absl import flags
 
 from neld_jax.cli import main_with_config
 
-ROOT = flags.DEFINE_string("root", None,
-                           "Folder to write the sequence to (scans/, poses.txt, gt_poses.txt, gt_map.pcd).")
+ROOT = flags.DEFINE_string(
+    "root", None, "Folder to write the sequence to (scans/, poses.txt, gt_poses.txt, gt_map.pcd)."
+)
 flags.mark_flag_as_required("root")
-RATE_HZ = flags.DEFINE_float("rate_hz", 0.0, "Raw sweeps at this rate (0: one rigid scan every 3 s, with drifted "
-                             "initial poses).")
-SESSION = flags.DEFINE_integer("session", None, "Write the K-th visit of the scene (K >= 0): its own loop, drift "
-                               "and frame; ground truth in the scene's frame.")
+RATE_HZ = flags.DEFINE_float(
+    "rate_hz", 0.0, "Raw sweeps at this rate (0: one rigid scan every 3 s, with drifted initial poses)."
+)
+SESSION = flags.DEFINE_integer(
+    "session",
+    None,
+    "Write the K-th visit of the scene (K >= 0): its own loop, drift and frame; ground truth in the scene's frame.",
+)
 
 
 def job(config) -> None:

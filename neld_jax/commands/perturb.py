@@ -17,8 +17,12 @@ OUT = flags.DEFINE_string("out", None, "Folder to write the perturbed copy to (g
 TRANS_M = flags.DEFINE_float("trans_m", 0.05, "Drift per scan: translation sigma per axis [m].")
 ROT_DEG = flags.DEFINE_float("rot_deg", 0.5, "Drift per scan: rotation-vector sigma per axis [deg].")
 SEED = flags.DEFINE_integer("seed", 0, "Seed of the random walk.")
-KEEP_TILT = flags.DEFINE_bool("keep_tilt", False, "Drift in position and heading only, as an IMU-aided odometry "
-                              "drifts (gravity keeps roll and pitch); --rot_deg is then the heading's sigma.")
+KEEP_TILT = flags.DEFINE_bool(
+    "keep_tilt",
+    False,
+    "Drift in position and heading only, as an IMU-aided odometry "
+    "drifts (gravity keeps roll and pitch); --rot_deg is then the heading's sigma.",
+)
 flags.mark_flag_as_required("out")
 
 
@@ -32,9 +36,11 @@ def job(config) -> None:
     write_generic(seq, OUT.value)
     error = ate(seq.poses, seq.gt_poses, align="se3")
     kind = " (position and heading only)" if KEEP_TILT.value else ""
-    print(f"wrote {seq.num_scans} scans to {OUT.value}: drift {TRANS_M.value} m / {ROT_DEG.value} deg per scan{kind} "
-          f"(seed {SEED.value}), initial ATE {error['translation_rmse_m']:.3f} m, "
-          f"{error['rotation_rmse_deg']:.2f} deg after SE(3) alignment")
+    print(
+        f"wrote {seq.num_scans} scans to {OUT.value}: drift {TRANS_M.value} m / {ROT_DEG.value} deg per scan{kind} "
+        f"(seed {SEED.value}), initial ATE {error['translation_rmse_m']:.3f} m, "
+        f"{error['rotation_rmse_deg']:.2f} deg after SE(3) alignment"
+    )
 
 
 def main() -> None:

@@ -21,8 +21,12 @@ from absl import flags
 
 from neld_jax.cli import main_with_config
 
-RESTART = flags.DEFINE_bool("restart", False, "Delete the files an earlier run wrote into output_dir (config.json, "
-                            "checkpoints, outputs) and start over, instead of resuming it.")
+RESTART = flags.DEFINE_bool(
+    "restart",
+    False,
+    "Delete the files an earlier run wrote into output_dir (config.json, "
+    "checkpoints, outputs) and start over, instead of resuming it.",
+)
 
 
 def job(config) -> None:
@@ -35,15 +39,19 @@ def job(config) -> None:
         logging.getLogger(__name__).warning(slow)
     summary = run(config, restart=RESTART.value)
     r = summary["run"]
-    print(f"{r['steps']} steps in {r['train_seconds']:.0f} s on {r['num_scans']} keyframes of {r['num_input_scans']} "
-          f"input scans (every input scan has a refined pose), started from the {r['started_from']} poses; outputs "
-          f"in {config.output_dir}")
+    print(
+        f"{r['steps']} steps in {r['train_seconds']:.0f} s on {r['num_scans']} keyframes of {r['num_input_scans']} "
+        f"input scans (every input scan has a refined pose), started from the {r['started_from']} poses; outputs "
+        f"in {config.output_dir}"
+    )
     print(format_crispness_table(summary["crispness"]))
     flagged = summary["scans_report"]["flagged"]
     if flagged:
         names = ", ".join(row["file"] or f"scan {row['scan']}" for row in flagged[:5])
-        print(f"{len(flagged)} keyframes flagged (residual or refinement; see scans_report.csv): {names}"
-              + (" ..." if len(flagged) > 5 else ""))
+        print(
+            f"{len(flagged)} keyframes flagged (residual or refinement; see scans_report.csv): {names}"
+            + (" ..." if len(flagged) > 5 else "")
+        )
     if "evaluation" in summary:
         print(format_table(summary["evaluation"]))
 
@@ -54,9 +62,11 @@ def init_distributed() -> None:
     if coordinator:
         import jax
 
-        jax.distributed.initialize(coordinator_address=coordinator,
-                                   num_processes=int(os.environ["NELD_JAX_NUM_PROCESSES"]),
-                                   process_id=int(os.environ["NELD_JAX_PROCESS_ID"]))
+        jax.distributed.initialize(
+            coordinator_address=coordinator,
+            num_processes=int(os.environ["NELD_JAX_NUM_PROCESSES"]),
+            process_id=int(os.environ["NELD_JAX_PROCESS_ID"]),
+        )
 
 
 def main() -> None:

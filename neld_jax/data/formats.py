@@ -45,8 +45,10 @@ RAW_SWEEP_FORMATS = ("generic",)
 # Where each folder format looks for ground truth by itself (for the "evaluation is skipped" warning).
 GT_SEARCHED = {
     "generic": ("ROOT/gt_poses.txt", "ROOT/gt_map.pcd|ply"),
-    "fusionportable": ("groundtruth/traj/<sequence>.txt in or above ROOT (or ROOT/gt_poses.txt)",
-                       "groundtruth/map/<sequence>/merged_scan.pcd in or above ROOT (or ROOT/gt_map.pcd|ply)"),
+    "fusionportable": (
+        "groundtruth/traj/<sequence>.txt in or above ROOT (or ROOT/gt_poses.txt)",
+        "groundtruth/map/<sequence>/merged_scan.pcd in or above ROOT (or ROOT/gt_map.pcd|ply)",
+    ),
     "newer_college": ("ROOT/gt-nc-*.csv, gt_state_*.csv or registered_poses.csv", "ROOT/gt_map.pcd|ply"),
     "lio_keyframes": ("nothing (the layout has no ground truth)", "ROOT/gt_map.pcd|ply"),
     "hba": ("nothing (the layout has no ground truth)", "ROOT/gt_map.pcd|ply"),
@@ -77,12 +79,18 @@ def read_sequence(data_cfg) -> Sequence:
     root = data_cfg.get("root", None)
     if seq.poses is None or make_poses:  # the scans are all there is: the front-end makes the poses
         if data_cfg.get("scans_in_world_frame", False) or data_cfg.get("invert_poses", False):
-            raise ConfigError(f"{root}: data.scans_in_world_frame / data.invert_poses need the layout's own poses, "
-                              f"not data.initial_poses={KISS_ICP} or none")
+            raise ConfigError(
+                f"{root}: data.scans_in_world_frame / data.invert_poses need the layout's own poses, "
+                f"not data.initial_poses={KISS_ICP} or none"
+            )
         return dataclasses.replace(seq, poses=None)
     if seq.point_times is not None:
-        logger.info("%s: the scans carry per-point times; the given poses are used as they are, without deskewing "
-                    "(data.initial_poses=%s deskews them with KISS-ICP's odometry)", root, KISS_ICP)
+        logger.info(
+            "%s: the scans carry per-point times; the given poses are used as they are, without deskewing "
+            "(data.initial_poses=%s deskews them with KISS-ICP's odometry)",
+            root,
+            KISS_ICP,
+        )
         seq = dataclasses.replace(seq, point_times=None)
     # Poses sensor -> world and scans in the sensor frame: converted when the config says so, else checked (and
     # refused with a line naming the option when they look the other way).
@@ -105,9 +113,17 @@ def report_missing_ground_truth(seq: Sequence, data_cfg) -> Sequence:
     if seq.gt_poses is None:
         gt_poses_file = ground_truth.explicit_path(data_cfg, "gt_poses_path")
         looked = f"data.gt_poses_path {gt_poses_file}" if gt_poses_file else GT_SEARCHED[fmt][0]
-        logger.warning("%s: no ground-truth trajectory (looked for %s; set data.gt_poses_path to give one): pose "
-                       "errors (ATE/RPE) will not be evaluated", root, looked)
+        logger.warning(
+            "%s: no ground-truth trajectory (looked for %s; set data.gt_poses_path to give one): pose "
+            "errors (ATE/RPE) will not be evaluated",
+            root,
+            looked,
+        )
     if seq.gt_map is None:
-        logger.warning("%s: no ground-truth map (looked for %s; set data.gt_map_path to give one): map errors will "
-                       "not be evaluated", root, GT_SEARCHED[fmt][1])
+        logger.warning(
+            "%s: no ground-truth map (looked for %s; set data.gt_map_path to give one): map errors will "
+            "not be evaluated",
+            root,
+            GT_SEARCHED[fmt][1],
+        )
     return seq

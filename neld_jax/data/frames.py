@@ -48,8 +48,9 @@ def _thinned(scan: np.ndarray) -> np.ndarray:
     return points[:: max(1, len(points) // _MAX_POINTS)]
 
 
-def world_frame_votes(scans: list[np.ndarray], poses: np.ndarray, quantile: float = 25.0,
-                      min_offset_m: float = 1.0) -> tuple[int, float]:
+def world_frame_votes(
+    scans: list[np.ndarray], poses: np.ndarray, quantile: float = 25.0, min_offset_m: float = 1.0
+) -> tuple[int, float]:
     """(voters, share of them whose points lie nearer their pose position than the origin); scans: [[N_i, 3]],
     poses: [S, 4, 4] sensor -> world. See the module docstring."""
     picked = np.unique(np.linspace(0, len(scans) - 1, min(len(scans), _MAX_SCANS)).round().astype(int))
@@ -78,8 +79,11 @@ def in_sensor_frame(seq: Sequence, where: str, scans_in_world_frame: bool = Fals
     """seq with its scans in the sensor frame: moved there when `scans_in_world_frame` (data.scans_in_world_frame),
     else checked; a DataError naming `where` when they look registered already (module docstring)."""
     if scans_in_world_frame:
-        logger.info("%s: moving %d world-frame scans into their sensors' frames (data.scans_in_world_frame)", where,
-                    seq.num_scans)
+        logger.info(
+            "%s: moving %d world-frame scans into their sensors' frames (data.scans_in_world_frame)",
+            where,
+            seq.num_scans,
+        )
         return dataclasses.replace(seq, scans=to_sensor_frame(seq.scans, seq.poses))
     voters, share = world_frame_votes(seq.scans, seq.poses)
     if voters >= MIN_VOTERS and share >= WORLD_SHARE:
@@ -87,12 +91,14 @@ def in_sensor_frame(seq: Sequence, where: str, scans_in_world_frame: bool = Fals
             f"{where}: the scans look registered already (world frame): in {share:.0%} of the {voters} scans far "
             "enough from the origin to tell, the points lie nearer the scan's pose than the origin. Give scans in "
             "the sensor frame (FAST-LIO2: /cloud_registered_body, not /cloud_registered or PCD/scans_*.pcd), or "
-            "set data.scans_in_world_frame=True to have them moved into it")
+            "set data.scans_in_world_frame=True to have them moved into it"
+        )
     return seq
 
 
-def _overlap_pairs(poses: np.ndarray, min_move_m: float = 1.0, min_turn_deg: float = 10.0,
-                   max_gap: int = 5) -> list[tuple[int, int]]:
+def _overlap_pairs(
+    poses: np.ndarray, min_move_m: float = 1.0, min_turn_deg: float = 10.0, max_gap: int = 5
+) -> list[tuple[int, int]]:
     """Up to MAX_PAIRS (i, j), j the first scan within max_gap after i that moved or turned that far from it."""
     pairs = []
     starts = np.unique(np.linspace(0, len(poses) - 2, min(len(poses) - 1, 4 * MAX_PAIRS)).round().astype(int))
@@ -111,6 +117,7 @@ def _overlap_pairs(poses: np.ndarray, min_move_m: float = 1.0, min_turn_deg: flo
 def pair_distance(scans: list[np.ndarray], poses: np.ndarray, pairs: list[tuple[int, int]]) -> float:
     """Median over pairs (i, j) of the median distance from scan i's points to scan j's nearest, both registered
     with poses [S, 4, 4] (sensor -> world)."""
+
     def registered(k):
         return transform_points(_thinned(scans[k]), poses[k])
 
@@ -135,4 +142,5 @@ def check_pose_direction(seq: Sequence, where: str) -> None:
         raise DataError(
             f"{where}: the poses look inverted (world -> sensor): scans a little apart overlap far better under their "
             f"inverses (median nearest-point distance {inverted:.2f} m against {given:.2f} m over {len(pairs)} pairs). "
-            "Give sensor -> world poses (TUM and KITTI files hold those), or set data.invert_poses=True")
+            "Give sensor -> world poses (TUM and KITTI files hold those), or set data.invert_poses=True"
+        )

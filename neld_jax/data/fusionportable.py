@@ -54,8 +54,7 @@ GT_FILES = ("gt_poses.txt", "traj/gt_poses.txt", "ground_truth.txt", "traj/groun
 # The devkit's exports (fusionportable_dataset_tools, src/data_loader/ros_msg/pointcloud.py and odometry.py, driven
 # by src/write_alg_bag_to_data.ipynb and src/write_bag_to_data.ipynb): (scan folder, frame of its clouds).
 # algorithm_result/ holds FAST-LIO2's /cloud_registered_body (frame body_imu, src/cfg/algorithm/cfg_fastlio2.py).
-DEVKIT_SCANS = (("algorithm_result/ouster00_undistort/points", "body_imu"),
-                ("raw_data/ouster00/points", "ouster00"))
+DEVKIT_SCANS = (("algorithm_result/ouster00_undistort/points", "body_imu"), ("raw_data/ouster00/points", "ouster00"))
 DEVKIT_ODOMETRY = ("algorithm_result/odometry/odometry.txt", "odometry.txt")
 # The Ouster's clouds in the downloaded bag <sequence>.bag: topic and frame from the devkit's topic table for the
 # handheld sequences (fusionportable_dataset_tools, cfg/dataset/cfg_handheld.py, 'ouster_points'). The second topic
@@ -64,10 +63,15 @@ LIDAR_TOPICS = ("/os_cloud_node/points", "/ouster00/points")
 LIDAR_FRAME = "ouster00"
 
 
-def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
-                        gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
-                        gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
-                        gt_time_offset_s: float = 0.0) -> Sequence:
+def load_fusionportable(
+    root: str | os.PathLike,
+    tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+    gt_poses_file: Path | None = None,
+    gt_map_file: Path | None = None,
+    gt_from_scan: np.ndarray | None = None,
+    scan_frame: str = "",
+    gt_time_offset_s: float = 0.0,
+) -> Sequence:
     """Load a FusionPortable sequence from ROOT in any of the layouts of the module docstring.
 
     gt_poses_file / gt_map_file (config data.gt_poses_path / gt_map_path) override the search. Ground-truth poses
@@ -80,34 +84,64 @@ def load_fusionportable(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_
         scan_folder = root / "scans"
         files = sorted_by_name(list_scans(scan_folder))
         scan_times = _timestamps_from_names(files, scan_folder, "<timestamp>.pcd")
-        return timestamped_sequence(root, files, scan_times, POSE_FILES, GT_FILES, LoadOptions(
-            tol=tol, gt_poses_file=gt_poses_file, gt_map_file=gt_map_file, gt_from_scan=gt_from_scan,
-            gt_time_offset_s=gt_time_offset_s))
+        return timestamped_sequence(
+            root,
+            files,
+            scan_times,
+            POSE_FILES,
+            GT_FILES,
+            LoadOptions(
+                tol=tol,
+                gt_poses_file=gt_poses_file,
+                gt_map_file=gt_map_file,
+                gt_from_scan=gt_from_scan,
+                gt_time_offset_s=gt_time_offset_s,
+            ),
+        )
 
-    found = next(((root / folder, frame) for folder, frame in DEVKIT_SCANS if (root / folder / "data").is_dir()),
-                 None)
+    found = next(((root / folder, frame) for folder, frame in DEVKIT_SCANS if (root / folder / "data").is_dir()), None)
     if found is None:
         bags = raw_bags.bags_in(root, f"{root.name}.bag")
         if bags:
-            return load_fusionportable_bag(root, bags, tol, gt_poses_file, gt_map_file, gt_from_scan, scan_frame,
-                                           gt_time_offset_s)
+            return load_fusionportable_bag(
+                root, bags, tol, gt_poses_file, gt_map_file, gt_from_scan, scan_frame, gt_time_offset_s
+            )
         looked = ", ".join(f"{folder}/data/" for folder, _ in DEVKIT_SCANS)
-        raise DataError(f"{root}: no FusionPortable scans (looked for scans/, the devkit's {looked} and the "
-                        f"download's {root.name}.bag or any *.bag)")
+        raise DataError(
+            f"{root}: no FusionPortable scans (looked for scans/, the devkit's {looked} and the "
+            f"download's {root.name}.bag or any *.bag)"
+        )
     points_folder, frame = found
     files, scan_times = _devkit_scans(points_folder)
     if gt_from_scan is None:
         gt_from_scan = ground_truth.published_offset("fusionportable", scan_frame or frame)
     gt_poses_file, gt_map_file = _download_ground_truth(root, gt_poses_file, gt_map_file)
-    return timestamped_sequence(root, files, scan_times, DEVKIT_ODOMETRY, (), LoadOptions(
-        tol=tol, gt_poses_file=gt_poses_file, gt_map_file=gt_map_file, gt_from_scan=gt_from_scan,
-        gt_time_offset_s=gt_time_offset_s))
+    return timestamped_sequence(
+        root,
+        files,
+        scan_times,
+        DEVKIT_ODOMETRY,
+        (),
+        LoadOptions(
+            tol=tol,
+            gt_poses_file=gt_poses_file,
+            gt_map_file=gt_map_file,
+            gt_from_scan=gt_from_scan,
+            gt_time_offset_s=gt_time_offset_s,
+        ),
+    )
 
 
-def load_fusionportable_bag(root: Path, bags: list[Path], tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
-                            gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
-                            gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
-                            gt_time_offset_s: float = 0.0) -> Sequence:
+def load_fusionportable_bag(
+    root: Path,
+    bags: list[Path],
+    tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+    gt_poses_file: Path | None = None,
+    gt_map_file: Path | None = None,
+    gt_from_scan: np.ndarray | None = None,
+    scan_frame: str = "",
+    gt_time_offset_s: float = 0.0,
+) -> Sequence:
     """The download's bag(s) as raw sweeps (raw_bags): the first of LIDAR_TOPICS the bag has, poses None,
     per-point times, files "<sequence>.bag:<topic>#000123". Ground truth as for the devkit's raw ouster00 clouds:
     groundtruth/traj/<sequence>.txt (in or above ROOT) matched to the scan stamps within tol, moved into the scan
@@ -126,8 +160,10 @@ def _devkit_scans(points_folder: Path) -> tuple[list[Path], np.ndarray]:
     files = sorted_by_name(list_scans(points_folder / "data"))
     scan_times = read_times(points_folder / "timestamps.txt")
     if len(scan_times) != len(files):
-        raise DataError(f"{points_folder / 'timestamps.txt'} has {len(scan_times)} stamps but {points_folder / 'data'} "
-                        f"has {len(files)} scans (the devkit writes one stamp per cloud, in order)")
+        raise DataError(
+            f"{points_folder / 'timestamps.txt'} has {len(scan_times)} stamps but {points_folder / 'data'} "
+            f"has {len(files)} scans (the devkit writes one stamp per cloud, in order)"
+        )
     return files, scan_times
 
 
@@ -155,6 +191,12 @@ def load(data_cfg) -> Sequence:
     layout.load_options (explicit paths, gt_from_scan, scan_frame, gt_time_offset_s) and data.timestamp_tol_s."""
     root = config_root(data_cfg, "fusionportable")
     options = load_options(data_cfg)
-    return load_fusionportable(root, tol=options.tol, gt_poses_file=options.gt_poses_file,
-                               gt_map_file=options.gt_map_file, gt_from_scan=options.gt_from_scan,
-                               scan_frame=options.scan_frame, gt_time_offset_s=options.gt_time_offset_s)
+    return load_fusionportable(
+        root,
+        tol=options.tol,
+        gt_poses_file=options.gt_poses_file,
+        gt_map_file=options.gt_map_file,
+        gt_from_scan=options.gt_from_scan,
+        scan_frame=options.scan_frame,
+        gt_time_offset_s=options.gt_time_offset_s,
+    )

@@ -40,8 +40,9 @@ logger = logging.getLogger(__name__)
 POINT_TIMES_FOLDER = "point_times"  # raw sweeps' per-point times beside scans/ (which takes any .npy as a scan)
 
 
-def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
-                 drop_unmatched_tail: bool = False) -> Sequence:
+def load_generic(
+    root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S, drop_unmatched_tail: bool = False
+) -> Sequence:
     """Load the layout of this module's docstring.
 
     Poses match scans by order (their timestamps must then increase). Only when the counts differ and
@@ -61,22 +62,25 @@ def load_generic(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERAN
     if not pose_file.is_file():  # load_sequence makes the poses from the scans
         logger.info("%s: no poses.txt: the initial poses will be made from the %d scans", root, len(files))
         timestamps = np.asarray(name_times, dtype=np.float64) if names_are_times else None
-        seq = build_sequence(root, files, None, timestamps, _ground_truth(root, files, timestamps, False, tol),
-                             "no poses")
+        seq = build_sequence(
+            root, files, None, timestamps, _ground_truth(root, files, timestamps, False, tol), "no poses"
+        )
         return with_point_times(seq, root)
     pose_times, poses = read_tum(pose_file)
     by_time = names_are_times and poses.shape[0] != len(files)
     scan_times = np.asarray(name_times, dtype=np.float64) if by_time else None
-    aligned = align_poses(poses, pose_times, pose_file, files, scan_times, tol=tol,
-                          drop_unmatched_tail=drop_unmatched_tail, root=root)
+    aligned = align_poses(
+        poses, pose_times, pose_file, files, scan_times, tol=tol, drop_unmatched_tail=drop_unmatched_tail, root=root
+    )
     files = [files[i] for i in aligned.scan_indices]
     gt_poses = _ground_truth(root, files, aligned.timestamps, by_time, tol)
     seq = build_sequence(root, files, aligned.poses, aligned.timestamps, gt_poses, pose_file)
     return with_point_times(seq, root)
 
 
-def _ground_truth(root: Path, files: list[Path], timestamps: np.ndarray | None, by_time: bool,
-                  tol: float) -> np.ndarray | None:
+def _ground_truth(
+    root: Path, files: list[Path], timestamps: np.ndarray | None, by_time: bool, tol: float
+) -> np.ndarray | None:
     """ROOT/gt_poses.txt matched to the scans files [S] ([S, 4, 4]), None without the file: by time (timestamps [S])
     when the poses were matched by time or the counts differ, else by order."""
     gt_file = root / "gt_poses.txt"
@@ -84,8 +88,7 @@ def _ground_truth(root: Path, files: list[Path], timestamps: np.ndarray | None, 
         return None
     gt_times, gt_all = read_tum(gt_file)
     gt_by_time = by_time or gt_all.shape[0] != len(files)
-    return align_poses(gt_all, gt_times, gt_file, files, timestamps if gt_by_time else None, tol=tol,
-                       root=root).poses
+    return align_poses(gt_all, gt_times, gt_file, files, timestamps if gt_by_time else None, tol=tol, root=root).poses
 
 
 def with_point_times(seq: Sequence, root: Path) -> Sequence:
@@ -98,8 +101,14 @@ def with_point_times(seq: Sequence, root: Path) -> Sequence:
     paths = [root / POINT_TIMES_FOLDER / f"{Path(f).stem}.npy" for f in seq.files]
     present = [p.is_file() for p in paths]
     if not all(present):
-        logger.warning("%s: %d of %d scans have no %s/<scan>.npy (first: %s); per-point times are not used", root,
-                       present.count(False), len(paths), POINT_TIMES_FOLDER, seq.files[present.index(False)])
+        logger.warning(
+            "%s: %d of %d scans have no %s/<scan>.npy (first: %s); per-point times are not used",
+            root,
+            present.count(False),
+            len(paths),
+            POINT_TIMES_FOLDER,
+            seq.files[present.index(False)],
+        )
         return seq
     return dataclasses.replace(seq, point_times=ScanFiles(paths, read_point_times))
 

@@ -86,9 +86,10 @@ PUBLISHED_GT_FROM_SCAN = {
     ("fusionportable", "ouster00"): np.eye(4),
 }
 # data.scan_frame's choices by data.format: the frames its releases publish (newer_college: both releases)
-SCAN_FRAMES = {fmt: tuple(dict.fromkeys(frame for (release, frame) in PUBLISHED_GT_FROM_SCAN
-                                        if release.startswith(fmt)))
-               for fmt in ("fusionportable", "newer_college")}
+SCAN_FRAMES = {
+    fmt: tuple(dict.fromkeys(frame for (release, frame) in PUBLISHED_GT_FROM_SCAN if release.startswith(fmt)))
+    for fmt in ("fusionportable", "newer_college")
+}
 
 
 def published_offset(release: str, scan_frame: str = "") -> np.ndarray:

@@ -48,8 +48,10 @@ def load_hba(root: str | os.PathLike, drop_unmatched_tail: bool = False) -> Sequ
         indexed[int(f.stem)] = f
     missing = sorted(set(range(len(indexed))) - set(indexed))
     if missing:
-        raise DataError(f"{root / SCAN_FOLDER}: scan index {missing[0]} is missing ({len(indexed)} scans, highest "
-                        f"index {max(indexed)}); HBA reads pcd/<i>.pcd for pose i")
+        raise DataError(
+            f"{root / SCAN_FOLDER}: scan index {missing[0]} is missing ({len(indexed)} scans, highest "
+            f"index {max(indexed)}); HBA reads pcd/<i>.pcd for pose i"
+        )
     files = [indexed[i] for i in range(len(indexed))]
     pose_file = root / POSE_FILE
     poses = read_hba_poses(pose_file)

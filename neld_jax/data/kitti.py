@@ -82,8 +82,10 @@ def read_calibration(path: Path) -> np.ndarray:
     except ValueError:
         values = np.zeros(0)
     if values.size != 12 or not np.all(np.isfinite(values)):
-        raise DataError(f"{path}, line {number}: '{CALIB_TR}:' must hold 12 finite numbers (row-major 3x4 velodyne -> "
-                        f"camera 0), got {' '.join(fields)[:60]!r}")
+        raise DataError(
+            f"{path}, line {number}: '{CALIB_TR}:' must hold 12 finite numbers (row-major 3x4 velodyne -> "
+            f"camera 0), got {' '.join(fields)[:60]!r}"
+        )
     transform = np.eye(4)
     transform[:3, :4] = values.reshape(3, 4)
     rotation = transform[:3, :3]
@@ -103,8 +105,10 @@ def _scan_files(root: Path) -> list[Path]:
     scans.read_scan); DataError for a missing folder."""
     velodyne = root / "velodyne"
     if not velodyne.is_dir():
-        raise DataError(f"{root}: no velodyne/ folder (KITTI odometry: ROOT = sequences/NN with velodyne/NNNNNN.bin, "
-                        "times.txt, calib.txt)")
+        raise DataError(
+            f"{root}: no velodyne/ folder (KITTI odometry: ROOT = sequences/NN with velodyne/NNNNNN.bin, "
+            "times.txt, calib.txt)"
+        )
     return sorted_by_name(list_scans(velodyne))
 
 
@@ -125,8 +129,10 @@ def load_kitti(root: str | os.PathLike, gt_map_file: Path | None = None) -> Sequ
     files = _scan_files(root)
     times = read_times(root / "times.txt")
     if len(times) != len(files):
-        raise DataError(f"{root / 'times.txt'} has {len(times)} stamps but {root / 'velodyne'} has {len(files)} scans "
-                        "(one stamp per scan, in order)")
+        raise DataError(
+            f"{root / 'times.txt'} has {len(times)} stamps but {root / 'velodyne'} has {len(files)} scans "
+            "(one stamp per scan, in order)"
+        )
     gt_file = _ground_truth_file(root)
     gt_poses = None
     if gt_file is not None:

@@ -117,8 +117,12 @@ def list_scans(folder: Path) -> list[Path]:
             continue
         (files if entry.is_file() and entry.suffix.lower() in SCAN_EXTENSIONS else others).append(entry)
     if others:
-        logger.warning("%s: ignored %d entries that are not scan files (%s)", folder, len(others),
-                       ", ".join(sorted(p.name for p in others)[:5]))
+        logger.warning(
+            "%s: ignored %d entries that are not scan files (%s)",
+            folder,
+            len(others),
+            ", ".join(sorted(p.name for p in others)[:5]),
+        )
     if not files:
         raise DataError(f"scan folder {folder} contains no scan files ({', '.join(SCAN_EXTENSIONS)})")
     return files
@@ -192,12 +196,19 @@ def read_scans(files: list[Path]) -> ScanFiles:
             totals[key] += dropped[key]
         for key in affected:
             affected[key] += dropped[key] > 0
-    logger.info("read %d scans (%d points) from %s; they are read again from disk when used", len(files), kept,
-                files[0].parent)
+    logger.info(
+        "read %d scans (%d points) from %s; they are read again from disk when used", len(files), kept, files[0].parent
+    )
     if totals["non-finite"] or totals["zero"]:
-        logger.info("dropped %d of %d points: %d NaN/infinite (in %d scans), %d at (0, 0, 0), i.e. no return "
-                    "(in %d scans)", totals["non-finite"] + totals["zero"], totals["read"], totals["non-finite"],
-                    affected["non-finite"], totals["zero"], affected["zero"])
+        logger.info(
+            "dropped %d of %d points: %d NaN/infinite (in %d scans), %d at (0, 0, 0), i.e. no return (in %d scans)",
+            totals["non-finite"] + totals["zero"],
+            totals["read"],
+            totals["non-finite"],
+            affected["non-finite"],
+            totals["zero"],
+            affected["zero"],
+        )
     return ScanFiles(files)
 
 
@@ -263,22 +274,35 @@ def align_poses(
     return Alignment(poses[:keep], times, np.arange(keep, dtype=np.int64))
 
 
-def _matched_by_time(pose_times: np.ndarray | None, pose_file: Path, scan_times: np.ndarray, tol: float,
-                     labels: list[str]) -> np.ndarray:
+def _matched_by_time(
+    pose_times: np.ndarray | None, pose_file: Path, scan_times: np.ndarray, tol: float, labels: list[str]
+) -> np.ndarray:
     """align_poses by time: the index [S] of each scan's pose (nearest within tol); pose times out of order warned
     about."""
     if pose_times is None:
         raise DataError(f"{pose_file}: has no timestamps, so its poses cannot be matched to scans by time")
     back = np.flatnonzero(np.diff(pose_times) < 0)
     if back.size:
-        logger.warning("%s: timestamps are not in time order (pose %d at t=%.6f comes after t=%.6f; %d such "
-                       "places); poses are matched by time, so this only matters if the file is a mix-up",
-                       pose_file, back[0] + 2, pose_times[back[0] + 1], pose_times[back[0]], back.size)
+        logger.warning(
+            "%s: timestamps are not in time order (pose %d at t=%.6f comes after t=%.6f; %d such "
+            "places); poses are matched by time, so this only matters if the file is a mix-up",
+            pose_file,
+            back[0] + 2,
+            pose_times[back[0] + 1],
+            pose_times[back[0]],
+            back.size,
+        )
     return match_by_timestamp(scan_times, pose_times, tol=tol, what=str(pose_file), scan_labels=labels)
 
 
-def _matched_by_order(num_poses: int, pose_times: np.ndarray | None, pose_file: Path, scan_files: list[Path],
-                      drop_unmatched_tail: bool, root: Path | None) -> int:
+def _matched_by_order(
+    num_poses: int,
+    pose_times: np.ndarray | None,
+    pose_file: Path,
+    scan_files: list[Path],
+    drop_unmatched_tail: bool,
+    root: Path | None,
+) -> int:
     """align_poses by order: how many leading scans and poses pair up (align_poses' errors and warnings)."""
     if pose_times is not None:
         back = np.flatnonzero(np.diff(pose_times) <= 0)
@@ -297,13 +321,17 @@ def _matched_by_order(num_poses: int, pose_times: np.ndarray | None, pose_file: 
         left_over = [_relative(Path(f), root) for f in scan_files[keep:]]
         what = f"the last {extra} scan(s) ({_listed(left_over)}) have no pose; delete them or add poses"
     else:
-        left_over = ([f"pose {i + 1}" for i in range(keep, num_poses)] if pose_times is None
-                     else [f"t={t:.6f}" for t in pose_times[keep:]])
-        what = (f"the last {extra} pose(s) ({_listed(left_over)}) have no scan; "
-                "delete them or add the missing scans")
+        left_over = (
+            [f"pose {i + 1}" for i in range(keep, num_poses)]
+            if pose_times is None
+            else [f"t={t:.6f}" for t in pose_times[keep:]]
+        )
+        what = f"the last {extra} pose(s) ({_listed(left_over)}) have no scan; delete them or add the missing scans"
     folder = _relative(Path(scan_files[0]).parent, root) + "/" if scan_files else "the scan list"
-    message = (f"{'' if root is None else f'{root}: '}{_relative(pose_file, root)} has {num_poses} poses "
-               f"but {folder} has {num_scans} scans: {what} (poses are matched to scans one to one, in order)")
+    message = (
+        f"{'' if root is None else f'{root}: '}{_relative(pose_file, root)} has {num_poses} poses "
+        f"but {folder} has {num_scans} scans: {what} (poses are matched to scans one to one, in order)"
+    )
     if not drop_unmatched_tail or extra > MAX_UNMATCHED_TAIL:
         if drop_unmatched_tail:
             message += f"; drop_unmatched_tail drops at most {MAX_UNMATCHED_TAIL}, not {extra}"
@@ -317,8 +345,15 @@ def _matched_by_order(num_poses: int, pose_times: np.ndarray | None, pose_file: 
 # --------------------------------------------------------------------------------------------------
 
 
-def matched_ground_truth(root: Path, files: list[Path], scan_times: np.ndarray | None, gt_file: Path, tol: float,
-                         gt_from_scan: np.ndarray | None, gt_time_offset_s: float = 0.0) -> np.ndarray:
+def matched_ground_truth(
+    root: Path,
+    files: list[Path],
+    scan_times: np.ndarray | None,
+    gt_file: Path,
+    tol: float,
+    gt_from_scan: np.ndarray | None,
+    gt_time_offset_s: float = 0.0,
+) -> np.ndarray:
     """The ground-truth pose of each scan [S, 4, 4]: gt_file (TUM, or Newer College CSV for .csv) matched to the
     scans by time within tol (by order without scan times), then moved into the scan frame (T_world_G @ T_G_S).
     gt_time_offset_s is added to the scan stamps for this matching only (a ground truth stamped by another
@@ -347,8 +382,15 @@ def with_explicit_ground_truth(seq: Sequence, root: str | os.PathLike, options: 
         files = [root / f for f in seq.files] if seq.files else [Path(f"scan {i}") for i in range(seq.num_scans)]
         gt_times, _ = ground_truth.read_trajectory(gt_poses_file)
         by_time = seq.timestamps is not None and gt_times is not None
-        changes["gt_poses"] = matched_ground_truth(root, files, seq.timestamps if by_time else None, gt_poses_file,
-                                                   options.tol, options.gt_from_scan, options.gt_time_offset_s)
+        changes["gt_poses"] = matched_ground_truth(
+            root,
+            files,
+            seq.timestamps if by_time else None,
+            gt_poses_file,
+            options.tol,
+            options.gt_from_scan,
+            options.gt_time_offset_s,
+        )
     if gt_map_file is not None:
         changes["gt_map"] = read_scan(gt_map_file)
     return dataclasses.replace(seq, **changes)
@@ -364,8 +406,15 @@ def _read_gt_map(root: Path) -> np.ndarray | None:
     return None if path is None else read_scan(path)
 
 
-def build_sequence(root: Path, files: list[Path], poses: np.ndarray | None, timestamps: np.ndarray | None,
-                   gt_poses: np.ndarray | None, pose_file: Path | str, gt_map_file: Path | None = None) -> Sequence:
+def build_sequence(
+    root: Path,
+    files: list[Path],
+    poses: np.ndarray | None,
+    timestamps: np.ndarray | None,
+    gt_poses: np.ndarray | None,
+    pose_file: Path | str,
+    gt_map_file: Path | None = None,
+) -> Sequence:
     """Read the scans and the GT map (gt_map_file, else ROOT/gt_map.pcd|ply if present), build the Sequence
     (files relative to root), check for pose jumps.
 
@@ -387,8 +436,14 @@ def build_sequence(root: Path, files: list[Path], poses: np.ndarray | None, time
     return seq
 
 
-def timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray, pose_files: tuple[str, ...],
-                         gt_files: tuple[str, ...], options: LoadOptions) -> Sequence:
+def timestamped_sequence(
+    root: Path,
+    files: list[Path],
+    scan_times: np.ndarray,
+    pose_files: tuple[str, ...],
+    gt_files: tuple[str, ...],
+    options: LoadOptions,
+) -> Sequence:
     """Scans with timestamps (files [S], scan_times [S] seconds), initial poses (the first of pose_files under
     root, TUM) and optional ground truth (options.gt_poses_file, else the first of gt_files under root) matched to
     them by nearest timestamp within options.tol and moved by options.gt_from_scan, optional GT map
@@ -403,7 +458,8 @@ def timestamped_sequence(root: Path, files: list[Path], scan_times: np.ndarray, 
     gt_poses = None
     gt_file = options.gt_poses_file or first_existing(root, gt_files)
     if gt_file is not None:
-        gt_poses = matched_ground_truth(root, files, scan_times, gt_file, options.tol, options.gt_from_scan,
-                                        options.gt_time_offset_s)
+        gt_poses = matched_ground_truth(
+            root, files, scan_times, gt_file, options.tol, options.gt_from_scan, options.gt_time_offset_s
+        )
 
     return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file, options.gt_map_file)

@@ -53,13 +53,18 @@ def _scan_files(root: Path) -> tuple[Path, list[Path]]:
         raise DataError(f"{folder}: no .pcd scans")
     files.sort()
     if others:
-        logger.warning("%s: ignored %d entries that are not .pcd scans (%s)", folder, len(others),
-                       ", ".join(sorted(p.name for p in others)[:5]))
+        logger.warning(
+            "%s: ignored %d entries that are not .pcd scans (%s)",
+            folder,
+            len(others),
+            ", ".join(sorted(p.name for p in others)[:5]),
+        )
     return folder, files
 
 
-def load_lio_keyframes(root: str | os.PathLike, pose_file: str = DEFAULT_POSE_FILE,
-                       drop_unmatched_tail: bool = False) -> Sequence:
+def load_lio_keyframes(
+    root: str | os.PathLike, pose_file: str = DEFAULT_POSE_FILE, drop_unmatched_tail: bool = False
+) -> Sequence:
     """Load the layout of this module's docstring into a Sequence (scans in the sensor frame, initial poses,
     timestamps; no ground truth). `pose_file` is relative to ROOT."""
     root = check_root(root)
@@ -73,8 +78,9 @@ def load_lio_keyframes(root: str | os.PathLike, pose_file: str = DEFAULT_POSE_FI
     times_path = root / TIMES_FILE
     stamps = read_times(times_path) if times_path.is_file() else None
     if stamps is None:
-        logger.warning("%s: no %s; scans get the stamps 0, 1, 2, ... (keyframe selection by time is off)",
-                       root, TIMES_FILE)
+        logger.warning(
+            "%s: no %s; scans get the stamps 0, 1, 2, ... (keyframe selection by time is off)", root, TIMES_FILE
+        )
 
     counts = {f"{folder.name}/": len(files), pose_path.name: len(poses)}
     if stamps is not None:
@@ -89,10 +95,16 @@ def load_lio_keyframes(root: str | os.PathLike, pose_file: str = DEFAULT_POSE_FI
                 f"{root}: scans, poses and stamps must correspond one to one, but {listing} "
                 f"({', '.join(short)} {'is' if len(short) == 1 else 'are'} short by {extra}); if the recording "
                 f"was cut short at its end, set data.drop_unmatched_tail=True to drop the last {extra} scan(s)"
-                + ("" if extra <= MAX_UNMATCHED_TAIL else f" (only allowed for up to {MAX_UNMATCHED_TAIL})"))
+                + ("" if extra <= MAX_UNMATCHED_TAIL else f" (only allowed for up to {MAX_UNMATCHED_TAIL})")
+            )
         dropped = [p.name for p in files[shortest:]]
-        logger.warning("%s: %s; dropping the trailing %d scan(s) without a full record: %s", root, listing, extra,
-                       ", ".join(dropped) or "(none: only poses or stamps)")
+        logger.warning(
+            "%s: %s; dropping the trailing %d scan(s) without a full record: %s",
+            root,
+            listing,
+            extra,
+            ", ".join(dropped) or "(none: only poses or stamps)",
+        )
         files, poses = files[:shortest], poses[:shortest]
         stamps = None if stamps is None else stamps[:shortest]
 
@@ -106,6 +118,9 @@ def load(data_cfg) -> Sequence:
     time against times.txt when both have stamps; layout.load_options)."""
     root = config_root(data_cfg, "lio_keyframes")
     options = load_options(data_cfg)
-    seq = load_lio_keyframes(root, pose_file=data_cfg.get("initial_poses", "") or DEFAULT_POSE_FILE,
-                             drop_unmatched_tail=options.drop_unmatched_tail)
+    seq = load_lio_keyframes(
+        root,
+        pose_file=data_cfg.get("initial_poses", "") or DEFAULT_POSE_FILE,
+        drop_unmatched_tail=options.drop_unmatched_tail,
+    )
     return with_explicit_ground_truth(seq, root, options)

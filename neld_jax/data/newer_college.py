@@ -72,10 +72,15 @@ def newer_college_release(gt_file: Path) -> str:
     return "newer_college_2020" if gt_file.name == "registered_poses.csv" else "newer_college_2021"
 
 
-def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
-                       gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
-                       gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
-                       gt_time_offset_s: float = 0.0) -> Sequence:
+def load_newer_college(
+    root: str | os.PathLike,
+    tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+    gt_poses_file: Path | None = None,
+    gt_map_file: Path | None = None,
+    gt_from_scan: np.ndarray | None = None,
+    scan_frame: str = "",
+    gt_time_offset_s: float = 0.0,
+) -> Sequence:
     """Load a Newer College sequence, 2021 or 2020 release, from ROOT in any of the layouts of the module docstring.
 
     gt_map_file overrides ROOT/gt_map.pcd|ply, gt_poses_file the search for the ground truth. The ground truth is
@@ -94,21 +99,41 @@ def load_newer_college(root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_T
     if scan_folder is None:
         bags = raw_bags.bags_in(root)
         if bags:
-            return load_newer_college_bags(root, bags, tol, gt_poses_file, gt_map_file, gt_from_scan, scan_frame,
-                                           gt_time_offset_s)
-        raise DataError(f"{root}: no scan folder (looked for scans/ with poses.txt, {', '.join(SCAN_FOLDERS)}) "
-                        "and no *.bag")
+            return load_newer_college_bags(
+                root, bags, tol, gt_poses_file, gt_map_file, gt_from_scan, scan_frame, gt_time_offset_s
+            )
+        raise DataError(
+            f"{root}: no scan folder (looked for scans/ with poses.txt, {', '.join(SCAN_FOLDERS)}) and no *.bag"
+        )
     files, scan_times = _clouds_by_name(list_scans(scan_folder))
     gt_file = gt_poses_file or first_existing(root, GT_FILES)
     if gt_from_scan is None and gt_file is not None:
         gt_from_scan = ground_truth.published_offset(newer_college_release(gt_file), scan_frame)
-    return timestamped_sequence(root, files, scan_times, POSE_FILES, GT_FILES, LoadOptions(
-        tol=tol, gt_poses_file=gt_file, gt_map_file=gt_map_file, gt_from_scan=gt_from_scan,
-        gt_time_offset_s=gt_time_offset_s))
+    return timestamped_sequence(
+        root,
+        files,
+        scan_times,
+        POSE_FILES,
+        GT_FILES,
+        LoadOptions(
+            tol=tol,
+            gt_poses_file=gt_file,
+            gt_map_file=gt_map_file,
+            gt_from_scan=gt_from_scan,
+            gt_time_offset_s=gt_time_offset_s,
+        ),
+    )
 
 
-def _load_imported_2021(root: Path, tol: float, gt_poses_file: Path | None, gt_map_file: Path | None,
-                        gt_from_scan: np.ndarray | None, scan_frame: str, gt_time_offset_s: float) -> Sequence:
+def _load_imported_2021(
+    root: Path,
+    tol: float,
+    gt_poses_file: Path | None,
+    gt_map_file: Path | None,
+    gt_from_scan: np.ndarray | None,
+    scan_frame: str,
+    gt_time_offset_s: float,
+) -> Sequence:
     """The 2021 release's clouds as bin/import_rosbag.py writes them, ROOT/scans/ with ROOT/poses.txt, and its
     ground truth (gt_poses_file, else ROOT/gt-nc-*.csv, gt_state_*.csv); arguments as load_newer_college's."""
     files = sorted_by_name(list_scans(root / "scans"))
@@ -119,8 +144,11 @@ def _load_imported_2021(root: Path, tol: float, gt_poses_file: Path | None, gt_m
     gt_file = gt_poses_file or _gt_2021_file(root)
     gt_poses = None
     if gt_file is not None:
-        offset = gt_from_scan if gt_from_scan is not None else ground_truth.published_offset(
-            newer_college_release(gt_file), scan_frame)
+        offset = (
+            gt_from_scan
+            if gt_from_scan is not None
+            else ground_truth.published_offset(newer_college_release(gt_file), scan_frame)
+        )
         gt_poses = matched_ground_truth(root, files, scan_times, gt_file, tol, offset, gt_time_offset_s)
     return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file, gt_map_file)
 
@@ -143,10 +171,16 @@ def _gt_2021_file(root: Path) -> Path | None:
     return next((p for pattern in GT_2021_PATTERNS for p in sorted(root.glob(pattern))), None)
 
 
-def load_newer_college_bags(root: Path, bags: list[Path], tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
-                            gt_poses_file: Path | None = None, gt_map_file: Path | None = None,
-                            gt_from_scan: np.ndarray | None = None, scan_frame: str = "",
-                            gt_time_offset_s: float = 0.0) -> Sequence:
+def load_newer_college_bags(
+    root: Path,
+    bags: list[Path],
+    tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+    gt_poses_file: Path | None = None,
+    gt_map_file: Path | None = None,
+    gt_from_scan: np.ndarray | None = None,
+    scan_frame: str = "",
+    gt_time_offset_s: float = 0.0,
+) -> Sequence:
     """The 2021 bag(s) as downloaded, as raw sweeps (raw_bags): LIDAR_TOPIC, poses None, per-point times, files
     "<bag>:/os_cloud_node/points#000123". Ground truth (gt_poses_file, else ROOT/gt-nc-*.csv, gt_state_*.csv)
     matched to the scan stamps within tol and moved into the scan frame by gt_from_scan (None: the published
@@ -163,6 +197,12 @@ def load(data_cfg) -> Sequence:
     layout.load_options (explicit paths, gt_from_scan, scan_frame, gt_time_offset_s) and data.timestamp_tol_s."""
     root = config_root(data_cfg, "newer_college")
     options = load_options(data_cfg)
-    return load_newer_college(root, tol=options.tol, gt_poses_file=options.gt_poses_file,
-                              gt_map_file=options.gt_map_file, gt_from_scan=options.gt_from_scan,
-                              scan_frame=options.scan_frame, gt_time_offset_s=options.gt_time_offset_s)
+    return load_newer_college(
+        root,
+        tol=options.tol,
+        gt_poses_file=options.gt_poses_file,
+        gt_map_file=options.gt_map_file,
+        gt_from_scan=options.gt_from_scan,
+        scan_frame=options.scan_frame,
+        gt_time_offset_s=options.gt_time_offset_s,
+    )

@@ -101,9 +101,7 @@ def _parse_rows(
             continue
         fields = [f.strip() for f in text.split(separator)] if separator else text.split()
         if len(fields) != num_columns:
-            raise DataError(
-                f"{path}, line {line_number}: expected {num_columns} columns ({what}), got {len(fields)}"
-            )
+            raise DataError(f"{path}, line {line_number}: expected {num_columns} columns ({what}), got {len(fields)}")
         try:
             values = [float(f) for f in fields]
         except ValueError as exc:

@@ -23,8 +23,12 @@ KEYFRAME_ANGLE_DEG = 30.0  # with the time cap on and no angle cap given
 
 
 def select_keyframes(
-    timestamps: np.ndarray | None, interval_s: float, num_scans: int | None = None,
-    poses: np.ndarray | None = None, distance_m: float = 0.0, angle_deg: float = 0.0,
+    timestamps: np.ndarray | None,
+    interval_s: float,
+    num_scans: int | None = None,
+    poses: np.ndarray | None = None,
+    distance_m: float = 0.0,
+    angle_deg: float = 0.0,
 ) -> np.ndarray:
     """Indices [K] int64 of keyframes: neighbouring keyframes lie at most `interval_s` apart in time (needs
     timestamps), `distance_m` apart in space and `angle_deg` apart in rotation (need poses [S, 4, 4]) where they
@@ -52,8 +56,10 @@ def select_keyframes(
         if not use_space:
             return False
         relative = invert_poses(poses[last]) @ poses[scan]
-        return bool((distance_m > 0 and np.linalg.norm(relative[:3, 3]) > share * distance_m + 1e-9)
-                    or (angle_deg > 0 and rotation_angles_deg(relative[:3, :3]) > share * angle_deg + 1e-6))
+        return bool(
+            (distance_m > 0 and np.linalg.norm(relative[:3, 3]) > share * distance_m + 1e-9)
+            or (angle_deg > 0 and rotation_angles_deg(relative[:3, :3]) > share * angle_deg + 1e-6)
+        )
 
     kept = [0]
     for i in range(1, num_scans - 1):
@@ -70,8 +76,10 @@ def keyframe_caps(interval_s: float, distance_m: float, angle_deg: float, max_ra
     so that neighbouring keyframes overlap however fast the sensor moves; with it off, as given (0: off)."""
     if interval_s <= 0:
         return distance_m, angle_deg
-    return (distance_m if distance_m > 0 else KEYFRAME_RANGE_FRACTION * max_range_m,
-            angle_deg if angle_deg > 0 else KEYFRAME_ANGLE_DEG)
+    return (
+        distance_m if distance_m > 0 else KEYFRAME_RANGE_FRACTION * max_range_m,
+        angle_deg if angle_deg > 0 else KEYFRAME_ANGLE_DEG,
+    )
 
 
 def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
@@ -112,28 +120,52 @@ class KeyframeSettings:
     @classmethod
     def from_config(cls, data_cfg) -> "KeyframeSettings":
         """config.data's settings, the caps completed by keyframe_caps."""
-        distance_m, angle_deg = keyframe_caps(data_cfg.keyframe_interval_s, data_cfg.get("keyframe_distance_m", 0.0),
-                                              data_cfg.get("keyframe_angle_deg", 0.0), data_cfg.max_range_m)
-        return cls(keyframe_interval_s=data_cfg.keyframe_interval_s, min_range=data_cfg.min_range_m,
-                   max_range=data_cfg.max_range_m, voxel_size=data_cfg.voxel_size_m,
-                   max_scans=(data_cfg.max_scans or None), keyframe_distance_m=distance_m,
-                   keyframe_angle_deg=angle_deg, first_scan=int(data_cfg.get("first_scan", 0)))
+        distance_m, angle_deg = keyframe_caps(
+            data_cfg.keyframe_interval_s,
+            data_cfg.get("keyframe_distance_m", 0.0),
+            data_cfg.get("keyframe_angle_deg", 0.0),
+            data_cfg.max_range_m,
+        )
+        return cls(
+            keyframe_interval_s=data_cfg.keyframe_interval_s,
+            min_range=data_cfg.min_range_m,
+            max_range=data_cfg.max_range_m,
+            voxel_size=data_cfg.voxel_size_m,
+            max_scans=(data_cfg.max_scans or None),
+            keyframe_distance_m=distance_m,
+            keyframe_angle_deg=angle_deg,
+            first_scan=int(data_cfg.get("first_scan", 0)),
+        )
 
 
 def keyframe_indices(seq: Sequence, settings: KeyframeSettings) -> np.ndarray:
     """The keyframes [K] int64 of seq (select_keyframes on its stamps and poses, from first_scan on, at most
     max_scans); a DataError when none is left."""
-    keep = select_keyframes(seq.timestamps, settings.keyframe_interval_s, num_scans=seq.num_scans, poses=seq.poses,
-                            distance_m=settings.keyframe_distance_m, angle_deg=settings.keyframe_angle_deg)
+    keep = select_keyframes(
+        seq.timestamps,
+        settings.keyframe_interval_s,
+        num_scans=seq.num_scans,
+        poses=seq.poses,
+        distance_m=settings.keyframe_distance_m,
+        angle_deg=settings.keyframe_angle_deg,
+    )
     keep = keep[keep >= settings.first_scan]
     if settings.max_scans is not None and settings.max_scans > 0:
-        keep = keep[:settings.max_scans]
+        keep = keep[: settings.max_scans]
     if len(keep) == 0:
-        raise DataError(f"{seq.source or seq.name}: no keyframes from scan {settings.first_scan} on "
-                        f"(the sequence has {seq.num_scans} scans)")
-    logger.info("keyframes: kept %d of %d scans (at most %.3g s, %.3g m, %.3g deg apart; max_scans %s)", len(keep),
-                seq.num_scans, settings.keyframe_interval_s, settings.keyframe_distance_m,
-                settings.keyframe_angle_deg, settings.max_scans)
+        raise DataError(
+            f"{seq.source or seq.name}: no keyframes from scan {settings.first_scan} on "
+            f"(the sequence has {seq.num_scans} scans)"
+        )
+    logger.info(
+        "keyframes: kept %d of %d scans (at most %.3g s, %.3g m, %.3g deg apart; max_scans %s)",
+        len(keep),
+        seq.num_scans,
+        settings.keyframe_interval_s,
+        settings.keyframe_distance_m,
+        settings.keyframe_angle_deg,
+        settings.max_scans,
+    )
     return keep
 
 
@@ -144,8 +176,13 @@ def keyframe_points(seq: Sequence, index: int, settings: KeyframeSettings) -> tu
     raw = seq.scans[index]
     cropped = crop_range(raw, settings.min_range, settings.max_range)
     downsampled = voxel_downsample(cropped, settings.voxel_size)
-    logger.debug("%s: %d points -> %d in range -> %d after voxel grid", seq.scan_label(index), len(raw), len(cropped),
-                 len(downsampled))
+    logger.debug(
+        "%s: %d points -> %d in range -> %d after voxel grid",
+        seq.scan_label(index),
+        len(raw),
+        len(cropped),
+        len(downsampled),
+    )
     if downsampled.shape[0] == 0:
         distances = np.linalg.norm(raw, axis=1)
         raise DataError(
@@ -171,8 +208,14 @@ def preprocess(seq: Sequence, settings: KeyframeSettings = KeyframeSettings()) -
         totals += (num_raw, num_cropped, len(points))
         scans.append(points)
     logger.info(
-        "points: %d raw -> %d within %.3g-%.3g m -> %d after %.3g m voxel grid (%.0f per scan)", totals[0], totals[1],
-        settings.min_range, settings.max_range, totals[2], settings.voxel_size, totals[2] / max(len(keep), 1),
+        "points: %d raw -> %d within %.3g-%.3g m -> %d after %.3g m voxel grid (%.0f per scan)",
+        totals[0],
+        totals[1],
+        settings.min_range,
+        settings.max_range,
+        totals[2],
+        settings.voxel_size,
+        totals[2] / max(len(keep), 1),
     )
     return dataclasses.replace(
         seq,

@@ -51,7 +51,7 @@ def _header_point_count(path: Path, ext: str) -> int | None:
                 break
             if line.startswith(key):
                 try:
-                    return int(line[len(key):].split()[0])
+                    return int(line[len(key) :].split()[0])
                 except (ValueError, IndexError):
                     return None
             if line.startswith(end):
@@ -125,8 +125,15 @@ def _read_scan(path: Path) -> tuple[np.ndarray, dict[str, int]]:
     if dropped["total"]:
         many = dropped["total"] > MANY_DROPPED_FRACTION * dropped["read"]
         level = logging.WARNING if dropped["non-finite"] or many else logging.DEBUG
-        logger.log(level, "%s: dropped %d of %d points (%d with NaN or infinite coordinates, %d at (0, 0, 0): "
-                   "no return)", path, dropped["total"], dropped["read"], dropped["non-finite"], dropped["zero"])
+        logger.log(
+            level,
+            "%s: dropped %d of %d points (%d with NaN or infinite coordinates, %d at (0, 0, 0): no return)",
+            path,
+            dropped["total"],
+            dropped["read"],
+            dropped["non-finite"],
+            dropped["zero"],
+        )
     if points.shape[0] == 0:
         raise DataError(
             f"{path}: scan has no valid points (all {dropped['read']} points were NaN or infinite "

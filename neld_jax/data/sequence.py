@@ -87,8 +87,9 @@ class Sequence:
             return
         for i, (scan, times) in enumerate(zip(self.scans, self.point_times)):
             if times.shape[0] != scan.shape[0]:
-                raise DataError(f"{where}: {self.scan_label(i)} has {scan.shape[0]} points and "
-                                f"{times.shape[0]} point times")
+                raise DataError(
+                    f"{where}: {self.scan_label(i)} has {scan.shape[0]} points and {times.shape[0]} point times"
+                )
 
     def _check_per_scan_arrays(self, where: str) -> None:
         """timestamps, gt_poses, source_index: one per scan; gt_map [M, 3]."""
@@ -173,9 +174,20 @@ def check_pose_jumps(
     jumps = np.flatnonzero(steps > threshold).astype(np.int64)
     name = (lambda i: f"scan {i}") if labels is None else (lambda i: labels[i])
     for i in jumps[:_MAX_JUMPS_LISTED]:
-        logger.warning("%s: the pose jumps %.3g m from %s to %s (more than the %.3g m plausible between "
-                       "consecutive scans)", what, steps[i], name(i), name(i + 1), threshold)
+        logger.warning(
+            "%s: the pose jumps %.3g m from %s to %s (more than the %.3g m plausible between consecutive scans)",
+            what,
+            steps[i],
+            name(i),
+            name(i + 1),
+            threshold,
+        )
     if jumps.size > _MAX_JUMPS_LISTED:
-        logger.warning("%s: %d more pose jumps over %.3g m (%d in all)", what, jumps.size - _MAX_JUMPS_LISTED,
-                       threshold, jumps.size)
+        logger.warning(
+            "%s: %d more pose jumps over %.3g m (%d in all)",
+            what,
+            jumps.size - _MAX_JUMPS_LISTED,
+            threshold,
+            jumps.size,
+        )
     return jumps

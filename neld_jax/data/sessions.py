@@ -67,10 +67,15 @@ class Sessions:
     def keyframe_links(self) -> list[tuple[int, int, np.ndarray]]:
         """The closures as joined keyframes: [(keyframe i of a later recording, keyframe j of the first, transform
         [4, 4] mapping keyframe i's frame into keyframe j's)]."""
-        return [(int(self.keyframe_bounds[r]) + closure["keyframe"], closure["first_keyframe"],
-                 np.asarray(transform, np.float64))
-                for r, (closures, transforms) in enumerate(zip(self.closures, self.closure_transforms))
-                for closure, transform in zip(closures, transforms)]
+        return [
+            (
+                int(self.keyframe_bounds[r]) + closure["keyframe"],
+                closure["first_keyframe"],
+                np.asarray(transform, np.float64),
+            )
+            for r, (closures, transforms) in enumerate(zip(self.closures, self.closure_transforms))
+            for closure, transform in zip(closures, transforms)
+        ]
 
     def stamps(self, r: int, joined_stamps: np.ndarray) -> np.ndarray:
         """Recording r's own stamps [S_r] from the joined ones [S]."""
@@ -92,25 +97,39 @@ def _joined(parts: list, shifts: np.ndarray, to_first: np.ndarray, names: list[s
     """The sequences `parts` as one: poses moved by to_first [R, 4, 4], stamps shifted by shifts [R], files under
     the recording's name, source_index moved by index_offsets [R] (None: none). Ground truth (poses, map) only where
     every recording has it: it is in one frame for all (one alignment of the whole trajectory is measured)."""
+
     def every(field):
         values = [getattr(seq, field) for seq in parts]
         return None if any(value is None for value in values) else values
 
     gt_poses, gt_map, times = every("gt_poses"), every("gt_map"), every("point_times")
-    stamps = [(seq.timestamps if seq.timestamps is not None else np.arange(seq.num_scans, dtype=np.float64)) + shift
-              for seq, shift in zip(parts, shifts)]
-    files = [os.path.join(name, f) if seq.files is not None else f"{name}: scan {i}"
-             for seq, name in zip(parts, names) for i, f in enumerate(seq.files or [None] * seq.num_scans)]
-    index = None if index_offsets is None else np.concatenate(
-        [seq.loaded_index + offset for seq, offset in zip(parts, index_offsets)])
+    stamps = [
+        (seq.timestamps if seq.timestamps is not None else np.arange(seq.num_scans, dtype=np.float64)) + shift
+        for seq, shift in zip(parts, shifts)
+    ]
+    files = [
+        os.path.join(name, f) if seq.files is not None else f"{name}: scan {i}"
+        for seq, name in zip(parts, names)
+        for i, f in enumerate(seq.files or [None] * seq.num_scans)
+    ]
+    index = (
+        None
+        if index_offsets is None
+        else np.concatenate([seq.loaded_index + offset for seq, offset in zip(parts, index_offsets)])
+    )
     return Sequence(
         scans=_joined_items([seq.scans for seq in parts]),
         poses=np.concatenate([transform @ seq.poses for seq, transform in zip(parts, to_first)]),
-        timestamps=np.concatenate(stamps), gt_poses=None if gt_poses is None else np.concatenate(gt_poses),
-        gt_map=None if gt_map is None else np.concatenate(gt_map), name="+".join(seq.name for seq in parts),
-        source=",".join(seq.source for seq in parts), files=files, source_index=index,
+        timestamps=np.concatenate(stamps),
+        gt_poses=None if gt_poses is None else np.concatenate(gt_poses),
+        gt_map=None if gt_map is None else np.concatenate(gt_map),
+        name="+".join(seq.name for seq in parts),
+        source=",".join(seq.source for seq in parts),
+        files=files,
+        source_index=index,
         point_times=None if times is None else _joined_items(times),
-        poses_from="kiss_icp" if all(seq.poses_from == "kiss_icp" for seq in parts) else "")
+        poses_from="kiss_icp" if all(seq.poses_from == "kiss_icp" for seq in parts) else "",
+    )
 
 
 def _joined_items(parts: list) -> list | Joined:
@@ -121,8 +140,9 @@ def _joined_items(parts: list) -> list | Joined:
     return [item for items in parts for item in items]
 
 
-def concatenate(loaded: list[Sequence], keyframes: list[Sequence], to_first: np.ndarray, names: list[str]
-                ) -> tuple[Sequence, Sequence, Sessions]:
+def concatenate(
+    loaded: list[Sequence], keyframes: list[Sequence], to_first: np.ndarray, names: list[str]
+) -> tuple[Sequence, Sequence, Sessions]:
     """R recordings (each: every input scan `loaded[r]`, its keyframes `keyframes[r]`, poses in its own frame) and
     each one's frame -> the first one's (to_first [R, 4, 4]) -> (every input scan joined, the keyframes joined,
     which are whose)."""
@@ -131,9 +151,13 @@ def concatenate(loaded: list[Sequence], keyframes: list[Sequence], to_first: np.
     keyframe_bounds = np.concatenate([[0], np.cumsum([seq.num_scans for seq in keyframes])]).astype(np.int64)
     missing = [name for seq, name in zip(loaded, names) if seq.gt_poses is None]
     if missing and len(missing) < len(loaded):
-        logger.warning("no ground-truth poses for %s: the recordings are evaluated without ground truth",
-                       ", ".join(missing))
+        logger.warning(
+            "no ground-truth poses for %s: the recordings are evaluated without ground truth", ", ".join(missing)
+        )
     joined_loaded = _joined(loaded, shifts, to_first, names, None)
     joined_keyframes = _joined(keyframes, shifts, to_first, names, scan_bounds[:-1])
-    return joined_loaded, joined_keyframes, Sessions(list(names), scan_bounds, keyframe_bounds, shifts,
-                                                     np.asarray(to_first, np.float64))
+    return (
+        joined_loaded,
+        joined_keyframes,
+        Sessions(list(names), scan_bounds, keyframe_bounds, shifts, np.asarray(to_first, np.float64)),
+    )

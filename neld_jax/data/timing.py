@@ -36,8 +36,11 @@ def nearest_times(query_times: np.ndarray, times: np.ndarray) -> tuple[np.ndarra
 
 
 def match_by_timestamp(
-    scan_times: np.ndarray, pose_times: np.ndarray, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
-    what: str = "poses", scan_labels: list[str] | None = None,
+    scan_times: np.ndarray,
+    pose_times: np.ndarray,
+    tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
+    what: str = "poses",
+    scan_labels: list[str] | None = None,
 ) -> np.ndarray:
     """For each scan time, the index of the nearest pose time.
 
@@ -88,6 +91,8 @@ def read_times(path: str | os.PathLike) -> np.ndarray:
     steps = np.diff(stamps)
     if np.any(steps <= 0):
         i = int(np.flatnonzero(steps <= 0)[0])
-        raise DataError(f"{path}, lines {lines[i]} and {lines[i + 1]}: timestamps do not increase "
-                        f"({stamps[i]:.6f} then {stamps[i + 1]:.6f})")
+        raise DataError(
+            f"{path}, lines {lines[i]} and {lines[i + 1]}: timestamps do not increase "
+            f"({stamps[i]:.6f} then {stamps[i + 1]:.6f})"
+        )
     return stamps

@@ -31,8 +31,13 @@ def bfloat16_dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_
     8-bit mantissa of bfloat16 (a relative error of up to 2^-9 per input).
     """
     del preferred_element_type
-    return jax.lax.dot_general(lhs.astype(jnp.bfloat16), rhs.astype(jnp.bfloat16), dimension_numbers,
-                               precision=precision, preferred_element_type=jnp.float32)
+    return jax.lax.dot_general(
+        lhs.astype(jnp.bfloat16),
+        rhs.astype(jnp.bfloat16),
+        dimension_numbers,
+        precision=precision,
+        preferred_element_type=jnp.float32,
+    )
 
 
 def _inverse_softplus(value: float) -> float:

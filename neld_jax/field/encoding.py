@@ -117,8 +117,9 @@ def fourier_encode(
         # fused, and the window's cosine evaluated again for every sample (9 ms of a 240 ms CPU step).
         expansion = np.kron(np.eye(num_freqs), np.ones((1, x.shape[-1])))  # [L, L*D]
         expansion = np.concatenate([expansion, expansion], axis=1).astype(x.dtype)  # [L, 2*L*D]
-        weights = jnp.dot(jax.lax.stop_gradient(window).astype(x.dtype), expansion,
-                          precision=jax.lax.Precision.HIGHEST)  # full float32 on GPUs too (no TF32)
+        weights = jnp.dot(
+            jax.lax.stop_gradient(window).astype(x.dtype), expansion, precision=jax.lax.Precision.HIGHEST
+        )  # full float32 on GPUs too (no TF32)
         cos_sin = cos_sin * weights
     return jnp.concatenate([x, cos_sin], axis=-1)
 

@@ -41,8 +41,12 @@ class SamplerSettings:
 def in_units(sampler_m: SamplerSettings, scale) -> SamplerSettings:
     """A sampler in metres in a cube's units (scale: normalised units per metre; may be traced: one compile for every
     cube)."""
-    return dataclasses.replace(sampler_m, z_low=sampler_m.z_low * scale, z_up=sampler_m.z_up * scale,
-                               guided_width=sampler_m.guided_width * scale)
+    return dataclasses.replace(
+        sampler_m,
+        z_low=sampler_m.z_low * scale,
+        z_up=sampler_m.z_up * scale,
+        guided_width=sampler_m.guided_width * scale,
+    )
 
 
 class RayOutputs(NamedTuple):

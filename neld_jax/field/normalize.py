@@ -53,8 +53,9 @@ class Normalization:
         return {"scale": self.scale, "offset": [float(v) for v in self.offset]}
 
 
-def fit_normalization(scans: list[np.ndarray], poses: np.ndarray,
-                      margin: float = NORMALIZATION_MARGIN) -> Normalization:
+def fit_normalization(
+    scans: list[np.ndarray], poses: np.ndarray, margin: float = NORMALIZATION_MARGIN
+) -> Normalization:
     """Fit the normalisation to all scan points (in the world via the initial poses) and the sensor origins.
 
     scans: S arrays [N_i, 3] sensor frame; poses: [S, 4, 4] sensor -> world.

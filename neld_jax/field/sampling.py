@@ -146,9 +146,7 @@ def fine_samples_before(
     return jax.lax.stop_gradient(jnp.sort(samples, axis=-1))
 
 
-def nerf_resample(
-    z_coarse: jax.Array, weights: jax.Array, num_fine: int, key: jax.Array | None = None
-) -> jax.Array:
+def nerf_resample(z_coarse: jax.Array, weights: jax.Array, num_fine: int, key: jax.Array | None = None) -> jax.Array:
     """Vanilla NeRF hierarchical sampling (the ablation): inverse-CDF samples AROUND the coarse samples.
 
     z_coarse: [R, N] sorted (N >= 3), weights: [R, N]. The bins are the N-1 intervals between midpoints of
@@ -183,8 +181,9 @@ def merge_samples(z_a: jax.Array, z_b: jax.Array) -> tuple[jax.Array, jax.Array]
     num_b = z_b.shape[-1]
     b_before_a = jnp.sum(z_b[:, None, :] < z_a[:, :, None], axis=-1, dtype=jnp.int32)  # [R, Na]
     a_before_b = jnp.sum(z_a[:, None, :] <= z_b[:, :, None], axis=-1, dtype=jnp.int32)  # [R, Nb]
-    place = jnp.concatenate([jnp.arange(num_a, dtype=jnp.int32) + b_before_a,
-                             jnp.arange(num_b, dtype=jnp.int32) + a_before_b], axis=-1)  # a permutation per ray
+    place = jnp.concatenate(
+        [jnp.arange(num_a, dtype=jnp.int32) + b_before_a, jnp.arange(num_b, dtype=jnp.int32) + a_before_b], axis=-1
+    )  # a permutation per ray
     source = jnp.broadcast_to(jnp.arange(num_a + num_b, dtype=jnp.int32), place.shape)
     order = jnp.zeros_like(place).at[jnp.arange(num_rays)[:, None], place].set(source, unique_indices=True)
     return jnp.take_along_axis(jnp.concatenate([z_a, z_b], axis=-1), order, axis=-1), order

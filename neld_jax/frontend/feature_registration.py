@@ -15,7 +15,8 @@ def fpfh_features(cloud, voxel_m: float, radius_m: float):
     coarse = cloud.voxel_down_sample(voxel_m)
     coarse.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel_m, max_nn=30))
     features = o3d.pipelines.registration.compute_fpfh_feature(
-        coarse, o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=100))
+        coarse, o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=100)
+    )
     return coarse, features
 
 
@@ -31,11 +32,20 @@ def ransac_alignment(source_features, target_features, voxel_m: float, iteration
     distance = 1.5 * voxel_m
     o3d.utility.random.seed(seed)
     ransac = registration.registration_ransac_based_on_feature_matching(
-        source_coarse, target_coarse, source_fpfh, target_fpfh, True, distance,
-        registration.TransformationEstimationPointToPoint(False), 3,
-        [registration.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-         registration.CorrespondenceCheckerBasedOnDistance(distance)],
-        registration.RANSACConvergenceCriteria(iterations, 0.999))
+        source_coarse,
+        target_coarse,
+        source_fpfh,
+        target_fpfh,
+        True,
+        distance,
+        registration.TransformationEstimationPointToPoint(False),
+        3,
+        [
+            registration.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+            registration.CorrespondenceCheckerBasedOnDistance(distance),
+        ],
+        registration.RANSACConvergenceCriteria(iterations, 0.999),
+    )
     return np.asarray(ransac.transformation, dtype=np.float64)
 
 
@@ -46,8 +56,9 @@ def point_cloud(points: np.ndarray):
     return o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
 
 
-def refined_alignment(source, target, guess: np.ndarray, distances_m: tuple[float, ...],
-                      normal_radius_m: float) -> tuple[np.ndarray, float]:
+def refined_alignment(
+    source, target, guess: np.ndarray, distances_m: tuple[float, ...], normal_radius_m: float
+) -> tuple[np.ndarray, float]:
     """Open3D's point-to-plane ICP of the Open3D cloud source onto target (each in its own frame, target's normals
     estimated within normal_radius_m where it has none) from the transform guess [4, 4], pairing points within each
     of distances_m in turn (wide first: a coarse guess is off by a voxel or two) -> (the transform [4, 4] mapping
@@ -62,8 +73,9 @@ def refined_alignment(source, target, guess: np.ndarray, distances_m: tuple[floa
         target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_m, max_nn=30))
     transform, fitness = np.asarray(guess, np.float64), 0.0
     for distance in distances_m:
-        result = registration.registration_icp(source, target, distance, transform,
-                                               registration.TransformationEstimationPointToPlane())
+        result = registration.registration_icp(
+            source, target, distance, transform, registration.TransformationEstimationPointToPlane()
+        )
         transform, fitness = np.asarray(result.transformation, np.float64), float(result.fitness)
     return transform, fitness
 

@@ -93,9 +93,16 @@ RANSAC_ITERATIONS = 20_000  # at most, per recovery (the classical baseline's)
 POSE_DECIMALS = 9
 
 
-def kiss_icp_odometry(scans, point_times, labels: list[str], ranges: tuple[float, float], keep_sweeps: bool = True,
-                      progress: bool = False, motion_guesses: dict | None = None, seen: Callable | None = None
-                      ) -> tuple[np.ndarray, list[np.ndarray] | None, np.ndarray]:
+def kiss_icp_odometry(
+    scans,
+    point_times,
+    labels: list[str],
+    ranges: tuple[float, float],
+    keep_sweeps: bool = True,
+    progress: bool = False,
+    motion_guesses: dict | None = None,
+    seen: Callable | None = None,
+) -> tuple[np.ndarray, list[np.ndarray] | None, np.ndarray]:
     """KISS-ICP over scans [S] x [N_i, 3] (sensor frame, time order; a list or a LazyScans, read one at a time),
     deskewing where point_times [S] x [N_i] (seconds after each scan's stamp) are given; a scan that lost track is
     registered again (Tracker.register). Of the scans it keeps only its poses (and its bounded local map).
@@ -143,8 +150,9 @@ class Tracker:
         self.overlaps = np.zeros(0)  # [K] each kept scan's overlap with the scan before
         self.previous = None  # the last kept scan's registration points [N, 3] in the world, a cKDTree
 
-    def register(self, scan: np.ndarray, times: np.ndarray, labels: list[str], i: int,
-                 motion_guess: np.ndarray | None = None) -> np.ndarray:
+    def register(
+        self, scan: np.ndarray, times: np.ndarray, labels: list[str], i: int, motion_guess: np.ndarray | None = None
+    ) -> np.ndarray:
         """Register scan i [N, 3] (sensor frame; deskewed by its point times [N] where given, else empty) after the
         scans before it; motion_guess [4, 4] replaces KISS-ICP's constant-velocity guess. A scan that lost track is
         registered again (recover); a DataError naming it (labels [S]) where that fails. Returns the sweep [M, 3] as
@@ -163,10 +171,17 @@ class Tracker:
                     f"{self.voxel:.2f} m of {labels[i - 1]}'s after registration, against {recent:.0%} from sweep "
                     f"to sweep before, and {recovered:.0%} registered again from features or from no motion, "
                     "constant velocity or the last turn (a jump or a dropped stretch); give the sequence its poses "
-                    "(poses.txt, an odometry topic) or split its scans here and run the parts apart")
-            logger.info("%s: KISS-ICP lost track (%.0f%% overlap with %s after registration, against %.0f%% before); "
-                        "registered again: %.0f%%", labels[i], 100 * overlap, labels[i - 1], 100 * recent,
-                        100 * recovered)
+                    "(poses.txt, an odometry topic) or split its scans here and run the parts apart"
+                )
+            logger.info(
+                "%s: KISS-ICP lost track (%.0f%% overlap with %s after registration, against %.0f%% before); "
+                "registered again: %.0f%%",
+                labels[i],
+                100 * overlap,
+                labels[i - 1],
+                100 * recent,
+                100 * recovered,
+            )
             overlap = recovered
             before = None
         self.keep(sweep, source, overlap, before)
@@ -230,9 +245,13 @@ class Tracker:
     def _icp(self, source: np.ndarray, start: np.ndarray, distance: float, kernel: float) -> np.ndarray:
         """KISS-ICP's registration of the points source [N, 3] (sensor frame) to its local map from the pose start
         [4, 4], pairing points within `distance`, its robust kernel's scale `kernel`: the pose [4, 4]."""
-        return self.kiss.registration.align_points_to_map(points=source, voxel_map=self.kiss.local_map,
-                                                          initial_guess=start, max_correspondance_distance=distance,
-                                                          kernel=kernel)
+        return self.kiss.registration.align_points_to_map(
+            points=source,
+            voxel_map=self.kiss.local_map,
+            initial_guess=start,
+            max_correspondance_distance=distance,
+            kernel=kernel,
+        )
 
     def _feature_guess(self, sweep: np.ndarray) -> np.ndarray:
         """The pose [4, 4] of sweep [M, 3] (sensor frame) in the world from RANSAC on FPFH features
@@ -243,8 +262,10 @@ class Tracker:
 
         previous_points, previous_pose = self.frames[-1]
         voxel, radius = self.voxel, FEATURE_RADIUS_VOXELS * self.voxel
-        source, target = (fpfh_features(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points))),
-                                        voxel, radius) for points in (sweep, previous_points))
+        source, target = (
+            fpfh_features(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points))), voxel, radius)
+            for points in (sweep, previous_points)
+        )
         return previous_pose @ ransac_alignment(source, target, voxel, RANSAC_ITERATIONS, seed=0)
 
 
@@ -291,14 +312,20 @@ def interpolate_poses(times: np.ndarray, poses: np.ndarray, query: np.ndarray) -
     fraction = (query - times[lower]) / np.maximum(times[upper] - times[lower], 1e-12)
     relative = Rotation.from_matrix(np.einsum("qji,qjk->qik", poses[lower, :3, :3], poses[upper, :3, :3]))
     out = np.tile(np.eye(4), (len(query), 1, 1))
-    out[:, :3, :3] = poses[lower, :3, :3] @ Rotation.from_rotvec(
-        relative.as_rotvec() * fraction[:, None]).as_matrix()
+    out[:, :3, :3] = poses[lower, :3, :3] @ Rotation.from_rotvec(relative.as_rotvec() * fraction[:, None]).as_matrix()
     out[:, :3, 3] = poses[lower, :3, 3] + fraction[:, None] * (poses[upper, :3, 3] - poses[lower, :3, 3])
     return out
 
 
-def deskewed_along(trajectory_times: np.ndarray, trajectory: np.ndarray, stamp: float, points: np.ndarray,
-                   point_times: np.ndarray, min_range_m: float, max_range_m: float) -> np.ndarray:
+def deskewed_along(
+    trajectory_times: np.ndarray,
+    trajectory: np.ndarray,
+    stamp: float,
+    points: np.ndarray,
+    point_times: np.ndarray,
+    min_range_m: float,
+    max_range_m: float,
+) -> np.ndarray:
     """A raw sweep's points [N, 3] (each in the sensor frame at stamp + its point_times [N] seconds) within the
     ranges, moved into the sensor frame at `stamp` along the trajectory [S, 4, 4] at trajectory_times [S]
     (interpolate_poses): [M, 3]. Each point moves by the motion the trajectory has between the stamp and its own
@@ -321,9 +348,13 @@ def warn_about_gaps(timestamps: np.ndarray, labels: list[str]) -> np.ndarray:
     period = float(np.median(steps))
     gaps = np.flatnonzero(steps >= GAP_WARNING_PERIODS * period) + 1
     for i in gaps:
-        logger.warning("%s: %.2f s after the previous scan (%.0f sweep periods; scans dropped?): KISS-ICP guesses "
-                       "each sweep from constant velocity, check the trajectory here", labels[i], steps[i - 1],
-                       steps[i - 1] / period)
+        logger.warning(
+            "%s: %.2f s after the previous scan (%.0f sweep periods; scans dropped?): KISS-ICP guesses "
+            "each sweep from constant velocity, check the trajectory here",
+            labels[i],
+            steps[i - 1],
+            steps[i - 1] / period,
+        )
     return gaps
 
 
@@ -354,15 +385,29 @@ def registration_range_m(seq: Sequence, override_m: float = 0.0) -> float:
     else:
         range_m = sensor_range_m(seq.scans)
         cap = kiss_icp_default_ranges()[1]
-        evidence = (f"measured: the {RANGE_PERCENTILE:g}th percentile of the point distances of "
-                    f"{min(seq.num_scans, RANGE_SCANS)} scans evenly spaced, at most KISS-ICP's default {cap:g} m")
-    logger.info("%s: KISS-ICP registers the points within %.1f m (%s), voxel %.2f m (a hundredth of it, KISS-ICP's "
-                "rule); the scans after it keep the field's crop", where, range_m, evidence, VOXELS_PER_RANGE * range_m)
+        evidence = (
+            f"measured: the {RANGE_PERCENTILE:g}th percentile of the point distances of "
+            f"{min(seq.num_scans, RANGE_SCANS)} scans evenly spaced, at most KISS-ICP's default {cap:g} m"
+        )
+    logger.info(
+        "%s: KISS-ICP registers the points within %.1f m (%s), voxel %.2f m (a hundredth of it, KISS-ICP's "
+        "rule); the scans after it keep the field's crop",
+        where,
+        range_m,
+        evidence,
+        VOXELS_PER_RANGE * range_m,
+    )
     return range_m
 
 
-def with_kiss_icp_poses(seq: Sequence, min_range_m: float, max_range_m: float, progress: bool = True,
-                        odometry_range_m: float = 0.0, unstamped_period_s: float | None = None) -> Sequence:
+def with_kiss_icp_poses(
+    seq: Sequence,
+    min_range_m: float,
+    max_range_m: float,
+    progress: bool = True,
+    odometry_range_m: float = 0.0,
+    unstamped_period_s: float | None = None,
+) -> Sequence:
     """seq with KISS-ICP's poses (poses_from "kiss_icp"): raw sweeps with stamps (point_times set) registered in two
     passes (two_pass_odometry), deskewed along the result into the frame at their stamps; every scan returned cropped
     to the field's ranges min_range_m..max_range_m. KISS-ICP itself registers the points within its default minimum
@@ -378,12 +423,18 @@ def with_kiss_icp_poses(seq: Sequence, min_range_m: float, max_range_m: float, p
     labels = [seq.scan_label(i) for i in range(seq.num_scans)]
     stamps = _checked_stamps(seq, labels, unstamped_period_s)
     point_times = None if seq.point_times is None else checked_point_times(seq, labels)
-    logger.info("%s: making the initial poses from the %d scans with KISS-ICP (%s)", seq.source or seq.name,
-                seq.num_scans, "deskewing by the points' own times" if point_times is not None else "rigid scans")
+    logger.info(
+        "%s: making the initial poses from the %d scans with KISS-ICP (%s)",
+        seq.source or seq.name,
+        seq.num_scans,
+        "deskewing by the points' own times" if point_times is not None else "rigid scans",
+    )
     if point_times is not None and stamps is None:
-        logger.warning("%s: the scans have per-point times but no stamps: each pose and deskewed scan is the "
-                       "sensor's at its sweep's last point (KISS-ICP's deskewed sweeps are kept in memory)",
-                       seq.source or seq.name)
+        logger.warning(
+            "%s: the scans have per-point times but no stamps: each pose and deskewed scan is the "
+            "sensor's at its sweep's last point (KISS-ICP's deskewed sweeps are kept in memory)",
+            seq.source or seq.name,
+        )
     started = time.perf_counter()
     crop = (min_range_m, max_range_m)
     registration = (kiss_icp_default_ranges()[0], odometry_range_m or registration_range_m(seq))
@@ -391,15 +442,25 @@ def with_kiss_icp_poses(seq: Sequence, min_range_m: float, max_range_m: float, p
 
     def odometry(motion_guesses: dict, seen: Callable) -> tuple:  # (poses [S, 4, 4], deskewed sweeps or None)
         if two_passes:
-            return two_pass_odometry(seq.scans, point_times, stamps, labels, registration, progress,
-                                     motion_guesses, seen), None
-        return kiss_icp_odometry(seq.scans, point_times, labels, registration, keep_sweeps=point_times is not None,
-                                 progress=progress, motion_guesses=motion_guesses, seen=seen)[:2]
+            return two_pass_odometry(
+                seq.scans, point_times, stamps, labels, registration, progress, motion_guesses, seen
+            ), None
+        return kiss_icp_odometry(
+            seq.scans,
+            point_times,
+            labels,
+            registration,
+            keep_sweeps=point_times is not None,
+            progress=progress,
+            motion_guesses=motion_guesses,
+            seen=seen,
+        )[:2]
 
     # checked against global registration of sampled pairs of the scans as they came, from the odometry's one read
     # of each (odometry_check.py)
-    poses, sweeps = odometry_check.checked_odometry(seq.scans, odometry, labels, registration,
-                                                    VOXELS_PER_RANGE * registration[1], seq.source or seq.name)
+    poses, sweeps = odometry_check.checked_odometry(
+        seq.scans, odometry, labels, registration, VOXELS_PER_RANGE * registration[1], seq.source or seq.name
+    )
     if two_passes:
         sweeps = deskewed_sweeps(seq.scans, point_times, stamps, np.zeros(seq.num_scans), poses, crop)
         return _with_odometry(seq, sweeps, poses, started, registration, crop)
@@ -414,29 +475,54 @@ def _checked_stamps(seq: Sequence, labels: list[str], unstamped_period_s: float 
     if seq.timestamps is None:
         if seq.point_times is None or unstamped_period_s is None:
             return None
-        logger.info("%s: the sweeps have no stamps: put %.3f s apart for the odometry's two passes (assumed; it sets "
-                    "only their time scale, not the poses)", seq.source or seq.name, unstamped_period_s)
+        logger.info(
+            "%s: the sweeps have no stamps: put %.3f s apart for the odometry's two passes (assumed; it sets "
+            "only their time scale, not the poses)",
+            seq.source or seq.name,
+            unstamped_period_s,
+        )
         return float(unstamped_period_s) * np.arange(seq.num_scans, dtype=np.float64)
     if np.any(np.diff(seq.timestamps) <= 0):
-        raise DataError(f"{seq.source or seq.name}: the scans' stamps must increase for odometry (first out of "
-                        f"order: {labels[int(np.argmax(np.diff(seq.timestamps) <= 0)) + 1]})")
+        raise DataError(
+            f"{seq.source or seq.name}: the scans' stamps must increase for odometry (first out of "
+            f"order: {labels[int(np.argmax(np.diff(seq.timestamps) <= 0)) + 1]})"
+        )
     warn_about_gaps(seq.timestamps, labels)
     return seq.timestamps
 
 
-def _with_odometry(seq: Sequence, sweeps, poses: np.ndarray, started: float, registration: tuple[float, float],
-                   crop: tuple[float, float]) -> Sequence:
+def _with_odometry(
+    seq: Sequence,
+    sweeps,
+    poses: np.ndarray,
+    started: float,
+    registration: tuple[float, float],
+    crop: tuple[float, float],
+) -> Sequence:
     """seq with the odometry's sweeps [S] x [M_i, 3] and poses [S, 4, 4]; logs how long it took (since `started`, a
     time.perf_counter() value), KISS-ICP's ranges and voxel (registration: (min, max) m) and the crop (min, max) m."""
-    logger.info("KISS-ICP odometry: %d scans in %.1f s (registered within %.1f-%.1f m, voxel %.2f m; scans kept "
-                "within %.1f-%.1f m)", seq.num_scans, time.perf_counter() - started, *registration,
-                VOXELS_PER_RANGE * registration[1], *crop)
+    logger.info(
+        "KISS-ICP odometry: %d scans in %.1f s (registered within %.1f-%.1f m, voxel %.2f m; scans kept "
+        "within %.1f-%.1f m)",
+        seq.num_scans,
+        time.perf_counter() - started,
+        *registration,
+        VOXELS_PER_RANGE * registration[1],
+        *crop,
+    )
     return dataclasses.replace(seq, scans=sweeps, point_times=None, poses=poses, poses_from="kiss_icp")
 
 
-def two_pass_odometry(scans, point_times, stamps: np.ndarray, labels: list[str], ranges: tuple[float, float],
-                      progress: bool = False, motion_guesses: dict | None = None, seen: Callable | None = None
-                      ) -> np.ndarray:
+def two_pass_odometry(
+    scans,
+    point_times,
+    stamps: np.ndarray,
+    labels: list[str],
+    ranges: tuple[float, float],
+    progress: bool = False,
+    motion_guesses: dict | None = None,
+    seen: Callable | None = None,
+) -> np.ndarray:
     """KISS-ICP twice over raw sweeps scans [S] x [N_i, 3] with point_times [S] x [N_i] (seconds after their stamps
     [S]; lists or LazyScans), its own deskewing off both times -> poses [S, 4, 4] at the stamps, scan 0 at the
     identity (module docstring, "Time"). The first pass registers each sweep as it is, its pose the sensor's at
@@ -472,23 +558,28 @@ def two_pass_odometry(scans, point_times, stamps: np.ndarray, labels: list[str],
 def checked_point_times(seq: Sequence, labels: list[str]) -> LazyScans:
     """seq.point_times as a LazyScans whose item i is a DataError naming scan i when its length is not the scan's
     point count (checked when the two are read together)."""
+
     def checked(i: int, scan: np.ndarray, times: np.ndarray) -> np.ndarray:
         if len(times) != len(scan):
-            raise DataError(f"{seq.source or seq.name}: {labels[i]} has {len(scan)} points and {len(times)} point "
-                            "times")
+            raise DataError(
+                f"{seq.source or seq.name}: {labels[i]} has {len(scan)} points and {len(times)} point times"
+            )
         return times
 
     return lazy(seq.scans).map(checked, lazy(seq.point_times))
 
 
-def deskewed_sweeps(scans, point_times, stamps: np.ndarray, offsets: np.ndarray, poses: np.ndarray,
-                    ranges: tuple[float, float]) -> LazyScans:
+def deskewed_sweeps(
+    scans, point_times, stamps: np.ndarray, offsets: np.ndarray, poses: np.ndarray, ranges: tuple[float, float]
+) -> LazyScans:
     """The raw sweeps scans [S] x [N_i, 3] with point_times [S] x [N_i] (lists or LazyScans) moved into the frame at
     their stamps [S] along KISS-ICP's trajectory (poses [S, 4, 4] at stamps + offsets [S]) and cropped to ranges
     (min, max) m: deskewed_along for each sweep when it is used."""
     trajectory_times = stamps + offsets
-    return lazy(scans).map(lambda i, scan, times: deskewed_along(trajectory_times, poses, stamps[i], scan, times,
-                                                                 *ranges), lazy(point_times))
+    return lazy(scans).map(
+        lambda i, scan, times: deskewed_along(trajectory_times, poses, stamps[i], scan, times, *ranges),
+        lazy(point_times),
+    )
 
 
 def kiss_icp_config(min_range_m: float, max_range_m: float, deskew: bool):

@@ -185,24 +185,34 @@ class StepCheck:
     def summary(self) -> str:
         """The evidence in words (pairs checked, converged, moving, the median and path ratios, pairs that slid)."""
         ratios = self.ratios[np.isfinite(self.ratios)]
-        said = (f"{len(self.pairs)} pairs of consecutive scans checked, {int(self.converged.sum())} converged "
-                f"(fitness >= {MIN_FITNESS:g}), {len(ratios)} moving")
+        said = (
+            f"{len(self.pairs)} pairs of consecutive scans checked, {int(self.converged.sum())} converged "
+            f"(fitness >= {MIN_FITNESS:g}), {len(ratios)} moving"
+        )
         if self.median_ratio is None:
             return f"{said}: too few to decide (at least {MIN_EVIDENCE}), unchecked ({self.seconds:.1f} s)"
-        unbacked = "" if self.within_tolerance or self.backed_by_the_scans else (
-            "; outside it, but the scans fit KISS-ICP's steps about as well as the global ones: kept")
-        return (f"{said}; KISS-ICP's step over the global step {self.median_ratio:.3f} in the median "
-                f"({ratios.min():.2f}-{ratios.max():.2f}), its path over theirs {self.path_ratio:.3f} (both must lie "
-                f"within x{STEP_TOLERANCE:g}), {int(self.slid.sum())} single steps slid{unbacked} "
-                f"({self.seconds:.1f} s)")
+        unbacked = (
+            ""
+            if self.within_tolerance or self.backed_by_the_scans
+            else ("; outside it, but the scans fit KISS-ICP's steps about as well as the global ones: kept")
+        )
+        return (
+            f"{said}; KISS-ICP's step over the global step {self.median_ratio:.3f} in the median "
+            f"({ratios.min():.2f}-{ratios.max():.2f}), its path over theirs {self.path_ratio:.3f} (both must lie "
+            f"within x{STEP_TOLERANCE:g}), {int(self.slid.sum())} single steps slid{unbacked} "
+            f"({self.seconds:.1f} s)"
+        )
 
     def furthest(self, labels: list[str]) -> str:
         """The SHOWN_PAIRS pairs furthest outside the tolerance (or slid) in words, naming the scans (labels [S])."""
         log_ratios = np.abs(np.log(np.where(np.isfinite(self.ratios), self.ratios, 1.0)))
         outside = np.flatnonzero((log_ratios > np.log(STEP_TOLERANCE)) | self.slid)
         outside = outside[np.argsort(-log_ratios[outside], kind="stable")]
-        named = [f"{labels[self.pairs[k]]} to {labels[self.pairs[k] + 1]}: {self.odometry_steps[k]:.2f} m against "
-                 f"{self.lengths[k]:.2f} m" for k in outside[:SHOWN_PAIRS]]
+        named = [
+            f"{labels[self.pairs[k]]} to {labels[self.pairs[k] + 1]}: {self.odometry_steps[k]:.2f} m against "
+            f"{self.lengths[k]:.2f} m"
+            for k in outside[:SHOWN_PAIRS]
+        ]
         more = f" and {len(outside) - SHOWN_PAIRS} more pairs" if len(outside) > SHOWN_PAIRS else ""
         return "; ".join(named) + more
 
@@ -229,8 +239,10 @@ def global_step(source: np.ndarray, target: np.ndarray, voxel_m: float) -> PairR
     feature_voxel = FEATURE_VOXELS * voxel_m
     if min(len(points) for points in (source, target)) < MIN_POINTS:  # nothing to match: no evidence
         return PairRegistration(np.eye(4), 0.0, *grids, time.perf_counter() - started)
-    features = [fpfh_features(point_cloud(points), feature_voxel, FEATURE_RADIUS_VOXELS * feature_voxel)
-                for points in (source, target)]
+    features = [
+        fpfh_features(point_cloud(points), feature_voxel, FEATURE_RADIUS_VOXELS * feature_voxel)
+        for points in (source, target)
+    ]
     guess = ransac_alignment(*features, feature_voxel, RANSAC_ITERATIONS, seed=0)
     distances = tuple(d * voxel_m for d in ICP_DISTANCES_VOXELS)
     transform, fitness = refined_alignment(*grids, guess, distances, 2 * voxel_m)
@@ -254,8 +266,14 @@ def registering_pairs(pairs: np.ndarray, ranges: tuple[float, float], voxel_m: f
     return seen
 
 
-def check_steps(scans, poses: np.ndarray, ranges: tuple[float, float], voxel_m: float,
-                pairs: np.ndarray | None = None, registered: dict | None = None) -> StepCheck:
+def check_steps(
+    scans,
+    poses: np.ndarray,
+    ranges: tuple[float, float],
+    voxel_m: float,
+    pairs: np.ndarray | None = None,
+    registered: dict | None = None,
+) -> StepCheck:
     """The odometry's poses [S, 4, 4] (sensor -> world, one a scan) against global registration of the scans
     [S] x [N_i, 3] (sensor frame, as the odometry registered them, a list or a LazyScans; within ranges (min, max) m,
     KISS-ICP's voxel voxel_m) for the pairs (scan pairs[k] + 1 to scan pairs[k]; None: sampled_pairs).
@@ -273,13 +291,18 @@ def check_steps(scans, poses: np.ndarray, ranges: tuple[float, float], voxel_m: 
             registered[int(i)] = global_step(later, earlier, voxel_m)
     found = [registered[int(i)] for i in pairs]
     increments = np.linalg.inv(poses[pairs]) @ poses[pairs + 1]  # [P, 4, 4] scan i + 1 -> scan i
-    return StepCheck(pairs=pairs, global_steps=np.array([pair.transform for pair in found]).reshape(-1, 4, 4),
-                     fitness=np.array([pair.fitness for pair in found], np.float64),
-                     odometry_steps=np.linalg.norm(increments[:, :3, 3], axis=1),
-                     odometry_fitness=np.array([fitness(pair.source, pair.target, increment, voxel_m)
-                                                for pair, increment in zip(found, increments)], np.float64),
-                     voxel_m=float(voxel_m),
-                     seconds=time.perf_counter() - started + sum(pair.seconds for pair in found if id(pair) in earlier))
+    return StepCheck(
+        pairs=pairs,
+        global_steps=np.array([pair.transform for pair in found]).reshape(-1, 4, 4),
+        fitness=np.array([pair.fitness for pair in found], np.float64),
+        odometry_steps=np.linalg.norm(increments[:, :3, 3], axis=1),
+        odometry_fitness=np.array(
+            [fitness(pair.source, pair.target, increment, voxel_m) for pair, increment in zip(found, increments)],
+            np.float64,
+        ),
+        voxel_m=float(voxel_m),
+        seconds=time.perf_counter() - started + sum(pair.seconds for pair in found if id(pair) in earlier),
+    )
 
 
 def motion_guesses(check: StepCheck) -> dict[int, np.ndarray]:
@@ -288,8 +311,14 @@ def motion_guesses(check: StepCheck) -> dict[int, np.ndarray]:
     return {int(i) + 1: step for i, step, ok in zip(check.pairs, check.global_steps, check.converged) if ok}
 
 
-def checked_odometry(scans, odometry: Callable[[dict, Callable], tuple], labels: list[str],
-                     ranges: tuple[float, float], voxel_m: float, where: str) -> tuple:
+def checked_odometry(
+    scans,
+    odometry: Callable[[dict, Callable], tuple],
+    labels: list[str],
+    ranges: tuple[float, float],
+    voxel_m: float,
+    where: str,
+) -> tuple:
     """odometry({}, seen) (a tuple whose first item is the poses [S, 4, 4] of the scans [S] x [N_i, 3]; it calls
     seen(i, scan i) as it reads each scan, and the pairs are registered from that read: registering_pairs), checked
     by check_steps (ranges (min, max) m and voxel_m: KISS-ICP's). Where its steps disagree with the global ones, it
@@ -303,16 +332,24 @@ def checked_odometry(scans, odometry: Callable[[dict, Callable], tuple], labels:
         log = logger.info if check.median_ratio is not None and check.within_tolerance else logger.warning
         log("%s: KISS-ICP's steps against global registration from no guess: %s", where, check.summary())
         return result
-    logger.warning("%s: KISS-ICP's steps disagree with global registration from no guess (%s; %s): running it "
-                   "again from the global steps of %d pairs", where, check.summary(), check.furthest(labels),
-                   len(motion_guesses(check)))
+    logger.warning(
+        "%s: KISS-ICP's steps disagree with global registration from no guess (%s; %s): running it "
+        "again from the global steps of %d pairs",
+        where,
+        check.summary(),
+        check.furthest(labels),
+        len(motion_guesses(check)),
+    )
     between = sampled_pairs(len(scans), between=True)
     repaired = odometry(motion_guesses(check), registering_pairs(between, ranges, voxel_m, registered))
     again = check_steps(scans, repaired[0], ranges, voxel_m, between, registered)
     if again.agrees:
         log = logger.info if again.median_ratio is not None else logger.warning
-        log("%s: KISS-ICP run again from the global steps; its steps against global registration: %s", where,
-                    again.summary())
+        log(
+            "%s: KISS-ICP run again from the global steps; its steps against global registration: %s",
+            where,
+            again.summary(),
+        )
         return repaired
     raise DataError(
         f"{where}: KISS-ICP's steps are {again.median_ratio:.0%} of what global registration (FPFH features and "
@@ -320,4 +357,5 @@ def checked_odometry(scans, odometry: Callable[[dict, Callable], tuple], labels:
         f"{again.path_ratio:.0%} of theirs over {int(np.isfinite(again.ratios).sum())} pairs "
         f"({again.furthest(labels)}), after running again from the global steps ({check.median_ratio:.0%} and "
         f"{check.path_ratio:.0%} before): the odometry slid along the scene; give the sequence its poses (poses.txt, "
-        "an odometry topic)")
+        "an odometry topic)"
+    )

@@ -19,5 +19,6 @@ def with_scan_poses(seq: Sequence, data_cfg, may_be_raw_sweeps: bool, progress: 
     if seq.point_times is None and (may_be_raw_sweeps or deskew != sweep_times.AUTO):
         seq = sweep_times.with_azimuth_times(seq, deskew, range_m)
         period = sweep_times.DEFAULT_PERIOD_S if seq.point_times is not None else None  # used without stamps
-    return odometry.with_kiss_icp_poses(seq, data_cfg.min_range_m, data_cfg.max_range_m, progress,
-                                        odometry_range_m=range_m, unstamped_period_s=period)
+    return odometry.with_kiss_icp_poses(
+        seq, data_cfg.min_range_m, data_cfg.max_range_m, progress, odometry_range_m=range_m, unstamped_period_s=period
+    )

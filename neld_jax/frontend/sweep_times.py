@@ -73,7 +73,8 @@ class SweepConvention:
         """The convention in words, for the log."""
         where = {0.0: "in front of", 0.5: "left of", 1.0: "behind", -1.0: "behind", -0.5: "right of"}.get(
             round(float(np.angle(np.exp(1j * self.start_azimuth_rad))) / np.pi, 3),
-            f"at azimuth {np.degrees(self.start_azimuth_rad):.0f} deg from")
+            f"at azimuth {np.degrees(self.start_azimuth_rad):.0f} deg from",
+        )
         turning = "clockwise" if self.clockwise else "anticlockwise"
         return f"starting {where} the sensor, turning {turning} seen from above"
 
@@ -99,8 +100,11 @@ class DeskewEvidence:
 
     def ratios(self) -> dict[str, np.ndarray]:
         """{convention name: [P] its residuals over the rigid ones}."""
-        return {name: r / np.maximum(self.residuals["rigid"], 1e-12) for name, r in self.residuals.items()
-                if name != "rigid"}
+        return {
+            name: r / np.maximum(self.residuals["rigid"], 1e-12)
+            for name, r in self.residuals.items()
+            if name != "rigid"
+        }
 
     def winner(self, margin: float = MARGIN) -> str | None:
         """The convention that registers clearly better than rigid (module docstring; margin 0: the best of them,
@@ -118,17 +122,23 @@ class DeskewEvidence:
             return "no pair of consecutive scans could be registered"
         rigid = float(np.median(self.residuals["rigid"]))
         ratios = self.ratios()
-        each = ", ".join(f"{name.replace('_', ' ')} {100 * np.median(self.residuals[name]):.2f} cm "
-                         f"(x{np.median(ratios[name]):.2f}, x{np.max(ratios[name]):.2f} at most)" for name in ratios)
-        return (f"RMS point-to-plane residuals after ICP of {len(self.pairs)} pairs of consecutive scans (first "
-                f"scans {', '.join(map(str, self.pairs))}), medians: rigid {100 * rigid:.2f} cm, {each}")
+        each = ", ".join(
+            f"{name.replace('_', ' ')} {100 * np.median(self.residuals[name]):.2f} cm "
+            f"(x{np.median(ratios[name]):.2f}, x{np.max(ratios[name]):.2f} at most)"
+            for name in ratios
+        )
+        return (
+            f"RMS point-to-plane residuals after ICP of {len(self.pairs)} pairs of consecutive scans (first "
+            f"scans {', '.join(map(str, self.pairs))}), medians: rigid {100 * rigid:.2f} cm, {each}"
+        )
 
 
 def turn_fractions(points: np.ndarray, convention: SweepConvention) -> np.ndarray:
     """points [N, 3] (sensor frame, x forward, z up) -> [N] in [0, 1): how far through the turn each was measured."""
     azimuth = np.arctan2(points[:, 1], points[:, 0])
-    turned = (convention.start_azimuth_rad - azimuth) if convention.clockwise else (
-        azimuth - convention.start_azimuth_rad)
+    turned = (
+        (convention.start_azimuth_rad - azimuth) if convention.clockwise else (azimuth - convention.start_azimuth_rad)
+    )
     fraction = np.mod(turned, 2.0 * np.pi) / (2.0 * np.pi)
     return np.where(fraction >= 1.0, 0.0, fraction)  # mod of a tiny negative can round up to a full turn
 
@@ -200,7 +210,7 @@ def _residual(source, target, pose: np.ndarray, voxel_m: float) -> tuple[float, 
     distance = np.full(len(points), cap)
     offsets = points[found] - target_points[index[found]]
     distance[found] = np.minimum(np.abs(np.einsum("ij,ij->i", offsets, target_normals[index[found]])), cap)
-    return float(np.sqrt(np.mean(distance ** 2))), float(np.mean(found))
+    return float(np.sqrt(np.mean(distance**2))), float(np.mean(found))
 
 
 def rigid_pair(a: np.ndarray, b: np.ndarray, voxel_m: float) -> tuple[np.ndarray, float, float]:
@@ -214,8 +224,13 @@ def rigid_pair(a: np.ndarray, b: np.ndarray, voxel_m: float) -> tuple[np.ndarray
     residual, fitness = _residual(source, target, pose, voxel_m)
     if fitness < MIN_FITNESS:
         radius = FEATURE_RADIUS_VOXELS * voxel_m
-        start = ransac_alignment(fpfh_features(_cloud(b, voxel_m), voxel_m, radius),
-                                 fpfh_features(_cloud(a, voxel_m), voxel_m, radius), voxel_m, RANSAC_ITERATIONS, 0)
+        start = ransac_alignment(
+            fpfh_features(_cloud(b, voxel_m), voxel_m, radius),
+            fpfh_features(_cloud(a, voxel_m), voxel_m, radius),
+            voxel_m,
+            RANSAC_ITERATIONS,
+            0,
+        )
         featured = _icp(source, target, start, [2.0 * voxel_m, voxel_m])
         other = _residual(source, target, featured, voxel_m)
         if other[1] > fitness:
@@ -223,8 +238,9 @@ def rigid_pair(a: np.ndarray, b: np.ndarray, voxel_m: float) -> tuple[np.ndarray
     return pose, residual, fitness
 
 
-def deskewed_residual(a: np.ndarray, b: np.ndarray, convention: SweepConvention, motion: np.ndarray,
-                      voxel_m: float) -> float:
+def deskewed_residual(
+    a: np.ndarray, b: np.ndarray, convention: SweepConvention, motion: np.ndarray, voxel_m: float
+) -> float:
     """The residual [m] (_residual) of scan b [M, 3] registered to scan a [N, 3], both deskewed as raw sweeps of
     `convention` (deskewed_by) with the sensor moving by the pair's motion [4, 4] (b's pose in a's frame, rigid_pair)
     in each sweep; the motion registered again from the deskewed scans, twice."""
@@ -256,8 +272,9 @@ def measured_deskew(scans, range_m: float) -> DeskewEvidence:
     chosen = sorted(sorted(registered, key=lambda pair: -pair[0])[:EVIDENCE_PAIRS], key=lambda pair: pair[1])
     residuals = {"rigid": np.array([pair[4] for pair in chosen])}
     for name, convention in CONVENTIONS.items():
-        residuals[name] = np.array([deskewed_residual(*scans_ab, convention, motion, voxel)
-                                    for _, _, scans_ab, motion, _ in chosen])
+        residuals[name] = np.array(
+            [deskewed_residual(*scans_ab, convention, motion, voxel) for _, _, scans_ab, motion, _ in chosen]
+        )
     return DeskewEvidence(tuple(pair[1] for pair in chosen), residuals)
 
 
@@ -268,7 +285,7 @@ def deskew_decision(seq: Sequence, deskew: str, range_m: float) -> tuple[SweepCo
     if deskew == DESKEWED:
         return None, "data.deskew=deskewed"
     if deskew.startswith(f"{RAW}_"):
-        return CONVENTIONS[deskew[len(RAW) + 1:]], f"data.deskew={deskew}"
+        return CONVENTIONS[deskew[len(RAW) + 1 :]], f"data.deskew={deskew}"
     evidence = measured_deskew(seq.scans, range_m)
     name = evidence.winner(margin=0.0 if deskew == RAW else MARGIN)
     if deskew == RAW:
@@ -290,22 +307,34 @@ def with_azimuth_times(seq: Sequence, deskew: str = AUTO, range_m: float = 0.0) 
     if deskew not in DESKEW_CHOICES:
         raise ConfigError(f"data.deskew: unknown choice '{deskew}' (expected one of {' | '.join(DESKEW_CHOICES)})")
     if deskew == AUTO:
-        picked = np.unique(np.linspace(0, seq.num_scans - 1, min(seq.num_scans, MAX_SCANS_LOOKED_AT)).round()
-                           .astype(int))
+        picked = np.unique(
+            np.linspace(0, seq.num_scans - 1, min(seq.num_scans, MAX_SCANS_LOOKED_AT)).round().astype(int)
+        )
         gap = float(np.median([largest_azimuth_gap_deg(seq.scans[i]) for i in picked]))
         if gap > MAX_AZIMUTH_GAP_DEG:
-            logger.info("%s: the scans carry no per-point times and leave %.0f deg of azimuth empty (a median scan), "
-                        "not a spinning LiDAR's full turn: they are registered as they are", where, gap)
+            logger.info(
+                "%s: the scans carry no per-point times and leave %.0f deg of azimuth empty (a median scan), "
+                "not a spinning LiDAR's full turn: they are registered as they are",
+                where,
+                gap,
+            )
             return seq
     convention, why = deskew_decision(seq, deskew, range_m or odometry.sensor_range_m(seq.scans))
     if convention is None:
-        logger.info("%s: the scans carry no per-point times and are deskewed already: registered as they are (%s)",
-                    where, why)
+        logger.info(
+            "%s: the scans carry no per-point times and are deskewed already: registered as they are (%s)", where, why
+        )
         return seq
     period = sweep_period(seq.timestamps)
     source = "from the stamps" if seq.timestamps is not None and len(seq.timestamps) > 1 else "assumed: no stamps"
-    logger.info("%s: the scans carry no per-point times and are raw sweeps %s (%s): each point's time is derived "
-                "from its azimuth, a sweep of %.3f s (%s) (sensor frame x forward, z up)", where, convention.describe(),
-                why, period, source)
+    logger.info(
+        "%s: the scans carry no per-point times and are raw sweeps %s (%s): each point's time is derived "
+        "from its azimuth, a sweep of %.3f s (%s) (sensor frame x forward, z up)",
+        where,
+        convention.describe(),
+        why,
+        period,
+        source,
+    )
     times = lazy(seq.scans).map(lambda _, scan: azimuth_times(scan, period, convention))
     return dataclasses.replace(seq, point_times=times)

@@ -50,8 +50,10 @@ def keep_input_travel(scans, poses: np.ndarray, input_poses: np.ndarray, eval_cf
     if len(poses) < 2:
         return poses, {**record, "largest_window_change": 0.0, "steps_beyond": 0.0, "path_ratio": None}
     change = np.abs(window_scales(poses, input_poses, TRAVEL_WINDOW_M) - 1.0)
-    record.update(largest_window_change=round(float(change.max()), 6),
-                  steps_beyond=round(float(np.mean(change > ODOMETRY_DRIFT)), 4))
+    record.update(
+        largest_window_change=round(float(change.max()), 6),
+        steps_beyond=round(float(np.mean(change > ODOMETRY_DRIFT)), 4),
+    )
     kept = poses
     if change.max() > ODOMETRY_DRIFT:
         candidate = with_distances_of(poses, input_poses, TRAVEL_WINDOW_M, beyond=ODOMETRY_DRIFT)
@@ -59,13 +61,20 @@ def keep_input_travel(scans, poses: np.ndarray, input_poses: np.ndarray, eval_cf
         own_crisper = margin is not None and margin["all_draws_agree"] and margin["mean"] < 0
         kept = poses if own_crisper else candidate
         record.update(kept="own" if own_crisper else "input", margin=None if margin is None else margin["mean"])
-        logger.log(logging.INFO if own_crisper else logging.WARNING,
-                   "the answer changes the distance travelled by up to %.2f%% over %g m windows (%.1f%% of its steps "
-                   "beyond the %.0f%% an odometry drifts): %s", 100 * change.max(), TRAVEL_WINDOW_M,
-                   100 * record["steps_beyond"], 100 * ODOMETRY_DRIFT,
-                   "its own distances give every scan's map the crisper map on every draw: kept" if own_crisper else
-                   "the input's distances are kept there (its own gave every scan's map no crisper map on every draw"
-                   + ("" if margin is None else f": {margin['mean']:+.5f} nats") + ")")
+        logger.log(
+            logging.INFO if own_crisper else logging.WARNING,
+            "the answer changes the distance travelled by up to %.2f%% over %g m windows (%.1f%% of its steps "
+            "beyond the %.0f%% an odometry drifts): %s",
+            100 * change.max(),
+            TRAVEL_WINDOW_M,
+            100 * record["steps_beyond"],
+            100 * ODOMETRY_DRIFT,
+            "its own distances give every scan's map the crisper map on every draw: kept"
+            if own_crisper
+            else "the input's distances are kept there (its own gave every scan's map no crisper map on every draw"
+            + ("" if margin is None else f": {margin['mean']:+.5f} nats")
+            + ")",
+        )
     ratio = path_length_ratio(kept, input_poses)
     record["path_ratio"] = round(ratio, 6) if np.isfinite(ratio) else None
     return kept, record
@@ -78,8 +87,9 @@ def _every_scan_margin(scans, own: np.ndarray, candidate: np.ndarray, eval_cfg) 
     gridded = [voxel_downsample(np.asarray(scan, np.float64), TRAVEL_GRID_OF_RADIUS * radius) for scan in scans]
     methods = {"own": own, "input": candidate}
     first, _ = judge.compare_maps(gridded, methods, radius, int(eval_cfg["crispness_queries"]))
-    margins = judge.crispness_margins(SimpleNamespace(scans=gridded), methods, eval_cfg, against="own",
-                                      first_draw=first)
+    margins = judge.crispness_margins(
+        SimpleNamespace(scans=gridded), methods, eval_cfg, against="own", first_draw=first
+    )
     return margins.get("input")
 
 
@@ -126,10 +136,20 @@ def keep_the_better(made, judged: tuple) -> tuple:
     if not blurred_the_start(margins, chosen):
         return made, judged
     margin = margins[START_METHOD[chosen]]
-    logger.warning("NeLD-BA's poses made the keyframes' raw map blurrier than the %s poses training started from, on "
-                   "every one of %d query draws (by %.5f nats of mean map entropy): the answer (poses_optimized, "
-                   "map_raw.ply) is the start's poses; NeLD-BA's are in poses_%s", chosen, len(margin["per_draw"]),
-                   margin["mean"], NELD_BA)
-    kept = dataclasses.replace(made, refined=dataclasses.replace(made.refined, poses=made.start.poses),
-                               registration=None, every_scan=None, neld_ba=made.every_scan_poses())
+    logger.warning(
+        "NeLD-BA's poses made the keyframes' raw map blurrier than the %s poses training started from, on "
+        "every one of %d query draws (by %.5f nats of mean map entropy): the answer (poses_optimized, "
+        "map_raw.ply) is the start's poses; NeLD-BA's are in poses_%s",
+        chosen,
+        len(margin["per_draw"]),
+        margin["mean"],
+        NELD_BA,
+    )
+    kept = dataclasses.replace(
+        made,
+        refined=dataclasses.replace(made.refined, poses=made.start.poses),
+        registration=None,
+        every_scan=None,
+        neld_ba=made.every_scan_poses(),
+    )
     return kept, start_as_answer(judged, chosen)

@@ -51,8 +51,9 @@ class Crispness(NamedTuple):
         }
 
 
-def neighbourhood_covariances(points: np.ndarray, queries: np.ndarray, radius: float,
-                              tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
+def neighbourhood_covariances(
+    points: np.ndarray, queries: np.ndarray, radius: float, tree: cKDTree | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Covariance (1/n, not 1/(n-1)) of the points within `radius` of each query, with the query's own point.
 
     points: [N, 3], queries: [Q, 3] -> (covariances [Q, 3, 3], neighbour counts [Q] int64). tree: a cKDTree of
@@ -76,15 +77,22 @@ def neighbourhood_covariances(points: np.ndarray, queries: np.ndarray, radius: f
         return np.bincount(owner, weights=values, minlength=q)
 
     mean = np.stack([per_query_sum(centred[:, a]) for a in range(3)], axis=-1) / n[:, None]
-    second = np.stack([np.stack([per_query_sum(centred[:, a] * centred[:, b]) for b in range(3)], axis=-1)
-                       for a in range(3)], axis=-2)
+    second = np.stack(
+        [np.stack([per_query_sum(centred[:, a] * centred[:, b]) for b in range(3)], axis=-1) for a in range(3)], axis=-2
+    )
     covariances = second / n[:, None, None] - mean[:, :, None] * mean[:, None, :]
     return covariances, counts
 
 
-def crispness(points: np.ndarray, radius: float = DEFAULT_RADIUS_M, min_neighbors: int = DEFAULT_MIN_NEIGHBORS,
-              max_queries: int = DEFAULT_MAX_QUERIES, seed: int = 0, query_index: np.ndarray | None = None,
-              tree: cKDTree | None = None) -> Crispness:
+def crispness(
+    points: np.ndarray,
+    radius: float = DEFAULT_RADIUS_M,
+    min_neighbors: int = DEFAULT_MIN_NEIGHBORS,
+    max_queries: int = DEFAULT_MAX_QUERIES,
+    seed: int = 0,
+    query_index: np.ndarray | None = None,
+    tree: cKDTree | None = None,
+) -> Crispness:
     """MME and plane thickness of a map. points: [N, 3] metres.
 
     The queries are `query_index` (indices into points) if given, else a seeded random subset of at most
@@ -105,9 +113,14 @@ def crispness(points: np.ndarray, radius: float = DEFAULT_RADIUS_M, min_neighbor
     return Crispness(entropy, thickness, query_index)
 
 
-def entropy_over_query_draws(maps: dict[str, np.ndarray], seeds, max_queries: int = DEFAULT_MAX_QUERIES,
-                             radius: float = DEFAULT_RADIUS_M, deadline: float | None = None,
-                             progress: bool = False) -> dict[str, np.ndarray]:
+def entropy_over_query_draws(
+    maps: dict[str, np.ndarray],
+    seeds,
+    max_queries: int = DEFAULT_MAX_QUERIES,
+    radius: float = DEFAULT_RADIUS_M,
+    deadline: float | None = None,
+    progress: bool = False,
+) -> dict[str, np.ndarray]:
     """Mean map entropy of each map over several draws of the query points: {name: [D] nats}, D = len(seeds), or
     fewer when a time.perf_counter() `deadline` would pass: no draw starts that would end after it, judged by the
     draw before (each map's KD-tree is built once).
@@ -151,8 +164,9 @@ def sample_queries(num_points: int, max_queries: int, seed: int = 0) -> np.ndarr
     return np.sort(np.random.default_rng(seed).choice(num_points, size=max_queries, replace=False))
 
 
-def per_scan_means(values: np.ndarray, query_index: np.ndarray, scan_of_point: np.ndarray,
-                   num_scans: int) -> np.ndarray:
+def per_scan_means(
+    values: np.ndarray, query_index: np.ndarray, scan_of_point: np.ndarray, num_scans: int
+) -> np.ndarray:
     """Mean of per-query values [Q] over the queries that came from each scan (NaNs ignored) -> [S] (NaN if none).
 
     scan_of_point: [N] the scan each map point came from."""

@@ -53,8 +53,9 @@ def _check_points(points: np.ndarray, name: str) -> np.ndarray:
     return points
 
 
-def apply_alignment_to_poses(poses: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
-                             scale: float = 1.0) -> np.ndarray:
+def apply_alignment_to_poses(
+    poses: np.ndarray, rotation: np.ndarray, translation: np.ndarray, scale: float = 1.0
+) -> np.ndarray:
     """Left-apply a similarity to poses as evo does: p -> s R p + t, R_pose -> R R_pose.
 
     poses: [S, 4, 4], rotation: [3, 3], translation: [3] -> [S, 4, 4] (still rigid transforms).
@@ -79,8 +80,9 @@ def similarity_matrix(rotation: np.ndarray, translation: np.ndarray, scale: floa
 # ---------------------------------------------------------------------------------------------
 
 
-def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = False
-                      ) -> tuple[np.ndarray, np.ndarray, float]:
+def umeyama_alignment(
+    src: np.ndarray, dst: np.ndarray, with_scale: bool = False
+) -> tuple[np.ndarray, np.ndarray, float]:
     """Least-squares similarity (Umeyama 1991) minimising sum |dst - (s R src + t)|^2.
 
     src, dst: [N, 3] corresponding points -> (R [3, 3], t [3], s). s is 1.0 unless with_scale.
@@ -96,8 +98,11 @@ def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = False
     var_src = np.mean(np.sum(src_c**2, axis=1))
     covariance = dst_c.T @ src_c / len(src)
     if np.linalg.matrix_rank(covariance) < 2:
-        logger.warning("Umeyama alignment: %d positions do not determine a rotation (collinear or too few);"
-                       " aligning the translation only", len(src))
+        logger.warning(
+            "Umeyama alignment: %d positions do not determine a rotation (collinear or too few);"
+            " aligning the translation only",
+            len(src),
+        )
         rotation = np.eye(3)
         scale = 1.0
         if with_scale and var_src > 0:
@@ -113,8 +118,7 @@ def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = False
     return rotation, translation, scale
 
 
-def ate_errors(est: np.ndarray, gt: np.ndarray, align: str = "se3"
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def ate_errors(est: np.ndarray, gt: np.ndarray, align: str = "se3") -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Per-pose absolute errors after alignment.
 
     est, gt: [S, 4, 4] matched poses -> (translation errors [S] m, rotation errors [S] deg,
@@ -152,8 +156,9 @@ def ate(est: np.ndarray, gt: np.ndarray, align: str = "se3") -> dict[str, Any]:
     return ate_summary(*ate_errors(est, gt, align), align=align)
 
 
-def ate_summary(translation_errors: np.ndarray, rotation_errors: np.ndarray, alignment: np.ndarray, scale: float,
-                align: str = "se3") -> dict[str, Any]:
+def ate_summary(
+    translation_errors: np.ndarray, rotation_errors: np.ndarray, alignment: np.ndarray, scale: float, align: str = "se3"
+) -> dict[str, Any]:
     """`ate`'s dictionary from `ate_errors`' outputs (for callers that also need the per-pose errors)."""
     return {
         "translation_rmse_m": _rmse(translation_errors),
@@ -228,8 +233,9 @@ KITTI_LENGTHS_M = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)  # th
 KITTI_STEP = 10  # the devkit's step between first frames
 
 
-def kitti_segment_errors(est: np.ndarray, gt: np.ndarray, lengths_m=KITTI_LENGTHS_M, step: int = KITTI_STEP
-                         ) -> dict[str, np.ndarray]:
+def kitti_segment_errors(
+    est: np.ndarray, gt: np.ndarray, lengths_m=KITTI_LENGTHS_M, step: int = KITTI_STEP
+) -> dict[str, np.ndarray]:
     """Every segment of KITTI's relative error (the odometry devkit's calcSequenceErrors).
 
     est, gt: [S, 4, 4] matched poses; lengths_m: [L] segment lengths [m]; step: frames between first frames.
@@ -255,13 +261,18 @@ def kitti_segment_errors(est: np.ndarray, gt: np.ndarray, lengths_m=KITTI_LENGTH
     gt_motion = invert_poses(gt[first]) @ gt[last]
     est_motion = invert_poses(est[first]) @ est[last]
     error = invert_poses(est_motion) @ gt_motion
-    return {"first": first, "last": last, "length_m": length,
-            "translation_m": np.linalg.norm(error[:, :3, 3], axis=1),
-            "rotation_deg": rotation_angles_deg(error[:, :3, :3])}
+    return {
+        "first": first,
+        "last": last,
+        "length_m": length,
+        "translation_m": np.linalg.norm(error[:, :3, 3], axis=1),
+        "rotation_deg": rotation_angles_deg(error[:, :3, :3]),
+    }
 
 
-def kitti_relative_error(est: np.ndarray, gt: np.ndarray, lengths_m=KITTI_LENGTHS_M, step: int = KITTI_STEP
-                         ) -> dict[str, Any]:
+def kitti_relative_error(
+    est: np.ndarray, gt: np.ndarray, lengths_m=KITTI_LENGTHS_M, step: int = KITTI_STEP
+) -> dict[str, Any]:
     """KITTI's relative error over distance segments (see `kitti_segment_errors`), averaged over all segments as the
     devkit averages them.
 
@@ -275,21 +286,25 @@ def kitti_relative_error(est: np.ndarray, gt: np.ndarray, lengths_m=KITTI_LENGTH
     def summary(mask: np.ndarray) -> dict[str, Any]:
         empty = not np.any(mask)
         length = segments["length_m"][mask]
-        return {"translation_pct": float("nan") if empty else float(100 * np.mean(segments["translation_m"][mask]
-                                                                                  / length)),
-                "rotation_deg_per_m": float("nan") if empty else float(np.mean(segments["rotation_deg"][mask]
-                                                                               / length)),
-                "num_segments": int(np.sum(mask))}
+        return {
+            "translation_pct": float("nan")
+            if empty
+            else float(100 * np.mean(segments["translation_m"][mask] / length)),
+            "rotation_deg_per_m": float("nan") if empty else float(np.mean(segments["rotation_deg"][mask] / length)),
+            "num_segments": int(np.sum(mask)),
+        }
 
     lengths = [float(v) for v in np.asarray(lengths_m, dtype=np.float64).reshape(-1)]
     out = summary(np.ones(len(segments["first"]), dtype=bool))
-    out.update(lengths_m=lengths, step=int(step),
-               per_length={f"{v:g}": summary(segments["length_m"] == v) for v in lengths})
+    out.update(
+        lengths_m=lengths, step=int(step), per_length={f"{v:g}": summary(segments["length_m"] == v) for v in lengths}
+    )
     return out
 
 
-def associate_timestamps(stamps_est: np.ndarray, stamps_gt: np.ndarray, max_diff: float = 0.01
-                         ) -> tuple[np.ndarray, np.ndarray]:
+def associate_timestamps(
+    stamps_est: np.ndarray, stamps_gt: np.ndarray, max_diff: float = 0.01
+) -> tuple[np.ndarray, np.ndarray]:
     """Match each estimate timestamp to the nearest ground-truth timestamp within max_diff seconds.
 
     stamps_est: [S], stamps_gt: [G] -> (indices into est [K], indices into gt [K]), K <= S. A GT
@@ -340,8 +355,13 @@ def nearest_neighbor_distances(query: np.ndarray, reference: np.ndarray) -> np.n
     return np.asarray(_to_o3d(query).compute_point_cloud_distance(_to_o3d(reference)), dtype=np.float64)
 
 
-def map_metrics_from_distances(est_to_gt: np.ndarray, gt_to_est: np.ndarray, threshold: float = 0.2,
-                               cutoff: float | None = None, mode: str = "paper") -> dict[str, Any]:
+def map_metrics_from_distances(
+    est_to_gt: np.ndarray,
+    gt_to_est: np.ndarray,
+    threshold: float = 0.2,
+    cutoff: float | None = None,
+    mode: str = "paper",
+) -> dict[str, Any]:
     """Compare an estimated map with a ground-truth map (same frame) from their nearest-neighbour distances
     (`nearest_neighbor_distances`): est_to_gt [N], each estimated point's to its nearest GT point ("accuracy");
     gt_to_est [M], each GT point's to its nearest estimated point ("completeness").

@@ -36,9 +36,22 @@ MAD_THRESHOLD = 3.0
 RESIDUAL_FLOOR_M = 0.03  # a residual is flagged only this far above the keyframes' median or further
 REFINEMENT_FLOOR_M = 0.01  # a refinement is flagged only from this size on (translation) ...
 REFINEMENT_FLOOR_DEG = 0.1  # ... or this (rotation)
-COLUMNS = ("scan", "file", "timestamp", "keyframe", "rays", "median_residual_m", "registration_residual_m",
-           "correction_cm", "correction_deg", "refinement_cm", "refinement_deg", "entropy_before", "entropy_after",
-           "flag")
+COLUMNS = (
+    "scan",
+    "file",
+    "timestamp",
+    "keyframe",
+    "rays",
+    "median_residual_m",
+    "registration_residual_m",
+    "correction_cm",
+    "correction_deg",
+    "refinement_cm",
+    "refinement_deg",
+    "entropy_before",
+    "entropy_after",
+    "flag",
+)
 LOCALIZATION_COLUMNS = ("scan", "file", "timestamp", "registration_residual_m", "fitness", "flag")
 
 
@@ -104,8 +117,9 @@ class KeyframeMeasures:
     refinement_deg: np.ndarray | None = None
 
 
-def scan_report(scans: ScanList, measures: KeyframeMeasures, correction_m: np.ndarray,
-                correction_deg: np.ndarray) -> list[dict]:
+def scan_report(
+    scans: ScanList, measures: KeyframeMeasures, correction_m: np.ndarray, correction_deg: np.ndarray
+) -> list[dict]:
     """Rows (dicts with COLUMNS) for every input scan; correction_m / correction_deg [S]: each scan's correction from
     the input (aligned_corrections).
 
@@ -117,30 +131,36 @@ def scan_report(scans: ScanList, measures: KeyframeMeasures, correction_m: np.nd
     if refinement_m is None or refinement_deg is None:
         refinement_m, refinement_deg = correction_m[keyframe_index], correction_deg[keyframe_index]
     residual_flags = robust_outliers(measures.residual_m, min_excess=RESIDUAL_FLOOR_M)
-    refinement_flags = ((robust_outliers(refinement_m) & (np.asarray(refinement_m) >= REFINEMENT_FLOOR_M))
-                        | (robust_outliers(refinement_deg) & (np.asarray(refinement_deg) >= REFINEMENT_FLOOR_DEG)))
+    refinement_flags = (robust_outliers(refinement_m) & (np.asarray(refinement_m) >= REFINEMENT_FLOOR_M)) | (
+        robust_outliers(refinement_deg) & (np.asarray(refinement_deg) >= REFINEMENT_FLOOR_DEG)
+    )
     kf_row = {int(s): k for k, s in enumerate(keyframe_index)}
     rows = []
     for s in range(scans.num_scans):
         k = kf_row.get(s)
-        reasons = [] if k is None else ([r for r, f in (("residual", residual_flags[k]),
-                                                        ("refinement", refinement_flags[k])) if f])
-        rows.append({
-            "scan": s,
-            "file": scans.files[s] if scans.files is not None else "",
-            "timestamp": None if scans.timestamps is None else float(scans.timestamps[s]),
-            "keyframe": int(k is not None),
-            "rays": int(measures.rays[k]) if k is not None else 0,
-            "median_residual_m": _value(measures.residual_m, k),
-            "registration_residual_m": None,
-            "correction_cm": float(100.0 * correction_m[s]),
-            "correction_deg": float(correction_deg[s]),
-            "refinement_cm": None if k is None else float(100.0 * refinement_m[k]),
-            "refinement_deg": _value(refinement_deg, k),
-            "entropy_before": _value(measures.entropy_before, k),
-            "entropy_after": _value(measures.entropy_after, k),
-            "flag": "+".join(reasons),
-        })
+        reasons = (
+            []
+            if k is None
+            else ([r for r, f in (("residual", residual_flags[k]), ("refinement", refinement_flags[k])) if f])
+        )
+        rows.append(
+            {
+                "scan": s,
+                "file": scans.files[s] if scans.files is not None else "",
+                "timestamp": None if scans.timestamps is None else float(scans.timestamps[s]),
+                "keyframe": int(k is not None),
+                "rays": int(measures.rays[k]) if k is not None else 0,
+                "median_residual_m": _value(measures.residual_m, k),
+                "registration_residual_m": None,
+                "correction_cm": float(100.0 * correction_m[s]),
+                "correction_deg": float(correction_deg[s]),
+                "refinement_cm": None if k is None else float(100.0 * refinement_m[k]),
+                "refinement_deg": _value(refinement_deg, k),
+                "entropy_before": _value(measures.entropy_before, k),
+                "entropy_after": _value(measures.entropy_after, k),
+                "flag": "+".join(reasons),
+            }
+        )
     return rows
 
 
@@ -165,10 +185,17 @@ def _value(per_keyframe: np.ndarray, k: int | None) -> float | None:
 def localization_rows(registration, files: list[str] | None, timestamps: np.ndarray | None) -> list[dict]:
     """Rows (LOCALIZATION_COLUMNS) of scans posed in a finished run's map (neld-localize): registration, a
     neld_jax.steps.registration.ScanRegistration of S scans; files [S] or None; timestamps [S] or None."""
-    return [{"scan": s, "file": files[s] if files is not None else "",
-             "timestamp": None if timestamps is None else float(timestamps[s]),
-             "registration_residual_m": _value(registration.residual_m, s), "fitness": _value(registration.fitness, s),
-             "flag": f"unregistered ({flag})" if flag else ""} for s, flag in enumerate(registration.flag)]
+    return [
+        {
+            "scan": s,
+            "file": files[s] if files is not None else "",
+            "timestamp": None if timestamps is None else float(timestamps[s]),
+            "registration_residual_m": _value(registration.residual_m, s),
+            "fitness": _value(registration.fitness, s),
+            "flag": f"unregistered ({flag})" if flag else "",
+        }
+        for s, flag in enumerate(registration.flag)
+    ]
 
 
 def write_csv(path: str | os.PathLike, rows: list[dict], columns: tuple = COLUMNS) -> Path:
@@ -193,19 +220,35 @@ def summarize(rows: list[dict], max_listed: int = 10) -> dict:
     """{"num_scans", "num_keyframes", "flagged": [{"scan", "file", "flag", ...}]} for metrics.json and the log."""
     flagged = [row for row in rows if row["flag"]]
     for row in flagged[:max_listed]:
-        logger.warning("scan report: %s flagged (%s): median residual %s m, refinement %s (from the input: %.1f cm "
-                       "/ %.2f deg)", row["file"] or f"scan {row['scan']}", row["flag"],
-                       "-" if row["median_residual_m"] is None else f"{row['median_residual_m']:.3f}",
-                       "-" if row["refinement_cm"] is None
-                       else f"{row['refinement_cm']:.2f} cm / {row['refinement_deg']:.3f} deg",
-                       row["correction_cm"], row["correction_deg"])
+        logger.warning(
+            "scan report: %s flagged (%s): median residual %s m, refinement %s (from the input: %.1f cm / %.2f deg)",
+            row["file"] or f"scan {row['scan']}",
+            row["flag"],
+            "-" if row["median_residual_m"] is None else f"{row['median_residual_m']:.3f}",
+            "-" if row["refinement_cm"] is None else f"{row['refinement_cm']:.2f} cm / {row['refinement_deg']:.3f} deg",
+            row["correction_cm"],
+            row["correction_deg"],
+        )
     if len(flagged) > max_listed:
         logger.warning("scan report: %d more scans flagged (see scans_report.csv)", len(flagged) - max_listed)
     return {
         "num_scans": len(rows),
         "num_keyframes": int(sum(row["keyframe"] for row in rows)),
-        "flagged": [{key: row[key] for key in ("scan", "file", "flag", "median_residual_m",
-                                               "registration_residual_m", "correction_cm",
-                                               "correction_deg", "refinement_cm", "refinement_deg")}
-                    for row in flagged],
+        "flagged": [
+            {
+                key: row[key]
+                for key in (
+                    "scan",
+                    "file",
+                    "flag",
+                    "median_residual_m",
+                    "registration_residual_m",
+                    "correction_cm",
+                    "correction_deg",
+                    "refinement_cm",
+                    "refinement_deg",
+                )
+            }
+            for row in flagged
+        ],
     }

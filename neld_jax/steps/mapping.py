@@ -29,8 +29,15 @@ RENDER_PARTS = 4
 
 
 @functools.partial(jax.jit, static_argnames=("field", "sampler_m"))
-def render_points(params_field, field: DensityField, sampler_m: SamplerSettings, scale, T_rays: jax.Array,
-                  directions_local: jax.Array, alpha):
+def render_points(
+    params_field,
+    field: DensityField,
+    sampler_m: SamplerSettings,
+    scale,
+    T_rays: jax.Array,
+    directions_local: jax.Array,
+    alpha,
+):
     """One cube's map points: T_rays [R, 4, 4] the pose of each ray's keyframe in the cube's frame, directions_local
     [R, 3]; sampler_m in metres, scale (traced: one compile for every cube) its units -> (points [R, 3] in the
     cube's frame, opacity [R]). Deterministic sampling (no key): bin midpoints, CDF quantiles."""
@@ -95,9 +102,14 @@ def cubes_to_render(refined) -> list[CubeToRender]:
         slot_of = np.full(len(refined.poses), -1)
         slot_of[plan.members[m]] = np.arange(len(plan.members[m]))
         norm_m = plan.norms[m]
-        cubes.append(CubeToRender(slot_of, jax.tree.map(lambda x, m=m: x[m], fields), norm_m,
-                                  jnp.asarray(norm_m.poses_to_normalized(refined.poses_in_field[plan.members[m]]),
-                                              jnp.float32)))
+        cubes.append(
+            CubeToRender(
+                slot_of,
+                jax.tree.map(lambda x, m=m: x[m], fields),
+                norm_m,
+                jnp.asarray(norm_m.poses_to_normalized(refined.poses_in_field[plan.members[m]]), jnp.float32),
+            )
+        )
     return cubes
 
 
@@ -107,7 +119,7 @@ def render_parts(order: np.ndarray, max_seconds: float, num_cubes: int) -> list[
     if max_seconds <= 0:
         return [order]
     if num_cubes == 1:
-        return [order[i:i + RAYS_PER_BATCH] for i in range(0, len(order), RAYS_PER_BATCH)]
+        return [order[i : i + RAYS_PER_BATCH] for i in range(0, len(order), RAYS_PER_BATCH)]
     return np.array_split(order, RENDER_PARTS)
 
 
@@ -121,15 +133,29 @@ class _MapSoFar(NamedTuple):
     opacity: np.ndarray
 
 
-def _render_batch(cube: CubeToRender, field: DensityField, sampler_m: SamplerSettings, alpha, rays: RaySet,
-                  idx: np.ndarray, so_far: _MapSoFar) -> None:
+def _render_batch(
+    cube: CubeToRender,
+    field: DensityField,
+    sampler_m: SamplerSettings,
+    alpha,
+    rays: RaySet,
+    idx: np.ndarray,
+    so_far: _MapSoFar,
+) -> None:
     """Render rays idx [n <= RAYS_PER_BATCH] (padded to a batch: one compile) in `cube` and keep, in so_far, the
     points more central in it than those kept before."""
     pad = RAYS_PER_BATCH - len(idx)
     slots = np.pad(cube.slot_of[rays.scan_index[idx]], (0, pad), mode="edge")
     directions = np.pad(rays.directions[idx], ((0, pad), (0, 0)), mode="edge")
-    p_n, op = render_points(cube.params, field, sampler_m, jnp.float32(cube.norm.scale), cube.poses[slots],
-                            jnp.asarray(directions, jnp.float32), alpha)
+    p_n, op = render_points(
+        cube.params,
+        field,
+        sampler_m,
+        jnp.float32(cube.norm.scale),
+        cube.poses[slots],
+        jnp.asarray(directions, jnp.float32),
+        alpha,
+    )
     p_n, op = np.asarray(p_n, np.float64)[: len(idx)], np.asarray(op)[: len(idx)]
     centrality = np.abs(p_n).max(axis=1)
     better = centrality < so_far.centrality[idx]
@@ -141,20 +167,35 @@ def _render_batch(cube: CubeToRender, field: DensityField, sampler_m: SamplerSet
     so_far.opacity[kept] = op[better]
 
 
-def rendered_map(mapping_cfg, sampling_cfg, refined, keyframes, seed: int, max_seconds: float = 0.0,
-                 progress: bool = False) -> MapRender | None:
+def rendered_map(
+    mapping_cfg, sampling_cfg, refined, keyframes, seed: int, max_seconds: float = 0.0, progress: bool = False
+) -> MapRender | None:
     """Step 4 of a run: the map of `refined` (neld_jax.steps.refine.Refined) rendered along mapping_rays of
     `keyframes` (mapping_cfg: config.mapping) with the sampler of sampling_cfg (config.sampling) at the mapping's
     sample counts; None with mapping.enabled off."""
     if not mapping_cfg.enabled:
         return None
     sampler = sampler_settings(sampling_cfg, mapping_cfg.num_coarse, mapping_cfg.num_fine)
-    return render_map(refined, mapping_rays(mapping_cfg, keyframes, seed), sampler, float(mapping_cfg.min_opacity),
-                      max_seconds, seed, progress)
+    return render_map(
+        refined,
+        mapping_rays(mapping_cfg, keyframes, seed),
+        sampler,
+        float(mapping_cfg.min_opacity),
+        max_seconds,
+        seed,
+        progress,
+    )
 
 
-def render_map(refined, rays: RaySet, sampler_m: SamplerSettings, min_opacity: float, max_seconds: float = 0.0,
-               seed: int = 0, progress: bool = False) -> MapRender:
+def render_map(
+    refined,
+    rays: RaySet,
+    sampler_m: SamplerSettings,
+    min_opacity: float,
+    max_seconds: float = 0.0,
+    seed: int = 0,
+    progress: bool = False,
+) -> MapRender:
     """Render `rays` (ranges in metres, scan_index: keyframes) with the fields and poses of `refined`
     (neld_jax.steps.refine.Refined); points in the world, anchored as refined.poses.
 
@@ -176,7 +217,7 @@ def render_map(refined, rays: RaySet, sampler_m: SamplerSettings, min_opacity: f
             for cube in cubes:
                 sel = part[cube.slot_of[scan_index[part]] >= 0]
                 for start in range(0, len(sel), RAYS_PER_BATCH):
-                    idx = sel[start:start + RAYS_PER_BATCH]
+                    idx = sel[start : start + RAYS_PER_BATCH]
                     _render_batch(cube, refined.field, sampler_m, alpha, rays, idx, so_far)
                     bar.update(len(idx))
             if out_of_time(t0, t_part, max_seconds):
@@ -184,9 +225,18 @@ def render_map(refined, rays: RaySet, sampler_m: SamplerSettings, min_opacity: f
     hit = so_far.opacity >= float(min_opacity)  # NaN (not rendered) is not a hit
     points = so_far.points_w[hit] @ refined.anchor[:3, :3].T + refined.anchor[:3, 3]
     render = MapRender(rays, points, so_far.ranges_m, so_far.opacity)
-    logger.info("rendered map: %d of %d rendered rays end on a surface%s", len(points), render.num_rendered,
-                "" if len(cubes) == 1 else f" (stitched from {len(cubes)} submaps)")
+    logger.info(
+        "rendered map: %d of %d rendered rays end on a surface%s",
+        len(points),
+        render.num_rendered,
+        "" if len(cubes) == 1 else f" (stitched from {len(cubes)} submaps)",
+    )
     if render.num_rendered < r:
-        logger.warning("rendered map: %d of its %d rays (a uniform sample) were rendered in the %.0f s it may take "
-                       "(mapping.max_seconds; 0 renders every ray)", render.num_rendered, r, max_seconds)
+        logger.warning(
+            "rendered map: %d of its %d rays (a uniform sample) were rendered in the %.0f s it may take "
+            "(mapping.max_seconds; 0 renders every ray)",
+            render.num_rendered,
+            r,
+            max_seconds,
+        )
     return render

@@ -81,54 +81,94 @@ class TrainingSettings:
     @classmethod
     def from_config(cls, config: ml_collections.ConfigDict) -> "TrainingSettings":
         """The groups of a run's config that training reads."""
-        return cls(config.train, config.model, config.sampling, config.submaps, config.loss, config.seed,
-                   config.data.max_rays_per_scan)
+        return cls(
+            config.train,
+            config.model,
+            config.sampling,
+            config.submaps,
+            config.loss,
+            config.seed,
+            config.data.max_rays_per_scan,
+        )
 
     def training_config(self) -> ml_collections.ConfigDict:
         """A config of these groups and the seed alone, the shape neld_jax.training's functions read (config.train,
         config.seed, ...): the groups themselves, not copies."""
-        return ml_collections.ConfigDict({"train": self.train, "model": self.model, "sampling": self.sampling,
-                                          "submaps": self.submaps, "loss": self.loss, "seed": self.seed})
+        return ml_collections.ConfigDict(
+            {
+                "train": self.train,
+                "model": self.model,
+                "sampling": self.sampling,
+                "submaps": self.submaps,
+                "loss": self.loss,
+                "seed": self.seed,
+            }
+        )
 
 
-def refine_keyframes(settings: TrainingSettings, keyframes, start_poses: np.ndarray,
-                     pose_steps: train.PoseSteps, context: TrainingContext) -> Refined:
+def refine_keyframes(
+    settings: TrainingSettings,
+    keyframes,
+    start_poses: np.ndarray,
+    pose_steps: train.PoseSteps,
+    context: TrainingContext,
+) -> Refined:
     """Train from the keyframes' start poses [K, 4, 4] (world) with `pose_steps` (settings: TrainingSettings),
     resuming from and checkpointing to context.out_dir/checkpoints, within context.max_seconds (`TrainingContext`)."""
     num_scans = keyframes.num_scans
     config = settings.training_config()
-    plan = submaps.plan_from_config(dataclasses.replace(keyframes, poses=start_poses), config,
-                                    num_devices=len(jax.devices()))
-    rays_m = build_rays(keyframes, Normalization(1.0), max_rays_per_scan=(settings.max_rays_per_scan or None),
-                        seed=settings.seed)
+    plan = submaps.plan_from_config(
+        dataclasses.replace(keyframes, poses=start_poses), config, num_devices=len(jax.devices())
+    )
+    rays_m = build_rays(
+        keyframes, Normalization(1.0), max_rays_per_scan=(settings.max_rays_per_scan or None), seed=settings.seed
+    )
     mesh = train.make_mesh(submaps.mesh_size(plan, len(jax.devices())))
     rays, frames = train.device_data(submaps.submap_arrays(plan, rays_m, start_poses), mesh)
-    plan_of = functools.partial(train.make_trainer, config, num_scans, plan.num_submaps, pose_steps, start_poses,
-                                mesh=mesh)
+    plan_of = functools.partial(
+        train.make_trainer, config, num_scans, plan.num_submaps, pose_steps, start_poses, mesh=mesh
+    )
     first = plan_of(int(config.train.steps))
     field_lr = first.schedules.field_lr
-    logger.info("%d keyframe(s) in %s, %d training rays (%d a step, fields %d wide, learning rate %g -> %g) on %d %s "
-                "device(s)", num_scans, "one cube" if plan.num_submaps == 1 else f"{plan.num_submaps} submaps",
-                rays_m.num_rays, first.batch_rays * plan.num_submaps, first.field.width, float(field_lr(0)),
-                float(field_lr(first.schedules.total_steps)), mesh.size, jax.devices()[0].platform)
+    logger.info(
+        "%d keyframe(s) in %s, %d training rays (%d a step, fields %d wide, learning rate %g -> %g) on %d %s device(s)",
+        num_scans,
+        "one cube" if plan.num_submaps == 1 else f"{plan.num_submaps} submaps",
+        rays_m.num_rays,
+        first.batch_rays * plan.num_submaps,
+        first.field.width,
+        float(field_lr(0)),
+        float(field_lr(first.schedules.total_steps)),
+        mesh.size,
+        jax.devices()[0].platform,
+    )
 
-    metadata = {"config_hash": context.config_hash, "num_scans": num_scans, "plan": plan.to_dict(),
-                "pose_steps": pose_steps.to_dict()}
+    metadata = {
+        "config_hash": context.config_hash,
+        "num_scans": num_scans,
+        "plan": plan.to_dict(),
+        "pose_steps": pose_steps.to_dict(),
+    }
     on_log = None if context.on_log is None else posed(context.on_log, start_poses, plan.ref_scale)
     data = train.TrainingData(rays, frames, plan.ref_scale)
     settings = train.FitSettings(context.max_seconds, context.progress, on_log)
-    result = fit_resuming(os.path.join(context.out_dir, "checkpoints"), metadata,
-                          lambda: train.init_state(config, first, num_scans, plan.num_submaps),
-                          functools.partial(train.fit, config, plan_of, data, settings=settings),
-                          on_save=context.on_checkpoint)
+    result = fit_resuming(
+        os.path.join(context.out_dir, "checkpoints"),
+        metadata,
+        lambda: train.init_state(config, first, num_scans, plan.num_submaps),
+        functools.partial(train.fit, config, plan_of, data, settings=settings),
+        on_save=context.on_checkpoint,
+    )
     poses_in_field = world_poses(start_poses, np.asarray(result.state.params["poses"]), plan.ref_scale)
     poses, anchor = anchored_on_first(poses_in_field, start_poses[0])
-    return Refined(result, plan, first.field, poses, poses_in_field, anchor,
-                   np.bincount(rays_m.scan_index, minlength=num_scans))
+    return Refined(
+        result, plan, first.field, poses, poses_in_field, anchor, np.bincount(rays_m.scan_index, minlength=num_scans)
+    )
 
 
-def posed(on_log: Callable[[dict, np.ndarray], None], start_poses: np.ndarray,
-          ref_scale: float) -> Callable[[dict, train.TrainState], None]:
+def posed(
+    on_log: Callable[[dict, np.ndarray], None], start_poses: np.ndarray, ref_scale: float
+) -> Callable[[dict, train.TrainState], None]:
     """train.fit's on_log(entry, state) that hands on_log(entry, poses [K, 4, 4]) the keyframes' poses of that step
     in the world, anchored as the outputs are."""
 
@@ -137,4 +177,3 @@ def posed(on_log: Callable[[dict, np.ndarray], None], start_poses: np.ndarray,
         on_log(entry, anchored_on_first(in_field, start_poses[0])[0])
 
     return observe
-

@@ -49,8 +49,11 @@ class RegistrationSettings:
     def from_groups(cls, data_cfg, baseline_cfg) -> "RegistrationSettings":
         """The run's range crop (data_cfg: config.data) and its map's grid (baseline_cfg: config.baseline, its
         voxel_size_m); the rest as above."""
-        return cls(voxel_size_m=float(baseline_cfg.voxel_size_m), min_range_m=float(data_cfg.min_range_m),
-                   max_range_m=float(data_cfg.max_range_m))
+        return cls(
+            voxel_size_m=float(baseline_cfg.voxel_size_m),
+            min_range_m=float(data_cfg.min_range_m),
+            max_range_m=float(data_cfg.max_range_m),
+        )
 
 
 class ScanRegistration(NamedTuple):
@@ -88,8 +91,9 @@ def cloud_with_normals(points: np.ndarray, settings: RegistrationSettings, senso
     return cloud
 
 
-def register_scan(scan: np.ndarray, guess: np.ndarray, target, settings: RegistrationSettings,
-                  indices: dict | None = None):
+def register_scan(
+    scan: np.ndarray, guess: np.ndarray, target, settings: RegistrationSettings, indices: dict | None = None
+):
     """One scan [N, 3] (sensor frame) from its guess [4, 4] (sensor -> map) to the target map (map_cloud). indices:
     the map's nearest-point indices, kept by a caller that registers many scans to it (baseline.multiscale_icp).
 
@@ -98,12 +102,17 @@ def register_scan(scan: np.ndarray, guess: np.ndarray, target, settings: Registr
 
     indices = {} if indices is None else indices
 
-    source = cloud_with_normals(crop_range(scan, settings.min_range_m, settings.max_range_m), settings,
-                                sensor_frame=True)
+    source = cloud_with_normals(
+        crop_range(scan, settings.min_range_m, settings.max_range_m), settings, sensor_frame=True
+    )
     if len(source.points) < settings.min_points:
         return guess, np.nan, np.nan, TOO_FEW_POINTS
-    icp = BaselineSettings(voxel_size_m=settings.voxel_size_m, normal_radius_m=settings.normal_radius_m,
-                           icp_distances_m=tuple(settings.icp_distances_m), icp_iterations=settings.icp_iterations)
+    icp = BaselineSettings(
+        voxel_size_m=settings.voxel_size_m,
+        normal_radius_m=settings.normal_radius_m,
+        icp_distances_m=tuple(settings.icp_distances_m),
+        icp_iterations=settings.icp_iterations,
+    )
     pose, _ = multiscale_icp(source, target, guess, icp, oriented=False, indices=indices)
     fit = ("fit", settings.fit_distance_m)
     if fit not in indices:
@@ -117,8 +126,7 @@ def register_scan(scan: np.ndarray, guess: np.ndarray, target, settings: Registr
     return pose, residual, fitness, ""
 
 
-def fit_to_map(points: np.ndarray, pose: np.ndarray, target, distance_m: float,
-               index=None) -> tuple[float, float]:
+def fit_to_map(points: np.ndarray, pose: np.ndarray, target, distance_m: float, index=None) -> tuple[float, float]:
     """How a scan's points [N, 3] (sensor frame) under pose [4, 4] lie on the target map (an Open3D cloud with
     normals): (fitness: the fraction with a map point within distance_m, residual [m]: the RMS distance of those to
     their map point's plane; NaN without one). index: the target's TargetIndex for searches up to distance_m (None:
@@ -133,7 +141,7 @@ def fit_to_map(points: np.ndarray, pose: np.ndarray, target, distance_m: float,
         return 0.0, float("nan")
     offsets = moved[paired] - np.asarray(target.points)[nearest[paired]]
     along_normal = np.einsum("ij,ij->i", offsets, np.asarray(target.normals)[nearest[paired]])
-    return float(paired.mean()), float(np.sqrt(np.mean(along_normal ** 2)))
+    return float(paired.mean()), float(np.sqrt(np.mean(along_normal**2)))
 
 
 def pose_change(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
@@ -142,9 +150,16 @@ def pose_change(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(delta[:3, 3])), float(rotation_angles_deg(delta[None, :3, :3])[0])
 
 
-def register_to_map(scans: list[np.ndarray], guesses: np.ndarray, target, settings: RegistrationSettings,
-                    which: np.ndarray | None = None, progress: bool = False, label=str,
-                    deadline: float | None = None) -> ScanRegistration:
+def register_to_map(
+    scans: list[np.ndarray],
+    guesses: np.ndarray,
+    target,
+    settings: RegistrationSettings,
+    which: np.ndarray | None = None,
+    progress: bool = False,
+    label=str,
+    deadline: float | None = None,
+) -> ScanRegistration:
     """Register the scans (list of S [N_i, 3], sensor frames) chosen by which [S] bool (None: every one) from
     their guesses [S, 4, 4] to the target map (map_cloud). The others keep their guesses, untried. label(s): how the
     log names scan s. deadline: a time.perf_counter() value after which the scans left keep their guesses, flagged
@@ -173,19 +188,37 @@ def log_refused(registration: ScanRegistration, label=str) -> None:
     the deadline left (OUT_OF_TIME), and a count."""
     late = [s for s, flag in enumerate(registration.flag) if flag == OUT_OF_TIME]
     if late:
-        logger.warning("%d scans from %s on were not registered: the run's time (max_minutes) ran out; they keep "
-                       "their interpolated poses, flagged in scans_report.csv", len(late), label(late[0]))
+        logger.warning(
+            "%d scans from %s on were not registered: the run's time (max_minutes) ran out; they keep "
+            "their interpolated poses, flagged in scans_report.csv",
+            len(late),
+            label(late[0]),
+        )
     for s, flag in enumerate(registration.flag):
         if flag and flag != OUT_OF_TIME:
-            logger.warning("%s not registered (%s: fitness %.2f, residual %.3f m): it keeps its guess", label(s),
-                           flag, registration.fitness[s], registration.residual_m[s])
-    logger.info("registered %d of %d scans tried to the map (median residual %.3f m)",
-                int(registration.registered.sum()), int(registration.tried.sum()),
-                float(np.nanmedian(registration.residual_m)) if np.isfinite(registration.residual_m).any() else np.nan)
+            logger.warning(
+                "%s not registered (%s: fitness %.2f, residual %.3f m): it keeps its guess",
+                label(s),
+                flag,
+                registration.fitness[s],
+                registration.residual_m[s],
+            )
+    logger.info(
+        "registered %d of %d scans tried to the map (median residual %.3f m)",
+        int(registration.registered.sum()),
+        int(registration.tried.sum()),
+        float(np.nanmedian(registration.residual_m)) if np.isfinite(registration.residual_m).any() else np.nan,
+    )
 
 
-def register_every_scan(loaded, keyframes, keyframe_poses: np.ndarray, settings: RegistrationSettings,
-                        progress: bool = False, deadline: float | None = None) -> ScanRegistration:
+def register_every_scan(
+    loaded,
+    keyframes,
+    keyframe_poses: np.ndarray,
+    settings: RegistrationSettings,
+    progress: bool = False,
+    deadline: float | None = None,
+) -> ScanRegistration:
     """After training: every input scan (loaded: the input Sequence) that is not a keyframe (keyframes: the trained
     ones, keyframes.loaded_index into loaded) registered to the keyframes' raw map under their refined poses
     keyframe_poses [K, 4, 4], from its interpolated correction (trajectory.propagate_corrections), until deadline
@@ -200,8 +233,9 @@ def register_every_scan(loaded, keyframes, keyframe_poses: np.ndarray, settings:
     return register_to_map(loaded.scans, guesses, target, settings, which, progress, loaded.scan_label, deadline)
 
 
-def place_first_scan(scan: np.ndarray, pose: np.ndarray, target, settings: RegistrationSettings
-                     ) -> tuple[np.ndarray, str]:
+def place_first_scan(
+    scan: np.ndarray, pose: np.ndarray, target, settings: RegistrationSettings
+) -> tuple[np.ndarray, str]:
     """Where scan [N, 3] (sensor frame) lies in the target map (map_cloud), its own pose [4, 4] being in a frame
     that may not be the map's: ICP from that pose, or where that is refused, global registration (FPFH + RANSAC,
     then ICP: neld_jax.baseline.global_registration) checked as any registration. Returns (pose [4, 4] in the map,
@@ -212,21 +246,31 @@ def place_first_scan(scan: np.ndarray, pose: np.ndarray, target, settings: Regis
     placed, _, _, flag = register_scan(scan, pose, target, settings)
     if not flag:
         return placed, "icp"
-    source = cloud_with_normals(crop_range(scan, settings.min_range_m, settings.max_range_m), settings,
-                                sensor_frame=True)
+    source = cloud_with_normals(
+        crop_range(scan, settings.min_range_m, settings.max_range_m), settings, sensor_frame=True
+    )
     features = BaselineSettings()
-    transform, _ = global_registration(source, target, fpfh_features(source, features),
-                                       fpfh_features(target, features), features)
+    transform, _ = global_registration(
+        source, target, fpfh_features(source, features), fpfh_features(target, features), features
+    )
     placed, residual, fitness, flag = register_scan(scan, transform, target, settings)
     if flag:
-        raise DataError(f"the first scan could not be placed in the map: ICP from its own pose and global "
-                        f"registration both failed ({flag}: {fitness:.0%} of its points on the map, residual "
-                        f"{residual:.3f} m); are these scans of the mapped place?")
+        raise DataError(
+            f"the first scan could not be placed in the map: ICP from its own pose and global "
+            f"registration both failed ({flag}: {fitness:.0%} of its points on the map, residual "
+            f"{residual:.3f} m); are these scans of the mapped place?"
+        )
     return placed, "global"
 
 
-def localize(scans: list[np.ndarray], poses: np.ndarray, target, settings: RegistrationSettings,
-             progress: bool = False, label=str) -> tuple[ScanRegistration, str]:
+def localize(
+    scans: list[np.ndarray],
+    poses: np.ndarray,
+    target,
+    settings: RegistrationSettings,
+    progress: bool = False,
+    label=str,
+) -> tuple[ScanRegistration, str]:
     """Pose scans (list of S [N_i, 3], sensor frames, in time order) in a map (map_cloud) whose frame their own
     poses [S, 4, 4] (layout or odometry) need not share: the first scan placed by place_first_scan, then each scan
     by ICP from its own pose carried by the last registered scan's correction (the odometry holds between them).
@@ -240,11 +284,11 @@ def localize(scans: list[np.ndarray], poses: np.ndarray, target, settings: Regis
     residual, fitness, flags = np.full(num_scans, np.nan), np.full(num_scans, np.nan), [""] * num_scans
     indices = {}  # the map's search indices, built once for every scan
     for s in tqdm(range(num_scans), disable=not progress, desc="localizing scans", unit="scan"):
-        out[s], residual[s], fitness[s], flags[s] = register_scan(scans[s], correction @ poses[s], target, settings,
-                                                                 indices)
+        out[s], residual[s], fitness[s], flags[s] = register_scan(
+            scans[s], correction @ poses[s], target, settings, indices
+        )
         if not flags[s]:
-            correction = out[s] @ invert_poses(poses[s:s + 1])[0]
+            correction = out[s] @ invert_poses(poses[s : s + 1])[0]
     registration = ScanRegistration(out, residual, fitness, flags, np.ones(num_scans, bool))
     log_refused(registration, label)
     return registration, how
-

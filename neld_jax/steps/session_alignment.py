@@ -51,8 +51,13 @@ class Closure:
     inliers: int  # 0: the whole maps registered (whole_map_closure)
 
     def record(self) -> dict:
-        return {"keyframe": self.query, "first_keyframe": self.reference, "overlap": round(self.overlap, 4),
-                "map_closures_inliers": self.inliers, "by": "local maps" if self.inliers else "whole maps"}
+        return {
+            "keyframe": self.query,
+            "first_keyframe": self.reference,
+            "overlap": round(self.overlap, 4),
+            "map_closures_inliers": self.inliers,
+            "by": "local maps" if self.inliers else "whole maps",
+        }
 
 
 def local_map_centres(poses: np.ndarray, spacing_m: float = LOCAL_MAP_SPACING_M) -> np.ndarray:
@@ -67,8 +72,9 @@ def local_map_centres(poses: np.ndarray, spacing_m: float = LOCAL_MAP_SPACING_M)
     return np.asarray(centres, np.int64)
 
 
-def local_map_members(poses: np.ndarray, centre: int, half_window: int = LOCAL_MAP_HALF_WINDOW,
-                      half_path_m: float = LOCAL_MAP_HALF_PATH_M) -> range:
+def local_map_members(
+    poses: np.ndarray, centre: int, half_window: int = LOCAL_MAP_HALF_WINDOW, half_path_m: float = LOCAL_MAP_HALF_PATH_M
+) -> range:
     """Which keyframes make keyframe centre's local map (poses [K, 4, 4], in order): those within half_window of
     it, or within half_path_m of route of it where that holds more (dense keyframes), at most MAX_LOCAL_MAP_HALF
     either side."""
@@ -94,8 +100,9 @@ def local_maps(scans: list[np.ndarray], poses: np.ndarray) -> tuple[np.ndarray, 
     return centres, maps
 
 
-def place_candidates(reference_maps: list[np.ndarray], query_maps: list[np.ndarray],
-                     per_map: int = CANDIDATES_PER_MAP) -> list[tuple[int, int, int]]:
+def place_candidates(
+    reference_maps: list[np.ndarray], query_maps: list[np.ndarray], per_map: int = CANDIDATES_PER_MAP
+) -> list[tuple[int, int, int]]:
     """MapClosures' matches of each query local map among the reference ones -> [(query k, reference j, inliers)]
     (indices into the lists; at most per_map per query map), most inliers first. Every match is asked for: the
     query's own neighbours in its recording, added before it, match best and would fill a top k."""
@@ -106,8 +113,10 @@ def place_candidates(reference_maps: list[np.ndarray], query_maps: list[np.ndarr
         closures.get_best_closure(j, points)  # adds map j to the database
     found, first = [], len(reference_maps)
     for k, points in enumerate(query_maps):
-        matches = [(min(c.source_id, c.target_id), int(c.number_of_inliers))
-                   for c in closures.get_top_k_closures(first + k, points, first + k)]
+        matches = [
+            (min(c.source_id, c.target_id), int(c.number_of_inliers))
+            for c in closures.get_top_k_closures(first + k, points, first + k)
+        ]
         across = sorted(((j, inliers) for j, inliers in matches if j < first), key=lambda m: -m[1])
         found.extend((k, j, inliers) for j, inliers in across[:per_map])
     return sorted(found, key=lambda c: -c[2])
@@ -132,8 +141,12 @@ def find_closures(reference: tuple[list, np.ndarray], query: tuple[list, np.ndar
     (whole_map_closure) -> every closure tried, best overlap first."""
     (reference_centres, reference_maps), (query_centres, query_maps) = local_maps(*reference), local_maps(*query)
     candidates = place_candidates(reference_maps, query_maps)
-    logger.info("place recognition (MapClosures): %d candidate places between the recordings' %d and %d local "
-                "maps", len(candidates), len(reference_maps), len(query_maps))
+    logger.info(
+        "place recognition (MapClosures): %d candidate places between the recordings' %d and %d local maps",
+        len(candidates),
+        len(reference_maps),
+        len(query_maps),
+    )
     closures = []
     for k, j, inliers in candidates[:MAX_VERIFIED]:
         transform, overlap = verify(query_maps[k], reference_maps[j])
@@ -164,8 +177,9 @@ def frame_to_first(closure: Closure, reference_poses: np.ndarray, query_poses: n
     return reference_poses[closure.reference] @ closure.transform @ invert_poses(query_poses[closure.query])
 
 
-def align_session(reference: tuple[list, np.ndarray], query: tuple[list, np.ndarray], name: str, first_name: str
-                  ) -> tuple[np.ndarray, list[Closure]]:
+def align_session(
+    reference: tuple[list, np.ndarray], query: tuple[list, np.ndarray], name: str, first_name: str
+) -> tuple[np.ndarray, list[Closure]]:
     """The later recording `name` in the first one's frame -> (its frame -> the first's [4, 4], the closures
     found, overlap at least MIN_OVERLAP, best first). A DataError naming it and the best overlap found when none
     overlaps enough."""
@@ -173,11 +187,18 @@ def align_session(reference: tuple[list, np.ndarray], query: tuple[list, np.ndar
     kept = [c for c in closures if c.overlap >= MIN_OVERLAP]
     if not kept:
         best = f"{closures[0].overlap:.0%}" if closures else "none (no candidate place)"
-        raise DataError(f"data.root: recording {name} matches no place of {first_name} (best overlap {best}, at "
-                        f"least {MIN_OVERLAP:.0%} needed); is it a recording of the same place?")
+        raise DataError(
+            f"data.root: recording {name} matches no place of {first_name} (best overlap {best}, at "
+            f"least {MIN_OVERLAP:.0%} needed); is it a recording of the same place?"
+        )
     transform = frame_to_first(kept[0], reference[1], query[1])
-    logger.info("recording %s placed in %s's frame: %d closures between them (best overlap %.0f%%)", name,
-                first_name, len(kept), 100 * kept[0].overlap)
+    logger.info(
+        "recording %s placed in %s's frame: %d closures between them (best overlap %.0f%%)",
+        name,
+        first_name,
+        len(kept),
+        100 * kept[0].overlap,
+    )
     return transform, kept
 
 
@@ -207,5 +228,8 @@ def load_sessions(data_cfg):
     joined_loaded, joined_keyframes, sessions = data_sessions.concatenate(loaded, keyframes, np.stack(to_first), names)
     records = [[closure.record() for closure in found] for found in closures]
     transforms = [[closure.transform for closure in found] for found in closures]
-    return joined_loaded, joined_keyframes, dataclasses.replace(sessions, closures=records,
-                                                                closure_transforms=transforms)
+    return (
+        joined_loaded,
+        joined_keyframes,
+        dataclasses.replace(sessions, closures=records, closure_transforms=transforms),
+    )

@@ -60,10 +60,13 @@ class Start:
         out = {"started_from": self.chosen, "pose_steps": self.pose_steps.to_dict()}
         if self.baseline_poses is not None:
             report = self.baseline_report
-            out.update(baseline_seconds=round(self.baseline_seconds, 2),
-                       baseline_departure_m=round(self.departure_m, 3),
-                       baseline_tilt=report.get("tilt"), baseline_refined_from=report.get("refined_from"),
-                       baseline_rounds_done=report.get("map_rounds_done"))
+            out.update(
+                baseline_seconds=round(self.baseline_seconds, 2),
+                baseline_departure_m=round(self.departure_m, 3),
+                baseline_tilt=report.get("tilt"),
+                baseline_refined_from=report.get("refined_from"),
+                baseline_rounds_done=report.get("map_rounds_done"),
+            )
         return out
 
     def save(self, out_dir: str, config_hash: str, input_poses: np.ndarray) -> None:
@@ -71,13 +74,23 @@ class Start:
         came from (`resumed`)."""
         if self.baseline_poses is None:
             return
-        meta = {"config_hash": config_hash, "chosen": self.chosen, "pose_steps": self.pose_steps.to_dict(),
-                "baseline_seconds": self.baseline_seconds, "baseline_report": _plain(self.baseline_report),
-                "departure_m": self.departure_m}
+        meta = {
+            "config_hash": config_hash,
+            "chosen": self.chosen,
+            "pose_steps": self.pose_steps.to_dict(),
+            "baseline_seconds": self.baseline_seconds,
+            "baseline_report": _plain(self.baseline_report),
+            "departure_m": self.departure_m,
+        }
         path = os.path.join(out_dir, FILE)
         temporary = path + ".tmp.npz"
-        np.savez(temporary, poses=self.poses, baseline_poses=self.baseline_poses, input_poses=input_poses,
-                 meta=np.array(json.dumps(meta)))
+        np.savez(
+            temporary,
+            poses=self.poses,
+            baseline_poses=self.baseline_poses,
+            input_poses=input_poses,
+            meta=np.array(json.dumps(meta)),
+        )
         os.replace(temporary, path)
 
     @classmethod
@@ -90,17 +103,29 @@ class Start:
             return None
         with np.load(path) as saved:
             meta = json.loads(str(saved["meta"]))
-            same_input = (saved["input_poses"].shape == np.shape(input_poses)
-                          and np.allclose(saved["input_poses"], input_poses, rtol=0.0, atol=1e-9))
+            same_input = saved["input_poses"].shape == np.shape(input_poses) and np.allclose(
+                saved["input_poses"], input_poses, rtol=0.0, atol=1e-9
+            )
             if meta.get("config_hash") != config_hash:
-                raise ConfigError(f"{path} was saved under another configuration (hash {meta.get('config_hash')} != "
-                                  f"{config_hash}); use a new output_dir, or neld-train --restart to start over")
+                raise ConfigError(
+                    f"{path} was saved under another configuration (hash {meta.get('config_hash')} != "
+                    f"{config_hash}); use a new output_dir, or neld-train --restart to start over"
+                )
             if not same_input:
-                raise DataError(f"{path} was saved for other input poses than the data's now; use a new output_dir, "
-                                "or neld-train --restart to start over")
+                raise DataError(
+                    f"{path} was saved for other input poses than the data's now; use a new output_dir, "
+                    "or neld-train --restart to start over"
+                )
             steps = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["pose_steps"].items()}
-            return cls(saved["poses"], meta["chosen"], PoseSteps(**steps), saved["baseline_poses"],
-                       meta["baseline_seconds"], meta["baseline_report"], meta["departure_m"])
+            return cls(
+                saved["poses"],
+                meta["chosen"],
+                PoseSteps(**steps),
+                saved["baseline_poses"],
+                meta["baseline_seconds"],
+                meta["baseline_report"],
+                meta["departure_m"],
+            )
 
 
 def _plain(report: dict) -> dict:
@@ -126,8 +151,9 @@ class StartSettings:
         return cls(config.start, config.train, config.baseline, config.eval, config.max_minutes)
 
 
-def choose_start(settings: StartSettings, keyframes, deadline: float | None = None,
-                 progress: bool = False, recordings=None) -> Start:
+def choose_start(
+    settings: StartSettings, keyframes, deadline: float | None = None, progress: bool = False, recordings=None
+) -> Start:
     """The start of training on `keyframes` (settings: StartSettings; settings.start.poses, module docstring).
     deadline: a time.perf_counter() value after which the baseline's multi-view refinement registers no more scans
     (neld_jax.training.budget). recordings: neld_jax.data.sessions.Sessions where keyframes joins several recordings
@@ -140,18 +166,33 @@ def choose_start(settings: StartSettings, keyframes, deadline: float | None = No
     if how == "input":
         return Start(keyframes.poses, "input", PoseSteps.from_train(settings.train))
     t0 = time.perf_counter()
-    result = register_sequence(keyframes.scans, keyframes.poses,
-                               BaselineSettings.from_groups(settings.baseline, settings.eval),
-                               deadline=deadline, progress=progress, segments=segments_of(recordings))
+    result = register_sequence(
+        keyframes.scans,
+        keyframes.poses,
+        BaselineSettings.from_groups(settings.baseline, settings.eval),
+        deadline=deadline,
+        progress=progress,
+        segments=segments_of(recordings),
+    )
     seconds = time.perf_counter() - t0
     baseline, report = result.poses, result.report()
     if report.get("stopped_at_deadline"):
-        logger.warning("the classical baseline's multi-view refinement stopped after %.2f of its %d rounds, so that "
-                       "training keeps its share of max_minutes=%g (max_minutes=0 lifts the limit)",
-                       report["map_rounds_done"], int(settings.baseline.map_rounds), settings.max_minutes)
+        logger.warning(
+            "the classical baseline's multi-view refinement stopped after %.2f of its %d rounds, so that "
+            "training keeps its share of max_minutes=%g (max_minutes=0 lifts the limit)",
+            report["map_rounds_done"],
+            int(settings.baseline.map_rounds),
+            settings.max_minutes,
+        )
     departure_m, path_m = trajectory_departure(keyframes.poses, baseline)
-    logger.info("the classical baseline took %.1f s; it departs from the input by up to %.2f m after alignment (%.2f%% "
-                "of the %.0f m path)", seconds, departure_m, 100 * departure_m / max(path_m, 1e-9), path_m)
+    logger.info(
+        "the classical baseline took %.1f s; it departs from the input by up to %.2f m after alignment (%.2f%% "
+        "of the %.0f m path)",
+        seconds,
+        departure_m,
+        100 * departure_m / max(path_m, 1e-9),
+        path_m,
+    )
     methods = {"baseline": baseline} if how == "baseline" else {"initial": keyframes.poses, "baseline": baseline}
     judged = judge.map_crispness(keyframes, methods, settings.eval)
     entropy = {name: summary["mean_map_entropy"] for name, summary in judged[0].items()}
@@ -159,13 +200,28 @@ def choose_start(settings: StartSettings, keyframes, deadline: float | None = No
     if how == "crisper":
         # A tie keeps the input; the baseline when neither map could be judged.
         chosen = "baseline" if judge.crispest(judged[0]) in ("baseline", None) else "input"
-        logger.info("start.poses=crisper: training starts from the %s poses (raw-map entropy: input %s, baseline %s)",
-                    chosen, _text(entropy["initial"]), _text(entropy["baseline"]))
+        logger.info(
+            "start.poses=crisper: training starts from the %s poses (raw-map entropy: input %s, baseline %s)",
+            chosen,
+            _text(entropy["initial"]),
+            _text(entropy["baseline"]),
+        )
     thickness = judged[0]["baseline"].get("mean_plane_thickness_m")
-    pose_steps = (pose_steps_from_baseline(settings.start, settings.train, thickness) if chosen == "baseline"
-                  else PoseSteps.from_train(settings.train))
-    return Start(baseline if chosen == "baseline" else keyframes.poses, chosen, pose_steps, baseline, seconds, report,
-                 departure_m, judged)
+    pose_steps = (
+        pose_steps_from_baseline(settings.start, settings.train, thickness)
+        if chosen == "baseline"
+        else PoseSteps.from_train(settings.train)
+    )
+    return Start(
+        baseline if chosen == "baseline" else keyframes.poses,
+        chosen,
+        pose_steps,
+        baseline,
+        seconds,
+        report,
+        departure_m,
+        judged,
+    )
 
 
 def segments_of(recordings) -> Segments:
@@ -182,8 +238,9 @@ def segments_of(recordings) -> Segments:
 THIN_MAP_M = 0.02
 
 
-def pose_steps_from_baseline(start_cfg: ml_collections.ConfigDict, train_cfg: ml_collections.ConfigDict,
-                             thickness_m: float | None) -> PoseSteps:
+def pose_steps_from_baseline(
+    start_cfg: ml_collections.ConfigDict, train_cfg: ml_collections.ConfigDict, thickness_m: float | None
+) -> PoseSteps:
     """The pose steps from the baseline's poses: the config's learning rates (train_cfg: config.train) capped at
     start.pose_lr_from_baseline, a prior of start.prior_from_baseline (start_cfg: config.start), (THIN_MAP_M /
     thickness)^2 times heavier on the translations when the start's raw map is thinner than THIN_MAP_M (scans
@@ -203,11 +260,14 @@ def pose_steps_from_baseline(start_cfg: ml_collections.ConfigDict, train_cfg: ml
     if prior > 0 and thin_m > 0 and thickness_m is not None and 0 < thickness_m < thin_m:
         heavier = (thin_m / thickness_m) ** 2
     steps = PoseSteps(capped(own.lr_trans), capped(own.lr_rot), prior * heavier, prior, keep_scale=True)
-    logger.info("training starts from the baseline's poses: pose learning rates %s, a prior of %g on the translations "
-                "and %g on the rotations%s, the start's scale kept", " -> ".join(f"{v:g}" for v in steps.lr_trans),
-                steps.prior_trans, steps.prior_rot,
-                "" if heavier == 1.0 else f" (the start's map is {100 * thickness_m:.2f} cm thin, under "
-                                          f"{100 * thin_m:g} cm)")
+    logger.info(
+        "training starts from the baseline's poses: pose learning rates %s, a prior of %g on the translations "
+        "and %g on the rotations%s, the start's scale kept",
+        " -> ".join(f"{v:g}" for v in steps.lr_trans),
+        steps.prior_trans,
+        steps.prior_rot,
+        "" if heavier == 1.0 else f" (the start's map is {100 * thickness_m:.2f} cm thin, under {100 * thin_m:g} cm)",
+    )
     return steps
 
 

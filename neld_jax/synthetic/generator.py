@@ -84,9 +84,7 @@ def _resolve_config(cfg) -> ml_collections.ConfigDict:
     items = cfg.items() if hasattr(cfg, "items") else dict(cfg).items()
     for key, value in items:
         if key not in resolved:
-            raise ConfigError(
-                f"data.synthetic: unknown field '{key}' (known: {', '.join(sorted(resolved.keys()))})"
-            )
+            raise ConfigError(f"data.synthetic: unknown field '{key}' (known: {', '.join(sorted(resolved.keys()))})")
         try:
             resolved[key] = type(resolved[key])(value)
         except (TypeError, ValueError) as exc:
@@ -98,7 +96,8 @@ def _resolve_config(cfg) -> ml_collections.ConfigDict:
     if resolved.route in ("courtyards", "car") and resolved.route_length_m < 100.0:
         raise ConfigError(f"data.synthetic.route_length_m ({resolved.route_length_m}) must be at least 100 m")
     if resolved.route in ("loop", "handheld") and not (
-            0 < resolved.trajectory_radius_m * (1 + PATH_WOBBLE) < resolved.scene_size_m / 2 - 1.0):
+        0 < resolved.trajectory_radius_m * (1 + PATH_WOBBLE) < resolved.scene_size_m / 2 - 1.0
+    ):
         raise ConfigError(
             f"data.synthetic: trajectory_radius_m ({resolved.trajectory_radius_m}) must be positive and leave the "
             f"loop inside the {resolved.scene_size_m} m courtyard"
@@ -147,12 +146,22 @@ def make_sequence(cfg=None, rate_hz: float = 0.0, session: int | None = None) ->
     gt_map = None
     if cfg.gt_map_points > 0:
         gt_map = observed_surface_points(
-            meshes, scene, gt_poses, cfg.gt_map_points, FOV_DEG[0], FOV_DEG[1], cfg.max_range_m,
+            meshes,
+            scene,
+            gt_poses,
+            cfg.gt_map_points,
+            FOV_DEG[0],
+            FOV_DEG[1],
+            cfg.max_range_m,
             np.random.default_rng(cfg.seed + 3),
         )
     logger.info(
         "synthetic sequence (seed %d): %d scans, %d points, gt map %d points, %d meshes, %.2f s",
-        cfg.seed, len(scans), sum(len(s) for s in scans), 0 if gt_map is None else len(gt_map), len(meshes),
+        cfg.seed,
+        len(scans),
+        sum(len(s) for s in scans),
+        0 if gt_map is None else len(gt_map),
+        len(meshes),
         time.perf_counter() - started,
     )
     suffix = f"_{cfg.route}" if cfg.route in ("handheld", "car") else ""
@@ -176,8 +185,10 @@ def make_visit(cfg, session: int) -> Sequence:
     visit. Scans SCAN_INTERVAL_S apart, as make_sequence's loop."""
     cfg = _resolve_config(cfg)
     if cfg.route != "loop" or session < 0:
-        raise ConfigError(f"synthetic sessions (--session={session}) are visits of the loop route with drifted "
-                          f"poses: a session >= 0 and data.synthetic.route=loop (not {cfg.route!r})")
+        raise ConfigError(
+            f"synthetic sessions (--session={session}) are visits of the loop route with drifted "
+            f"poses: a session >= 0 and data.synthetic.route=loop (not {cfg.route!r})"
+        )
     scene, meshes = make_scene(cfg.seed, cfg.scene_size_m, path_radius_m=cfg.trajectory_radius_m)
     gt_poses = visit_loop(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed, session)
     seed = cfg.seed + VISIT_SEED_STEP * session
@@ -187,11 +198,25 @@ def make_visit(cfg, session: int) -> Sequence:
     drifted = add_odometry_drift(gt_poses, cfg.drift_trans_m, cfg.drift_rot_deg, seed + 1)
     gt_map = None
     if cfg.gt_map_points > 0:
-        gt_map = observed_surface_points(meshes, scene, gt_poses, cfg.gt_map_points, FOV_DEG[0], FOV_DEG[1],
-                                         cfg.max_range_m, np.random.default_rng(seed + 3))
-    return Sequence(scans=scans, poses=invert_poses(drifted[:1])[0] @ drifted,
-                    timestamps=SCAN_INTERVAL_S * np.arange(cfg.num_scans, dtype=np.float64), gt_poses=gt_poses,
-                    gt_map=gt_map, name=f"synthetic_seed{cfg.seed}_session{session}", source="synthetic")
+        gt_map = observed_surface_points(
+            meshes,
+            scene,
+            gt_poses,
+            cfg.gt_map_points,
+            FOV_DEG[0],
+            FOV_DEG[1],
+            cfg.max_range_m,
+            np.random.default_rng(seed + 3),
+        )
+    return Sequence(
+        scans=scans,
+        poses=invert_poses(drifted[:1])[0] @ drifted,
+        timestamps=SCAN_INTERVAL_S * np.arange(cfg.num_scans, dtype=np.float64),
+        gt_poses=gt_poses,
+        gt_map=gt_map,
+        name=f"synthetic_seed{cfg.seed}_session{session}",
+        source="synthetic",
+    )
 
 
 def _scene_and_route(cfg, rate_hz: float):
@@ -207,8 +232,11 @@ def _scene_and_route(cfg, rate_hz: float):
         return raycasting_scene(meshes), meshes, gt_poses
     scene, meshes = make_scene(cfg.seed, cfg.scene_size_m, path_radius_m=cfg.trajectory_radius_m)
     if cfg.route == "handheld":
-        return scene, meshes, handheld_walk(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed,
-                                            rate_hz or HANDHELD_RATE_HZ)
+        return (
+            scene,
+            meshes,
+            handheld_walk(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed, rate_hz or HANDHELD_RATE_HZ),
+        )
     return scene, meshes, smooth_trajectory(cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
 
 
@@ -221,8 +249,11 @@ def _raw_sweeps(cfg, rate_hz: float, scene, directions: np.ndarray, rng: np.rand
     if cfg.route == "car":
         car_columns, _ = car_drive(cfg.num_scans, cfg.route_length_m, cfg.seed, rate_hz, column_fraction)
     for i in range(cfg.num_scans):
-        column_poses = (car_columns[i] if cfg.route == "car" else
-                        loop_poses((i + column_fraction) / cfg.num_scans, cfg.trajectory_radius_m, cfg.seed))
+        column_poses = (
+            car_columns[i]
+            if cfg.route == "car"
+            else loop_poses((i + column_fraction) / cfg.num_scans, cfg.trajectory_radius_m, cfg.seed)
+        )
         points, column = cast_sweep(scene, column_poses, directions, cfg.max_range_m, cfg.range_noise_m, rng)
         scans.append(points)
         point_times.append(column_fraction[column] / rate_hz)

@@ -91,7 +91,6 @@ def cast_sweep(
     return directions[keep] * ranges[keep, None], column[keep]
 
 
-
 def _sample_surface(vertices: np.ndarray, triangles: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
     """count points [count, 3] uniformly by area on the triangles [T, 3] of vertices [V, 3]."""
     a, b, c = (vertices[triangles[:, i]] for i in range(3))
@@ -164,4 +163,3 @@ def observed_surface_points(
     if len(points) > num_points:
         points = points[np.sort(rng.choice(len(points), size=num_points, replace=False))]
     return points
-

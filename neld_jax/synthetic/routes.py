@@ -88,8 +88,9 @@ def handheld_walk(num_scans: int, radius_m: float, seed: int, rate_hz: float) ->
     return poses
 
 
-def add_odometry_drift(gt_poses: np.ndarray, trans_sigma_m: float, rot_sigma_deg: float, seed: int,
-                       keep_tilt: bool = False) -> np.ndarray:
+def add_odometry_drift(
+    gt_poses: np.ndarray, trans_sigma_m: float, rot_sigma_deg: float, seed: int, keep_tilt: bool = False
+) -> np.ndarray:
     """Initial poses [S, 4, 4] that drift from gt_poses [S, 4, 4] like odometry.
 
     T_init[0] = T_gt[0]; T_init[s] = T_init[s-1] @ rel_gt(s-1, s) @ exp(noise_s), where the noise has
@@ -127,7 +128,6 @@ def add_odometry_drift(gt_poses: np.ndarray, trans_sigma_m: float, rot_sigma_deg
     return init
 
 
-
 def _rounded_rectangle(length_m: float, num_points: int = 4000) -> np.ndarray:
     """Points [num_points, 2] evenly spaced along a closed rounded rectangle (3:2, corner radius 0.15 of the
     short side) of perimeter length_m, centred at the origin, counter-clockwise."""
@@ -135,8 +135,12 @@ def _rounded_rectangle(length_m: float, num_points: int = 4000) -> np.ndarray:
     b = length_m / (4 * 1.5 + 4 * 1.0 - 8 * 0.3 + 2 * np.pi * 0.3)
     a, r = 1.5 * b, 0.3 * b
     dense = []
-    for cx, cy, start in ((a - r, b - r, 0.0), (-(a - r), b - r, np.pi / 2), (-(a - r), -(b - r), np.pi),
-                          (a - r, -(b - r), 1.5 * np.pi)):
+    for cx, cy, start in (
+        (a - r, b - r, 0.0),
+        (-(a - r), b - r, np.pi / 2),
+        (-(a - r), -(b - r), np.pi),
+        (a - r, -(b - r), 1.5 * np.pi),
+    ):
         t = np.linspace(start, start + np.pi / 2, 200)
         dense.append(np.stack([cx + r * np.cos(t), cy + r * np.sin(t)], axis=1))
     # The arcs joined in order form the closed curve (the straight sides between them are implied).
@@ -156,8 +160,9 @@ def courtyard_route(num_scans: int, length_m: float, seed: int) -> tuple[np.ndar
     return _route_poses(dense, idx, idx + 1, np.zeros(num_scans), np.arange(num_scans) / num_scans, seed), dense
 
 
-def _route_poses(dense: np.ndarray, before: np.ndarray, after: np.ndarray, blend: np.ndarray, fraction: np.ndarray,
-                 seed: int) -> np.ndarray:
+def _route_poses(
+    dense: np.ndarray, before: np.ndarray, after: np.ndarray, blend: np.ndarray, fraction: np.ndarray, seed: int
+) -> np.ndarray:
     """Poses [N, 4, 4] on the dense closed route [D, 2]: at blend [N] of the way from its point `before` [N] to
     `after` [N] (indices, wrapped), the yaw along the route there, and the wobble of height, roll and pitch at
     fraction [N] of the way round."""
@@ -169,7 +174,8 @@ def _route_poses(dense: np.ndarray, before: np.ndarray, after: np.ndarray, blend
     w = blend[:, None]
     xy = (1 - w) * dense[before % n] + w * dense[after % n]
     tangent = (1 - w) * (dense[(before + 1) % n] - dense[(before - 1) % n]) + w * (
-        dense[(after + 1) % n] - dense[(after - 1) % n])
+        dense[(after + 1) % n] - dense[(after - 1) % n]
+    )
     yaw = np.arctan2(tangent[:, 1], tangent[:, 0])
     theta = 2 * np.pi * fraction
     pitch = np.deg2rad(1.5) * np.sin(7 * theta + pitch_phase)
@@ -180,8 +186,9 @@ def _route_poses(dense: np.ndarray, before: np.ndarray, after: np.ndarray, blend
     return poses
 
 
-def car_drive(num_scans: int, length_m: float, seed: int, rate_hz: float,
-              sweep_fractions: np.ndarray = np.zeros(1)) -> tuple[np.ndarray, np.ndarray]:
+def car_drive(
+    num_scans: int, length_m: float, seed: int, rate_hz: float, sweep_fractions: np.ndarray = np.zeros(1)
+) -> tuple[np.ndarray, np.ndarray]:
     """The poses of a car that starts from rest on courtyard_route's closed route of length_m, and the dense route
     [N, 2]: one sweep each 1 / rate_hz s, speeding up evenly over CAR_START_S, then at the speed that brings it
     round the route by the time of sweep S. Returns poses [S, F, 4, 4] at sweep_fractions [F] of each sweep's
@@ -199,4 +206,4 @@ def _car_travelled(times_s):
     """How far the car has gone at times_s (in seconds of driving at its cruising speed): it speeds up evenly from
     rest over CAR_START_S."""
     times_s = np.asarray(times_s, np.float64)
-    return np.where(times_s < CAR_START_S, times_s ** 2 / (2 * CAR_START_S), times_s - CAR_START_S / 2)
+    return np.where(times_s < CAR_START_S, times_s**2 / (2 * CAR_START_S), times_s - CAR_START_S / 2)

@@ -99,8 +99,11 @@ def make_scene_meshes(
         return path_radius - wobble - clearance, path_radius + wobble + clearance
 
     meshes = [_ground(half + 1.0)] + _walls(rng, size_m)
-    placed = [_buildings(rng, half, band(path_clearance_m)), _poles(rng, half, band(1.0)),
-              _vegetation(rng, half, band(1.0))]
+    placed = [
+        _buildings(rng, half, band(path_clearance_m)),
+        _poles(rng, half, band(1.0)),
+        _vegetation(rng, half, band(1.0)),
+    ]
     for objects, _ in placed:
         meshes.extend(objects)
     num_skipped = sum(skipped for _, skipped in placed)
@@ -189,7 +192,6 @@ def make_scene(
     return raycasting_scene(meshes), meshes
 
 
-
 def make_courtyards_meshes(seed: int, route_xy: np.ndarray) -> list[o3d.geometry.TriangleMesh]:
     """Meshes of a ring of connected courtyards along a closed route [N, 2]: a ground plane, a wall across the
     route every COURTYARD_SPACING_M with a gate where the route passes, box buildings, poles and trees beside
@@ -243,15 +245,17 @@ def make_courtyards_meshes(seed: int, route_xy: np.ndarray) -> list[o3d.geometry
     return meshes
 
 
-
-def street_meshes(length_m: float = 400.0, width_m: float = 12.0, wall_height_m: float = 8.0
-                  ) -> list[o3d.geometry.TriangleMesh]:
+def street_meshes(
+    length_m: float = 400.0, width_m: float = 12.0, wall_height_m: float = 8.0
+) -> list[o3d.geometry.TriangleMesh]:
     """A straight street along x, centred at the origin: the ground and two long walls (house fronts) at y = +-
     width_m / 2, and nothing across it, so that no surface faces along the street: a scan registered there is fixed
     in every direction but the motion along x (the case where scan registration has to leave that motion to the
     odometry)."""
     thickness = 0.5
     side = width_m / 2.0 + thickness / 2.0
-    return [_ground(length_m / 2.0 + 1.0),
-            _box((length_m, thickness, wall_height_m), (0.0, side)),
-            _box((length_m, thickness, wall_height_m), (0.0, -side))]
+    return [
+        _ground(length_m / 2.0 + 1.0),
+        _box((length_m, thickness, wall_height_m), (0.0, side)),
+        _box((length_m, thickness, wall_height_m), (0.0, -side)),
+    ]

@@ -110,7 +110,8 @@ class TimeBudget:
     def describe(self) -> str:
         if not self.limited:
             return "no time limit (max_minutes=0)"
-        return (f"{self.total_s / 60:g} minutes: training until {self.training_share_s / 60:.1f} min, then "
-                f"{self.render_s:g} s for the rendered map, {self.registration_s:.0f} s for registering every other "
-                f"scan and {self.judging_s:.0f} s for the crispness draws and the last files")
-
+        return (
+            f"{self.total_s / 60:g} minutes: training until {self.training_share_s / 60:.1f} min, then "
+            f"{self.render_s:g} s for the rendered map, {self.registration_s:.0f} s for registering every other "
+            f"scan and {self.judging_s:.0f} s for the crispness draws and the last files"
+        )

@@ -67,8 +67,9 @@ class Checkpointer:
             self._check_data(metadata, expected_data)
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _as_tree(template_state))
         tree = self._manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))["state"]
-        state = template_state.replace(step=tree["step"], params=tree["params"], opt_state=tree["opt_state"],
-                                       key=tree["key"])
+        state = template_state.replace(
+            step=tree["step"], params=tree["params"], opt_state=tree["opt_state"], key=tree["key"]
+        )
         logger.info("resumed from the checkpoint at step %d in %s", step, self.directory)
         return state, metadata
 
@@ -82,15 +83,22 @@ class Checkpointer:
             if key in expected and not _same(metadata.get(key), expected[key]):
                 differences.append(what)
         if differences:
-            raise DataError(f"the checkpoint in {self.directory} was written for other data "
-                            f"({'; '.join(differences)}); use a new output_dir, or neld-train --restart to start over")
+            raise DataError(
+                f"the checkpoint in {self.directory} was written for other data "
+                f"({'; '.join(differences)}); use a new output_dir, or neld-train --restart to start over"
+            )
 
     def close(self) -> None:
         self._manager.close()
 
 
-def fit_resuming(directory: str, metadata: dict, initial_state: Callable[[], Any], fit_fn: Callable,
-                 on_save: Callable[[], None] | None = None):
+def fit_resuming(
+    directory: str,
+    metadata: dict,
+    initial_state: Callable[[], Any],
+    fit_fn: Callable,
+    on_save: Callable[[], None] | None = None,
+):
     """Run fit_fn from the latest checkpoint under `directory` (or from the initial state), checkpointing as it goes.
 
     metadata: what every checkpoint records and a resume must match (its "config_hash" and the data's shape: scan

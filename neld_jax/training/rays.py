@@ -35,9 +35,7 @@ class RaySet:
         return int(self.ranges.shape[0])
 
 
-def build_rays(
-    seq: Sequence, norm: Normalization, max_rays_per_scan: int | None = None, seed: int = 0
-) -> RaySet:
+def build_rays(seq: Sequence, norm: Normalization, max_rays_per_scan: int | None = None, seed: int = 0) -> RaySet:
     """Rays of all scans of `seq` (normally preprocessed). Zero-length points are dropped (counted in the log).
 
     max_rays_per_scan: if set, each scan keeps a random subset of that many rays (seeded by `seed`)."""
@@ -75,8 +73,9 @@ def rays_per_scan(max_rays_per_scan: int, max_rays: int, num_scans: int) -> int 
     return min(limits) if limits else None
 
 
-def sphere_scene_rays(num_scans: int, rays_per_scan: int, seed: int = 0, radius: float = 0.8,
-                      spread: float = 0.3) -> tuple[RaySet, np.ndarray]:
+def sphere_scene_rays(
+    num_scans: int, rays_per_scan: int, seed: int = 0, radius: float = 0.8, spread: float = 0.3
+) -> tuple[RaySet, np.ndarray]:
     """An analytic ray set for tests and benchmarks, already in the normalised frame: `num_scans` sensors at
     random poses within +-spread of the origin, each casting `rays_per_scan` random unit rays at a sphere of
     `radius` around the origin. Returns (RaySet with exact ranges, T_init [S, 4, 4] float64)."""

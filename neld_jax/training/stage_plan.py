@@ -90,11 +90,15 @@ class Rates:
         measured = "measured" if "odometry" in self.measured else f"{ODOMETRY_POINTS:,} points"
         text = f"odometry {self.odometry_s:.2f} s a sweep ({measured}), " if recording.odometry else ""
         if baseline:
-            text += (f"the baseline {scale * self.chain_s:.2f} + {scale * self.graph_s:.2f} + "
-                     f"{scale * self.round_s:.2f} s a keyframe (chain, graph, a round), ")
-        return (f"{text}{self.step_s:g} s a training step, {self.register_s:g} s a scan registered, {self.draw_s:g} s "
-                f"a crispness draw of {DRAW_POINTS:,} points (rough constants where not measured: "
-                "neld_jax.training.stage_plan)")
+            text += (
+                f"the baseline {scale * self.chain_s:.2f} + {scale * self.graph_s:.2f} + "
+                f"{scale * self.round_s:.2f} s a keyframe (chain, graph, a round), "
+            )
+        return (
+            f"{text}{self.step_s:g} s a training step, {self.register_s:g} s a scan registered, {self.draw_s:g} s "
+            f"a crispness draw of {DRAW_POINTS:,} points (rough constants where not measured: "
+            "neld_jax.training.stage_plan)"
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,14 +129,22 @@ class Plan:
         r = self.recording
         limit = "with no time limit" if self.total_s <= 0 else f"within max_minutes={self.total_s / 60:g}"
         shown = self.seconds or self.needed
-        stages = ", ".join(f"{stage} {shown[stage]:.0f} s" + (f" ({shown[stage] / self.rates.step_s:,.0f} steps)"
-                                                               if stage == "training" else "")
-                           for stage in STAGES if shown[stage] > 0 or stage == "training")
+        stages = ", ".join(
+            f"{stage} {shown[stage]:.0f} s"
+            + (f" ({shown[stage] / self.rates.step_s:,.0f} steps)" if stage == "training" else "")
+            for stage in STAGES
+            if shown[stage] > 0 or stage == "training"
+        )
         least = f"{self.needed_s / 60:.1f} minutes at least"
-        verdict = f"fits: {least}" if self.seconds else f"each stage's least: {least}" + (
-            "" if self.fits else ", does not fit")
-        return (f"the plan for {r.num_scans} scans ({r.num_keyframes} keyframes of {r.points_per_scan:,.0f} points) "
-                f"{limit}: {stages} ({verdict}); at {self.rates.describe(r, self.work.baseline)}")
+        verdict = (
+            f"fits: {least}"
+            if self.seconds
+            else f"each stage's least: {least}" + ("" if self.fits else ", does not fit")
+        )
+        return (
+            f"the plan for {r.num_scans} scans ({r.num_keyframes} keyframes of {r.points_per_scan:,.0f} points) "
+            f"{limit}: {stages} ({verdict}); at {self.rates.describe(r, self.work.baseline)}"
+        )
 
     def warning(self) -> str | None:
         """One line where the recording cannot be completed within the budget, with the max_minutes it needs."""
@@ -141,17 +153,22 @@ class Plan:
         w, needed = self.work, self.needed
         complete = ["the baseline over every keyframe"] if needed["baseline"] > 0 else []
         complete += [f"{w.min_steps} training steps"] + (["every scan registered"] if needed["registration"] else [])
-        return (f"the recording is too long for max_minutes={self.total_s / 60:g}: its {self.recording.num_scans} "
-                f"scans need about {self.needed_s / 60:.1f} minutes to complete every stage ("
-                f"{', '.join(complete)}, {w.min_draws} crispness draws); set max_minutes={self.needed_minutes:g} or "
-                "more, or stages will be cut short at their deadlines")
+        return (
+            f"the recording is too long for max_minutes={self.total_s / 60:g}: its {self.recording.num_scans} "
+            f"scans need about {self.needed_s / 60:.1f} minutes to complete every stage ("
+            f"{', '.join(complete)}, {w.min_draws} crispness draws); set max_minutes={self.needed_minutes:g} or "
+            "more, or stages will be cut short at their deadlines"
+        )
 
     def record(self) -> dict:
         """metrics.json's run.plan."""
-        return {"fits": self.fits, "needs_max_minutes": self.needed_minutes,
-                "needed_s": {k: round(v, 1) for k, v in self.needed.items()},
-                "planned_s": {k: round(v, 1) for k, v in self.seconds.items()},
-                "rates": dataclasses.asdict(self.rates)}
+        return {
+            "fits": self.fits,
+            "needs_max_minutes": self.needed_minutes,
+            "needed_s": {k: round(v, 1) for k, v in self.needed.items()},
+            "planned_s": {k: round(v, 1) for k, v in self.seconds.items()},
+            "rates": dataclasses.asdict(self.rates),
+        }
 
 
 def needed_seconds(recording: Recording, work: Work, rates: Rates, rounds: int = 1) -> dict:
@@ -164,9 +181,14 @@ def needed_seconds(recording: Recording, work: Work, rates: Rates, rounds: int =
     per_keyframe = rates.chain_s + rates.graph_s + min(rounds, work.map_rounds) * rates.round_s
     baseline = r.num_keyframes * per_keyframe * max(r.points_per_scan / BASELINE_POINTS, 1.0) if work.baseline else 0.0
     draw = rates.draw_s * r.num_keyframes * r.points_per_scan / DRAW_POINTS
-    return {"load": load, "baseline": baseline, "training": work.min_steps * rates.step_s, "map": work.render_s,
-            "registration": max(r.num_scans - r.num_keyframes, 0) * rates.register_s,
-            "judging": max(JUDGING_S, work.min_draws * draw + WRITING_S)}
+    return {
+        "load": load,
+        "baseline": baseline,
+        "training": work.min_steps * rates.step_s,
+        "map": work.render_s,
+        "registration": max(r.num_scans - r.num_keyframes, 0) * rates.register_s,
+        "judging": max(JUDGING_S, work.min_draws * draw + WRITING_S),
+    }
 
 
 def budget_needed(needed: dict) -> float:
@@ -203,9 +225,12 @@ class PlanSettings:
     def from_config(cls, config) -> "PlanSettings":
         import jax
 
-        work = Work(baseline=str(config.start.poses).lower() != "input", map_rounds=int(config.baseline.map_rounds),
-                    min_steps=min(MIN_STEPS, int(config.train.steps)),
-                    min_draws=min(MIN_DRAWS, int(config.eval.crispness_draws)))
+        work = Work(
+            baseline=str(config.start.poses).lower() != "input",
+            map_rounds=int(config.baseline.map_rounds),
+            min_steps=min(MIN_STEPS, int(config.train.steps)),
+            min_draws=min(MIN_DRAWS, int(config.eval.crispness_draws)),
+        )
         return cls(work, str(config.budget), jax.default_backend())
 
 
@@ -226,6 +251,7 @@ def planned(settings: PlanSettings, loaded, keyframes, budget: TimeBudget) -> Ti
     if plan.warning():
         logger.warning("%s", plan.warning())
     if plan.seconds:  # it fits: the registration and the judging get their planned seconds, not the fixed reserves
-        budget = dataclasses.replace(budget, registration_s=plan.seconds["registration"],
-                                     judging_s=plan.seconds["judging"])
+        budget = dataclasses.replace(
+            budget, registration_s=plan.seconds["registration"], judging_s=plan.seconds["judging"]
+        )
     return dataclasses.replace(budget, plan=plan)

@@ -63,8 +63,12 @@ class SubmapPlan:
 
     def to_dict(self) -> dict:
         """JSON-able form, for checkpoints (a resume must train the same split)."""
-        return {"members": self.members.tolist(), "norms": [n.to_dict() for n in self.norms],
-                "ref_scale": self.ref_scale, "weight": self.weight.tolist()}
+        return {
+            "members": self.members.tolist(),
+            "norms": [n.to_dict() for n in self.norms],
+            "ref_scale": self.ref_scale,
+            "weight": self.weight.tolist(),
+        }
 
 
 def scan_bounds(scans: list[np.ndarray], poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -177,8 +181,15 @@ def submap_members(poses: np.ndarray, window: int, overlap: int, closure_radius_
     return np.vstack([members] + [c[None] for c in closures]) if closures else members
 
 
-def plan_submaps(scans: list[np.ndarray], poses: np.ndarray, window: int, overlap: int, margin: float,
-                 num_devices: int = 1, closure_radius_m: float = 0.0) -> SubmapPlan:
+def plan_submaps(
+    scans: list[np.ndarray],
+    poses: np.ndarray,
+    window: int,
+    overlap: int,
+    margin: float,
+    num_devices: int = 1,
+    closure_radius_m: float = 0.0,
+) -> SubmapPlan:
     """Split S keyframes (scans [N_i, 3] sensor frame, poses [S, 4, 4] initial) into windows of `window`.
 
     With closure_radius_m > 0, each revisit (closure_pairs) adds a submap holding both visits (closure_members),
@@ -222,8 +233,15 @@ def plan_from_config(seq, config, num_devices: int = 1) -> SubmapPlan:
             logger.warning(
                 "%s: submaps of at most %.0f m (submaps.max_detail_m=%g at model.pos_freqs=%d) hold fewer than "
                 "%d consecutive keyframes (one scan alone spans up to %.0f m): using %d, in larger cubes (lower "
-                "data.max_range_m or set submaps.keyframes to choose)", seq.source or seq.name, max_extent,
-                sc.max_detail_m, config.model.pos_freqs, int(sc.overlap) + 1, largest, int(sc.overlap) + 1)
+                "data.max_range_m or set submaps.keyframes to choose)",
+                seq.source or seq.name,
+                max_extent,
+                sc.max_detail_m,
+                config.model.pos_freqs,
+                int(sc.overlap) + 1,
+                largest,
+                int(sc.overlap) + 1,
+            )
             window = int(sc.overlap) + 1
     closure_radius = float(sc.closure_radius_m)
     limit = int(sc.max_submaps)
@@ -231,12 +249,25 @@ def plan_from_config(seq, config, num_devices: int = 1) -> SubmapPlan:
         wanted = window
         window = window_for_limit(seq.poses, window, int(sc.overlap), closure_radius, limit)
         if window > wanted:
-            logger.info("%s: windows of %d keyframes would make more than submaps.max_submaps=%d submaps; "
-                        "using %d keyframes a window, in larger cubes (coarser detail, below)",
-                        seq.source or seq.name, wanted, limit, window)
+            logger.info(
+                "%s: windows of %d keyframes would make more than submaps.max_submaps=%d submaps; "
+                "using %d keyframes a window, in larger cubes (coarser detail, below)",
+                seq.source or seq.name,
+                wanted,
+                limit,
+                window,
+            )
     plan = plan_submaps(seq.scans, seq.poses, window, int(sc.overlap), margin, num_devices, closure_radius)
-    logger.info(describe(plan, extent_m, single_cube_detail_m(extent_m, config.model.pos_freqs, margin),
-                         float(sc.max_detail_m), config.model.pos_freqs, margin))
+    logger.info(
+        describe(
+            plan,
+            extent_m,
+            single_cube_detail_m(extent_m, config.model.pos_freqs, margin),
+            float(sc.max_detail_m),
+            config.model.pos_freqs,
+            margin,
+        )
+    )
     return plan
 
 
@@ -257,21 +288,24 @@ def window_for_limit(poses: np.ndarray, window: int, overlap: int, closure_radiu
     return window
 
 
-def describe(plan: SubmapPlan, extent_m: float, detail_m: float, max_detail_m: float, pos_freqs: int,
-             margin: float) -> str:
+def describe(
+    plan: SubmapPlan, extent_m: float, detail_m: float, max_detail_m: float, pos_freqs: int, margin: float
+) -> str:
     """The log line saying how the sequence was split."""
     real = plan.weight > 0
     sizes = 2.0 * margin / plan.scales[real]
     details = [single_cube_detail_m(e, pos_freqs, margin) for e in sizes]
     consecutive = np.all(np.diff(plan.members, axis=1) == 1, axis=1) & real
     closures = int(real.sum() - consecutive.sum())
-    return (f"submaps: the keyframes span {extent_m:.0f} m, one cube's finest detail would be {detail_m:.2f} m "
-            f"(> submaps.max_detail_m={max_detail_m:g}); split into {int(consecutive.sum())} submaps of {plan.window} "
-            f"consecutive keyframes" + (f" and {closures} loop-closure submaps (two visits of one place)"
-                                        if closures else "")
-            + f" ({sizes.min():.0f}-{sizes.max():.0f} m cubes, finest detail "
-            f"{min(details):.2f}-{max(details):.2f} m)"
-            + (f", padded with {int((~real).sum())} empty submaps to fill the devices" if (~real).any() else ""))
+    return (
+        f"submaps: the keyframes span {extent_m:.0f} m, one cube's finest detail would be {detail_m:.2f} m "
+        f"(> submaps.max_detail_m={max_detail_m:g}); split into {int(consecutive.sum())} submaps of {plan.window} "
+        f"consecutive keyframes"
+        + (f" and {closures} loop-closure submaps (two visits of one place)" if closures else "")
+        + f" ({sizes.min():.0f}-{sizes.max():.0f} m cubes, finest detail "
+        f"{min(details):.2f}-{max(details):.2f} m)"
+        + (f", padded with {int((~real).sum())} empty submaps to fill the devices" if (~real).any() else "")
+    )
 
 
 def tile_memberships(lower: np.ndarray, upper: np.ndarray, tile_m: float) -> np.ndarray:
@@ -312,19 +346,24 @@ def submap_arrays(plan: SubmapPlan, rays_m, poses: np.ndarray) -> SubmapArrays:
     per = [int(counts[row].sum()) for row in plan.members]
     r = max(max(per), 1)
     out = SubmapArrays(
-        directions=np.zeros((m, r, 3), np.float32), ranges=np.ones((m, r), np.float32),
-        scan_index=np.zeros((m, r), np.int32), num_rays=np.asarray(per, np.int32),
-        T_init=np.zeros((m, w, 4, 4), np.float32), scan_global=plan.members.astype(np.int32),
-        scale=plan.scales.astype(np.float32), rho_factor=plan.rho_factor.astype(np.float32),
-        weight=plan.weight.astype(np.float32))
+        directions=np.zeros((m, r, 3), np.float32),
+        ranges=np.ones((m, r), np.float32),
+        scan_index=np.zeros((m, r), np.int32),
+        num_rays=np.asarray(per, np.int32),
+        T_init=np.zeros((m, w, 4, 4), np.float32),
+        scan_global=plan.members.astype(np.int32),
+        scale=plan.scales.astype(np.float32),
+        rho_factor=plan.rho_factor.astype(np.float32),
+        weight=plan.weight.astype(np.float32),
+    )
     for i, (row, norm) in enumerate(zip(plan.members, plan.norms)):
         at = 0
         for slot, s in enumerate(row):
             n = int(counts[s])
             sl = slice(starts[s], starts[s] + n)
-            out.directions[i, at:at + n] = rays_m.directions[sl]
-            out.ranges[i, at:at + n] = rays_m.ranges[sl] * norm.scale
-            out.scan_index[i, at:at + n] = slot
+            out.directions[i, at : at + n] = rays_m.directions[sl]
+            out.ranges[i, at : at + n] = rays_m.ranges[sl] * norm.scale
+            out.scan_index[i, at : at + n] = slot
             at += n
         # Padding rays (never drawn: the sampler draws below num_rays) repeat the first ray, harmless values.
         out.directions[i, at:] = out.directions[i, 0] if at else (1.0, 0.0, 0.0)

@@ -98,8 +98,13 @@ def device_data(arrays, mesh: Mesh) -> tuple[Rays, Frames]:
     """neld_jax.training.submaps.SubmapArrays (numpy) -> (Rays, Frames) on the mesh, split along M."""
     a = arrays
     rays = Rays(jnp.asarray(a.directions), jnp.asarray(a.ranges), jnp.asarray(a.scan_index), jnp.asarray(a.num_rays))
-    frames = Frames(jnp.asarray(a.T_init), jnp.asarray(a.scan_global), jnp.asarray(a.scale),
-                    jnp.asarray(a.rho_factor), jnp.asarray(a.weight))
+    frames = Frames(
+        jnp.asarray(a.T_init),
+        jnp.asarray(a.scan_global),
+        jnp.asarray(a.scale),
+        jnp.asarray(a.rho_factor),
+        jnp.asarray(a.weight),
+    )
     split = NamedSharding(mesh, P(AXIS))
     return jax.device_put(rays, split), jax.device_put(frames, split)
 
@@ -165,15 +170,21 @@ class PoseSteps:
     def from_train(cls, train_cfg: ml_collections.ConfigDict) -> "PoseSteps":
         """The config's own pose steps (train_cfg: config.train, its pose_lr_*), no prior, the scale free."""
         t = train_cfg
-        return cls((float(t.pose_lr_trans_init), float(t.pose_lr_trans_final)),
-                   (float(t.pose_lr_rot_init), float(t.pose_lr_rot_final)))
+        return cls(
+            (float(t.pose_lr_trans_init), float(t.pose_lr_trans_final)),
+            (float(t.pose_lr_rot_init), float(t.pose_lr_rot_final)),
+        )
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
 
-def make_schedules(config: ml_collections.ConfigDict, pose_steps: PoseSteps, total_steps: int | None = None,
-                   field_lr_factor: float = 1.0) -> Schedules:
+def make_schedules(
+    config: ml_collections.ConfigDict,
+    pose_steps: PoseSteps,
+    total_steps: int | None = None,
+    field_lr_factor: float = 1.0,
+) -> Schedules:
     """The schedules of a plan of total_steps (None: train.steps): coarse-to-fine over train.c2f_end_fraction of
     them, the sample stages spread over the same span, the poses still until frequency k* is active."""
     t = config.train
@@ -196,13 +207,23 @@ def make_schedules(config: ml_collections.ConfigDict, pose_steps: PoseSteps, tot
     def delayed(init_final):
         # Exactly zero before pose_start: Adam's update is then exactly zero, so the poses stay put.
         init, final = init_final
-        return optax.join_schedules([optax.constant_schedule(0.0), decay(init, final, steps - pose_start)],
-                                    boundaries=[pose_start])
+        return optax.join_schedules(
+            [optax.constant_schedule(0.0), decay(init, final, steps - pose_start)], boundaries=[pose_start]
+        )
 
     field_lr = decay(field_lr_factor * float(t.field_lr_init), field_lr_factor * float(t.field_lr_final), steps)
-    return Schedules(total_steps=steps, pos_freqs=L, c2f_end_step=c2f_end, pose_start_step=pose_start,
-                     stage_starts=starts, coarse_stages=coarse, fine_stages=fine, field_lr=field_lr,
-                     pose_lr_trans=delayed(pose_steps.lr_trans), pose_lr_rot=delayed(pose_steps.lr_rot))
+    return Schedules(
+        total_steps=steps,
+        pos_freqs=L,
+        c2f_end_step=c2f_end,
+        pose_start_step=pose_start,
+        stage_starts=starts,
+        coarse_stages=coarse,
+        fine_stages=fine,
+        field_lr=field_lr,
+        pose_lr_trans=delayed(pose_steps.lr_trans),
+        pose_lr_rot=delayed(pose_steps.lr_rot),
+    )
 
 
 # ------------------------------------------------------------------------------------------------ optimiser
@@ -261,28 +282,39 @@ def keep_off_direction(a: np.ndarray) -> optax.GradientTransformation:
     multiple of a that makes a . u = 0. Linear, so a constraint a . xi = 0 met at xi = 0 holds after every step;
     stateless, so the optimiser state's structure does not depend on a."""
     a = np.asarray(a, np.float64)
-    norm2 = max(float(np.sum(a ** 2)), 1e-30)
+    norm2 = max(float(np.sum(a**2)), 1e-30)
     a = jnp.asarray(a, jnp.float32)
-    return optax.stateless(lambda updates, params: jax.tree.map(
-        lambda u: u - (jnp.sum(u * a.astype(u.dtype)) / norm2) * a.astype(u.dtype), updates))
+    return optax.stateless(
+        lambda updates, params: jax.tree.map(
+            lambda u: u - (jnp.sum(u * a.astype(u.dtype)) / norm2) * a.astype(u.dtype), updates
+        )
+    )
 
 
-def pose_transform(schedules: Schedules, pose_steps: PoseSteps, fixed: np.ndarray,
-                   start_poses: np.ndarray | None = None) -> optax.GradientTransformation:
+def pose_transform(
+    schedules: Schedules, pose_steps: PoseSteps, fixed: np.ndarray, start_poses: np.ndarray | None = None
+) -> optax.GradientTransformation:
     """The [S, 6] poses' update: the prior's pull toward the start (before Adam, so that it is normalised with the
     data's gradient), Adam, the translation / rotation schedules, the fixed rows [S] zeroed, and with
     pose_steps.keep_scale the step kept off the trajectory's scale mode (last, so that it holds exactly), which
     needs start_poses [S, 4, 4] (world)."""
-    prior = ([pose_prior(pose_steps.prior_trans, pose_steps.prior_rot)]
-             if pose_steps.prior_trans or pose_steps.prior_rot else [])
+    prior = (
+        [pose_prior(pose_steps.prior_trans, pose_steps.prior_rot)]
+        if pose_steps.prior_trans or pose_steps.prior_rot
+        else []
+    )
     scale = []
     if pose_steps.keep_scale:
         if start_poses is None:
             raise ValueError("keeping the start's scale needs the start poses")
         scale = [keep_off_direction(scale_direction(start_poses, ~np.asarray(fixed, bool)))]
-    return optax.chain(*prior, optax.scale_by_adam(), scale_pose_columns(schedules.pose_lr_trans,
-                                                                         schedules.pose_lr_rot),
-                       zero_rows(fixed), *scale)
+    return optax.chain(
+        *prior,
+        optax.scale_by_adam(),
+        scale_pose_columns(schedules.pose_lr_trans, schedules.pose_lr_rot),
+        zero_rows(fixed),
+        *scale,
+    )
 
 
 def fixed_rows(train_cfg: ml_collections.ConfigDict, num_scans: int) -> np.ndarray:
@@ -291,14 +323,21 @@ def fixed_rows(train_cfg: ml_collections.ConfigDict, num_scans: int) -> np.ndarr
     fixed = np.zeros(num_scans, bool)
     for s in train_cfg.fixed_scans:
         if not -num_scans <= int(s) < num_scans:
-            raise ConfigError(f"train.fixed_scans = {tuple(train_cfg.fixed_scans)!r}: scan {s} is not one of the "
-                              f"{num_scans} keyframes")
+            raise ConfigError(
+                f"train.fixed_scans = {tuple(train_cfg.fixed_scans)!r}: scan {s} is not one of the "
+                f"{num_scans} keyframes"
+            )
         fixed[int(s)] = True
     return fixed
 
 
-def make_optimizer(config: ml_collections.ConfigDict, schedules: Schedules, num_scans: int, pose_steps: PoseSteps,
-                   start_poses: np.ndarray | None = None) -> optax.GradientTransformation:
+def make_optimizer(
+    config: ml_collections.ConfigDict,
+    schedules: Schedules,
+    num_scans: int,
+    pose_steps: PoseSteps,
+    start_poses: np.ndarray | None = None,
+) -> optax.GradientTransformation:
     pose_tx = pose_transform(schedules, pose_steps, fixed_rows(config.train, num_scans), start_poses)
 
     def labels(params):
@@ -352,8 +391,9 @@ def make_loss(field: DensityField, loss: LossSettings, batch_rays: int) -> Calla
         # the W poses first, then a gather: cheaper than an exp per ray
         T = corrected_poses(poses, frames_m.T_init, frames_m.scan_global, frames_m.rho_factor)[slot]
         origins, directions = world_rays(T, directions_local)
-        out = render_rays(field_params, field, in_units(sampler, frames_m.scale), origins, directions, alpha,
-                          key_render, ranges)
+        out = render_rays(
+            field_params, field, in_units(sampler, frames_m.scale), origins, directions, alpha, key_render, ranges
+        )
         total, metrics = ray_losses(out, ranges, loss)
         metrics["range_err_m"] = metrics.get("range_l1_fine", metrics["range_l1_coarse"]) / frames_m.scale
         metrics["range_residual_median_m"] = metrics["range_residual_median"] / frames_m.scale
@@ -363,15 +403,28 @@ def make_loss(field: DensityField, loss: LossSettings, batch_rays: int) -> Calla
         m = frames.weight.shape[0]
         key_batch, key_render = jax.random.split(key)
         totals, metrics = jax.vmap(cube_loss, in_axes=(0, None, 0, 0, 0, 0, None, None))(
-            params["fields"], params["poses"], rays, frames, jax.random.split(key_batch, m),
-            jax.random.split(key_render, m), alpha, sampler)
+            params["fields"],
+            params["poses"],
+            rays,
+            frames,
+            jax.random.split(key_batch, m),
+            jax.random.split(key_render, m),
+            alpha,
+            sampler,
+        )
         return jnp.sum(totals), metrics
 
     return loss_fn
 
 
-def make_step(tx: optax.GradientTransformation, schedules: Schedules, field: DensityField, loss: LossSettings,
-              batch_rays: int, sharding=None) -> Callable:
+def make_step(
+    tx: optax.GradientTransformation,
+    schedules: Schedules,
+    field: DensityField,
+    loss: LossSettings,
+    batch_rays: int,
+    sharding=None,
+) -> Callable:
     """The pure, unjitted train step: step(state, rays, frames, sampler) -> (state, metrics): one Adam step on one
     batch (batch_rays rays per cube, drawn with the state's key). metrics: float32 scalars, the weight-averaged
     per-cube loss terms, alpha and the pose gradient's norm. With `sharding` the new state is constrained to it, so
@@ -381,8 +434,9 @@ def make_step(tx: optax.GradientTransformation, schedules: Schedules, field: Den
     def step(state: TrainState, rays: Rays, frames: Frames, sampler: SamplerSettings):
         key, key_loss = jax.random.split(state.key)
         alpha = schedules.alpha(state.step)
-        (_, per_cube), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params, rays, frames, key_loss,
-                                                                         alpha, sampler)
+        (_, per_cube), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            state.params, rays, frames, key_loss, alpha, sampler
+        )
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         w = frames.weight / jnp.sum(frames.weight)
@@ -428,9 +482,16 @@ def sampler_settings(sampling_cfg: ml_collections.ConfigDict, num_coarse: int, n
     """The sampler of one stage (sampling_cfg: config.sampling), in metres (model.in_units converts it into a cube's
     units)."""
     s = sampling_cfg
-    return SamplerSettings(num_coarse=int(num_coarse), num_fine=int(num_fine), z_low=float(s.z_low_m),
-                           z_up=float(s.z_up_m), cube_bound=bool(s.cube_bound), hierarchical=str(s.hierarchical),
-                           guided_samples=int(s.guided_samples), guided_width=GUIDED_WIDTH_M)
+    return SamplerSettings(
+        num_coarse=int(num_coarse),
+        num_fine=int(num_fine),
+        z_low=float(s.z_low_m),
+        z_up=float(s.z_up_m),
+        cube_bound=bool(s.cube_bound),
+        hierarchical=str(s.hierarchical),
+        guided_samples=int(s.guided_samples),
+        guided_width=GUIDED_WIDTH_M,
+    )
 
 
 def make_field(config: ml_collections.ConfigDict, num_submaps: int = 1) -> DensityField:
@@ -469,9 +530,15 @@ def field_lr_factor(config: ml_collections.ConfigDict, num_submaps: int, total_s
     return float(rule[1]) if total_steps >= rule[0] else 1.0
 
 
-def make_trainer(config: ml_collections.ConfigDict, num_scans: int, num_submaps: int, pose_steps: PoseSteps,
-                 start_poses: np.ndarray | None = None, total_steps: int | None = None,
-                 mesh: Mesh | None = None) -> Trainer:
+def make_trainer(
+    config: ml_collections.ConfigDict,
+    num_scans: int,
+    num_submaps: int,
+    pose_steps: PoseSteps,
+    start_poses: np.ndarray | None = None,
+    total_steps: int | None = None,
+    mesh: Mesh | None = None,
+) -> Trainer:
     """The optimiser, schedules, field, sampler and step of a plan of total_steps (None: train.steps) over S
     keyframes in M cubes. start_poses [S, 4, 4] (world): what pose_steps.keep_scale keeps the scale of. The step
     keeps the state on the mesh (None: one device), where `init_state` puts it."""
@@ -493,7 +560,8 @@ def make_trainer(config: ml_collections.ConfigDict, num_scans: int, num_submaps:
 def _initial_state(config, tx, field: DensityField, num_scans: int, num_submaps: int) -> TrainState:
     key_init, key_state = jax.random.split(jax.random.PRNGKey(int(config.seed)))
     fields = jax.vmap(lambda k: field.init(k, jnp.zeros((1, 3)), jnp.zeros((1, 3)))["params"])(
-        jax.random.split(key_init, num_submaps))
+        jax.random.split(key_init, num_submaps)
+    )
     params = {"fields": fields, "poses": jnp.zeros((num_scans, 6), jnp.float32)}
     return TrainState(step=jnp.zeros([], jnp.int32), params=params, opt_state=tx.init(params), key=key_state)
 
@@ -573,24 +641,32 @@ def steps_that_fit(done: int, total: int, seconds_left: float, seconds_per_step:
     return int(min(total, max(fitting, min_total)))
 
 
-def history_entry(metrics: dict, poses: jax.Array, step: int, schedules: Schedules, ref_scale: float,
-                  clock: Callable[[], float]) -> dict:
+def history_entry(
+    metrics: dict, poses: jax.Array, step: int, schedules: Schedules, ref_scale: float, clock: Callable[[], float]
+) -> dict:
     """The history's entry of `step`: the metrics of that step (floats), its plan's total_steps, the corrections'
     mean translation [m] and rotation [deg] (poses [S, 6]), training's seconds so far (clock(), read once the
     metrics and poses are on the host: the chunk has run) and the step's learning rates."""
     entry = {k: float(v) for k, v in jax.device_get(metrics).items()}
     trans_m, rot_deg = pose_correction_stats(jax.device_get(poses), ref_scale)
-    entry.update(step=step, total_steps=schedules.total_steps, pose_trans_mean_m=trans_m, pose_rot_mean_deg=rot_deg,
-                 elapsed_s=clock(), field_lr=float(schedules.field_lr(step - 1)),
-                 pose_lr_trans=float(schedules.pose_lr_trans(step - 1)),
-                 pose_lr_rot=float(schedules.pose_lr_rot(step - 1)))
+    entry.update(
+        step=step,
+        total_steps=schedules.total_steps,
+        pose_trans_mean_m=trans_m,
+        pose_rot_mean_deg=rot_deg,
+        elapsed_s=clock(),
+        field_lr=float(schedules.field_lr(step - 1)),
+        pose_lr_trans=float(schedules.pose_lr_trans(step - 1)),
+        pose_lr_rot=float(schedules.pose_lr_rot(step - 1)),
+    )
     if not np.isfinite(entry["loss"]):
         raise FloatingPointError(f"loss is {entry['loss']} at step {step}; lower the learning rates")
     return entry
 
 
-def compressed_plan(plan_of: Callable[[int], Trainer], chunk_seconds: list, done: int, total: int,
-                    seconds_left: float) -> Trainer | None:
+def compressed_plan(
+    plan_of: Callable[[int], Trainer], chunk_seconds: list, done: int, total: int, seconds_left: float
+) -> Trainer | None:
     """The plan of fewer steps that, `done` steps in, ends within `seconds_left` (`steps_that_fit`, at least a
     quarter of `total`); None when the remaining steps of the plan of `total` fit. chunk_seconds: the first two
     chunks' (steps, seconds); the first one's excess over the second's rate is its compile."""
@@ -602,42 +678,73 @@ def compressed_plan(plan_of: Callable[[int], Trainer], chunk_seconds: list, done
     fitting = steps_that_fit(done, total, seconds_left - 3 * compile_s, per_step, min_total=max(done + 1, total // 4))
     if fitting >= total:
         return None
-    logger.warning("the remaining %d steps would take %.1f min at %.2f s a step, and %.1f min are left (10%% of them "
-                   "and %.0f s for three compiles kept in hand): the plan is compressed to %d steps (max_minutes)",
-                   total - done, (total - done) * per_step / 60.0, per_step, seconds_left / 60.0, 3 * compile_s,
-                   fitting)
+    logger.warning(
+        "the remaining %d steps would take %.1f min at %.2f s a step, and %.1f min are left (10%% of them "
+        "and %.0f s for three compiles kept in hand): the plan is compressed to %d steps (max_minutes)",
+        total - done,
+        (total - done) * per_step / 60.0,
+        per_step,
+        seconds_left / 60.0,
+        3 * compile_s,
+        fitting,
+    )
     return plan_of(fitting)
 
 
 def _log_stage(step: int, stage: int, sampler: SamplerSettings, rays_per_step: int) -> None:
-    logger.info("step %d: stage %d, %d coarse + %d fine (+%d guided) samples per ray, %d rays per step", step, stage,
-                sampler.num_coarse, sampler.num_fine, sampler.guided_samples, rays_per_step)
+    logger.info(
+        "step %d: stage %d, %d coarse + %d fine (+%d guided) samples per ray, %d rays per step",
+        step,
+        stage,
+        sampler.num_coarse,
+        sampler.num_fine,
+        sampler.guided_samples,
+        rays_per_step,
+    )
 
 
 def _log_pose_start(config: ml_collections.ConfigDict, schedules: Schedules, step: int) -> None:
     if step == schedules.pose_start_step and step > 0:
-        logger.info("step %d: frequency %d active, poses start moving", step,
-                    min(int(config.train.pose_start_freq), schedules.pos_freqs))
+        logger.info(
+            "step %d: frequency %d active, poses start moving",
+            step,
+            min(int(config.train.pose_start_freq), schedules.pos_freqs),
+        )
 
 
 def _time_is_up(seconds: float, max_seconds: float, done: int, total: int) -> bool:
     """Whether training stops at step `done` of `total`, `seconds` into a limit of max_seconds (0: none); logged."""
     if max_seconds > 0 and seconds > max_seconds and done != total:
-        logger.warning("stopping at step %d of %d: the %.1f minutes training may take are over (max_minutes)", done,
-                       total, max_seconds / 60.0)
+        logger.warning(
+            "stopping at step %d of %d: the %.1f minutes training may take are over (max_minutes)",
+            done,
+            total,
+            max_seconds / 60.0,
+        )
         return True
     return False
 
 
 def _progress_postfix(entry: dict) -> dict:
     """What the progress bar shows of a history entry."""
-    return dict(loss=f"{entry['loss']:.4f}", range_err=f"{entry['range_err_m']:.3f}m", freq=f"{entry['alpha']:.1f}",
-                dpose=f"{100 * entry['pose_trans_mean_m']:.1f}cm/{entry['pose_rot_mean_deg']:.2f}deg")
+    return dict(
+        loss=f"{entry['loss']:.4f}",
+        range_err=f"{entry['range_err_m']:.3f}m",
+        freq=f"{entry['alpha']:.1f}",
+        dpose=f"{100 * entry['pose_trans_mean_m']:.1f}cm/{entry['pose_rot_mean_deg']:.2f}deg",
+    )
 
 
-def fit(config: ml_collections.ConfigDict, plan_of: Callable[[int], Trainer], data: TrainingData,
-        state: TrainState, checkpoint_fn: Callable[[TrainState, list, float], None] | None = None,
-        history: list | None = None, elapsed_s: float = 0.0, settings: FitSettings = FitSettings()) -> FitResult:
+def fit(
+    config: ml_collections.ConfigDict,
+    plan_of: Callable[[int], Trainer],
+    data: TrainingData,
+    state: TrainState,
+    checkpoint_fn: Callable[[TrainState, list, float], None] | None = None,
+    history: list | None = None,
+    elapsed_s: float = 0.0,
+    settings: FitSettings = FitSettings(),
+) -> FitResult:
     """Train from `state` on `data` to the end of the plan: plan_of(total_steps) builds the Trainer of a plan of that
     many steps (`make_trainer`); the first is train.steps, or the plan a resumed run's history records.
 

@@ -26,8 +26,9 @@ logger = logging.getLogger(__name__)
 POINT_CLOUD_EXTENSIONS = (".ply", ".pcd")
 
 
-def write_poses(output_dir: str | os.PathLike, stem: str, timestamps: np.ndarray | None,
-                poses: np.ndarray) -> tuple[Path, Path]:
+def write_poses(
+    output_dir: str | os.PathLike, stem: str, timestamps: np.ndarray | None, poses: np.ndarray
+) -> tuple[Path, Path]:
     """Write poses: [S, 4, 4] as `<output_dir>/<stem>.txt` (TUM) and `<stem>.kitti` (KITTI 3x4).
 
     timestamps: [S] seconds, or None for 0, 1, ..., S-1 (TUM needs a time column).
@@ -43,8 +44,9 @@ def write_poses(output_dir: str | os.PathLike, stem: str, timestamps: np.ndarray
     return tum_path, kitti_path
 
 
-def write_keyframe_poses(output_dir: str | os.PathLike, stem: str, loaded, keyframes, T_keyframes: np.ndarray
-                         ) -> np.ndarray:
+def write_keyframe_poses(
+    output_dir: str | os.PathLike, stem: str, loaded, keyframes, T_keyframes: np.ndarray
+) -> np.ndarray:
     """The keyframes' poses T_keyframes [K, 4, 4] carried to every input scan of `loaded` (the scans between
     keyframes take their keyframes' interpolated correction: trajectory.propagate_corrections) and written as
     `write_poses` does. loaded, keyframes: neld_jax.steps.inputs.load_keyframes's. Returns the poses [S, 4, 4]
@@ -63,8 +65,9 @@ def write_point_cloud(path: str | os.PathLike, points: np.ndarray) -> Path:
     if points.ndim != 2 or points.shape[1] != 3:
         raise DataError(f"{path}: points to write must have shape [N, 3], got {points.shape}")
     if not np.all(np.isfinite(points)):
-        raise DataError(f"{path}: refusing to write {int(np.sum(~np.isfinite(points).all(axis=1)))} "
-                        "NaN or infinite points")
+        raise DataError(
+            f"{path}: refusing to write {int(np.sum(~np.isfinite(points).all(axis=1)))} NaN or infinite points"
+        )
     path.parent.mkdir(parents=True, exist_ok=True)
     import open3d as o3d  # here: training imports this module on GPU images without open3d (docs/design.md)
 
@@ -76,8 +79,9 @@ def write_point_cloud(path: str | os.PathLike, points: np.ndarray) -> Path:
     return path
 
 
-def write_raw_map(path: str | os.PathLike, scans: list[np.ndarray], poses: np.ndarray,
-                  voxel_size: float = 0.0) -> np.ndarray:
+def write_raw_map(
+    path: str | os.PathLike, scans: list[np.ndarray], poses: np.ndarray, voxel_size: float = 0.0
+) -> np.ndarray:
     """Register scans (list of [N_i, 3]) with poses [S, 4, 4], optionally voxel-downsample, write.
 
     Returns the written points [K, 3].

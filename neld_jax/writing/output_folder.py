@@ -34,9 +34,24 @@ CLOCK_FILE = "run_seconds.json"
 UNCOMPARED = ("output_dir", "viz")
 # What neld-train (and neld-baseline, neld-evaluate) write into an output folder: what --restart deletes. Any other
 # file in the folder is left alone.
-RUN_FILES = ("config.json", CLOCK_FILE, "metrics.json", "history.json", "start_poses.npz", "run.rrd", "checkpoints",
-             "scans_report.csv", "scans_report.png", "map_topdown.png", "trajectory.png", "pose_error.png",
-             "error_histogram.png", "poses_*.txt", "poses_*.kitti", "map_*.ply")
+RUN_FILES = (
+    "config.json",
+    CLOCK_FILE,
+    "metrics.json",
+    "history.json",
+    "start_poses.npz",
+    "run.rrd",
+    "checkpoints",
+    "scans_report.csv",
+    "scans_report.png",
+    "map_topdown.png",
+    "trajectory.png",
+    "pose_error.png",
+    "error_histogram.png",
+    "poses_*.txt",
+    "poses_*.kitti",
+    "map_*.ply",
+)
 MAX_LISTED = 6  # differences named in the error line
 
 
@@ -74,9 +89,12 @@ def config_differences(saved: dict, now: dict) -> list[str]:
     """The fields (dotted names) in which two configurations (config.json's form) differ, UNCOMPARED aside:
     ["train.steps: 12 -> 20", ...] (a field one of them lacks reads "(absent)"), sorted by name."""
     old, new = _flat(saved), _flat(now)
-    names = sorted(name for name in old.keys() | new.keys()
-                   if not any(name == top or name.startswith(top + ".") for top in UNCOMPARED)
-                   and old.get(name, _ABSENT) != new.get(name, _ABSENT))
+    names = sorted(
+        name
+        for name in old.keys() | new.keys()
+        if not any(name == top or name.startswith(top + ".") for top in UNCOMPARED)
+        and old.get(name, _ABSENT) != new.get(name, _ABSENT)
+    )
     return [f"{name}: {_text(old.get(name, _ABSENT))} -> {_text(new.get(name, _ABSENT))}" for name in names]
 
 
@@ -84,8 +102,10 @@ def refusal(path: str, differences: list[str]) -> str:
     """The one line that refuses a rerun of another configuration into a run's folder."""
     listed = "; ".join(differences[:MAX_LISTED])
     more = f"; and {len(differences) - MAX_LISTED} more" if len(differences) > MAX_LISTED else ""
-    return (f"{path} holds another configuration ({listed}{more}): set a new output_dir for this one, or rerun "
-            f"neld-train with --restart to delete the earlier run's files and start over")
+    return (
+        f"{path} holds another configuration ({listed}{more}): set a new output_dir for this one, or rerun "
+        f"neld-train with --restart to delete the earlier run's files and start over"
+    )
 
 
 def delete_run_files(out_dir: str) -> list[str]:

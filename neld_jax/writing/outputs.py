@@ -32,9 +32,21 @@ logger = logging.getLogger(__name__)
 # Fields that do not change what training computes: outside the hash that guards a checkpoint and a saved start (the
 # budget is a name of the others). A rerun into a run's folder must match its config.json in every field but
 # output_folder.UNCOMPARED before it gets that far.
-NOT_HASHED = ("output_dir", "budget", "max_minutes", "train.log_every", "train.checkpoint_every", "mapping", "eval",
-              "viz", "data.gt_poses_path", "data.gt_map_path", "data.gt_from_scan", "data.scan_frame",
-              "data.gt_time_offset_s")
+NOT_HASHED = (
+    "output_dir",
+    "budget",
+    "max_minutes",
+    "train.log_every",
+    "train.checkpoint_every",
+    "mapping",
+    "eval",
+    "viz",
+    "data.gt_poses_path",
+    "data.gt_map_path",
+    "data.gt_from_scan",
+    "data.scan_frame",
+    "data.gt_time_offset_s",
+)
 
 
 def config_hash(config: ml_collections.ConfigDict) -> str:
@@ -77,8 +89,9 @@ class RunSteps:
             return self.every_scan
         if self.registration is not None:
             return self.registration.poses
-        return propagate_corrections(self.loaded.poses, self.keyframes.loaded_index, self.refined.poses,
-                                     self.loaded.timestamps)
+        return propagate_corrections(
+            self.loaded.poses, self.keyframes.loaded_index, self.refined.poses, self.loaded.timestamps
+        )
 
 
 def write_outputs(out_dir: str, mapping_cfg: ml_collections.ConfigDict, made: RunSteps) -> RunArtifacts:
@@ -95,8 +108,9 @@ def write_outputs(out_dir: str, mapping_cfg: ml_collections.ConfigDict, made: Ru
     stamps = loaded.timestamps if loaded.timestamps is not None else np.arange(loaded.num_scans, dtype=np.float64)
     trajectories = {"initial": loaded.poses}
     if made.start.baseline_poses is not None:
-        trajectories["baseline"] = propagate_corrections(loaded.poses, index, made.start.baseline_poses,
-                                                         loaded.timestamps)
+        trajectories["baseline"] = propagate_corrections(
+            loaded.poses, index, made.start.baseline_poses, loaded.timestamps
+        )
     trajectories["optimized"] = made.every_scan_poses()
     if made.neld_ba is not None:
         trajectories["neld_ba"] = made.neld_ba
@@ -107,10 +121,16 @@ def write_outputs(out_dir: str, mapping_cfg: ml_collections.ConfigDict, made: Ru
     if loaded.gt_poses is not None:
         write_poses(out_dir, "poses_gt", stamps, loaded.gt_poses)
     voxel = float(mapping_cfg.voxel_size_m)
-    maps = {"optimized": {"raw": write_raw_map(os.path.join(out_dir, "map_raw.ply"), keyframes.scans, refined.poses,
-                                               voxel_size=voxel)},
-            "initial": {"raw": write_raw_map(os.path.join(out_dir, "map_raw_initial.ply"), keyframes.scans,
-                                             keyframes.poses, voxel_size=voxel)}}
+    maps = {
+        "optimized": {
+            "raw": write_raw_map(os.path.join(out_dir, "map_raw.ply"), keyframes.scans, refined.poses, voxel_size=voxel)
+        },
+        "initial": {
+            "raw": write_raw_map(
+                os.path.join(out_dir, "map_raw_initial.ply"), keyframes.scans, keyframes.poses, voxel_size=voxel
+            )
+        },
+    }
     if keyframes.gt_map is not None:
         write_point_cloud(os.path.join(out_dir, "map_gt.ply"), keyframes.gt_map)
     if render is not None:
@@ -118,14 +138,28 @@ def write_outputs(out_dir: str, mapping_cfg: ml_collections.ConfigDict, made: Ru
             maps["optimized"]["rendered"] = voxel_downsample(render.points, voxel)
             write_point_cloud(os.path.join(out_dir, "map_rendered.ply"), maps["optimized"]["rendered"])
         else:
-            logger.warning("rendered map is empty: no ray reached opacity %.2f (train longer or lower "
-                           "mapping.min_opacity); map_rendered.ply not written", mapping_cfg.min_opacity)
-    return RunArtifacts({name: Trajectory(stamps, poses) for name, poses in trajectories.items()}, maps,
-                        None if loaded.gt_poses is None else Trajectory(stamps, loaded.gt_poses), keyframes.gt_map)
+            logger.warning(
+                "rendered map is empty: no ray reached opacity %.2f (train longer or lower "
+                "mapping.min_opacity); map_rendered.ply not written",
+                mapping_cfg.min_opacity,
+            )
+    return RunArtifacts(
+        {name: Trajectory(stamps, poses) for name, poses in trajectories.items()},
+        maps,
+        None if loaded.gt_poses is None else Trajectory(stamps, loaded.gt_poses),
+        keyframes.gt_map,
+    )
 
 
-def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, written: RunArtifacts,
-              budget: TimeBudget, judged: tuple, sections: dict | None = None) -> tuple[dict, list[dict]]:
+def judge_run(
+    out_dir: str,
+    config: ml_collections.ConfigDict,
+    made: RunSteps,
+    written: RunArtifacts,
+    budget: TimeBudget,
+    judged: tuple,
+    sections: dict | None = None,
+) -> tuple[dict, list[dict]]:
     """The verdict of a run (judged: judge_crispness' answer for `made`; config: the run's whole config, whose hash
     metrics.json records, its mapping.min_opacity and eval.map_icp_m read): metrics.json (run, scans_report,
     crispness; evaluation where ground truth exists; and the caller's `sections`, e.g. a run over several
@@ -136,16 +170,26 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, w
     crisp, per_scan_entropy, margins = judged
     T_all = written.trajectories["optimized"].poses  # made.every_scan_poses(), as write_outputs wrote them
     rows = write_scan_report(out_dir, made, T_all, per_scan_entropy, float(config.mapping.min_opacity))
-    plots.plot_map_topdown(os.path.join(out_dir, "map_topdown.png"),
-                           {"input poses": register_scans(keyframes.scans, keyframes.poses),
-                            ("after NeLD-BA" if made.neld_ba is None else f"kept: the {made.start.chosen} poses"):
-                            register_scans(keyframes.scans, refined.poses)})
+    plots.plot_map_topdown(
+        os.path.join(out_dir, "map_topdown.png"),
+        {
+            "input poses": register_scans(keyframes.scans, keyframes.poses),
+            ("after NeLD-BA" if made.neld_ba is None else f"kept: the {made.start.chosen} poses"): register_scans(
+                keyframes.scans, refined.poses
+            ),
+        },
+    )
     crispest = judge.warn_if_not_crispest(crisp, margins)
-    summary = {"run": run_record(config_hash(config), made, T_all, budget, margins, crispest),
-               "scans_report": report.summarize(rows), "crispness": crisp}
+    summary = {
+        "run": run_record(config_hash(config), made, T_all, budget, margins, crispest),
+        "scans_report": report.summarize(rows),
+        "crispness": crisp,
+    }
     if written.gt is not None or written.gt_map is not None:
-        gt_files = {"gt_poses": None if written.gt is None else os.path.join(out_dir, GT_POSES_FILE),
-                    "gt_map": None if written.gt_map is None else os.path.join(out_dir, "map_gt.ply")}
+        gt_files = {
+            "gt_poses": None if written.gt is None else os.path.join(out_dir, GT_POSES_FILE),
+            "gt_map": None if written.gt_map is None else os.path.join(out_dir, "map_gt.ply"),
+        }
         settings = EvalSettings(map_icp_m=float(config.eval.map_icp_m))
         summary["evaluation"] = evaluation_record(out_dir, written, settings, gt_files)
     summary.update(sections or {})
@@ -155,8 +199,9 @@ def judge_run(out_dir: str, config: ml_collections.ConfigDict, made: RunSteps, w
     return summary, rows
 
 
-def judge_crispness(eval_cfg: ml_collections.ConfigDict, made: RunSteps, budget: TimeBudget,
-                    progress: bool = True) -> tuple[dict, dict, dict]:
+def judge_crispness(
+    eval_cfg: ml_collections.ConfigDict, made: RunSteps, budget: TimeBudget, progress: bool = True
+) -> tuple[dict, dict, dict]:
     """The raw map's crispness under the input's, the baseline's (where it ran) and the refined poses, on the same
     query points (the start's figures reused as they are), and how sure the verdict is over query draws (up to the
     budget's judging deadline), with eval_cfg's crispness settings (config.eval): ({method: summary}, {method:
@@ -167,17 +212,20 @@ def judge_crispness(eval_cfg: ml_collections.ConfigDict, made: RunSteps, budget:
         methods["baseline"] = made.start.baseline_poses
     judged, judged_per_scan = made.start.judged
     crisp, per_scan_entropy = judge.map_crispness(
-        keyframes, {name: poses for name, poses in methods.items() if name not in judged}, eval_cfg)
+        keyframes, {name: poses for name, poses in methods.items() if name not in judged}, eval_cfg
+    )
     crisp, per_scan_entropy = {**judged, **crisp}, {**judged_per_scan, **per_scan_entropy}
-    margins = judge.crispness_margins(keyframes, methods, eval_cfg, first_draw=crisp,
-                                      deadline=budget.judging_deadline(), progress=progress)
+    margins = judge.crispness_margins(
+        keyframes, methods, eval_cfg, first_draw=crisp, deadline=budget.judging_deadline(), progress=progress
+    )
     for other, margin in margins.items():
         logger.info("%s", judge.describe_margin(other, margin))
     return crisp, per_scan_entropy, margins
 
 
-def run_record(run_hash: str, made: RunSteps, T_all: np.ndarray, budget: TimeBudget, margins: dict,
-               crispest: str | None) -> dict:
+def run_record(
+    run_hash: str, made: RunSteps, T_all: np.ndarray, budget: TimeBudget, margins: dict, crispest: str | None
+) -> dict:
     """metrics.json's "run" section: what ran (run_hash: the config's hash, `config_hash`), what the run decided, how
     long it took, the crispness verdict (T_all: the answer's poses of every input scan [S, 4, 4],
     made.every_scan_poses())."""
@@ -211,14 +259,17 @@ def path_vs_input(answer: np.ndarray, input_poses: np.ndarray, window_m: float =
     [S, 4, 4]: {"ratio": its whole path over the input's, "largest_window_change": the largest departure from 1 of
     that ratio over a window_m window (trajectory.window_scales), "window_m"}."""
     ratio = path_length_ratio(answer, input_poses)  # NaN where the input does not move
-    change = float(np.max(np.abs(1.0 / window_scales(answer, input_poses, window_m) - 1.0))) if len(answer) > 1 \
-        else 0.0
-    return {"ratio": round(ratio, 6) if np.isfinite(ratio) else None, "largest_window_change": round(change, 6),
-            "window_m": window_m}
+    change = float(np.max(np.abs(1.0 / window_scales(answer, input_poses, window_m) - 1.0))) if len(answer) > 1 else 0.0
+    return {
+        "ratio": round(ratio, 6) if np.isfinite(ratio) else None,
+        "largest_window_change": round(change, 6),
+        "window_m": window_m,
+    }
 
 
-def write_scan_report(out_dir: str, made: RunSteps, T_all: np.ndarray, per_scan_entropy: dict,
-                      min_opacity: float) -> list[dict]:
+def write_scan_report(
+    out_dir: str, made: RunSteps, T_all: np.ndarray, per_scan_entropy: dict, min_opacity: float
+) -> list[dict]:
     """scans_report.csv and scans_report.png: one row per input scan (neld_jax.judging.report; T_all: every input scan's
     refined poses [S, 4, 4]); the residuals from the rendered map (none without it), the refinement from the poses
     training started from, and each scan's registration to the result (made.registration, where it ran)."""
@@ -237,9 +288,17 @@ def write_scan_report(out_dir: str, made: RunSteps, T_all: np.ndarray, per_scan_
     refinement_m, refinement_deg = report.aligned_corrections(made.start.poses, refined.poses)
     rows = report.scan_report(
         report.ScanList(loaded.num_scans, keyframes.loaded_index, loaded.files, loaded.timestamps),
-        report.KeyframeMeasures(refined.rays_per_keyframe, residual, per_scan_entropy.get("initial"),
-                                per_scan_entropy.get("optimized"), refinement_m, refinement_deg),
-        correction_m, correction_deg)
+        report.KeyframeMeasures(
+            refined.rays_per_keyframe,
+            residual,
+            per_scan_entropy.get("initial"),
+            per_scan_entropy.get("optimized"),
+            refinement_m,
+            refinement_deg,
+        ),
+        correction_m,
+        correction_deg,
+    )
     if made.registration is not None:
         rows = report.add_registration(rows, made.registration.residual_m, made.registration.flag)
     report.write_csv(os.path.join(out_dir, "scans_report.csv"), rows)

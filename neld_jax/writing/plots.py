@@ -29,8 +29,9 @@ def _save(fig: plt.Figure, path: str | os.PathLike) -> Path:
     return path
 
 
-def plot_trajectories(path: str | os.PathLike, trajectories: dict[str, np.ndarray],
-                      gt: np.ndarray | None = None) -> Path:
+def plot_trajectories(
+    path: str | os.PathLike, trajectories: dict[str, np.ndarray], gt: np.ndarray | None = None
+) -> Path:
     """Top view (x-y) of each trajectory; trajectories: {name: poses [S, 4, 4]}, gt: [G, 4, 4] or None.
 
     Trajectories should already be in one frame (e.g. aligned to the ground truth).
@@ -55,8 +56,9 @@ def plot_trajectories(path: str | os.PathLike, trajectories: dict[str, np.ndarra
     return _save(fig, path)
 
 
-def plot_pose_errors(path: str | os.PathLike, per_scan_errors: dict[str, np.ndarray],
-                     ylabel: str = "translation error [m]") -> Path:
+def plot_pose_errors(
+    path: str | os.PathLike, per_scan_errors: dict[str, np.ndarray], ylabel: str = "translation error [m]"
+) -> Path:
     """Error of each scan's pose, one line per method; per_scan_errors: {name: errors [S]}."""
     fig, ax = plt.subplots(figsize=(7.0, 3.8))
     for name, errors in per_scan_errors.items():
@@ -71,8 +73,9 @@ def plot_pose_errors(path: str | os.PathLike, per_scan_errors: dict[str, np.ndar
     return _save(fig, path)
 
 
-def plot_error_histogram(path: str | os.PathLike, distances: dict[str, np.ndarray],
-                         threshold: float, max_distance: float | None = None) -> Path:
+def plot_error_histogram(
+    path: str | os.PathLike, distances: dict[str, np.ndarray], threshold: float, max_distance: float | None = None
+) -> Path:
     """Histogram of map-to-ground-truth distances per map; distances: {name: [N]} in metres.
 
     Distances beyond max_distance (default 5 x threshold) are gathered in the last bin, so outliers
@@ -85,8 +88,14 @@ def plot_error_histogram(path: str | os.PathLike, distances: dict[str, np.ndarra
         values = np.asarray(values, dtype=np.float64)
         if len(values) == 0:
             continue
-        ax.hist(np.minimum(values, max_distance), bins=bins, histtype="step", linewidth=1.5,
-                weights=np.full(len(values), 100.0 / len(values)), label=f"{name} (n={len(values)})")
+        ax.hist(
+            np.minimum(values, max_distance),
+            bins=bins,
+            histtype="step",
+            linewidth=1.5,
+            weights=np.full(len(values), 100.0 / len(values)),
+            label=f"{name} (n={len(values)})",
+        )
     ax.axvline(threshold, color="k", linestyle="--", linewidth=1.0, label=f"threshold {threshold:g} m")
     ax.set_xlabel(f"distance to ground-truth map [m] (last bin: >= {max_distance:g})")
     ax.set_ylabel("points [%]")
@@ -106,9 +115,11 @@ def plot_scan_report(path: str | os.PathLike, rows: list[dict]) -> Path:
     def column(name):
         return np.array([np.nan if row.get(name) is None else row[name] for row in keyframes], np.float64)
 
-    panels = ((column("median_residual_m"), "median range residual [m]"),
-              (column("refinement_cm"), "NeLD-BA refinement [cm]"),
-              (column("correction_cm"), "correction from input [cm]"))
+    panels = (
+        (column("median_residual_m"), "median range residual [m]"),
+        (column("refinement_cm"), "NeLD-BA refinement [cm]"),
+        (column("correction_cm"), "correction from input [cm]"),
+    )
     fig, axes = plt.subplots(3, 1, figsize=(8.0, 7.0), sharex=True)
     for ax, (values, label) in zip(axes, panels):
         ax.plot(index, values, ".", color="tab:blue", markersize=4)
@@ -122,8 +133,7 @@ def plot_scan_report(path: str | os.PathLike, rows: list[dict]) -> Path:
     return _save(fig, path)
 
 
-def detail_window(maps_xy: list[np.ndarray], lo_xy: np.ndarray, hi_xy: np.ndarray,
-                  side: float) -> tuple[float, float]:
+def detail_window(maps_xy: list[np.ndarray], lo_xy: np.ndarray, hi_xy: np.ndarray, side: float) -> tuple[float, float]:
     """Lower-left corner (x, y) of the side x side square inside [lo_xy, hi_xy] where the first and the last map
     differ most; maps_xy: [[N_k, 2]] points seen from above.
 
@@ -145,7 +155,7 @@ def detail_window(maps_xy: list[np.ndarray], lo_xy: np.ndarray, hi_xy: np.ndarra
     # Windows that hold the same change tie; centre the first one on its difference's centroid instead of leaving
     # the change at its edge.
     for _ in range(4):  # a few mean-shift steps
-        block = difference[i:i + 64, j:j + 64]
+        block = difference[i : i + 64, j : j + 64]
         if block.sum() <= 0:
             break
         ci, cj = np.array([np.arange(64) @ block.sum(1), np.arange(64) @ block.sum(0)]) / block.sum()
@@ -154,8 +164,9 @@ def detail_window(maps_xy: list[np.ndarray], lo_xy: np.ndarray, hi_xy: np.ndarra
     return float(edges[0][i]), float(edges[1][j])
 
 
-def plot_map_topdown(path: str | os.PathLike, maps: dict[str, np.ndarray], max_points: int = 400_000,
-                     seed: int = 0) -> Path:
+def plot_map_topdown(
+    path: str | os.PathLike, maps: dict[str, np.ndarray], max_points: int = 400_000, seed: int = 0
+) -> Path:
     """Raw maps seen from above on the same axes, and below them a close-up of each where the first and the last
     map differ most; maps: {title: points [N, 3]}.
 
@@ -196,8 +207,16 @@ def plot_map_topdown(path: str | os.PathLike, maps: dict[str, np.ndarray], max_p
     def draw(ax, points, size, title, lo, hi):
         if len(points) > max_points:
             points = points[rng.choice(len(points), max_points, replace=False)]
-        ax.scatter(points[:, 0], points[:, 1], c=np.clip(points[:, 2], low, high), s=size, alpha=0.4,
-                   cmap="viridis", linewidths=0, rasterized=True)
+        ax.scatter(
+            points[:, 0],
+            points[:, 1],
+            c=np.clip(points[:, 2], low, high),
+            s=size,
+            alpha=0.4,
+            cmap="viridis",
+            linewidths=0,
+            rasterized=True,
+        )
         ax.set_xlim(lo[0], hi[0])
         ax.set_ylim(lo[1], hi[1])
         ax.set_aspect("equal")
@@ -207,8 +226,7 @@ def plot_map_topdown(path: str | os.PathLike, maps: dict[str, np.ndarray], max_p
 
     for overview, detail, (title, points) in zip(overviews, details, items):
         draw(overview, points, 0.05, title, lo_xy, hi_xy)
-        overview.add_patch(matplotlib.patches.Rectangle(corner, side, side, fill=False, edgecolor="red",
-                                                        linewidth=1.0))
+        overview.add_patch(matplotlib.patches.Rectangle(corner, side, side, fill=False, edgecolor="red", linewidth=1.0))
         inside = np.all((points[:, :2] >= corner) & (points[:, :2] <= corner + side), axis=1)
         draw(detail, points[inside], 0.4, f"{title}: close-up ({side:.0f} m)", corner, corner + side)
     fig.set_dpi(150)

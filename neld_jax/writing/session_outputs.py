@@ -27,8 +27,10 @@ def shared_alignment_ate(trajectory: np.ndarray, gt: np.ndarray, labels: np.ndar
     (matched by index; labels [S]: each pose's recording) -> one ate summary per recording (metrics.ate_summary,
     every one holding the shared alignment)."""
     translation, rotation, alignment, scale = metrics.ate_errors(trajectory, gt, "se3")
-    return [metrics.ate_summary(translation[labels == r], rotation[labels == r], alignment, scale)
-            for r in range(int(labels.max()) + 1)]
+    return [
+        metrics.ate_summary(translation[labels == r], rotation[labels == r], alignment, scale)
+        for r in range(int(labels.max()) + 1)
+    ]
 
 
 def crispness_alone_and_merged(keyframes, poses: np.ndarray, sessions, eval_cfg) -> list[dict]:
@@ -41,9 +43,13 @@ def crispness_alone_and_merged(keyframes, poses: np.ndarray, sessions, eval_cfg)
     for r in range(sessions.count):
         part = sessions.keyframes_of(r)
         alone, alone_per_keyframe = judge.compare_maps(keyframes.scans[part], {"alone": poses[part]}, radius, queries)
-        out.append({"alone_mean_map_entropy": alone["alone"]["mean_map_entropy"],
-                    "alone_keyframe_entropy": _mean(alone_per_keyframe["alone"]),
-                    "in_merged_keyframe_entropy": _mean(merged_per_keyframe["merged"][part])})
+        out.append(
+            {
+                "alone_mean_map_entropy": alone["alone"]["mean_map_entropy"],
+                "alone_keyframe_entropy": _mean(alone_per_keyframe["alone"]),
+                "in_merged_keyframe_entropy": _mean(merged_per_keyframe["merged"][part]),
+            }
+        )
     return out
 
 
@@ -72,14 +78,22 @@ def sessions_record(sessions, keyframes, keyframe_poses: np.ndarray, written: Ru
             shared[method] = shared_alignment_ate(written.trajectories[method].poses, written.gt.poses, labels)
     recordings = []
     for r, name in enumerate(sessions.names):
-        entry = {"name": name, "scans": int(np.diff(sessions.scan_bounds)[r]),
-                 "keyframes": int(np.diff(sessions.keyframe_bounds)[r]), "to_first": sessions.to_first[r].tolist(),
-                 "closures": sessions.closures[r] if sessions.closures else [], "crispness": crisp[r]}
+        entry = {
+            "name": name,
+            "scans": int(np.diff(sessions.scan_bounds)[r]),
+            "keyframes": int(np.diff(sessions.keyframe_bounds)[r]),
+            "to_first": sessions.to_first[r].tolist(),
+            "closures": sessions.closures[r] if sessions.closures else [],
+            "crispness": crisp[r],
+        }
         if shared:
             entry["ate_shared_alignment"] = {method: ates[r] for method, ates in shared.items()}
-            logger.info("%s: ATE %.2f cm under the alignment shared by every recording (%.2f cm from the input)", name,
-                        100 * entry["ate_shared_alignment"]["optimized"]["translation_rmse_m"],
-                        100 * entry["ate_shared_alignment"]["initial"]["translation_rmse_m"])
+            logger.info(
+                "%s: ATE %.2f cm under the alignment shared by every recording (%.2f cm from the input)",
+                name,
+                100 * entry["ate_shared_alignment"]["optimized"]["translation_rmse_m"],
+                100 * entry["ate_shared_alignment"]["initial"]["translation_rmse_m"],
+            )
         recordings.append(entry)
     return {"count": sessions.count, "recordings": recordings}
 

@@ -45,11 +45,22 @@ MAX_MAP_POINTS = 400_000  # a map the viewer opens in a few seconds
 MARKER_LENGTH_FRACTION = 0.01  # a scan's arrow, as a fraction of the trajectory's extent
 FLAG_COLOUR = (230, 40, 40)
 SCAN_COLOUR = (200, 200, 200)
-TRAJECTORY_COLOURS = {"input": (150, 150, 150), "baseline": (60, 130, 230), "refined": (40, 200, 90),
-                      "gt": (240, 180, 20), "training": (200, 90, 220)}
+TRAJECTORY_COLOURS = {
+    "input": (150, 150, 150),
+    "baseline": (60, 130, 230),
+    "refined": (40, 200, 90),
+    "gt": (240, 180, 20),
+    "training": (200, 90, 220),
+}
 SESSION_COLOURS = ((40, 200, 90), (230, 120, 30), (60, 130, 230), (200, 90, 220), (240, 180, 20), (30, 190, 190))
-SCALARS = {"loss": "loss", "range_err_m": "range_err_m", "alpha": "frequency", "field_lr": "lr/field",
-           "pose_lr_trans": "lr/pose_trans", "pose_lr_rot": "lr/pose_rot"}
+SCALARS = {
+    "loss": "loss",
+    "range_err_m": "range_err_m",
+    "alpha": "frequency",
+    "field_lr": "lr/field",
+    "pose_lr_trans": "lr/pose_trans",
+    "pose_lr_rot": "lr/pose_rot",
+}
 
 
 def _timed(method):
@@ -94,8 +105,9 @@ class RunViewer:
         if viz.live:
             sinks.append(rr.GrpcServerSink("127.0.0.1", LIVE_PORT))
             url = f"rerun+http://127.0.0.1:{LIVE_PORT}/proxy"
-            logger.info("live view: `rerun %s` (Rerun's viewer, `pip install rerun-sdk`) shows the run as it trains",
-                        url)
+            logger.info(
+                "live view: `rerun %s` (Rerun's viewer, `pip install rerun-sdk`) shows the run as it trains", url
+            )
         stream.set_sinks(*sinks, default_blueprint=layout())
         stream.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         return cls(stream, url, path)
@@ -136,8 +148,7 @@ class RunViewer:
         """Step 2: the classical baseline's trajectory, where it ran."""
         if begin.baseline_poses is None:
             return
-        all_scans = propagate_corrections(loaded.poses, keyframes.loaded_index, begin.baseline_poses,
-                                          loaded.timestamps)
+        all_scans = propagate_corrections(loaded.poses, keyframes.loaded_index, begin.baseline_poses, loaded.timestamps)
         self._trajectory("baseline", all_scans, begin.baseline_poses)
 
     def training_hook(self):
@@ -172,12 +183,17 @@ class RunViewer:
         for r, name in enumerate(recordings.names):
             colour = SESSION_COLOURS[r % len(SESSION_COLOURS)]
             part = recordings.keyframes_of(r)
-            points = thin_for_viewing(register_scans(keyframes.scans[part], keyframe_poses[part]),
-                                      MAX_MAP_POINTS // recordings.count)
-            self._stream.log(f"world/sessions/{name}/trajectory",
-                             rr.LineStrips3D([T_all[recordings.scans_of(r), :3, 3]], colors=[colour]), static=True)
-            self._stream.log(f"world/sessions/{name}/map", rr.Points3D(points, colors=[colour], radii=0.02),
-                             static=True)
+            points = thin_for_viewing(
+                register_scans(keyframes.scans[part], keyframe_poses[part]), MAX_MAP_POINTS // recordings.count
+            )
+            self._stream.log(
+                f"world/sessions/{name}/trajectory",
+                rr.LineStrips3D([T_all[recordings.scans_of(r), :3, 3]], colors=[colour]),
+                static=True,
+            )
+            self._stream.log(
+                f"world/sessions/{name}/map", rr.Points3D(points, colors=[colour], radii=0.02), static=True
+            )
 
     @_timed
     def log_verdict(self, rows: list[dict], loaded, T_all: np.ndarray) -> None:
@@ -186,12 +202,15 @@ class RunViewer:
         trajectory) and each scan's error against it where it exists."""
         import rerun as rr
 
-        values = {name: np.array([_number(row[name]) for row in rows])
-                  for name in ("correction_cm", "correction_deg", "entropy_before", "entropy_after")}
+        values = {
+            name: np.array([_number(row[name]) for row in rows])
+            for name in ("correction_cm", "correction_deg", "entropy_before", "entropy_after")
+        }
         values["residual_cm"] = 100.0 * np.array([_number(row["median_residual_m"]) for row in rows])
         flags = [row["flag"] for row in rows]
-        has_gt = (np.zeros(len(T_all), bool) if loaded.gt_poses is None
-                  else np.isfinite(loaded.gt_poses).all(axis=(1, 2)))
+        has_gt = (
+            np.zeros(len(T_all), bool) if loaded.gt_poses is None else np.isfinite(loaded.gt_poses).all(axis=(1, 2))
+        )
         if has_gt.sum() >= 3:  # the scans with a ground-truth pose, aligned as the ATE aligns them
             errors_m, errors_deg, alignment, _ = ate_errors(T_all[has_gt], loaded.gt_poses[has_gt])
             values["error_cm"], values["error_deg"] = np.full(len(T_all), np.nan), np.full(len(T_all), np.nan)
@@ -199,11 +218,17 @@ class RunViewer:
             self._trajectory("gt", np.linalg.inv(alignment) @ loaded.gt_poses[has_gt], None)
         flagged = np.array([bool(flag) for flag in flags])
         labels = [f"scan {row['scan']}" + (f" ({row['flag']})" if row["flag"] else "") for row in rows]
-        self._stream.log("world/scans/report",
-                         rr.Points3D(T_all[:, :3, 3], labels=labels,
-                                     colors=np.where(flagged[:, None], FLAG_COLOUR, SCAN_COLOUR).astype(np.uint8),
-                                     radii=np.where(flagged, 2.0, 0.6) * self._marker_m / 4),
-                         rr.AnyValues(flag=flags, **values), static=True)
+        self._stream.log(
+            "world/scans/report",
+            rr.Points3D(
+                T_all[:, :3, 3],
+                labels=labels,
+                colors=np.where(flagged[:, None], FLAG_COLOUR, SCAN_COLOUR).astype(np.uint8),
+                radii=np.where(flagged, 2.0, 0.6) * self._marker_m / 4,
+            ),
+            rr.AnyValues(flag=flags, **values),
+            static=True,
+        )
 
     @_timed
     def log_failure(self, error: BaseException) -> None:
@@ -211,8 +236,9 @@ class RunViewer:
         import rerun as rr
 
         what = "interrupted" if isinstance(error, KeyboardInterrupt) else "failed"
-        text = (f"the run {what}: {type(error).__name__}: {error}\n"
-                + "".join(traceback.format_exception(type(error), error, error.__traceback__)))
+        text = f"the run {what}: {type(error).__name__}: {error}\n" + "".join(
+            traceback.format_exception(type(error), error, error.__traceback__)
+        )
         self._stream.log(FAILURE_ENTITY, rr.TextLog(text, level=rr.TextLogLevel.ERROR), static=True)
 
     def close(self) -> None:
@@ -224,8 +250,13 @@ class RunViewer:
             self._stream.disconnect()
         self.seconds += time.perf_counter() - started
         if self._path is not None:
-            logger.info("%s: %.1f MB, %.1f s of logging; open it with `rerun %s`", RECORDING,
-                        os.path.getsize(self._path) / 1e6, self.seconds, self._path)
+            logger.info(
+                "%s: %.1f MB, %.1f s of logging; open it with `rerun %s`",
+                RECORDING,
+                os.path.getsize(self._path) / 1e6,
+                self.seconds,
+                self._path,
+            )
 
     # ------------------------------------------------------------------------------------------ entities
 
@@ -246,8 +277,9 @@ class RunViewer:
             self._stream.log("train/pose_change_cm", rr.Scalars(100.0 * float(entry["pose_trans_mean_m"])))
             self._stream.log("train/pose_change_deg", rr.Scalars(float(entry["pose_rot_mean_deg"])))
         if poses is not None:
-            self._stream.log("world/trajectory/training",
-                             rr.LineStrips3D([poses[:, :3, 3]], colors=[TRAJECTORY_COLOURS["training"]]))
+            self._stream.log(
+                "world/trajectory/training", rr.LineStrips3D([poses[:, :3, 3]], colors=[TRAJECTORY_COLOURS["training"]])
+            )
         self._stream.reset_time()
 
     def _trajectory(self, name: str, poses_all: np.ndarray, poses_keyframes: np.ndarray | None) -> None:
@@ -255,20 +287,27 @@ class RunViewer:
         import rerun as rr
 
         colour = TRAJECTORY_COLOURS[name]
-        self._stream.log(f"world/trajectory/{name}", rr.LineStrips3D([poses_all[:, :3, 3]], colors=[colour]),
-                         static=True)
+        self._stream.log(
+            f"world/trajectory/{name}", rr.LineStrips3D([poses_all[:, :3, 3]], colors=[colour]), static=True
+        )
         if poses_keyframes is not None:
-            self._stream.log(f"world/scans/{name}",
-                             rr.Arrows3D(origins=poses_keyframes[:, :3, 3],
-                                         vectors=self._marker_m * poses_keyframes[:, :3, 0], colors=[colour]),
-                             static=True)
+            self._stream.log(
+                f"world/scans/{name}",
+                rr.Arrows3D(
+                    origins=poses_keyframes[:, :3, 3],
+                    vectors=self._marker_m * poses_keyframes[:, :3, 0],
+                    colors=[colour],
+                ),
+                static=True,
+            )
 
     def _map(self, name: str, points: np.ndarray) -> None:
         import rerun as rr
 
         points = thin_for_viewing(np.asarray(points, np.float64))
-        self._stream.log(f"world/map/{name}", rr.Points3D(points, colors=height_colours(points[:, 2]), radii=0.02),
-                         static=True)
+        self._stream.log(
+            f"world/map/{name}", rr.Points3D(points, colors=height_colours(points[:, 2]), radii=0.02), static=True
+        )
 
 
 def layout():
@@ -276,23 +315,42 @@ def layout():
     between them to see a doubled wall come out single), the training curves beside them."""
     import rerun.blueprint as rrb
 
-    trajectories = ["world/trajectory/input", "world/trajectory/baseline", "world/trajectory/refined",
-                    "world/trajectory/gt"]
+    trajectories = [
+        "world/trajectory/input",
+        "world/trajectory/baseline",
+        "world/trajectory/refined",
+        "world/trajectory/gt",
+    ]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Tabs(
-                rrb.Spatial3DView(name="after: refined poses", origin="world",
-                                  contents=["world/map/raw_refined", "world/scans/refined", "world/scans/report",
-                                            "world/trajectory/training", *trajectories]),
-                rrb.Spatial3DView(name="before: input poses", origin="world",
-                                  contents=["world/map/raw_input", "world/scans/input", *trajectories]),
-                rrb.Spatial3DView(name="rendered map", origin="world",
-                                  contents=["world/map/rendered", "world/map/gt", "world/trajectory/refined"]),
+                rrb.Spatial3DView(
+                    name="after: refined poses",
+                    origin="world",
+                    contents=[
+                        "world/map/raw_refined",
+                        "world/scans/refined",
+                        "world/scans/report",
+                        "world/trajectory/training",
+                        *trajectories,
+                    ],
+                ),
+                rrb.Spatial3DView(
+                    name="before: input poses",
+                    origin="world",
+                    contents=["world/map/raw_input", "world/scans/input", *trajectories],
+                ),
+                rrb.Spatial3DView(
+                    name="rendered map",
+                    origin="world",
+                    contents=["world/map/rendered", "world/map/gt", "world/trajectory/refined"],
+                ),
             ),
             rrb.Vertical(
                 rrb.TimeSeriesView(name="loss and range error [m]", contents=["train/loss", "train/range_err_m"]),
-                rrb.TimeSeriesView(name="pose change (mean)",
-                                   contents=["train/pose_change_cm", "train/pose_change_deg"]),
+                rrb.TimeSeriesView(
+                    name="pose change (mean)", contents=["train/pose_change_cm", "train/pose_change_deg"]
+                ),
                 rrb.TimeSeriesView(name="coarse-to-fine frequency", contents=["train/frequency"]),
                 rrb.TimeSeriesView(name="learning rates", contents=["train/lr/**"]),
                 rrb.TextLogView(name="failure", origin="run"),

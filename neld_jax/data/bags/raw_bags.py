@@ -91,8 +91,12 @@ class BagClouds(LazyScans):
             label = ", ".join(str(p) for p in self.paths)
             self._connections = topic_connections(self._reader, self.topic, CLOUD_TYPES, label, "cloud")
         which, bag_time, place = self.entries[i]
-        found = (raw for _, _, raw in self._reader.messages(connections=[self._connections[which]], start=bag_time,
-                                                              stop=bag_time + 1))
+        found = (
+            raw
+            for _, _, raw in self._reader.messages(
+                connections=[self._connections[which]], start=bag_time, stop=bag_time + 1
+            )
+        )
         raw = next(r for k, r in enumerate(found) if k == place)
         msg = self._reader.deserialize(raw, self._connections[which].msgtype)
         points, point_times = cloud_sweep(msg, stamp_seconds(msg.header))
@@ -119,8 +123,9 @@ def read_lidar_bag(bag: str | os.PathLike | list, topic: str) -> RawSweeps:
     message), no cloud with a valid point."""
     paths = as_bag_paths(bag)
     label = ", ".join(str(p) for p in paths)
-    sweeps = RawSweeps(bag=[str(p) for p in paths], topic=topic, timestamps=np.zeros(0), scans=[], point_times=None,
-                       labels=[])
+    sweeps = RawSweeps(
+        bag=[str(p) for p in paths], topic=topic, timestamps=np.zeros(0), scans=[], point_times=None, labels=[]
+    )
     reader = open_bag_reader(paths)
     try:
         stamps, entries, no_time_fields = _scan_clouds(reader, topic, paths, sweeps)
@@ -135,15 +140,30 @@ def read_lidar_bag(bag: str | os.PathLike | list, topic: str) -> RawSweeps:
     sweeps.scans = clouds.map(lambda _, cloud: cloud[0])
     if no_time_fields:
         sweeps.time_field = ""
-        logger.warning("%s: the clouds on %s carry no per-point time (none of the fields %s; %s): the scans are "
-                       "taken as rigid", label, topic, ", ".join(TIME_FIELDS), no_time_fields)
+        logger.warning(
+            "%s: the clouds on %s carry no per-point time (none of the fields %s; %s): the scans are taken as rigid",
+            label,
+            topic,
+            ", ".join(TIME_FIELDS),
+            no_time_fields,
+        )
     else:
         sweeps.point_times = clouds.map(lambda _, cloud: cloud[1])
     dropped = sweeps.dropped["non-finite"] + sweeps.dropped["zero"]
-    logger.info("%s: read %d sweeps of %s (frame '%s', per-point time from '%s'); dropped %d points (%d NaN/infinite, "
-                "%d at (0, 0, 0), i.e. no return) and %d clouds with no valid point; the sweeps are read again from "
-                "the bag when used", label, len(entries), topic, sweeps.frame_id, sweeps.time_field or "none",
-                dropped, sweeps.dropped["non-finite"], sweeps.dropped["zero"], sweeps.empty_skipped)
+    logger.info(
+        "%s: read %d sweeps of %s (frame '%s', per-point time from '%s'); dropped %d points (%d NaN/infinite, "
+        "%d at (0, 0, 0), i.e. no return) and %d clouds with no valid point; the sweeps are read again from "
+        "the bag when used",
+        label,
+        len(entries),
+        topic,
+        sweeps.frame_id,
+        sweeps.time_field or "none",
+        dropped,
+        sweeps.dropped["non-finite"],
+        sweeps.dropped["zero"],
+        sweeps.empty_skipped,
+    )
     return sweeps
 
 
@@ -203,15 +223,24 @@ def pick_topic(bag: str | os.PathLike | list, candidates: tuple[str, ...]) -> st
         present = {c.topic for c in reader.connections}
         found = next((topic for topic in candidates if topic in present), None)
         if found is None:
-            raise DataError(f"{', '.join(str(p) for p in paths)}: no LiDAR topic ({' or '.join(candidates)}) in "
-                            f"the bag; it has: {list_topics(reader)}")
+            raise DataError(
+                f"{', '.join(str(p) for p in paths)}: no LiDAR topic ({' or '.join(candidates)}) in "
+                f"the bag; it has: {list_topics(reader)}"
+            )
         return found
     finally:
         reader.close()
 
 
-def sweeps_sequence(root: Path, sweeps: RawSweeps, gt_file: Path | None, gt_from_scan: np.ndarray | None,
-                    tol: float, gt_time_offset_s: float = 0.0, gt_map_file: Path | None = None) -> Sequence:
+def sweeps_sequence(
+    root: Path,
+    sweeps: RawSweeps,
+    gt_file: Path | None,
+    gt_from_scan: np.ndarray | None,
+    tol: float,
+    gt_time_offset_s: float = 0.0,
+    gt_map_file: Path | None = None,
+) -> Sequence:
     """The Sequence of raw sweeps: poses None, timestamps, point_times, files = the sweeps' labels, and the ground
     truth matched to the scan stamps as the folder loaders match it (layout.matched_ground_truth: nearest stamp
     within tol, then moved into the scan frame by gt_from_scan T_G_S [4, 4]). The GT map: gt_map_file, else
@@ -219,9 +248,24 @@ def sweeps_sequence(root: Path, sweeps: RawSweeps, gt_file: Path | None, gt_from
     gt_poses = None
     if gt_file is not None:
         # The labels stand for files in the messages of the matching (a scan without ground truth is named).
-        gt_poses = matched_ground_truth(root, [root / label for label in sweeps.labels], sweeps.timestamps, gt_file,
-                                        tol, gt_from_scan, gt_time_offset_s)
+        gt_poses = matched_ground_truth(
+            root,
+            [root / label for label in sweeps.labels],
+            sweeps.timestamps,
+            gt_file,
+            tol,
+            gt_from_scan,
+            gt_time_offset_s,
+        )
     gt_map_file = gt_map_file or first_existing(root, ("gt_map.pcd", "gt_map.ply"))
-    return Sequence(scans=sweeps.scans, poses=None, timestamps=sweeps.timestamps, gt_poses=gt_poses,
-                    gt_map=None if gt_map_file is None else read_scan(gt_map_file), name=root.name, source=str(root),
-                    files=sweeps.labels, point_times=sweeps.point_times)
+    return Sequence(
+        scans=sweeps.scans,
+        poses=None,
+        timestamps=sweeps.timestamps,
+        gt_poses=gt_poses,
+        gt_map=None if gt_map_file is None else read_scan(gt_map_file),
+        name=root.name,
+        source=str(root),
+        files=sweeps.labels,
+        point_times=sweeps.point_times,
+    )

@@ -108,8 +108,14 @@ def cloud_fields(msg, names: tuple[str, ...]) -> dict[str, np.ndarray]:
         if f.datatype not in POINTFIELD_TYPES or f.count != 1:
             raise ValueError(f"field {name} has datatype {f.datatype} and count {f.count}; expected one number")
         formats.append(order + POINTFIELD_TYPES[f.datatype])
-    point_dtype = np.dtype({"names": list(names), "formats": formats,
-                            "offsets": [fields[n].offset for n in names], "itemsize": int(msg.point_step)})
+    point_dtype = np.dtype(
+        {
+            "names": list(names),
+            "formats": formats,
+            "offsets": [fields[n].offset for n in names],
+            "itemsize": int(msg.point_step),
+        }
+    )
     height, width = int(msg.height), int(msg.width)
     if height * width == 0:
         return {name: np.zeros(0, dtype=point_dtype[name].newbyteorder("=")) for name in names}
@@ -270,8 +276,12 @@ class Odometry(NamedTuple):
     frame: str
 
 
-def import_bag(bag_paths: str | os.PathLike | list, out_dir: str | os.PathLike,
-               settings: ImportSettings = ImportSettings(), progress: bool = True) -> ImportResult:
+def import_bag(
+    bag_paths: str | os.PathLike | list,
+    out_dir: str | os.PathLike,
+    settings: ImportSettings = ImportSettings(),
+    progress: bool = True,
+) -> ImportResult:
     """Write the clouds of settings.cloud_topic with their poses from settings.odometry_topic into out_dir (module
     docstring).
 
@@ -293,16 +303,29 @@ def import_bag(bag_paths: str | os.PathLike | list, out_dir: str | os.PathLike,
     try:
         cloud_conns = topic_connections(reader, settings.cloud_topic, CLOUD_TYPES, bag, "cloud")
         if _as_raw_sweeps(reader, settings, bag):
-            result = ImportResult(bag=[str(p) for p in paths], cloud_topic=settings.cloud_topic, odometry_topic="",
-                                  frame="", odometry_frame="", tolerance_s=float(settings.tolerance_s),
-                                  time_offset_s=float(settings.time_offset_s))
+            result = ImportResult(
+                bag=[str(p) for p in paths],
+                cloud_topic=settings.cloud_topic,
+                odometry_topic="",
+                frame="",
+                odometry_frame="",
+                tolerance_s=float(settings.tolerance_s),
+                time_offset_s=float(settings.time_offset_s),
+            )
             return _import_sweeps(reader, cloud_conns, out, result, settings.stride, progress)
         odometry = read_odometry(reader, settings.odometry_topic, bag)
-        result = ImportResult(bag=[str(p) for p in paths], cloud_topic=settings.cloud_topic,
-                              odometry_topic=settings.odometry_topic, frame="", odometry_frame=odometry.frame,
-                              tolerance_s=float(settings.tolerance_s), time_offset_s=float(settings.time_offset_s))
-        kept_times, kept_poses, unmatched = _import_matched(reader, cloud_conns, out, result, settings, odometry,
-                                                            progress)
+        result = ImportResult(
+            bag=[str(p) for p in paths],
+            cloud_topic=settings.cloud_topic,
+            odometry_topic=settings.odometry_topic,
+            frame="",
+            odometry_frame=odometry.frame,
+            tolerance_s=float(settings.tolerance_s),
+            time_offset_s=float(settings.time_offset_s),
+        )
+        kept_times, kept_poses, unmatched = _import_matched(
+            reader, cloud_conns, out, result, settings, odometry, progress
+        )
     finally:
         reader.close()
 
@@ -323,11 +346,17 @@ def _as_raw_sweeps(reader, settings: ImportSettings, bag: str) -> bool:
     if topic and (topic != DEFAULT_ODOMETRY_TOPIC or any(c.topic == topic for c in reader.connections)):
         return False
     if settings.keyframe_rule:
-        raise DataError(f"{bag}: no odometry topic, so --keyframe_distance_m / --keyframe_angle_deg have no "
-                        "poses to measure; use --stride, or select keyframes when training")
-    logger.warning("%s: no odometry (%s): importing %s as raw sweeps without poses; training makes the poses from the "
-                   "scans with KISS-ICP", bag, f"no topic {topic}" if topic else "--odometry_topic=''",
-                   settings.cloud_topic)
+        raise DataError(
+            f"{bag}: no odometry topic, so --keyframe_distance_m / --keyframe_angle_deg have no "
+            "poses to measure; use --stride, or select keyframes when training"
+        )
+    logger.warning(
+        "%s: no odometry (%s): importing %s as raw sweeps without poses; training makes the poses from the "
+        "scans with KISS-ICP",
+        bag,
+        f"no topic {topic}" if topic else "--odometry_topic=''",
+        settings.cloud_topic,
+    )
     return True
 
 
@@ -347,8 +376,9 @@ def read_odometry(reader, topic: str, bag: str) -> Odometry:
     return Odometry(np.asarray(stamps)[order], np.asarray(poses)[order], odometry_frame)
 
 
-def _import_matched(reader, cloud_conns, out: Path, result: ImportResult, settings: ImportSettings,
-                    odometry: Odometry, progress: bool) -> tuple[list, list, list]:
+def _import_matched(
+    reader, cloud_conns, out: Path, result: ImportResult, settings: ImportSettings, odometry: Odometry, progress: bool
+) -> tuple[list, list, list]:
     """The clouds in bag order, each matched to the odometry, kept or not, and written at once to
     OUT/scans/NNNNNN.pcd (memory stays flat); result counts what was read, skipped and written. Returns the kept
     clouds' stamps and poses [4, 4] and the (message index, stamp) of each cloud without a match."""
@@ -371,8 +401,11 @@ def _import_matched(reader, cloud_conns, out: Path, result: ImportResult, settin
             continue
         matched_count += 1
         pose = odometry.poses[match]
-        if (matched_count - 1) % settings.stride or (kept_poses and settings.keyframe_rule and not moved_enough(
-                kept_poses[-1], pose, settings.keyframe_distance_m, settings.keyframe_angle_deg)):
+        if (matched_count - 1) % settings.stride or (
+            kept_poses
+            and settings.keyframe_rule
+            and not moved_enough(kept_poses[-1], pose, settings.keyframe_distance_m, settings.keyframe_angle_deg)
+        ):
             result.skipped_by_keyframe_rule += 1
             continue
         try:
@@ -383,8 +416,9 @@ def _import_matched(reader, cloud_conns, out: Path, result: ImportResult, settin
         result.points_skipped["non-finite"] += dropped["non-finite"]
         result.points_skipped["zero"] += dropped["zero"]
         if points.shape[0] == 0:
-            logger.warning("%s: %s message %d (t=%.6f) has no valid point; skipped", bag, settings.cloud_topic,
-                           index, t)
+            logger.warning(
+                "%s: %s message %d (t=%.6f) has no valid point; skipped", bag, settings.cloud_topic, index, t
+            )
             continue
         write_scan(out / "scans" / f"{len(kept_times):06d}.pcd", points)
         result.points_written += int(points.shape[0])
@@ -393,18 +427,23 @@ def _import_matched(reader, cloud_conns, out: Path, result: ImportResult, settin
     return kept_times, kept_poses, unmatched
 
 
-def _drop_unmatched(unmatched: list, result: ImportResult, settings: ImportSettings, odometry: Odometry,
-                    bag: str) -> None:
+def _drop_unmatched(
+    unmatched: list, result: ImportResult, settings: ImportSettings, odometry: Odometry, bag: str
+) -> None:
     """The clouds without an odometry stamp within tolerance_s ((message index, stamp) each): a DataError listing
     them, or with drop_unmatched a warning and their count in result."""
     listed = ", ".join(f"message {i} (t={t:.6f})" for i, t in unmatched[:_LISTED])
     more = f", ... ({len(unmatched)} in all)" if len(unmatched) > _LISTED else ""
-    message = (f"{bag}: {len(unmatched)} of {result.clouds_read} clouds on {settings.cloud_topic} have no "
-               f"{settings.odometry_topic} stamp within {settings.tolerance_s} s: {listed}{more} (odometry covers "
-               f"t={odometry.times[0]:.6f} to t={odometry.times[-1]:.6f})")
+    message = (
+        f"{bag}: {len(unmatched)} of {result.clouds_read} clouds on {settings.cloud_topic} have no "
+        f"{settings.odometry_topic} stamp within {settings.tolerance_s} s: {listed}{more} (odometry covers "
+        f"t={odometry.times[0]:.6f} to t={odometry.times[-1]:.6f})"
+    )
     if not settings.drop_unmatched:
-        raise DataError(message + "; pass --drop_unmatched to drop them, or --tolerance_s / --time_offset_s "
-                        "if the stamps follow another convention")
+        raise DataError(
+            message + "; pass --drop_unmatched to drop them, or --tolerance_s / --time_offset_s "
+            "if the stamps follow another convention"
+        )
     logger.warning("%s; dropped them (--drop_unmatched)", message)
     result.dropped_unmatched = len(unmatched)
 
@@ -413,16 +452,24 @@ def _note_matched(result: ImportResult, settings: ImportSettings, bag: str) -> N
     """result.note of an import with poses: the frames of scans/ and poses.txt; a warning when the clouds are in
     the odometry's world frame (registered already, which training refuses unless told)."""
     offset = settings.time_offset_s
-    result.note = (f"scans/ are in frame '{result.frame}' (the clouds' header.frame_id); poses.txt holds the pose of "
-                   f"that frame in '{result.odometry_frame}' from {result.odometry_topic}, one line per scan, at the "
-                   f"scan's stamp{'' if not offset else f' + {offset} s'}")
+    result.note = (
+        f"scans/ are in frame '{result.frame}' (the clouds' header.frame_id); poses.txt holds the pose of "
+        f"that frame in '{result.odometry_frame}' from {result.odometry_topic}, one line per scan, at the "
+        f"scan's stamp{'' if not offset else f' + {offset} s'}"
+    )
     if result.frame and result.frame == result.odometry_frame:
         # FAST-LIO2's /cloud_registered: the clouds are registered already, which training refuses unless told
-        result.note += (f"; the clouds' frame is the odometry's world frame, so the scans are registered already: "
-                        f"train with --config.data.scans_in_world_frame=True, or import {DEFAULT_CLOUD_TOPIC}")
-        logger.warning("%s: %s is in '%s', the odometry's world frame: the scans are registered already "
-                       "(data.scans_in_world_frame=True moves them into the sensor frame for training)",
-                       bag, result.cloud_topic, result.frame)
+        result.note += (
+            f"; the clouds' frame is the odometry's world frame, so the scans are registered already: "
+            f"train with --config.data.scans_in_world_frame=True, or import {DEFAULT_CLOUD_TOPIC}"
+        )
+        logger.warning(
+            "%s: %s is in '%s', the odometry's world frame: the scans are registered already "
+            "(data.scans_in_world_frame=True moves them into the sensor frame for training)",
+            bag,
+            result.cloud_topic,
+            result.frame,
+        )
 
 
 def _import_sweeps(reader, cloud_conns, out: Path, result: ImportResult, stride: int, progress: bool) -> ImportResult:
@@ -433,8 +480,9 @@ def _import_sweeps(reader, cloud_conns, out: Path, result: ImportResult, stride:
     bag = ", ".join(result.bag)
     total = sum(c.msgcount for c in cloud_conns)
     no_time, written = "", set()
-    for conn, _, raw in tqdm(reader.messages(connections=cloud_conns), total=total, desc="clouds", unit="msg",
-                             disable=not progress):
+    for conn, _, raw in tqdm(
+        reader.messages(connections=cloud_conns), total=total, desc="clouds", unit="msg", disable=not progress
+    ):
         index = result.clouds_read
         result.clouds_read += 1
         if index % stride:
@@ -458,8 +506,13 @@ def _import_sweeps(reader, cloud_conns, out: Path, result: ImportResult, stride:
             continue
         name = f"{t:.9f}"
         if name in written:
-            logger.warning("%s: %s message %d has the stamp t=%s of an earlier cloud; skipped", bag,
-                           result.cloud_topic, index, name)
+            logger.warning(
+                "%s: %s message %d has the stamp t=%s of an earlier cloud; skipped",
+                bag,
+                result.cloud_topic,
+                index,
+                name,
+            )
             continue
         written.add(name)
         write_scan(out / "scans" / f"{name}.pcd", points[keep])
@@ -474,12 +527,19 @@ def _import_sweeps(reader, cloud_conns, out: Path, result: ImportResult, stride:
     if not result.scans_written:
         raise DataError(f"{bag}: no cloud on {result.cloud_topic} was kept ({result.clouds_read} read)")
     if no_time:
-        logger.warning("%s: some clouds on %s carry no per-point time (none of %s; %s): the scans will be taken as "
-                       "rigid", bag, result.cloud_topic, ", ".join(TIME_FIELDS), no_time)
-    result.note = (f"scans/ are raw sweeps in frame '{result.frame}' (the clouds' header.frame_id), named by their "
-                   f"stamp{'' if not result.time_offset_s else f' + {result.time_offset_s} s'}; "
-                   f"{result.point_times_written} have their point times in {POINT_TIMES_FOLDER}/; no poses.txt: "
-                   "training makes the poses with KISS-ICP")
+        logger.warning(
+            "%s: some clouds on %s carry no per-point time (none of %s; %s): the scans will be taken as rigid",
+            bag,
+            result.cloud_topic,
+            ", ".join(TIME_FIELDS),
+            no_time,
+        )
+    result.note = (
+        f"scans/ are raw sweeps in frame '{result.frame}' (the clouds' header.frame_id), named by their "
+        f"stamp{'' if not result.time_offset_s else f' + {result.time_offset_s} s'}; "
+        f"{result.point_times_written} have their point times in {POINT_TIMES_FOLDER}/; no poses.txt: "
+        "training makes the poses with KISS-ICP"
+    )
     return _recorded(out, result)
 
 

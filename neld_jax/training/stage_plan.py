@@ -20,9 +20,10 @@ from neld_jax.training.budget import JUDGING_S, MIN_SHARE, REGISTRATION_S_PER_SC
 
 logger = logging.getLogger(__name__)
 
-# KISS-ICP's two passes over a raw 64 x 1024 sweep: 438 s for 1,000 sweeps (EPYC, 2 cores, benchmarks/RESULTS.md,
-# "Long recordings in memory"); scaled by a scan's points
-ODOMETRY_S_PER_SWEEP, ODOMETRY_POINTS = 0.44, 64 * 1024
+# The front-end over a raw 64 x 1024 sweep (the range, KISS-ICP's two passes, the check by global registration):
+# 0.27 s on the synthetic car's sweeps (Xeon, 2 cores, shared; benchmarks/RESULTS.md, "The front-end's pace"); scaled
+# by a scan's points
+ODOMETRY_S_PER_SWEEP, ODOMETRY_POINTS = 0.27, 64 * 1024
 # The baseline on HKU_2's 266 keyframes of a few thousand points, idle EPYC: chain 59 s, pose graph 106 s, two
 # refinement rounds 80 s (docs/evaluation.md); scaled by a keyframe's points over BASELINE_POINTS (a raw 64-beam
 # sweep's chain link took 1.3 s, docs/evaluation.md)

@@ -677,9 +677,9 @@ def default_budget() -> str:
 
 
 # One training step of the paper's size (width 512, depth 8, 1024 rays x (64 + 32) samples at the last stage) on 2
-# CPU cores: 11.8 s (benchmarks/RESULTS.md, "The paper's sizes on 2 cores": benchmarks/train_step.py --preset=paper
-# --stage=2, EPYC, 2026-11-27).
-PAPER_CPU_STEP_S, PAPER_CPU_CORES = 11.8, 2
+# CPU cores: 6.5 s (benchmarks/RESULTS.md, "The paper's sizes on 2 cores": benchmarks/train_step.py --preset=paper
+# --stage=2, Xeon, 2026-12-08; results/train_step_paper_cpu.json).
+PAPER_CPU_STEP_S, PAPER_CPU_CORES = 6.5, 2
 SLOW_RUN_HOURS = 1.0  # a CPU run without a time limit estimated longer than this is warned about
 
 

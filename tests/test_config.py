@@ -150,11 +150,11 @@ def test_no_budget_named_is_cpu_on_a_cpu_and_gpu_on_a_gpu(monkeypatch):
 
 
 def test_a_long_run_without_a_time_limit_on_a_cpu_is_warned_about():
-    # The paper's schedule on 2 cores: 160k steps at the measured 11.8 s a paper-size step, about 22 days.
+    # The paper's schedule on 2 cores: 160k steps at the measured 6.5 s a paper-size step, about 12 days.
     paper = config_module.recording("paper")
-    assert config_module.cpu_training_hours(paper, cores=2) == pytest.approx(160_000 * 11.8 / 3600)
+    assert config_module.cpu_training_hours(paper, cores=2) == pytest.approx(160_000 * 6.5 / 3600)
     warning = config_module.slow_run_warning(paper, "cpu", cores=2)
-    assert "160000 steps" in warning and "about 22 days" in warning and "2 cores" in warning
+    assert "160000 steps" in warning and "about 12 days" in warning and "2 cores" in warning
     assert "\n" not in warning
     assert config_module.slow_run_warning(paper, "gpu", cores=2) == ""
     assert config_module.slow_run_warning(config_module.recording("cpu"), "cpu", cores=2) == ""  # max_minutes

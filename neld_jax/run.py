@@ -49,7 +49,7 @@ def run_steps(
     config_hash = outputs.config_hash(config)
 
     # 1. Load every input scan and the keyframes trained on; several recordings joined (steps.session_alignment).
-    loaded, keyframes, recordings = load_sessions(config.data)
+    loaded, keyframes, recordings = load_sessions(config.data, budget.total_s)
     # ... and every step's seconds planned from the recording's size, with one warning where it cannot fit.
     budget = stage_plan.planned(stage_plan.PlanSettings.from_config(config), loaded, keyframes, budget)
     viewer.log_input(loaded, keyframes)

@@ -138,3 +138,24 @@ def test_an_unlimited_budget_plans_no_limits(caplog):
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert budget.registration_s == 0.0 and budget.judging_s == JUDGING_S and budget.baseline_deadline() is None
     assert any("with no time limit" in r.getMessage() for r in caplog.records)
+
+
+def test_a_front_end_too_long_for_the_budget_is_told_before_it_runs(caplog):
+    import logging
+
+    from neld_jax.training import stage_plan
+
+    sweep = stage_plan.ODOMETRY_POINTS
+    with caplog.at_level(logging.INFO, logger=stage_plan.__name__):
+        forecast = stage_plan.front_end_forecast(1000, sweep, 570.0, "/data/drive: ")
+    assert forecast == pytest.approx(1000 * stage_plan.ODOMETRY_S_PER_SWEEP)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    # 270 s of 570 is under half: 2,000 sweeps are not
+    assert warnings == []
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger=stage_plan.__name__):
+        stage_plan.front_end_forecast(2000, sweep, 570.0, "/data/drive: ")
+        stage_plan.front_end_forecast(2000, sweep, 0.0)  # no limit: a forecast, no warning
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and warnings[0].startswith("/data/drive: the recording is too long for max_minutes=9.5")
+    assert "set max_minutes=18 or more" in warnings[0]  # 540 s of front-end at most half of it

@@ -69,7 +69,9 @@ def test_run_writes_outputs_and_resumes_after_a_kill(free_gauge_run, tmp_path, m
 
     # A run killed right after its first checkpoint (step 5), its loading slowed by 2 s ...
     real_load = run.load_sessions
-    monkeypatch.setattr(run, "load_sessions", lambda data_cfg: time.sleep(2.0) or real_load(data_cfg))
+    monkeypatch.setattr(
+        run, "load_sessions", lambda data_cfg, budget_s=0.0: time.sleep(2.0) or real_load(data_cfg, budget_s)
+    )
     _run_killed_after_its_first_checkpoint(free_gauge_config(str(out)), monkeypatch)
     monkeypatch.setattr(run, "load_sessions", real_load)
     assert checkpoint.Checkpointer(str(out / "checkpoints")).latest_step() == 5
@@ -96,7 +98,7 @@ def test_run_writes_outputs_and_resumes_after_a_kill(free_gauge_run, tmp_path, m
 
     # Data that changed under the same configuration (here: every initial pose shifted by 1 m, which moves the
     # cube; then one scan fewer) must not resume silently in another frame.
-    def load_changed(data_cfg, shift=1.0, drop=0):
+    def load_changed(data_cfg, budget_s=0.0, shift=1.0, drop=0):
         _, seq, _ = real_load(data_cfg)
         keep = slice(0, seq.num_scans - drop)
         poses = seq.poses[keep].copy()
@@ -109,7 +111,7 @@ def test_run_writes_outputs_and_resumes_after_a_kill(free_gauge_run, tmp_path, m
     monkeypatch.setattr(run, "load_sessions", load_changed)
     with pytest.raises(DataError, match=r"checkpoints was written for other data \(another plan of cubes"):
         run.run(free_gauge_config(str(out)), progress=False)
-    monkeypatch.setattr(run, "load_sessions", lambda data_cfg: load_changed(data_cfg, shift=0.0, drop=1))
+    monkeypatch.setattr(run, "load_sessions", lambda data_cfg, budget_s=0.0: load_changed(data_cfg, shift=0.0, drop=1))
     with pytest.raises(DataError, match=r"checkpoints was written for other data \(4 keyframes, now 3"):
         run.run(free_gauge_config(str(out)), progress=False)
     # config.json holds the settings as given, once: the resumed run wrote the same

@@ -202,21 +202,22 @@ def align_session(
     return transform, kept
 
 
-def load_sessions(data_cfg):
+def load_sessions(data_cfg, budget_s: float = 0.0):
     """Step 1 of a run: data.root's recordings (data_cfg: config.data) -> (every input scan, the keyframes,
     neld_jax.data.sessions.Sessions or None), all in the first recording's frame. One folder: the sequence as
-    neld_jax.steps.inputs.load_keyframes reads it, and None."""
+    neld_jax.steps.inputs.load_keyframes reads it, and None. budget_s: the run's seconds (0: no limit), for the
+    front-end's forecast."""
     from neld_jax.steps.inputs import load_keyframes
 
     roots = data_sessions.session_roots(data_cfg.root)
     if len(roots) < 2:
-        return (*load_keyframes(data_cfg), None)
+        return (*load_keyframes(data_cfg, budget_s), None)
     names = data_sessions.session_names(roots)
     loaded, keyframes = [], []
     for root in roots:
         cfg = data_cfg.copy_and_resolve_references()
         cfg.root = root
-        one_loaded, one_keyframes = load_keyframes(cfg)
+        one_loaded, one_keyframes = load_keyframes(cfg, budget_s)
         loaded.append(one_loaded)
         keyframes.append(one_keyframes)
     to_first, closures = [np.eye(4)], [[]]

@@ -235,6 +235,36 @@ class PlanSettings:
         return cls(work, str(config.budget), jax.default_backend())
 
 
+def front_end_forecast(num_scans: int, points_per_scan: float, total_s: float, where: str = "") -> float:
+    """Before the front-end runs (the longest part of loading raw sweeps): its seconds forecast from
+    ODOMETRY_S_PER_SWEEP for num_scans scans of points_per_scan points, logged in one line, with a warning where it
+    alone would take more than half of a limited budget total_s (0: none), naming the max_minutes that leaves the
+    other stages the rest. Returns the forecast seconds."""
+    forecast = num_scans * ODOMETRY_S_PER_SWEEP * points_per_scan / ODOMETRY_POINTS
+    logger.info(
+        "%sthe front-end over %d scans of about %.0f points: about %.0f s (a rough %.2f s a %d-point sweep on 2 CPU "
+        "cores: neld_jax.training.stage_plan)",
+        where,
+        num_scans,
+        points_per_scan,
+        forecast,
+        ODOMETRY_S_PER_SWEEP,
+        ODOMETRY_POINTS,
+    )
+    if total_s > 0 and forecast > 0.5 * total_s:
+        needs = math.ceil(2 * 2 * forecast / 60.0) / 2  # the front-end at most half of it, in half minutes
+        logger.warning(
+            "%sthe recording is too long for max_minutes=%g: the front-end alone needs about %.1f minutes of it; set "
+            "max_minutes=%g or more, or stages will be cut short at their deadlines (the plan after loading says "
+            "what each needs)",
+            where,
+            total_s / 60.0,
+            forecast / 60.0,
+            needs,
+        )
+    return forecast
+
+
 def planned(settings: PlanSettings, loaded, keyframes, budget: TimeBudget) -> TimeBudget:
     """The run's clock once its scans are loaded (loaded: every input scan, keyframes: those trained on; sequences),
     with the registration's reserve and the plan: logged in one line, a warning where the recording cannot be

@@ -16,14 +16,13 @@ distance travelled").
 from __future__ import annotations
 
 import logging
-from types import SimpleNamespace
 
 import numpy as np
 
 from neld_jax.baseline.settings import BaselineSettings
 from neld_jax.judging import judge
 from neld_jax.judging.metrics import path_length_ratio
-from neld_jax.trajectory import window_scales, with_distances_of
+from neld_jax.trajectory import window_scales
 
 logger = logging.getLogger(__name__)
 
@@ -47,20 +46,12 @@ def keep_input_distances(
     change = float(np.max(np.abs(scales - 1.0)))
     if change < NEGLIGIBLE_SCALE:
         return poses, None
-    candidate = with_distances_of(poses, input_poses, settings.distance_window_m)
     eval_cfg = {
         "crispness_draws": settings.crispness_draws,
         "crispness_queries": settings.crispness_queries,
         "crispness_radius_m": settings.crispness_radius_m,
     }
-    first, _ = judge.compare_maps(
-        scans, {"own": poses, "input": candidate}, settings.crispness_radius_m, settings.crispness_queries
-    )
-    margins = judge.crispness_margins(
-        SimpleNamespace(scans=scans), {"own": poses, "input": candidate}, eval_cfg, against="own", first_draw=first
-    )
-    margin = margins.get("input")
-    own_crisper = margin is not None and margin["all_draws_agree"] and margin["mean"] < 0
+    kept, own_crisper, margin = judge.distances_judged(scans, poses, input_poses, settings.distance_window_m, eval_cfg)
     ratio = path_length_ratio(poses, input_poses)  # the input moves: window_scales differ from 1
     record = {
         "kept": "own" if own_crisper else "input",
@@ -80,4 +71,4 @@ def keep_input_distances(
         + ("" if margin is None else f": {margin['mean']:+.5f} nats")
         + ")",
     )
-    return (poses if own_crisper else candidate), record
+    return kept, record

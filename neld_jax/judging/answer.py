@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from types import SimpleNamespace
 
 import numpy as np
 
 from neld_jax.data.preprocess import voxel_downsample
 from neld_jax.judging import judge
 from neld_jax.judging.metrics import path_length_ratio
-from neld_jax.trajectory import window_scales, with_distances_of
+from neld_jax.trajectory import window_scales
 
 logger = logging.getLogger(__name__)
 
@@ -56,10 +55,10 @@ def keep_input_travel(scans, poses: np.ndarray, input_poses: np.ndarray, eval_cf
     )
     kept = poses
     if change.max() > ODOMETRY_DRIFT:
-        candidate = with_distances_of(poses, input_poses, TRAVEL_WINDOW_M, beyond=ODOMETRY_DRIFT)
-        margin = _every_scan_margin(scans, poses, candidate, eval_cfg)
-        own_crisper = margin is not None and margin["all_draws_agree"] and margin["mean"] < 0
-        kept = poses if own_crisper else candidate
+        gridded = _on_travel_grid(scans, float(eval_cfg["crispness_radius_m"]))
+        kept, own_crisper, margin = judge.distances_judged(
+            gridded, poses, input_poses, TRAVEL_WINDOW_M, eval_cfg, beyond=ODOMETRY_DRIFT
+        )
         record.update(kept="own" if own_crisper else "input", margin=None if margin is None else margin["mean"])
         logger.log(
             logging.INFO if own_crisper else logging.WARNING,
@@ -80,17 +79,9 @@ def keep_input_travel(scans, poses: np.ndarray, input_poses: np.ndarray, eval_cf
     return kept, record
 
 
-def _every_scan_margin(scans, own: np.ndarray, candidate: np.ndarray, eval_cfg) -> dict | None:
-    """crispness_margins' margin of own against candidate ([S, 4, 4] each) on every scan's raw map, its points on a
-    grid of TRAVEL_GRID_OF_RADIUS of the crispness radius; None with fewer than two draws."""
-    radius = float(eval_cfg["crispness_radius_m"])
-    gridded = [voxel_downsample(np.asarray(scan, np.float64), TRAVEL_GRID_OF_RADIUS * radius) for scan in scans]
-    methods = {"own": own, "input": candidate}
-    first, _ = judge.compare_maps(gridded, methods, radius, int(eval_cfg["crispness_queries"]))
-    margins = judge.crispness_margins(
-        SimpleNamespace(scans=gridded), methods, eval_cfg, against="own", first_draw=first
-    )
-    return margins.get("input")
+def _on_travel_grid(scans, radius_m: float) -> list[np.ndarray]:
+    """Every scan (S arrays [N_i, 3], read one at a time) on a grid of TRAVEL_GRID_OF_RADIUS of the crispness radius."""
+    return [voxel_downsample(np.asarray(scan, np.float64), TRAVEL_GRID_OF_RADIUS * radius_m) for scan in scans]
 
 
 def keep_travel_of_input(made, eval_cfg) -> object:

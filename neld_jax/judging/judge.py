@@ -9,11 +9,13 @@ trajectory a user brings (neld-crispness).
 from __future__ import annotations
 
 import logging
+from types import SimpleNamespace
 
 import numpy as np
 
 from neld_jax.geometry import register_scans
 from neld_jax.judging import crispness
+from neld_jax.trajectory import with_distances_of
 
 logger = logging.getLogger(__name__)
 
@@ -256,3 +258,23 @@ def format_crispness_table(summaries: dict, ordered: bool = False, digits: int =
             f"{'-' if thickness is None else f'{100 * thickness:.{digits - 1}f}':>21}"
         )
     return "\n".join(lines)
+
+
+def distances_judged(
+    scans: list[np.ndarray], poses: np.ndarray, reference: np.ndarray, window_m: float, eval_cfg, beyond: float = 0.0
+) -> tuple[np.ndarray, bool, dict | None]:
+    """Whose distances travelled poses [S, 4, 4] keep: their own, or the reference's [S, 4, 4] over window_m windows
+    on the steps whose window departs beyond `beyond` (trajectory.with_distances_of), judged by the raw map of scans
+    (S arrays [N_i, 3], sensor frame) under both on eval_cfg's query draws (its crispness_radius_m,
+    crispness_queries, crispness_draws). Returns (the poses kept: their own where they give the crisper map on every
+    draw, else those with the reference's distances; whether their own were kept; the margin of the reference's
+    distances against their own, crispness_margins' {"per_draw", "mean", "std", "all_draws_agree"}, None with fewer
+    than two draws)."""
+    candidate = with_distances_of(poses, reference, window_m, beyond)
+    methods = {"own": poses, "input": candidate}
+    first, _ = compare_maps(scans, methods, float(eval_cfg["crispness_radius_m"]), int(eval_cfg["crispness_queries"]))
+    margin = crispness_margins(SimpleNamespace(scans=scans), methods, eval_cfg, against="own", first_draw=first).get(
+        "input"
+    )
+    own_crisper = margin is not None and margin["all_draws_agree"] and margin["mean"] < 0
+    return (poses if own_crisper else candidate), own_crisper, margin

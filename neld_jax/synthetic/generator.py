@@ -143,18 +143,7 @@ def make_sequence(cfg=None, rate_hz: float = 0.0, session: int | None = None) ->
         init_poses = add_odometry_drift(gt_poses, cfg.drift_trans_m, cfg.drift_rot_deg, cfg.seed + 1)
         timestamps = SCAN_INTERVAL_S * np.arange(cfg.num_scans, dtype=np.float64)
         scans = [cast_scan(scene, pose, directions, cfg.max_range_m, cfg.range_noise_m, rng) for pose in gt_poses]
-    gt_map = None
-    if cfg.gt_map_points > 0:
-        gt_map = observed_surface_points(
-            meshes,
-            scene,
-            gt_poses,
-            cfg.gt_map_points,
-            FOV_DEG[0],
-            FOV_DEG[1],
-            cfg.max_range_m,
-            np.random.default_rng(cfg.seed + 3),
-        )
+    gt_map = _observed_map(cfg, meshes, scene, gt_poses, cfg.seed)
     logger.info(
         "synthetic sequence (seed %d): %d scans, %d points, gt map %d points, %d meshes, %.2f s",
         cfg.seed,
@@ -177,6 +166,23 @@ def make_sequence(cfg=None, rate_hz: float = 0.0, session: int | None = None) ->
     )
 
 
+def _observed_map(cfg, meshes, scene, gt_poses: np.ndarray, seed: int) -> np.ndarray | None:
+    """The ground-truth map [cfg.gt_map_points, 3]: the surfaces the sensor saw from gt_poses [S, 4, 4]
+    (observed_surface_points, drawn with seed + 3); None with gt_map_points 0."""
+    if cfg.gt_map_points <= 0:
+        return None
+    return observed_surface_points(
+        meshes,
+        scene,
+        gt_poses,
+        cfg.gt_map_points,
+        FOV_DEG[0],
+        FOV_DEG[1],
+        cfg.max_range_m,
+        np.random.default_rng(seed + 3),
+    )
+
+
 def make_visit(cfg, session: int) -> Sequence:
     """The session-th visit (0, 1, ...) of the seed's courtyard, as a recording of it would be: the loop of
     synthetic_routes.visit_loop (another radius, start and direction each visit), its own drift and range-noise
@@ -196,18 +202,7 @@ def make_visit(cfg, session: int) -> Sequence:
     rng = np.random.default_rng(seed + 2)
     scans = [cast_scan(scene, pose, directions, cfg.max_range_m, cfg.range_noise_m, rng) for pose in gt_poses]
     drifted = add_odometry_drift(gt_poses, cfg.drift_trans_m, cfg.drift_rot_deg, seed + 1)
-    gt_map = None
-    if cfg.gt_map_points > 0:
-        gt_map = observed_surface_points(
-            meshes,
-            scene,
-            gt_poses,
-            cfg.gt_map_points,
-            FOV_DEG[0],
-            FOV_DEG[1],
-            cfg.max_range_m,
-            np.random.default_rng(seed + 3),
-        )
+    gt_map = _observed_map(cfg, meshes, scene, gt_poses, seed)
     return Sequence(
         scans=scans,
         poses=invert_poses(drifted[:1])[0] @ drifted,

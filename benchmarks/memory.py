@@ -4,11 +4,15 @@
     python benchmarks/memory.py --sweeps=300,1000 --beams=128 --columns=1024 --work_dir=/tmp/memory \\
         --out=benchmarks/results/memory_cpu.json
     python benchmarks/memory.py --sweeps=300 --repo=/path/to/another/checkout --label=before   # the same, older code
+    python benchmarks/memory.py --sweeps=250,500,1000,2000 --beams=64 --columns=1024 --sweeps_per_lap=500 \
+        --max_minutes=0 --set=train.steps=300 --work_dir=/tmp/cost --out=<json>      # the cost curve
 
 For each size it writes a synthetic 10 Hz recording of raw sweeps to WORK_DIR/sweeps_<S> in the generic layout
 without poses (scans/<stamp>.pcd, point_times/<stamp>.npy, gt_poses.txt), one sweep at a time (never the whole
 recording in memory): the sensor rounds the synthetic courtyard's loop once over the recording, each column cast
-from where the sensor is at its instant (neld_jax.synthetic.generator's per-sweep functions). Then it runs
+from where the sensor is at its instant (neld_jax.synthetic.generator's per-sweep functions); with --sweeps_per_lap
+it rounds the loop once every that many sweeps instead, at the same speed at every size, so that the keyframes and
+the revisits grow with the recording as they do on a long one. Then it runs
 
     python bin/train.py --config=configs/generic.py:cpu --config.data.root=WORK_DIR/sweeps_<S> \\
         --config.output_dir=WORK_DIR/run_<S> --config.max_minutes=M
@@ -16,10 +20,12 @@ from where the sensor is at its instant (neld_jax.synthetic.generator's per-swee
 in a subprocess (from --repo, its code on PYTHONPATH) and polls the resident memory of it and its children every
 POLL_S: the peak of their sum over the run and over its load (step 1: the sweeps read, KISS-ICP, the keyframes),
 the wall time, what the log reports (KISS-ICP's seconds, the keyframes) and what the run answered (its
-metrics.json: steps, start, whose poses the answer holds, the crispness margins, every sweep's ATE per method). One
-JSON object on stdout (and in --out).
+metrics.json: steps, start, whose poses the answer holds, the crispness margins, every sweep's ATE per method, each
+step's seconds). With several sizes, the cost curve: each step's seconds a sweep at every size, and at the largest
+over the smallest (`curve`; linear growth keeps it near 1). One JSON object on stdout (and in --out).
 """
 
+import collections
 import json
 import os
 import re
@@ -45,11 +51,15 @@ LABEL = flags.DEFINE_string("label", "", "A name for this code in the JSON (e.g.
 MAX_MINUTES = flags.DEFINE_float("max_minutes", 3.0, "config.max_minutes of each run (the clock of training).")
 GENERATE_ONLY = flags.DEFINE_bool("generate_only", False, "Write the recordings and stop.")
 SEED = flags.DEFINE_integer("seed", 0, "The synthetic scene's and route's seed.")
+SWEEPS_PER_LAP = flags.DEFINE_integer(
+    "sweeps_per_lap", 0, "Sweeps the sensor takes to round the loop once (0: the whole recording is one lap)."
+)
+OVERRIDES = harness.overrides_flag("train.steps=300")
 
 
-def write_recording(root: Path, num_sweeps: int, beams: int, columns: int, seed: int) -> dict:
-    """A 10 Hz raw recording of num_sweeps sweeps in the generic layout, written one sweep at a time; returns its
-    size (points, bytes on disk, seconds)."""
+def write_recording(root: Path, num_sweeps: int, beams: int, columns: int, seed: int, sweeps_per_lap: int) -> dict:
+    """A 10 Hz raw recording of num_sweeps sweeps in the generic layout, written one sweep at a time, the loop
+    rounded once every sweeps_per_lap sweeps; returns its size (points, bytes on disk, seconds)."""
     from neld_jax.data.generic import POINT_TIMES_FOLDER
     from neld_jax.data.poses import write_tum
     from neld_jax.data.scans import write_scan
@@ -65,16 +75,15 @@ def write_recording(root: Path, num_sweeps: int, beams: int, columns: int, seed:
     (root / POINT_TIMES_FOLDER).mkdir(exist_ok=True)
     stamps, points_written = np.arange(num_sweeps) / RATE_HZ, 0
     for i, stamp in enumerate(stamps):
-        column_poses = generator.loop_poses((i + column_fraction) / num_sweeps, defaults.trajectory_radius_m, seed)
+        column_poses = generator.loop_poses((i + column_fraction) / sweeps_per_lap, defaults.trajectory_radius_m, seed)
         points, column = generator.cast_sweep(
             scene, column_poses, directions, defaults.max_range_m, defaults.range_noise_m, rng
         )
         write_scan(root / "scans" / f"{stamp:.9f}.pcd", points)
         np.save(root / POINT_TIMES_FOLDER / f"{stamp:.9f}.npy", (column_fraction[column] / RATE_HZ).astype(np.float32))
         points_written += len(points)
-    write_tum(
-        root / "gt_poses.txt", stamps, generator.smooth_trajectory(num_sweeps, defaults.trajectory_radius_m, seed)
-    )
+    lapped = generator.loop_poses(np.arange(num_sweeps) / sweeps_per_lap, defaults.trajectory_radius_m, seed)
+    write_tum(root / "gt_poses.txt", stamps, lapped)
     disk = sum(f.stat().st_size for f in root.rglob("*") if f.is_file())
     return {
         "points": int(points_written),
@@ -139,12 +148,32 @@ def run_outcome(out_dir: Path) -> dict:
             for other, m in r["crispness_margin"].items()
         },
         "ate_m": {name: round(m["ate"]["translation_rmse_m"], 5) for name, m in methods.items() if "ate" in m},
+        "stage_seconds": r.get("stage_seconds", {}),
+        "flags": dict(collections.Counter(row["flag"] for row in metrics["scans_report"]["flagged"])),
     }
 
 
-def run_command(root: Path, out_dir: Path, repo: str, max_minutes: float) -> dict:
-    """Run the own-data command on root; its peak resident memory (GB, the process tree's sum), wall time and
-    stages."""
+def cost_curve(sizes: dict) -> dict:
+    """Each step's seconds a sweep at every size ({sweeps: run_command's result}) and its largest size's over its
+    smallest's: {stage: {"s_per_sweep": {sweeps: s}, "largest_over_smallest": ratio}}."""
+    measured = {int(n): size["run"]["stage_seconds"] for n, size in sizes.items() if size.get("run")}
+    if len(measured) < 2:
+        return {}
+    smallest, largest = min(measured), max(measured)
+    curve = {}
+    for stage in measured[smallest]:
+        per_sweep = {n: round(stages.get(stage, float("nan")) / n, 5) for n, stages in sorted(measured.items())}
+        low = per_sweep[smallest]
+        curve[stage] = {
+            "s_per_sweep": {str(n): s for n, s in per_sweep.items()},
+            "largest_over_smallest": round(per_sweep[largest] / low, 3) if low > 0 else None,
+        }
+    return curve
+
+
+def run_command(root: Path, out_dir: Path, repo: str, max_minutes: float, overrides: list) -> dict:
+    """Run the own-data command on root (overrides: KEY=VALUE config overrides); its peak resident memory (GB, the
+    process tree's sum), wall time and stages."""
     import psutil
 
     command = [
@@ -155,6 +184,7 @@ def run_command(root: Path, out_dir: Path, repo: str, max_minutes: float) -> dic
         f"--config.output_dir={out_dir}",
         f"--config.max_minutes={max_minutes}",
         "--restart",
+        *(f"--config.{override}" for override in overrides),
     ]
     env = dict(os.environ, PYTHONPATH=repo)
     log_path = out_dir.parent / f"{out_dir.name}.log"
@@ -186,16 +216,19 @@ def main(argv):
     work = Path(WORK_DIR.value)
     sizes = {}
     for sweeps in (int(s) for s in SWEEPS.value):
-        root = work / f"sweeps_{sweeps}_{BEAMS.value}x{COLUMNS.value}"
+        lapped = f"_lap{SWEEPS_PER_LAP.value}" if SWEEPS_PER_LAP.value else ""
+        root = work / f"sweeps_{sweeps}_{BEAMS.value}x{COLUMNS.value}{lapped}"
         if not (root / "gt_poses.txt").is_file():
-            recording = write_recording(root, sweeps, BEAMS.value, COLUMNS.value, SEED.value)
+            lap = SWEEPS_PER_LAP.value or sweeps
+            recording = write_recording(root, sweeps, BEAMS.value, COLUMNS.value, SEED.value, lap)
             (root / "recording.json").write_text(json.dumps(recording))
         recording = json.loads((root / "recording.json").read_text())
         print(f"{sweeps} sweeps: {recording}", file=sys.stderr, flush=True)
         if GENERATE_ONLY.value:
             sizes[str(sweeps)] = {"recording": recording}
             continue
-        measured = run_command(root, work / f"run_{sweeps}_{LABEL.value or 'code'}", CODE.value, MAX_MINUTES.value)
+        out_dir = work / f"run_{sweeps}_{LABEL.value or 'code'}"
+        measured = run_command(root, out_dir, CODE.value, MAX_MINUTES.value, OVERRIDES.value)
         print(f"{sweeps} sweeps: {measured}", file=sys.stderr, flush=True)
         sizes[str(sweeps)] = {"recording": recording, **measured}
     result = {
@@ -206,8 +239,11 @@ def main(argv):
         "columns": COLUMNS.value,
         "rate_hz": RATE_HZ,
         "max_minutes": MAX_MINUTES.value,
+        "sweeps_per_lap": SWEEPS_PER_LAP.value,
+        "overrides": OVERRIDES.value,
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "sizes": sizes,
+        "curve": cost_curve(sizes),
     }
     print(json.dumps(result, indent=2))
     harness.write(harness.OUT.value, result)

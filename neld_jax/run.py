@@ -39,6 +39,7 @@ def run(config: ml_collections.ConfigDict, progress: bool = True, restart: bool 
     with RunViewer.open(out_dir, config.viz) as viewer:
         summary = run_steps(config, out_dir, budget, viewer, progress)
     output_folder.record_seconds(out_dir, budget)
+    logger.info("the steps took: %s", budget.clock.describe())
     return summary
 
 
@@ -52,6 +53,7 @@ def run_steps(
     loaded, keyframes, recordings = load_sessions(config.data, budget.total_s)
     # ... and every step's seconds planned from the recording's size, with one warning where it cannot fit.
     budget = stage_plan.planned(stage_plan.PlanSettings.from_config(config), loaded, keyframes, budget)
+    budget.clock.lap("load")
     viewer.log_input(loaded, keyframes)
 
     # 2. Choose the start and its pose steps: the input's or the baseline's poses (steps.start); a resume keeps it.
@@ -61,6 +63,7 @@ def run_steps(
             start.StartSettings.from_config(config), keyframes, budget.baseline_deadline(), progress, recordings
         )
         begin.save(out_dir, config_hash, keyframes.poses)
+    budget.clock.lap("baseline")
     viewer.log_start(loaded, keyframes, begin)
 
     # 3. Train the field(s) and the poses (neld_jax.steps.refine: one cube, or submaps for a sequence larger than one).
@@ -75,11 +78,13 @@ def run_steps(
     refined = refine.refine_keyframes(
         refine.TrainingSettings.from_config(config), keyframes, begin.poses, begin.pose_steps, context
     )
+    budget.clock.lap("training")
 
     # 4. Render the map (neld_jax.steps.mapping; none with mapping.enabled off).
     render = mapping.rendered_map(
         config.mapping, config.sampling, refined, keyframes, config.seed + 1, budget.render_seconds(), progress
     )
+    budget.clock.lap("map")
     viewer.log_rendered(render)
 
     # 5. Register every other input scan to the keyframes' refined map, from its interpolated correction.
@@ -87,6 +92,7 @@ def run_steps(
     registered = registration.register_every_scan(
         loaded, keyframes, refined.poses, settings, progress, budget.registration_deadline()
     )
+    budget.clock.lap("registration")
     # ... and the distance travelled checked against the input's on every scan's map (judging.answer).
     made = answer.keep_travel_of_input(
         outputs.RunSteps(loaded, keyframes, begin, refined, render, registered), config.eval
@@ -96,6 +102,7 @@ def run_steps(
     #    poses, maps, per-scan report, metrics.json (writing.outputs), each recording's (writing.session_outputs).
     made, judged = answer.keep_the_better(made, outputs.judge_crispness(config.eval, made, budget, progress))
     written = outputs.write_outputs(out_dir, config.mapping, made)
+    budget.clock.lap("judging")  # the distance check, the crispness draws and the poses and maps written
     T_all = written.trajectories["optimized"].poses
     viewer.log_outputs(keyframes, made.refined, T_all, recordings)
     sections = session_outputs.sections(recordings, keyframes, made.refined.poses, written, config.eval)

@@ -95,6 +95,11 @@ def test_run_writes_outputs_and_resumes_after_a_kill(free_gauge_run, tmp_path, m
     assert resumed["train_seconds"] >= round(elapsed[-1], 2) - 0.01
     # The run's whole time counts the killed process's seconds too (up to its checkpoint), not the last one's alone.
     assert resumed["total_seconds"] >= this_process_s + 1.5 and resumed["total_seconds"] >= resumed["train_seconds"]
+    # Each step's seconds in this process, in the plan's stage names and order; together at most the process's own.
+    stages = resumed["stage_seconds"]
+    assert list(stages) == ["load", "baseline", "training", "map", "registration", "judging"]
+    assert all(s >= 0 for s in stages.values()) and sum(stages.values()) <= this_process_s
+    assert stages["training"] <= resumed["train_seconds"] + 1.0 and stages["training"] > 0
 
     # Data that changed under the same configuration (here: every initial pose shifted by 1 m, which moves the
     # cube; then one scan fewer) must not resume silently in another frame.

@@ -29,6 +29,24 @@ REGISTRATION_S_PER_SCAN = 0.5
 MAX_REGISTRATION_SHARE = 0.3
 
 
+@dataclasses.dataclass
+class StageClock:
+    """Each step's wall seconds in this process, by the plan's stage names (stage_plan: load, baseline, training,
+    map, registration, judging), so that a run says where its time went (metrics.json run.stage_seconds)."""
+
+    last: float = dataclasses.field(default_factory=time.perf_counter)
+    seconds: dict = dataclasses.field(default_factory=dict)
+
+    def lap(self, stage: str) -> None:
+        """The seconds since the last lap (or the clock's start) are stage's."""
+        now = time.perf_counter()
+        self.seconds[stage] = round(now - self.last, 2)
+        self.last = now
+
+    def describe(self) -> str:
+        return ", ".join(f"{stage} {seconds:.0f} s" for stage, seconds in self.seconds.items())
+
+
 @dataclasses.dataclass(frozen=True)
 class TimeBudget:
     """total_s: the whole run's seconds (0: no limit); render_s: the rendered map's share (0: no limit);
@@ -44,6 +62,7 @@ class TimeBudget:
     earlier_s: float = 0.0
     judging_s: float = JUDGING_S
     plan: object = dataclasses.field(default=None, compare=False)
+    clock: StageClock = dataclasses.field(default_factory=StageClock, compare=False)
 
     @classmethod
     def start(cls, config) -> "TimeBudget":

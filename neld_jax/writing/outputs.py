@@ -241,6 +241,7 @@ def run_record(
         "train_seconds": round(result.train_seconds, 2),
         "total_seconds": round(budget.run_seconds(), 2),  # every process of a resumed run, as train_seconds
         "plan": None if budget.plan is None else budget.plan.record(),  # each step's seconds, planned at the start
+        "stage_seconds": dict(budget.clock.seconds),  # each step's seconds as it ran, in this process
         "device": str(jax.devices()[0]),
         "map_rays": None if render is None else int(render.rays.num_rays),
         "map_rays_rendered": None if render is None else render.num_rendered,

@@ -258,9 +258,10 @@ def run_record(
 def path_vs_input(answer: np.ndarray, input_poses: np.ndarray, window_m: float = 50.0) -> dict:
     """How the answer's poses of every input scan [S, 4, 4] change the distance travelled against the input's
     [S, 4, 4]: {"ratio": its whole path over the input's, "largest_window_change": the largest departure from 1 of
-    that ratio over a window_m window (trajectory.window_scales), "window_m"}."""
+    trajectory.window_scales over a window_m window (the input's distance over the answer's, as the distance check
+    judging.answer records it), "window_m"}."""
     ratio = path_length_ratio(answer, input_poses)  # NaN where the input does not move
-    change = float(np.max(np.abs(1.0 / window_scales(answer, input_poses, window_m) - 1.0))) if len(answer) > 1 else 0.0
+    change = float(np.max(np.abs(window_scales(answer, input_poses, window_m) - 1.0))) if len(answer) > 1 else 0.0
     return {
         "ratio": round(ratio, 6) if np.isfinite(ratio) else None,
         "largest_window_change": round(change, 6),

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from neld_jax.config import defaults as base_config
 from neld_jax.data.fusionportable import load_fusionportable
 from neld_jax.data.generic import load_generic
-from neld_jax.data.layout import align_poses
+from neld_jax.data.layout import LoadOptions, align_poses
 from neld_jax.data.newer_college import load_newer_college
 from neld_jax.data.poses import write_tum
 from neld_jax.data.preprocess import KeyframeSettings, preprocess
@@ -106,7 +106,7 @@ def test_load_generic_drop_unmatched_tail_drops_and_names_the_scan(tmp_path, cap
     scans, poses = make_scans(4), make_poses(3)
     write_generic_folder(tmp_path, scans, poses, np.arange(3.0))
     with caplog.at_level(logging.WARNING, logger="neld_jax.data.layout"):
-        seq = load_generic(tmp_path, drop_unmatched_tail=True)
+        seq = load_generic(tmp_path, LoadOptions(drop_unmatched_tail=True))
     assert seq.num_scans == 3 and seq.files == ["scans/000000.npy", "scans/000001.npy", "scans/000002.npy"]
     np.testing.assert_allclose(seq.poses, poses, atol=1e-12)
     np.testing.assert_allclose(seq.timestamps, np.arange(3.0))
@@ -314,7 +314,7 @@ def test_load_newer_college(tmp_path):
     from neld_jax.data.ground_truth import published_offset
 
     np.testing.assert_allclose(seq.gt_poses, gt @ published_offset("newer_college_2020", "os_sensor"), atol=1e-12)
-    identity = load_newer_college(tmp_path, gt_from_scan=np.eye(4))
+    identity = load_newer_college(tmp_path, LoadOptions(gt_from_scan=np.eye(4)))
     np.testing.assert_allclose(identity.gt_poses, gt, atol=1e-12)
 
 

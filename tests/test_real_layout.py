@@ -12,6 +12,7 @@ import pytest
 from conftest import tiny_synthetic_sequence
 from scipy.spatial.transform import Rotation
 
+from neld_jax.data.layout import LoadOptions
 from neld_jax.data.lio_keyframes import load_lio_keyframes
 from neld_jax.data.poses import read_tum, write_kitti
 from neld_jax.data.preprocess import select_keyframes
@@ -55,7 +56,7 @@ def test_lio_keyframes_count_mismatch_names_the_short_side(tmp_path):
     _write_layout(tmp_path, seq, num_poses=3)  # as new_Riverside02_bag_331: 332 scans and stamps, 331 poses
     with pytest.raises(DataError, match=r"odom_poses.txt has 3.*odom_poses.txt is short by 1.*drop_unmatched_tail"):
         load_lio_keyframes(tmp_path)
-    dropped = load_lio_keyframes(tmp_path, drop_unmatched_tail=True)
+    dropped = load_lio_keyframes(tmp_path, LoadOptions(drop_unmatched_tail=True))
     assert dropped.num_scans == 3 and dropped.files[-1] == "Scans/000002.pcd" and len(dropped.timestamps) == 3
     with pytest.raises(DataError, match="optimized_poses.txt: pose file does not exist .found: odom_poses.txt"):
         load_lio_keyframes(tmp_path, pose_file="optimized_poses.txt")

@@ -28,6 +28,7 @@ unless gt_from_scan says otherwise.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -46,7 +47,7 @@ from neld_jax.data.layout import (
     timestamped_sequence,
 )
 from neld_jax.data.sequence import Sequence
-from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S, read_times
+from neld_jax.data.timing import read_times
 from neld_jax.errors import DataError
 
 POSE_FILES = ("fastlio2_poses.txt", "poses.txt", "odometry.txt")
@@ -63,49 +64,28 @@ LIDAR_TOPICS = ("/os_cloud_node/points", "/ouster00/points")
 LIDAR_FRAME = "ouster00"
 
 
-def load_fusionportable(
-    root: str | os.PathLike,
-    tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
-    gt_poses_file: Path | None = None,
-    gt_map_file: Path | None = None,
-    gt_from_scan: np.ndarray | None = None,
-    scan_frame: str = "",
-    gt_time_offset_s: float = 0.0,
-) -> Sequence:
-    """Load a FusionPortable sequence from ROOT in any of the layouts of the module docstring.
+def load_fusionportable(root: str | os.PathLike, options: LoadOptions = LoadOptions()) -> Sequence:
+    """Load a FusionPortable sequence from ROOT in any of the layouts of the module docstring, with the
+    ground-truth and matching settings of options (layout.LoadOptions; drop_unmatched_tail is not read).
 
-    gt_poses_file / gt_map_file (config data.gt_poses_path / gt_map_path) override the search. Ground-truth poses
-    are moved into the scans' frame by gt_from_scan (T_G_S [4, 4]; None: the published extrinsic for the scan
-    frame, ground_truth.PUBLISHED_GT_FROM_SCAN; scan_frame overrides the frame the folder implies). Odometry and
-    ground truth are matched to the scans by nearest stamp within `tol` seconds; a scan without one is a DataError
-    naming it."""
+    options.gt_poses_file / gt_map_file (config data.gt_poses_path / gt_map_path) override the search. Ground-truth
+    poses are moved into the scans' frame by options.gt_from_scan (T_G_S [4, 4]; None: the published extrinsic for
+    the scan frame, ground_truth.PUBLISHED_GT_FROM_SCAN; options.scan_frame overrides the frame the folder implies).
+    Odometry and ground truth are matched to the scans by nearest stamp within options.tol seconds (after adding
+    options.gt_time_offset_s to the scan stamps for the ground truth); a scan without one is a DataError naming
+    it."""
     root = check_root(root)
     if (root / "scans").is_dir():
         scan_folder = root / "scans"
         files = sorted_by_name(list_scans(scan_folder))
         scan_times = _timestamps_from_names(files, scan_folder, "<timestamp>.pcd")
-        return timestamped_sequence(
-            root,
-            files,
-            scan_times,
-            POSE_FILES,
-            GT_FILES,
-            LoadOptions(
-                tol=tol,
-                gt_poses_file=gt_poses_file,
-                gt_map_file=gt_map_file,
-                gt_from_scan=gt_from_scan,
-                gt_time_offset_s=gt_time_offset_s,
-            ),
-        )
+        return timestamped_sequence(root, files, scan_times, POSE_FILES, GT_FILES, options)
 
     found = next(((root / folder, frame) for folder, frame in DEVKIT_SCANS if (root / folder / "data").is_dir()), None)
     if found is None:
         bags = raw_bags.bags_in(root, f"{root.name}.bag")
         if bags:
-            return load_fusionportable_bag(
-                root, bags, tol, gt_poses_file, gt_map_file, gt_from_scan, scan_frame, gt_time_offset_s
-            )
+            return load_fusionportable_bag(root, bags, options)
         looked = ", ".join(f"{folder}/data/" for folder, _ in DEVKIT_SCANS)
         raise DataError(
             f"{root}: no FusionPortable scans (looked for scans/, the devkit's {looked} and the "
@@ -113,45 +93,20 @@ def load_fusionportable(
         )
     points_folder, frame = found
     files, scan_times = _devkit_scans(points_folder)
-    if gt_from_scan is None:
-        gt_from_scan = ground_truth.published_offset("fusionportable", scan_frame or frame)
-    gt_poses_file, gt_map_file = _download_ground_truth(root, gt_poses_file, gt_map_file)
-    return timestamped_sequence(
-        root,
-        files,
-        scan_times,
-        DEVKIT_ODOMETRY,
-        (),
-        LoadOptions(
-            tol=tol,
-            gt_poses_file=gt_poses_file,
-            gt_map_file=gt_map_file,
-            gt_from_scan=gt_from_scan,
-            gt_time_offset_s=gt_time_offset_s,
-        ),
-    )
+    resolved = _download_ground_truth(root, options, frame)
+    return timestamped_sequence(root, files, scan_times, DEVKIT_ODOMETRY, (), resolved)
 
 
-def load_fusionportable_bag(
-    root: Path,
-    bags: list[Path],
-    tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
-    gt_poses_file: Path | None = None,
-    gt_map_file: Path | None = None,
-    gt_from_scan: np.ndarray | None = None,
-    scan_frame: str = "",
-    gt_time_offset_s: float = 0.0,
-) -> Sequence:
+def load_fusionportable_bag(root: Path, bags: list[Path], options: LoadOptions = LoadOptions()) -> Sequence:
     """The download's bag(s) as raw sweeps (raw_bags): the first of LIDAR_TOPICS the bag has, poses None,
-    per-point times, files "<sequence>.bag:<topic>#000123". Ground truth as for the devkit's raw ouster00 clouds:
-    groundtruth/traj/<sequence>.txt (in or above ROOT) matched to the scan stamps within tol, moved into the scan
-    frame by gt_from_scan (None: the published extrinsic of scan_frame, default ouster00)."""
+    per-point times, files "<sequence>.bag:<topic>#000123". Ground truth as for the devkit's raw ouster00 clouds
+    (options: layout.LoadOptions, as load_fusionportable reads them): options.gt_poses_file, else
+    groundtruth/traj/<sequence>.txt (in or above ROOT), matched to the scan stamps within options.tol, moved into
+    the scan frame by options.gt_from_scan (None: the published extrinsic of options.scan_frame, default
+    ouster00)."""
     topic = raw_bags.pick_topic(bags, LIDAR_TOPICS)
     sweeps = raw_bags.read_lidar_bag(bags, topic)
-    if gt_from_scan is None:
-        gt_from_scan = ground_truth.published_offset("fusionportable", scan_frame or LIDAR_FRAME)
-    gt_poses_file, gt_map_file = _download_ground_truth(root, gt_poses_file, gt_map_file)
-    return raw_bags.sweeps_sequence(root, sweeps, gt_poses_file, gt_from_scan, tol, gt_time_offset_s, gt_map_file)
+    return raw_bags.sweeps_sequence(root, sweeps, _download_ground_truth(root, options, LIDAR_FRAME))
 
 
 def _devkit_scans(points_folder: Path) -> tuple[list[Path], np.ndarray]:
@@ -167,13 +122,21 @@ def _devkit_scans(points_folder: Path) -> tuple[list[Path], np.ndarray]:
     return files, scan_times
 
 
-def _download_ground_truth(root: Path, gt_poses_file: Path | None, gt_map_file: Path | None) -> tuple:
-    """The ground-truth trajectory and map files of sequence ROOT: those given, else the download's
-    groundtruth/traj/<sequence>.txt and groundtruth/map/<sequence>/merged_scan.pcd in or above ROOT (None: none)."""
+def _download_ground_truth(root: Path, options: LoadOptions, frame: str) -> LoadOptions:
+    """options with the ground truth of sequence ROOT resolved: the trajectory and map files given, else the
+    download's groundtruth/traj/<sequence>.txt and groundtruth/map/<sequence>/merged_scan.pcd in or above ROOT
+    (None: none), and gt_from_scan given, else the published extrinsic of options.scan_frame or else `frame`, the
+    frame of the clouds read."""
     name = root.name
-    gt_poses_file = gt_poses_file or ground_truth.first_upwards(root, f"groundtruth/traj/{name}.txt")
-    gt_map_file = gt_map_file or ground_truth.first_upwards(root, f"groundtruth/map/{name}/merged_scan.pcd")
-    return gt_poses_file, gt_map_file
+    gt_from_scan = options.gt_from_scan
+    if gt_from_scan is None:
+        gt_from_scan = ground_truth.published_offset("fusionportable", options.scan_frame or frame)
+    return dataclasses.replace(
+        options,
+        gt_poses_file=options.gt_poses_file or ground_truth.first_upwards(root, f"groundtruth/traj/{name}.txt"),
+        gt_map_file=options.gt_map_file or ground_truth.first_upwards(root, f"groundtruth/map/{name}/merged_scan.pcd"),
+        gt_from_scan=gt_from_scan,
+    )
 
 
 def _timestamps_from_names(files: list[Path], folder: Path, pattern: str) -> np.ndarray:
@@ -187,16 +150,6 @@ def _timestamps_from_names(files: list[Path], folder: Path, pattern: str) -> np.
 
 
 def load(data_cfg) -> Sequence:
-    """data.format = 'fusionportable': load_fusionportable(data.root) with the ground-truth options of
-    layout.load_options (explicit paths, gt_from_scan, scan_frame, gt_time_offset_s) and data.timestamp_tol_s."""
-    root = config_root(data_cfg, "fusionportable")
-    options = load_options(data_cfg)
-    return load_fusionportable(
-        root,
-        tol=options.tol,
-        gt_poses_file=options.gt_poses_file,
-        gt_map_file=options.gt_map_file,
-        gt_from_scan=options.gt_from_scan,
-        scan_frame=options.scan_frame,
-        gt_time_offset_s=options.gt_time_offset_s,
-    )
+    """data.format = 'fusionportable': load_fusionportable(data.root) with layout.load_options (data.timestamp_tol_s,
+    the explicit ground-truth paths, gt_from_scan, scan_frame, gt_time_offset_s)."""
+    return load_fusionportable(config_root(data_cfg, "fusionportable"), load_options(data_cfg))

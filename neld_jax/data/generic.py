@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from neld_jax.data.layout import (
+    LoadOptions,
     align_poses,
     build_sequence,
     check_root,
@@ -32,7 +33,6 @@ from neld_jax.data.layout import (
 from neld_jax.data.poses import read_tum
 from neld_jax.data.scan_source import ScanFiles
 from neld_jax.data.sequence import Sequence
-from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S
 from neld_jax.errors import DataError
 
 logger = logging.getLogger(__name__)
@@ -40,18 +40,18 @@ logger = logging.getLogger(__name__)
 POINT_TIMES_FOLDER = "point_times"  # raw sweeps' per-point times beside scans/ (which takes any .npy as a scan)
 
 
-def load_generic(
-    root: str | os.PathLike, tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S, drop_unmatched_tail: bool = False
-) -> Sequence:
-    """Load the layout of this module's docstring.
+def load_generic(root: str | os.PathLike, options: LoadOptions = LoadOptions()) -> Sequence:
+    """Load the layout of this module's docstring, with the matching and ground-truth settings of options
+    (layout.LoadOptions; scan_frame is not read, gt_from_scan and gt_time_offset_s only for options.gt_poses_file).
 
     Poses match scans by order (their timestamps must then increase). Only when the counts differ and
     every scan name is a timestamp (1650000000.123456.pcd, or 10/13/16/19-digit integer s/ms/us/ns;
     zero-padded frame numbers such as 000012.pcd are not) are they matched by timestamp, nearest within
-    `tol` seconds. Ground-truth poses follow the same rule (a different count is matched against the scan
-    timestamps). drop_unmatched_tail: see layout.align_poses (a few trailing scans without a pose are dropped
-    with a warning instead of an error). Without poses.txt: the scans in name order, stamped by their names when
-    those are times, poses None (load_sequence makes them)."""
+    options.tol seconds. Ground-truth poses follow the same rule (a different count is matched against the scan
+    timestamps). options.drop_unmatched_tail: see layout.align_poses (a few trailing scans without a pose are
+    dropped with a warning instead of an error). Without poses.txt: the scans in name order, stamped by their names
+    when those are times, poses None (load_sequence makes them). options.gt_poses_file / gt_map_file, when set,
+    replace the layout's ground truth (layout.with_explicit_ground_truth)."""
     root = check_root(root)
     scan_folder = root / "scans"
     files = sorted_by_name(list_scans(scan_folder))
@@ -62,20 +62,26 @@ def load_generic(
     if not pose_file.is_file():  # load_sequence makes the poses from the scans
         logger.info("%s: no poses.txt: the initial poses will be made from the %d scans", root, len(files))
         timestamps = np.asarray(name_times, dtype=np.float64) if names_are_times else None
-        seq = build_sequence(
-            root, files, None, timestamps, _ground_truth(root, files, timestamps, False, tol), "no poses"
-        )
-        return with_point_times(seq, root)
+        gt_poses = _ground_truth(root, files, timestamps, False, options.tol)
+        seq = build_sequence(root, files, None, timestamps, gt_poses, "no poses")
+        return with_explicit_ground_truth(with_point_times(seq, root), root, options)
     pose_times, poses = read_tum(pose_file)
     by_time = names_are_times and poses.shape[0] != len(files)
     scan_times = np.asarray(name_times, dtype=np.float64) if by_time else None
     aligned = align_poses(
-        poses, pose_times, pose_file, files, scan_times, tol=tol, drop_unmatched_tail=drop_unmatched_tail, root=root
+        poses,
+        pose_times,
+        pose_file,
+        files,
+        scan_times,
+        tol=options.tol,
+        drop_unmatched_tail=options.drop_unmatched_tail,
+        root=root,
     )
     files = [files[i] for i in aligned.scan_indices]
-    gt_poses = _ground_truth(root, files, aligned.timestamps, by_time, tol)
+    gt_poses = _ground_truth(root, files, aligned.timestamps, by_time, options.tol)
     seq = build_sequence(root, files, aligned.poses, aligned.timestamps, gt_poses, pose_file)
-    return with_point_times(seq, root)
+    return with_explicit_ground_truth(with_point_times(seq, root), root, options)
 
 
 def _ground_truth(
@@ -122,9 +128,6 @@ def read_point_times(path: Path) -> np.ndarray:
 
 
 def load(data_cfg) -> Sequence:
-    """data.format = 'generic': load_generic(data.root) with data.timestamp_tol_s and data.drop_unmatched_tail;
-    data.gt_poses_path / gt_map_path, when set, replace the layout's ground truth (layout.load_options)."""
-    root = config_root(data_cfg, "generic")
-    options = load_options(data_cfg)
-    seq = load_generic(root, tol=options.tol, drop_unmatched_tail=options.drop_unmatched_tail)
-    return with_explicit_ground_truth(seq, root, options)
+    """data.format = 'generic': load_generic(data.root) with layout.load_options (data.timestamp_tol_s,
+    data.drop_unmatched_tail, data.gt_poses_path / gt_map_path ...)."""
+    return load_generic(config_root(data_cfg, "generic"), load_options(data_cfg))

@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 
 from neld_jax.data.layout import (
+    LoadOptions,
     align_poses,
     build_sequence,
     check_root,
@@ -32,11 +33,13 @@ SCAN_FOLDER = "pcd"
 POSE_FILE = "pose.json"
 
 
-def load_hba(root: str | os.PathLike, drop_unmatched_tail: bool = False) -> Sequence:
-    """Load the layout of this module's docstring (scans, poses; no stamps, no ground truth).
+def load_hba(root: str | os.PathLike, options: LoadOptions = LoadOptions()) -> Sequence:
+    """Load the layout of this module's docstring (scans, poses; no stamps; the layout has no ground truth), with
+    the settings of options (layout.LoadOptions): options.gt_poses_file / gt_map_file, when set, give the ground
+    truth (matched by order: the layout has no stamps; layout.with_explicit_ground_truth); scan_frame is not read.
 
     A scan name that is not an index, an index missing from 0..S-1, or a pose count other than the scan count
-    is a DataError naming the file (drop_unmatched_tail: see layout.align_poses)."""
+    is a DataError naming the file (options.drop_unmatched_tail: see layout.align_poses)."""
     root = check_root(root)
     files = [f for f in list_scans(root / SCAN_FOLDER)]
     indexed = {}
@@ -55,15 +58,15 @@ def load_hba(root: str | os.PathLike, drop_unmatched_tail: bool = False) -> Sequ
     files = [indexed[i] for i in range(len(indexed))]
     pose_file = root / POSE_FILE
     poses = read_hba_poses(pose_file)
-    aligned = align_poses(poses, None, pose_file, files, None, drop_unmatched_tail=drop_unmatched_tail, root=root)
+    aligned = align_poses(
+        poses, None, pose_file, files, None, drop_unmatched_tail=options.drop_unmatched_tail, root=root
+    )
     files = [files[i] for i in aligned.scan_indices]
-    return build_sequence(root, files, aligned.poses, None, None, pose_file)
+    seq = build_sequence(root, files, aligned.poses, None, None, pose_file)
+    return with_explicit_ground_truth(seq, root, options)
 
 
 def load(data_cfg) -> Sequence:
-    """data.format = 'hba': load_hba(data.root) with data.drop_unmatched_tail; data.gt_poses_path / gt_map_path,
-    when set, give the ground truth (matched by order: the layout has no stamps; layout.load_options)."""
-    root = config_root(data_cfg, "hba")
-    options = load_options(data_cfg)
-    seq = load_hba(root, drop_unmatched_tail=options.drop_unmatched_tail)
-    return with_explicit_ground_truth(seq, root, options)
+    """data.format = 'hba': load_hba(data.root) with layout.load_options (data.drop_unmatched_tail,
+    data.gt_poses_path / gt_map_path ...)."""
+    return load_hba(config_root(data_cfg, "hba"), load_options(data_cfg))

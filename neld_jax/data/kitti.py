@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from neld_jax.data.layout import (
+    LoadOptions,
     align_poses,
     build_sequence,
     check_root,
@@ -120,11 +121,13 @@ def _ground_truth_file(root: Path) -> Path | None:
     return None
 
 
-def load_kitti(root: str | os.PathLike, gt_map_file: Path | None = None) -> Sequence:
+def load_kitti(root: str | os.PathLike, options: LoadOptions = LoadOptions()) -> Sequence:
     """Load sequences/NN as this module's docstring describes: poses None, stamps from times.txt, ground truth in
     the LiDAR frame where poses/NN.txt exists (its count must match the scans', by order). DataErrors name the file:
     no velodyne/ folder, a .bin that is not whole 16-byte records, times.txt with another count than the scans, a
-    calib.txt without a valid Tr (needed only with ground truth)."""
+    calib.txt without a valid Tr (needed only with ground truth). options (layout.LoadOptions): gt_poses_file /
+    gt_map_file, when set, replace the layout's ground truth (layout.with_explicit_ground_truth, with tol,
+    gt_from_scan and gt_time_offset_s); drop_unmatched_tail and scan_frame are not read."""
     root = check_root(root)
     files = _scan_files(root)
     times = read_times(root / "times.txt")
@@ -140,14 +143,11 @@ def load_kitti(root: str | os.PathLike, gt_map_file: Path | None = None) -> Sequ
         camera_poses = align_poses(read_kitti(gt_file), None, gt_file, files, root=root).poses
         gt_poses = camera_to_lidar(camera_poses, velodyne_to_camera)
         logger.info("%s: ground truth from %s, moved into the LiDAR frame with calib.txt's Tr", root, gt_file)
-    seq = build_sequence(root, files, None, times, gt_poses, "no poses", gt_map_file)
-    return dataclasses.replace(seq, scans=lazy(seq.scans).map(lambda _, scan: corrected_elevations(scan)))
+    seq = build_sequence(root, files, None, times, gt_poses, "no poses", options.gt_map_file)
+    seq = dataclasses.replace(seq, scans=lazy(seq.scans).map(lambda _, scan: corrected_elevations(scan)))
+    return with_explicit_ground_truth(seq, root, options)
 
 
 def load(data_cfg) -> Sequence:
-    """data.format = 'kitti': load_kitti(data.root); data.gt_poses_path / gt_map_path, when set, replace the
-    layout's ground truth (layout.load_options)."""
-    root = config_root(data_cfg, "kitti")
-    options = load_options(data_cfg)
-    seq = load_kitti(root, gt_map_file=options.gt_map_file)
-    return with_explicit_ground_truth(seq, root, options)
+    """data.format = 'kitti': load_kitti(data.root) with layout.load_options (data.gt_poses_path / gt_map_path ...)."""
+    return load_kitti(config_root(data_cfg, "kitti"), load_options(data_cfg))

@@ -48,7 +48,9 @@ MAX_UNMATCHED_TAIL = 5
 
 @dataclasses.dataclass(frozen=True)
 class LoadOptions:
-    """The data.* settings that the folder formats read besides data.root (config_root) and their own fields.
+    """The data.* settings that the folder formats read besides data.root (config_root) and their own fields: every
+    folder loader (load_generic, load_kitti, load_fusionportable, ...) takes them as `options`, load_options makes
+    them from the config, and a loader's docstring says which of them it does not read.
 
     tol:                 seconds, scan <-> pose matching by time (data.timestamp_tol_s)
     drop_unmatched_tail: drop a few trailing scans without a pose (align_poses) instead of an error

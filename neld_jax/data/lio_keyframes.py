@@ -23,6 +23,7 @@ from pathlib import Path
 
 from neld_jax.data.layout import (
     MAX_UNMATCHED_TAIL,
+    LoadOptions,
     build_sequence,
     check_root,
     config_root,
@@ -63,10 +64,13 @@ def _scan_files(root: Path) -> tuple[Path, list[Path]]:
 
 
 def load_lio_keyframes(
-    root: str | os.PathLike, pose_file: str = DEFAULT_POSE_FILE, drop_unmatched_tail: bool = False
+    root: str | os.PathLike, options: LoadOptions = LoadOptions(), pose_file: str = DEFAULT_POSE_FILE
 ) -> Sequence:
     """Load the layout of this module's docstring into a Sequence (scans in the sensor frame, initial poses,
-    timestamps; no ground truth). `pose_file` is relative to ROOT."""
+    timestamps; the layout has no ground truth). `pose_file` is relative to ROOT. options (layout.LoadOptions):
+    drop_unmatched_tail as the module docstring says; gt_poses_file / gt_map_file, when set, give the ground truth
+    (matched by time against times.txt when both have stamps: layout.with_explicit_ground_truth); scan_frame is not
+    read."""
     root = check_root(root)
     folder, files = _scan_files(root)
     pose_path = root / pose_file
@@ -90,7 +94,7 @@ def load_lio_keyframes(
         listing = ", ".join(f"{name} has {n}" for name, n in counts.items())
         short = [name for name, n in counts.items() if n == shortest]
         extra = max(counts.values()) - shortest
-        if not drop_unmatched_tail or extra > MAX_UNMATCHED_TAIL:
+        if not options.drop_unmatched_tail or extra > MAX_UNMATCHED_TAIL:
             raise DataError(
                 f"{root}: scans, poses and stamps must correspond one to one, but {listing} "
                 f"({', '.join(short)} {'is' if len(short) == 1 else 'are'} short by {extra}); if the recording "
@@ -109,18 +113,13 @@ def load_lio_keyframes(
         stamps = None if stamps is None else stamps[:shortest]
 
     # Scans read, dropped points counted, files named relative to the root, pose jumps checked: as every loader.
-    return build_sequence(root, files, poses, stamps, None, pose_path)
+    seq = build_sequence(root, files, poses, stamps, None, pose_path)
+    return with_explicit_ground_truth(seq, root, options)
 
 
 def load(data_cfg) -> Sequence:
     """data.format = 'lio_keyframes': load_lio_keyframes(data.root) with data.initial_poses ('' = DEFAULT_POSE_FILE)
     and data.drop_unmatched_tail; data.gt_poses_path / gt_map_path, when set, give the ground truth (matched by
     time against times.txt when both have stamps; layout.load_options)."""
-    root = config_root(data_cfg, "lio_keyframes")
-    options = load_options(data_cfg)
-    seq = load_lio_keyframes(
-        root,
-        pose_file=data_cfg.get("initial_poses", "") or DEFAULT_POSE_FILE,
-        drop_unmatched_tail=options.drop_unmatched_tail,
-    )
-    return with_explicit_ground_truth(seq, root, options)
+    pose_file = data_cfg.get("initial_poses", "") or DEFAULT_POSE_FILE
+    return load_lio_keyframes(config_root(data_cfg, "lio_keyframes"), load_options(data_cfg), pose_file)

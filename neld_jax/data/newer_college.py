@@ -28,6 +28,7 @@ and, for both, an optional ROOT/gt_map.pcd|ply.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 from pathlib import Path
@@ -51,7 +52,6 @@ from neld_jax.data.layout import (
 )
 from neld_jax.data.poses import read_tum
 from neld_jax.data.sequence import Sequence
-from neld_jax.data.timing import DEFAULT_TIMESTAMP_TOLERANCE_S
 from neld_jax.errors import DataError
 
 SCAN_FOLDERS = ("clouds", "raw_format/ouster_scan", "raw_format/clouds")
@@ -72,85 +72,67 @@ def newer_college_release(gt_file: Path) -> str:
     return "newer_college_2020" if gt_file.name == "registered_poses.csv" else "newer_college_2021"
 
 
-def load_newer_college(
-    root: str | os.PathLike,
-    tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
-    gt_poses_file: Path | None = None,
-    gt_map_file: Path | None = None,
-    gt_from_scan: np.ndarray | None = None,
-    scan_frame: str = "",
-    gt_time_offset_s: float = 0.0,
-) -> Sequence:
-    """Load a Newer College sequence, 2021 or 2020 release, from ROOT in any of the layouts of the module docstring.
+def load_newer_college(root: str | os.PathLike, options: LoadOptions = LoadOptions()) -> Sequence:
+    """Load a Newer College sequence, 2021 or 2020 release, from ROOT in any of the layouts of the module docstring,
+    with the ground-truth and matching settings of options (layout.LoadOptions; drop_unmatched_tail is not read).
 
-    gt_map_file overrides ROOT/gt_map.pcd|ply, gt_poses_file the search for the ground truth. The ground truth is
-    moved into the scans' frame by gt_from_scan (T_G_S [4, 4]; None: the published offset of the release the file
-    name implies, newer_college_release, for scan_frame: '' = os_sensor, the raw clouds and FAST-LIO2's body frame
-    as its shipped ouster64.yaml starts it (identity LiDAR-IMU extrinsic, estimated online unless
-    mapping/extrinsic_est_en is false); 'os_imu' for a FAST-LIO2 run configured with the Ouster IMU's extrinsic;
-    the two are 2.4 cm apart). Ground truth is matched to scans by nearest stamp within `tol` seconds; a scan
-    without one is a DataError naming it. Points at the origin (no return in organised Ouster clouds) are dropped
-    when read and counted in one log line."""
+    options.gt_map_file overrides ROOT/gt_map.pcd|ply, options.gt_poses_file the search for the ground truth. The
+    ground truth is moved into the scans' frame by options.gt_from_scan (T_G_S [4, 4]; None: the published offset
+    of the release the file name implies, newer_college_release, for options.scan_frame: '' = os_sensor, the raw
+    clouds and FAST-LIO2's body frame as its shipped ouster64.yaml starts it (identity LiDAR-IMU extrinsic,
+    estimated online unless mapping/extrinsic_est_en is false); 'os_imu' for a FAST-LIO2 run configured with the
+    Ouster IMU's extrinsic; the two are 2.4 cm apart). Ground truth is matched to scans by nearest stamp within
+    options.tol seconds (after adding options.gt_time_offset_s to the scan stamps); a scan without one is a
+    DataError naming it. Points at the origin (no return in organised Ouster clouds) are dropped when read and
+    counted in one log line."""
     root = check_root(root)
     if (root / "scans").is_dir() and (root / "poses.txt").is_file():
-        return _load_imported_2021(root, tol, gt_poses_file, gt_map_file, gt_from_scan, scan_frame, gt_time_offset_s)
+        return _load_imported_2021(root, options)
 
     scan_folder = next((root / f for f in SCAN_FOLDERS if (root / f).is_dir()), None)
     if scan_folder is None:
         bags = raw_bags.bags_in(root)
         if bags:
-            return load_newer_college_bags(
-                root, bags, tol, gt_poses_file, gt_map_file, gt_from_scan, scan_frame, gt_time_offset_s
-            )
+            return load_newer_college_bags(root, bags, options)
         raise DataError(
             f"{root}: no scan folder (looked for scans/ with poses.txt, {', '.join(SCAN_FOLDERS)}) and no *.bag"
         )
     files, scan_times = _clouds_by_name(list_scans(scan_folder))
-    gt_file = gt_poses_file or first_existing(root, GT_FILES)
+    resolved = _with_ground_truth(options, options.gt_poses_file or first_existing(root, GT_FILES))
+    return timestamped_sequence(root, files, scan_times, POSE_FILES, GT_FILES, resolved)
+
+
+def _with_ground_truth(options: LoadOptions, gt_file: Path | None, default_frame: str = "") -> LoadOptions:
+    """options with gt_poses_file = gt_file (None: no ground truth) and gt_from_scan given, else (with a gt_file)
+    the published offset of its release for options.scan_frame, or else default_frame."""
+    gt_from_scan = options.gt_from_scan
     if gt_from_scan is None and gt_file is not None:
-        gt_from_scan = ground_truth.published_offset(newer_college_release(gt_file), scan_frame)
-    return timestamped_sequence(
-        root,
-        files,
-        scan_times,
-        POSE_FILES,
-        GT_FILES,
-        LoadOptions(
-            tol=tol,
-            gt_poses_file=gt_file,
-            gt_map_file=gt_map_file,
-            gt_from_scan=gt_from_scan,
-            gt_time_offset_s=gt_time_offset_s,
-        ),
-    )
+        release = newer_college_release(gt_file)
+        gt_from_scan = ground_truth.published_offset(release, options.scan_frame or default_frame)
+    return dataclasses.replace(options, gt_poses_file=gt_file, gt_from_scan=gt_from_scan)
 
 
-def _load_imported_2021(
-    root: Path,
-    tol: float,
-    gt_poses_file: Path | None,
-    gt_map_file: Path | None,
-    gt_from_scan: np.ndarray | None,
-    scan_frame: str,
-    gt_time_offset_s: float,
-) -> Sequence:
+def _load_imported_2021(root: Path, options: LoadOptions) -> Sequence:
     """The 2021 release's clouds as bin/import_rosbag.py writes them, ROOT/scans/ with ROOT/poses.txt, and its
-    ground truth (gt_poses_file, else ROOT/gt-nc-*.csv, gt_state_*.csv); arguments as load_newer_college's."""
+    ground truth (options.gt_poses_file, else ROOT/gt-nc-*.csv, gt_state_*.csv); options as load_newer_college's."""
     files = sorted_by_name(list_scans(root / "scans"))
     pose_file = root / "poses.txt"
     pose_times, poses = read_tum(pose_file)
-    aligned = align_poses(poses, pose_times, pose_file, files, None, tol=tol, root=root)
+    aligned = align_poses(poses, pose_times, pose_file, files, None, tol=options.tol, root=root)
     scan_times = aligned.timestamps
-    gt_file = gt_poses_file or _gt_2021_file(root)
+    resolved = _with_ground_truth(options, options.gt_poses_file or _gt_2021_file(root))
     gt_poses = None
-    if gt_file is not None:
-        offset = (
-            gt_from_scan
-            if gt_from_scan is not None
-            else ground_truth.published_offset(newer_college_release(gt_file), scan_frame)
+    if resolved.gt_poses_file is not None:
+        gt_poses = matched_ground_truth(
+            root,
+            files,
+            scan_times,
+            resolved.gt_poses_file,
+            resolved.tol,
+            resolved.gt_from_scan,
+            resolved.gt_time_offset_s,
         )
-        gt_poses = matched_ground_truth(root, files, scan_times, gt_file, tol, offset, gt_time_offset_s)
-    return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file, gt_map_file)
+    return build_sequence(root, files, aligned.poses, scan_times, gt_poses, pose_file, resolved.gt_map_file)
 
 
 def _clouds_by_name(files: list[Path]) -> tuple[list[Path], np.ndarray]:
@@ -171,38 +153,18 @@ def _gt_2021_file(root: Path) -> Path | None:
     return next((p for pattern in GT_2021_PATTERNS for p in sorted(root.glob(pattern))), None)
 
 
-def load_newer_college_bags(
-    root: Path,
-    bags: list[Path],
-    tol: float = DEFAULT_TIMESTAMP_TOLERANCE_S,
-    gt_poses_file: Path | None = None,
-    gt_map_file: Path | None = None,
-    gt_from_scan: np.ndarray | None = None,
-    scan_frame: str = "",
-    gt_time_offset_s: float = 0.0,
-) -> Sequence:
+def load_newer_college_bags(root: Path, bags: list[Path], options: LoadOptions = LoadOptions()) -> Sequence:
     """The 2021 bag(s) as downloaded, as raw sweeps (raw_bags): LIDAR_TOPIC, poses None, per-point times, files
-    "<bag>:/os_cloud_node/points#000123". Ground truth (gt_poses_file, else ROOT/gt-nc-*.csv, gt_state_*.csv)
-    matched to the scan stamps within tol and moved into the scan frame by gt_from_scan (None: the published
-    offset for scan_frame, default os_sensor, the raw clouds' frame)."""
+    "<bag>:/os_cloud_node/points#000123". Ground truth (options.gt_poses_file, else ROOT/gt-nc-*.csv,
+    gt_state_*.csv) matched to the scan stamps within options.tol and moved into the scan frame by
+    options.gt_from_scan (None: the published offset for options.scan_frame, default os_sensor, the raw clouds'
+    frame); options (layout.LoadOptions) as load_newer_college's."""
     sweeps = raw_bags.read_lidar_bag(bags, LIDAR_TOPIC)
-    gt_file = gt_poses_file or _gt_2021_file(root)
-    if gt_file is not None and gt_from_scan is None:
-        gt_from_scan = ground_truth.published_offset(newer_college_release(gt_file), scan_frame or LIDAR_FRAME)
-    return raw_bags.sweeps_sequence(root, sweeps, gt_file, gt_from_scan, tol, gt_time_offset_s, gt_map_file)
+    resolved = _with_ground_truth(options, options.gt_poses_file or _gt_2021_file(root), LIDAR_FRAME)
+    return raw_bags.sweeps_sequence(root, sweeps, resolved)
 
 
 def load(data_cfg) -> Sequence:
-    """data.format = 'newer_college': load_newer_college(data.root) with the ground-truth options of
-    layout.load_options (explicit paths, gt_from_scan, scan_frame, gt_time_offset_s) and data.timestamp_tol_s."""
-    root = config_root(data_cfg, "newer_college")
-    options = load_options(data_cfg)
-    return load_newer_college(
-        root,
-        tol=options.tol,
-        gt_poses_file=options.gt_poses_file,
-        gt_map_file=options.gt_map_file,
-        gt_from_scan=options.gt_from_scan,
-        scan_frame=options.scan_frame,
-        gt_time_offset_s=options.gt_time_offset_s,
-    )
+    """data.format = 'newer_college': load_newer_college(data.root) with layout.load_options (data.timestamp_tol_s,
+    the explicit ground-truth paths, gt_from_scan, scan_frame, gt_time_offset_s)."""
+    return load_newer_college(config_root(data_cfg, "newer_college"), load_options(data_cfg))

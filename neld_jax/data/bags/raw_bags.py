@@ -1,8 +1,8 @@
 """Raw LiDAR sweeps straight from a rosbag: one sensor_msgs/PointCloud2 topic, every message a scan in the cloud's
 own (sensor) frame, with each point's time within the sweep; no poses (load_sequence makes them from the scans).
 
-    read_lidar_bag(bag, topic)            -> RawSweeps (stamps, scans, per-point times, frame, counts)
-    sweeps_sequence(root, sweeps, ...)    -> Sequence with poses=None and the ground truth matched to the stamps
+    read_lidar_bag(bag, topic)             -> RawSweeps (stamps, scans, per-point times, frame, counts)
+    sweeps_sequence(root, sweeps, options) -> Sequence with poses=None and the ground truth matched to the stamps
 
 Per-point time comes from the cloud's own field table (rosbag_import.cloud_point_times: Ouster `t`, uint32 ns
 since the sweep's start; Velodyne/Hesai `time`, float32 seconds relative; `timestamp`, float64 absolute seconds)
@@ -37,7 +37,7 @@ from neld_jax.data.bags.rosbag_import import (
     time_field_of,
     topic_connections,
 )
-from neld_jax.data.layout import first_existing, matched_ground_truth
+from neld_jax.data.layout import LoadOptions, first_existing, matched_ground_truth
 from neld_jax.data.scan_source import LazyScans
 from neld_jax.data.scans import read_scan, valid_points
 from neld_jax.data.sequence import Sequence
@@ -232,32 +232,25 @@ def pick_topic(bag: str | os.PathLike | list, candidates: tuple[str, ...]) -> st
         reader.close()
 
 
-def sweeps_sequence(
-    root: Path,
-    sweeps: RawSweeps,
-    gt_file: Path | None,
-    gt_from_scan: np.ndarray | None,
-    tol: float,
-    gt_time_offset_s: float = 0.0,
-    gt_map_file: Path | None = None,
-) -> Sequence:
+def sweeps_sequence(root: Path, sweeps: RawSweeps, options: LoadOptions) -> Sequence:
     """The Sequence of raw sweeps: poses None, timestamps, point_times, files = the sweeps' labels, and the ground
-    truth matched to the scan stamps as the folder loaders match it (layout.matched_ground_truth: nearest stamp
-    within tol, then moved into the scan frame by gt_from_scan T_G_S [4, 4]). The GT map: gt_map_file, else
-    ROOT/gt_map.pcd|ply when present."""
+    truth options.gt_poses_file (None: none) matched to the scan stamps as the folder loaders match it
+    (layout.matched_ground_truth: nearest stamp within options.tol after adding options.gt_time_offset_s, then
+    moved into the scan frame by options.gt_from_scan T_G_S [4, 4]). The GT map: options.gt_map_file, else
+    ROOT/gt_map.pcd|ply when present. options (layout.LoadOptions) come with the format's defaults resolved."""
     gt_poses = None
-    if gt_file is not None:
+    if options.gt_poses_file is not None:
         # The labels stand for files in the messages of the matching (a scan without ground truth is named).
         gt_poses = matched_ground_truth(
             root,
             [root / label for label in sweeps.labels],
             sweeps.timestamps,
-            gt_file,
-            tol,
-            gt_from_scan,
-            gt_time_offset_s,
+            options.gt_poses_file,
+            options.tol,
+            options.gt_from_scan,
+            options.gt_time_offset_s,
         )
-    gt_map_file = gt_map_file or first_existing(root, ("gt_map.pcd", "gt_map.ply"))
+    gt_map_file = options.gt_map_file or first_existing(root, ("gt_map.pcd", "gt_map.ply"))
     return Sequence(
         scans=sweeps.scans,
         poses=None,

@@ -39,9 +39,9 @@ adds) and over its odometry's (ate_over_odometry), also under the table; its pat
 (path_scale_vs_odometry; path_scale_within_0.1pct: within 0.1 % of 1); its raw maps (the keyframes', every sweep's)
 crisper than both peers on every draw; and the whole run within --minutes_limit minutes.
 
-Sequences: `car:SEED` generates a car's 10 Hz scans along the synthetic courtyards' route (--num_scans over 320 m
-with turns, 64 beams x 1024 columns, 80 m range; raw sweeps with per-point times, about 1.1 m of motion in each)
-with ground truth;
+Sequences: `car:SEED` generates a car's 10 Hz scans along the synthetic courtyards' 320 m route with four corners
+(--num_scans of a car driving it from rest, 11 m/s on the straights, slower round the corners: 300 drive 250 m; 64
+beams x 1024 columns, 80 m range; raw sweeps with per-point times, up to 1.1 m of motion in each) with ground truth;
 `synthetic10hz:SEED[:RADIUS_M]` generates raw 10 Hz sweeps with per-point times and ground truth
 (neld_jax.synthetic.generator.make_sequence, rate_hz=10; --loop_scans sweeps round one loop of RADIUS_M (10 m: 63 m at
 2.1 m/s; 20 m: 126 m at 4.2 m/s, longer than KISS-SLAM's 100 m local maps, so it can close the loop) at 40 m range,

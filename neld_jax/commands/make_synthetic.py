@@ -13,7 +13,8 @@ KISS-ICP), as a recording holds them:
         --config.data.synthetic.trajectory_radius_m=10 --config.data.synthetic.max_range_m=40
 
 The routes "car" and "handheld" (data.synthetic.route) write scans named by their stamps, with ground truth and no
-poses: a car's raw 10 Hz sweeps along the courtyards' route (num_scans over route_length_m; per-point times beside),
+poses: a car's raw 10 Hz sweeps along the courtyards' route (from rest, 11 m/s on the straights, slower round the
+corners; per-point times beside),
 a handheld sensor's rigid 2 Hz scans turned 40-50 degrees from one to the next (--rate_hz sets another rate):
 
     neld-make-synthetic --config=configs/demo.py --root=/tmp/car --config.data.synthetic.route=car \

@@ -17,16 +17,18 @@ deskewing off both times (two_pass_odometry). The first pass registers each swee
 the sensor's at about the mean instant of the sweep's points; the second registers each sweep deskewed along that
 first trajectory into the frame at its stamp, so its poses are at the stamps, which the sequence's ground truth
 refers to (an Ouster stamps a sweep at its start). The two go together, each sweep read once, the second a sweep
-behind. One pass does not do: on the car's 200 sweeps 0.350 m ATE not deskewed, 3.69 m with KISS-ICP's own
-deskewing, against 0.146 m in two (benchmarks/frontend_pace.py). The sweeps are then deskewed along the finished
+behind. One pass does less: on the synthetic car's 200 sweeps 0.250 m ATE not deskewed, 0.115 m with KISS-ICP's own
+deskewing, against 0.095 m in two (benchmarks/frontend_pace.py). The sweeps are then deskewed along the finished
 trajectory (deskewed_along). Why not KISS-ICP's own deskewing: it deskews a sweep by the motion its registration of
-the sweep before found, and that registration took the deskewing before it: at speed the two feed each other and the
-poses swing from sweep to sweep. Measured on the synthetic car's 300 raw sweeps (64 beams, 80 m, 11 m/s): heading
-errors of 1.27 deg RMS a sweep and 2.72 m ATE with KISS-ICP's own deskewing, 0.38 deg and 1.80 m not deskewed, 0.22
-deg and 0.15 m in two passes (0.14 m with every sweep deskewed along the true motion); on the 10 m loop at 2.1 m/s
-6.0 cm against 6.7 cm over the first 40 sweeps, at 6.3 m/s 2.8 cm against 10.3 cm. Earlier, with KISS-ICP's own
-deskewing, deskewing the sweeps again along the finished trajectory took the 300 synthetic loop sweeps' keyframes'
-raw map under the true poses from -3.73 to -4.23 nats (-5.09 with the true motion, -3.74 not deskewed). Sweeps with
+the sweep before found, and that registration took the deskewing before it: where the motion changes at once the two
+feed each other and the poses swing from sweep to sweep. Measured on an earlier synthetic car's 300 raw sweeps (64
+beams, 80 m, 11 m/s, turning into and out of its corners at once, which no car does): heading errors of 1.27 deg RMS
+a sweep and 2.72 m ATE with KISS-ICP's own deskewing, 0.38 deg and 1.80 m not deskewed, 0.22 deg and 0.15 m in two
+passes (0.14 m with every sweep deskewed along the true motion); on the car that drives as cars do 0.167 against
+0.166 m (benchmarks/RESULTS.md, "Peers"); on the 10 m loop at 2.1 m/s 6.0 cm against 6.7 cm over the first 40
+sweeps, at 6.3 m/s 2.8 cm against 10.3 cm. Earlier, with KISS-ICP's own deskewing, deskewing the sweeps again along
+the finished trajectory took the 300 synthetic loop sweeps' keyframes' raw map under the true poses from -3.73 to
+-4.23 nats (-5.09 with the true motion, -3.74 not deskewed). Sweeps with
 point times but no stamps are registered once, by KISS-ICP with its own deskewing, each pose the sensor's at its
 sweep's last point; where their times were derived from the azimuths (data.sweep_times, at an assumed period) they
 are put that period apart and registered in two passes instead (a common time scale: the poses do not depend on it).

@@ -119,9 +119,10 @@ def make_sequence(cfg=None, rate_hz: float = 0.0, session: int | None = None) ->
     starts), and no initial poses (poses None: a run makes them from the scans, neld_jax.frontend).
     The route "handheld" (handheld_walk round the loop, HANDHELD_RATE_HZ unless rate_hz is given) is rigid scans
     (deskewed, as a front-end writes them) 1 / rate_hz apart; the route "car" (car_drive along the courtyards' route
-    at CAR_RATE_HZ unless rate_hz is given: num_scans over route_length_m, from rest) is raw sweeps as above (a car
-    moves about a metre within a sweep). Both come with ground truth and no initial poses. session K (loop route,
-    rigid scans): make_visit's K-th visit of the scene instead."""
+    of route_length_m, its corners eased, at CAR_RATE_HZ unless rate_hz is given: num_scans sweeps of a car that sets
+    off from rest, cruises at 11 m/s and slows for the corners, round the route again where they outlast a lap) is
+    raw sweeps as above (a car moves up to 1.1 m within a sweep). Both come with ground truth and no initial poses.
+    session K (loop route, rigid scans): make_visit's K-th visit of the scene instead."""
     if session is not None:
         return make_visit(cfg, session)
     cfg = _resolve_config(cfg)
@@ -237,7 +238,7 @@ def _scene_and_route(cfg, rate_hz: float):
 
 def _raw_sweeps(cfg, rate_hz: float, scene, directions: np.ndarray, rng: np.random.Generator):
     """(stamps [S], sweeps [S] x [N_i, 3], per-point times [S] x [N_i]) of a LiDAR spinning at rate_hz round the
-    loop, or along car_drive for the route "car" (at 11 m/s a sweep spans 1.1 m): each column cast from where the
+    loop, or along car_drive for the route "car" (at its 11 m/s a sweep spans 1.1 m): each column cast from where the
     sensor is at its instant."""
     timestamps, scans, point_times = np.arange(cfg.num_scans) / rate_hz, [], []
     column_fraction = np.arange(cfg.num_columns) / cfg.num_columns

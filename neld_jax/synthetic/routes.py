@@ -1,6 +1,7 @@
 """The synthetic sensor's routes (ground-truth poses, sensor -> world): a smooth loop round the courtyard (and a
 later visit of it: another radius, start and direction), a handheld walk that looks around, a long route through
-connected courtyards and a car that drives it from rest; and the drift an odometry adds to them."""
+connected courtyards and a car that drives it as a car does (from rest, slower through eased corners); and the drift
+an odometry adds to them."""
 
 from __future__ import annotations
 
@@ -16,7 +17,12 @@ HANDHELD_SPEED_M_S = 1.4  # walking
 HANDHELD_TURN_DEG = (40.0, 50.0)  # the turn between consecutive handheld scans, either side
 HANDHELD_STEADY_SCANS = 8  # the handheld walk's first scans look ahead (an odometry learns the sensor's overlap)
 CAR_RATE_HZ = 10.0  # the car route's scans, when make_sequence is given no rate
-CAR_START_S = 4.0  # the car speeds up from rest over this long
+# The car drives as a car does (docs/datasets.md, "Synthetic scans without poses"): KITTI 00's frames 0-100 run at
+# 4.4-10.6 m/s, up to 1.8 m/s^2 sideways, the yaw rate changing by at most 0.27 deg a sweep from one sweep to the next.
+CAR_CRUISE_M_S = 11.0  # on the straights
+CAR_LATERAL_M_S2 = 3.0  # at most, in the corners (a 10 m corner at 5.5 m/s)
+CAR_ACCELERATION_M_S2 = 2.5  # speeding up and braking
+CAR_EASE_M = 4.0  # the corners eased over a few of these: the yaw rate builds up over about a second
 
 
 def smooth_trajectory(num_scans: int, radius_m: float, seed: int) -> np.ndarray:
@@ -189,21 +195,67 @@ def _route_poses(
 def car_drive(
     num_scans: int, length_m: float, seed: int, rate_hz: float, sweep_fractions: np.ndarray = np.zeros(1)
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The poses of a car that starts from rest on courtyard_route's closed route of length_m, and the dense route
-    [N, 2]: one sweep each 1 / rate_hz s, speeding up evenly over CAR_START_S, then at the speed that brings it
-    round the route by the time of sweep S. Returns poses [S, F, 4, 4] at sweep_fractions [F] of each sweep's
-    period after its stamp (the default [0.0]: at the stamps), between the route's samples where they fall."""
-    dense = _rounded_rectangle(length_m)
+    """The poses of a car driving car_route(length_m) from rest, as a car drives (docs/datasets.md, "Synthetic scans
+    without poses"), and that route [N, 2]: one sweep each 1 / rate_hz s; it speeds up and brakes at
+    CAR_ACCELERATION_M_S2, cruises at CAR_CRUISE_M_S on the straights and takes the eased corners no faster than
+    CAR_LATERAL_M_S2 allows, round the route again where the sweeps outlast a lap. Returns poses [S, F, 4, 4] at
+    sweep_fractions [F] of each sweep's period after its stamp (the default [0.0]: at the stamps), between the
+    route's samples where they fall."""
+    dense = car_route(length_m)
     times = (np.arange(num_scans)[:, None] + np.asarray(sweep_fractions, np.float64)[None, :]) / rate_hz
-    fraction = np.mod(_car_travelled(times) / _car_travelled(num_scans / rate_hz), 1.0).ravel()
+    travelled, lap_m = _car_travelled(dense, times.ravel())
+    fraction = np.mod(travelled / lap_m, 1.0)
     at = fraction * len(dense)
     before = np.floor(at).astype(np.int64)
     poses = _route_poses(dense, before, before + 1, at - before, fraction, seed)
     return poses.reshape(*times.shape, 4, 4), dense
 
 
-def _car_travelled(times_s):
-    """How far the car has gone at times_s (in seconds of driving at its cruising speed): it speeds up evenly from
-    rest over CAR_START_S."""
-    times_s = np.asarray(times_s, np.float64)
-    return np.where(times_s < CAR_START_S, times_s**2 / (2 * CAR_START_S), times_s - CAR_START_S / 2)
+def car_route(length_m: float) -> np.ndarray:
+    """The car's closed route [N, 2], evenly spaced, counter-clockwise: courtyard_route's rounded rectangle of
+    length_m with its corners eased (smoothed along it by a Gaussian of CAR_EASE_M), so that its curvature, and a
+    car's yaw rate, builds up and dies down over metres as a road's does rather than at once, starting halfway
+    along its right-hand straight (the car sets off on a straight). A little shorter than length_m (the corners cut)."""
+    from scipy.ndimage import gaussian_filter1d
+
+    dense = _rounded_rectangle(length_m)
+    start = np.argmin(np.abs(dense[:, 1]) + np.where(dense[:, 0] > 0, 0.0, np.inf))  # x = a, y = 0
+    dense = gaussian_filter1d(np.roll(dense, -start, axis=0), CAR_EASE_M * len(dense) / length_m, axis=0, mode="wrap")
+    closed = np.concatenate([dense, dense[:1]])
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
+    even = np.linspace(0.0, along[-1], len(dense), endpoint=False)
+    return np.stack([np.interp(even, along, closed[:, 0]), np.interp(even, along, closed[:, 1])], axis=1)
+
+
+def _car_speed_limit(dense: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The closed route [N, 2]'s steps [N] (from each sample to the next, m) and the car's speed limit there [N]
+    (m/s): CAR_CRUISE_M_S, or the speed at which its curvature takes CAR_LATERAL_M_S2 of lateral acceleration."""
+    steps = np.linalg.norm(np.roll(dense, -1, axis=0) - dense, axis=1)
+    ahead, behind = np.roll(dense, -1, axis=0), np.roll(dense, 1, axis=0)
+    heading = np.arctan2(ahead[:, 1] - behind[:, 1], ahead[:, 0] - behind[:, 0])
+    turn = np.angle(np.exp(1j * (np.roll(heading, -1) - np.roll(heading, 1))))  # over two steps, wrapped
+    curvature = np.abs(turn) / (steps + np.roll(steps, 1))
+    return steps, np.minimum(CAR_CRUISE_M_S, np.sqrt(CAR_LATERAL_M_S2 / np.maximum(curvature, 1e-12)))
+
+
+def _car_travelled(dense: np.ndarray, times_s: np.ndarray) -> tuple[np.ndarray, float]:
+    """How far [T] the car has gone along the closed route [N, 2] at times_s [T] (from rest at 0), and the route's
+    length: the fastest speed profile within the speed limit (_car_speed_limit) that speeds up and brakes at no
+    more than CAR_ACCELERATION_M_S2, over as many laps as the times need; each step at constant acceleration."""
+    steps, limit = _car_speed_limit(dense)
+    lap_m = float(steps.sum())
+    laps = int(np.ceil(max(float(np.max(times_s, initial=0.0)), 1.0) * CAR_CRUISE_M_S / lap_m)) + 2
+    steps, limit = np.tile(steps, laps), np.tile(limit, laps)
+    speed = np.empty(len(limit) + 1)
+    speed[0], speed[-1] = 0.0, limit[0]
+    for i in range(1, len(limit)):  # speeding up ...
+        speed[i] = min(limit[i], np.sqrt(speed[i - 1] ** 2 + 2 * CAR_ACCELERATION_M_S2 * steps[i - 1]))
+    for i in range(len(limit) - 1, 0, -1):  # ... and braking ahead of the corners
+        speed[i] = min(speed[i], np.sqrt(speed[i + 1] ** 2 + 2 * CAR_ACCELERATION_M_S2 * steps[i]))
+    durations = 2 * steps / np.maximum(speed[:-1] + speed[1:], 1e-12)
+    start_s = np.concatenate([[0.0], np.cumsum(durations)])
+    start_m = np.concatenate([[0.0], np.cumsum(steps)])
+    k = np.clip(np.searchsorted(start_s, times_s, side="right") - 1, 0, len(steps) - 1)
+    tau = times_s - start_s[k]
+    acceleration = (speed[k + 1] - speed[k]) / np.maximum(durations[k], 1e-12)
+    return start_m[k] + speed[k] * tau + 0.5 * acceleration * tau**2, lap_m

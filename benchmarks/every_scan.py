@@ -2,7 +2,9 @@
 """What registering every input scan to the result gains (neld_jax.steps.registration): ATE against the ground truth
 over every sweep, over the keyframes and over the other sweeps, and the raw map of every sweep's crispness, for the
 odometry (the run's input), the keyframes' interpolated corrections (what every other sweep had before), and every
-sweep registered to the keyframes' refined map; and the registration's time.
+sweep registered to the keyframes' refined map; and the registration's time: in all, the map's build (its normals
+and search structure, once a map) and each sweep's (s_per_sweep: read, cropped, gridded, registered, judged), with
+the machine's 1-minute load before and after (timings are upper bounds on a shared machine).
 
     neld-make-synthetic --config=configs/demo.py --root=/tmp/sweeps --rate_hz=10 \\
         --config.data.synthetic.num_scans=300 --config.data.synthetic.max_range_m=40
@@ -17,6 +19,7 @@ every sweep at most 1.2 x the keyframes' ATE.
 """
 
 import json
+import os
 import time
 
 import harness  # this folder's benchmarks/harness.py: --out, the machine stamp and the JSON schema
@@ -62,10 +65,15 @@ def measure(run_dir: str) -> dict:
     _, written = read_tum(f"{run_dir}/poses_optimized.txt")
     refined = written[keyframes.loaded_index]
     interpolated = propagate_corrections(loaded.poses, keyframes.loaded_index, refined, loaded.timestamps)
-    t0 = time.perf_counter()
     settings = registration.RegistrationSettings.from_groups(config.data, config.baseline)
+    load_before = os.getloadavg()[0]
+    t0 = time.perf_counter()
     registered = registration.register_every_scan(loaded, keyframes, refined, settings)
     seconds = time.perf_counter() - t0
+    load_after = os.getloadavg()[0]
+    t0 = time.perf_counter()  # the map and its search structure again, alone: built once a map, not a sweep
+    registration.map_index(registration.map_cloud(keyframes.scans, refined, settings))
+    map_seconds = time.perf_counter() - t0
     radius = float(config.eval.crispness_radius_m)
     entry = {
         "run": run_dir,
@@ -74,6 +82,10 @@ def measure(run_dir: str) -> dict:
         "num_registered": int(registered.registered.sum()),
         "num_refused": int(sum(map(bool, registered.flag))),
         "registration_s": round(seconds, 1),
+        "map_s": round(map_seconds, 1),
+        # each sweep tried: read from disk, cropped, gridded, registered and judged (the map's build left out)
+        "s_per_sweep": round((seconds - map_seconds) / max(int(registered.tried.sum()), 1), 4),
+        "load_average_1min": [round(load_before, 2), round(load_after, 2)],
         "median_residual_cm": round(100 * float(np.nanmedian(registered.residual_m)), 3),
     }
     for name, poses in (("odometry", loaded.poses), ("interpolated", interpolated), ("registered", registered.poses)):

@@ -124,3 +124,38 @@ def test_scans_past_the_deadline_keep_their_guesses_flagged_out_of_time(scene):
 
     assert result.flag == [registration.OUT_OF_TIME] * 2 and not result.registered.any()
     np.testing.assert_array_equal(result.poses, guesses)
+
+
+def test_scans_registered_together_get_the_poses_they_get_one_at_a_time(scene):
+    settings = registration.RegistrationSettings(max_range_m=30.0)
+    target = registration.map_cloud([scene.scans[k] for k in KEYFRAMES], scene.gt_poses[KEYFRAMES], settings)
+    others = np.setdiff1d(np.arange(scene.num_scans), KEYFRAMES)
+    scans = [scene.scans[s] for s in others] + [scene.scans[1][:20]]  # the last one too few points
+    guesses = perturbed(scene.gt_poses[np.r_[others, 1]], seed=4)
+
+    together = registration.register_to_map(scans, guesses, target, settings)
+    alone = registration.register_to_map(scans, guesses, target, dataclasses.replace(settings, batch_scans=1))
+
+    assert together.flag == alone.flag == [""] * len(others) + [registration.TOO_FEW_POINTS]
+    np.testing.assert_allclose(together.poses, alone.poses, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(together.residual_m, alone.residual_m, rtol=0, atol=1e-9)
+    assert position_errors(together.poses[:-1], scene.gt_poses[others]).max() < 0.02
+
+
+def test_a_scan_slid_along_a_corridor_is_held_to_its_guess_along_it():
+    # Two parallel walls and a floor: nothing fixes a move along the corridor (y), as along a straight street.
+    rng = np.random.default_rng(0)
+    walls = np.c_[np.where(np.arange(4000) % 2, 3.0, -3.0), rng.uniform(-20, 20, 4000), rng.uniform(0, 3, 4000)]
+    floor = np.c_[rng.uniform(-3, 3, 4000), rng.uniform(-20, 20, 4000), np.zeros(4000)]
+    settings = registration.RegistrationSettings(max_range_m=30.0)
+    index = registration.map_index(registration.cloud_with_normals(np.vstack([walls, floor]), settings))
+    scan = registration.prepare_scan(np.vstack([walls, floor]) - [0.0, 0.0, 1.5], settings)
+    guess = np.eye(4)
+    guess[2, 3] = 1.5
+    slid = guess.copy()
+    slid[1, 3] = 0.3  # what ICP's answer along the corridor may be: where its start and noise led it
+
+    pose, _, fitness, flag = registration.judged(scan, guess, slid, index, settings)
+
+    assert flag == "" and fitness > 0.9
+    assert abs(pose[1, 3]) < 0.01 and np.abs(pose - guess).max() < 0.01

@@ -5,16 +5,16 @@
 
 For each sequence (KITTI odometry in its layout, read lazily as a run reads it; --car_scans raw sweeps of the
 synthetic car of each of --car_seeds (peers.py's car:SEED), 64 x 1024 rays with per-point times, written once to
---work_dir in the generic layout) and each
-variant (VARIANTS: KISS-ICP's convergence criterion, its iteration cap, its voxel rule, one pass or two over raw
-sweeps), the odometry (neld_jax.frontend.odometry's passes, without the global-registration check) runs twice: on
-the sweeps read from their files as it goes (`read_s_per_sweep`, reading included) and on the same sweeps held in
-memory (`odometry_s_per_sweep`). Then the ATE (SE(3) alignment; KITTI from KITTI_FIRST_S on: its first ground
-truth poses are a constant-velocity fill), the path-length ratio and the sweep-to-sweep error against the ground
-truth, and the CPU seconds (all threads; less sensitive to a shared machine's load than the wall clock); the cars'
-spread over their seeds (min, mean, max) in `cars_min_mean_max`. `front_end` rows time
-the whole front-end as a run calls it (scan_poses.with_scan_poses: the range measured, the odometry, its check).
-Rigid scans (KITTI's are motion-compensated) are registered once whatever the variant's passes.
+--work_dir in the generic layout) and each variant (VARIANTS: KISS-ICP's convergence criterion, its iteration cap,
+its voxel rule, one pass or two over raw sweeps), the odometry (neld_jax.frontend.odometry's passes, without the
+global-registration check) runs on the sweeps read from their files as it goes (`read_s_per_sweep`, reading
+included) and, with --from_memory, again on the same sweeps held in memory (`odometry_s_per_sweep`). Then the ATE
+(SE(3) alignment; KITTI from KITTI_FIRST_S on: its first ground truth poses are a constant-velocity fill), the
+path-length ratio and the sweep-to-sweep error against the ground truth, and the CPU seconds (all threads; less
+sensitive to a shared machine's load than the wall clock); the cars' spread over their seeds (min, mean, max) in
+`cars_min_mean_max`. `front_end` rows time the whole front-end as a run calls it (scan_poses.with_scan_poses: the
+range measured, the odometry, its check). Rigid scans (KITTI's are motion-compensated) are registered once whatever
+the variant's passes.
 """
 
 import contextlib

@@ -17,21 +17,23 @@ deskewing off both times (two_pass_odometry). The first pass registers each swee
 the sensor's at about the mean instant of the sweep's points; the second registers each sweep deskewed along that
 first trajectory into the frame at its stamp, so its poses are at the stamps, which the sequence's ground truth
 refers to (an Ouster stamps a sweep at its start). The two go together, each sweep read once, the second a sweep
-behind. One pass does less: on the synthetic car's 200 sweeps 0.250 m ATE not deskewed, 0.115 m with KISS-ICP's own
-deskewing, against 0.095 m in two (benchmarks/frontend_pace.py). The sweeps are then deskewed along the finished
-trajectory (deskewed_along). Why not KISS-ICP's own deskewing: it deskews a sweep by the motion its registration of
-the sweep before found, and that registration took the deskewing before it: where the motion changes at once the two
-feed each other and the poses swing from sweep to sweep. Measured on an earlier synthetic car's 300 raw sweeps (64
-beams, 80 m, 11 m/s, turning into and out of its corners at once, which no car does): heading errors of 1.27 deg RMS
-a sweep and 2.72 m ATE with KISS-ICP's own deskewing, 0.38 deg and 1.80 m not deskewed, 0.22 deg and 0.15 m in two
-passes (0.14 m with every sweep deskewed along the true motion); on the car that drives as cars do 0.167 against
-0.166 m (benchmarks/RESULTS.md, "Peers"); on the 10 m loop at 2.1 m/s 6.0 cm against 6.7 cm over the first 40
-sweeps, at 6.3 m/s 2.8 cm against 10.3 cm. Earlier, with KISS-ICP's own deskewing, deskewing the sweeps again along
-the finished trajectory took the 300 synthetic loop sweeps' keyframes' raw map under the true poses from -3.73 to
--4.23 nats (-5.09 with the true motion, -3.74 not deskewed). Sweeps with
-point times but no stamps are registered once, by KISS-ICP with its own deskewing, each pose the sensor's at its
-sweep's last point; where their times were derived from the azimuths (data.sweep_times, at an assumed period) they
-are put that period apart and registered in two passes instead (a common time scale: the poses do not depend on it).
+behind. One pass does less for half the CPU: over six synthetic cars (300 sweeps each) KISS-ICP's own deskewing
+erred more from sweep to sweep on every one (2.1-9.6 against 1.8-4.6 cm, 0.066-0.113 against 0.050-0.070 deg), its
+ATE 0.054-0.267 against 0.051-0.268 m (benchmarks/RESULTS.md, "The front-end's pace"). The sweeps are then deskewed
+along the finished trajectory (deskewed_along). Why not KISS-ICP's own deskewing: it deskews a sweep by the motion
+its registration of the sweep before found, and that registration took the deskewing before it: where the motion
+changes at once the two feed each other and the poses swing from sweep to sweep. Measured on an earlier synthetic
+car's 300 raw sweeps (64 beams, 80 m, 11 m/s, turning into and out of its corners at once, which no car does):
+heading errors of 1.27 deg RMS a sweep and 2.72 m ATE with KISS-ICP's own deskewing, 0.38 deg and 1.80 m not
+deskewed, 0.22 deg and 0.15 m in two passes (0.14 m with every sweep deskewed along the true motion); on the car
+that drives as cars do, KISS-ICP's own pipeline 0.167 against 0.166 m (benchmarks/RESULTS.md, "Peers"); over the
+first 40 sweeps of the 10 m loop (seed 0) with KISS-ICP's own deskewing against two passes 7.0 against 7.5 cm at 2.1
+m/s, 6.4 against 2.5 cm at 6.3 m/s. Earlier, with KISS-ICP's own deskewing, deskewing the sweeps again along the
+finished trajectory took the 300 synthetic loop sweeps' keyframes' raw map under the true poses from -3.73 to -4.23
+nats (-5.09 with the true motion, -3.74 not deskewed). Sweeps with point times but no stamps are registered once, by
+KISS-ICP with its own deskewing, each pose the sensor's at its sweep's last point; where their times were derived
+from the azimuths (data.sweep_times, at an assumed period) they are put that period apart and registered in two
+passes instead (a common time scale: the poses do not depend on it).
 
 Losing track. A jump or a dropped stretch does not stop KISS-ICP: it registers the next sweep wherever its
 constant-velocity guess and ICP lead, and the map bends. After each registration, the share of the sweep's
@@ -86,7 +88,8 @@ RECOVERY_ICP_VOXELS = 3.0  # ICP from RANSAC's pose pairs points this far apart 
 # KISS-ICP's ICP stops when a step moves less than this (its own default: 1e-4), in both passes. Measured
 # (benchmarks/frontend_pace.py, 2 cores at load 4-5): KITTI 00's 101 sweeps 0.071 against 0.091 s a sweep, ATE 0.1335
 # against 0.1333 m; the synthetic car's 200 raw sweeps in two passes 0.18 against 0.26 s, 0.146 against 0.137 m. Its
-# iteration cap at 10 lost the car (50 m); a voxel of 1.5 % of the range 0.182 m there.
+# iteration cap at 10 (KISS-ICP's default: 500) saves 3 % on KITTI 00 and loses its 2 Hz thinning (19.6 m ATE against
+# 0.136 m); a voxel of 1.5 % of the range 0.182 m on the car.
 CONVERGENCE = 1e-3
 RANSAC_ITERATIONS = 20_000  # at most, per recovery (the classical baseline's)
 # KISS-ICP's poses of the same sweeps differ in their last bits from run to run (about 5e-15 m), and a second pass over

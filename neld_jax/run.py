@@ -75,24 +75,30 @@ def run_steps(
         viewer.training_hook(),
         functools.partial(output_folder.record_seconds, out_dir, budget),
     )
-    refined = refine.refine_keyframes(
-        refine.TrainingSettings.from_config(config), keyframes, begin.poses, begin.pose_steps, context
+    refined = budget.clock.ended(
+        "training",
+        refine.refine_keyframes(
+            refine.TrainingSettings.from_config(config), keyframes, begin.poses, begin.pose_steps, context
+        ),
     )
-    budget.clock.lap("training")
 
     # 4. Render the map (neld_jax.steps.mapping; none with mapping.enabled off).
-    render = mapping.rendered_map(
-        config.mapping, config.sampling, refined, keyframes, config.seed + 1, budget.render_seconds(), progress
+    render = budget.clock.ended(
+        "map",
+        mapping.rendered_map(
+            config.mapping, config.sampling, refined, keyframes, config.seed + 1, budget.render_seconds(), progress
+        ),
     )
-    budget.clock.lap("map")
     viewer.log_rendered(render)
 
     # 5. Register every other input scan to the keyframes' refined map, from its interpolated correction.
     settings = registration.RegistrationSettings.from_groups(config.data, config.baseline)
-    registered = registration.register_every_scan(
-        loaded, keyframes, refined.poses, settings, progress, budget.registration_deadline()
+    registered = budget.clock.ended(
+        "registration",
+        registration.register_every_scan(
+            loaded, keyframes, refined.poses, settings, progress, budget.registration_deadline()
+        ),
     )
-    budget.clock.lap("registration")
     # ... and the distance travelled checked against the input's on every scan's map (judging.answer).
     made = answer.keep_travel_of_input(
         outputs.RunSteps(loaded, keyframes, begin, refined, render, registered), config.eval

@@ -45,6 +45,11 @@ class StageClock:
         self.seconds[stage] = round(now - self.last, 2)
         self.last = now
 
+    def ended(self, stage: str, result):
+        """result, a step's, once its seconds are recorded as stage's (lap): `made = clock.ended("map", step(...))`."""
+        self.lap(stage)
+        return result
+
     def describe(self) -> str:
         return ", ".join(f"{stage} {seconds:.0f} s" for stage, seconds in self.seconds.items())
 

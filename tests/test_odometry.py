@@ -189,17 +189,52 @@ def test_a_handheld_walk_that_kiss_icp_loses_is_registered_again(caplog):
     assert 3 <= recoveries < walk.num_scans - 8, recoveries  # a turn to the same side as the last one is tracked
 
 
-def test_the_guesses_of_a_lost_scan_are_no_motion_constant_velocity_and_the_last_turn():
+def test_the_guesses_of_a_lost_scan_are_no_motion_constant_velocity_the_last_turn_and_two_steps():
     from scipy.spatial.transform import Rotation
 
     last, delta = np.eye(4), np.eye(4)
     last[:3, 3] = [5.0, 1.0, 0.0]
     delta[:3, :3], delta[:3, 3] = Rotation.from_euler("z", 45, degrees=True).as_matrix(), [0.7, 0.0, 0.0]
-    still, constant, turned = odometry.guesses(last, delta)
+    still, constant, turned, two_steps = odometry.guesses(last, delta)
     np.testing.assert_allclose(still, last)
     np.testing.assert_allclose(constant, last @ delta)
     np.testing.assert_allclose(turned[:3, 3], last[:3, 3])  # turned on the spot
     np.testing.assert_allclose(turned[:3, :3], delta[:3, :3])
+    np.testing.assert_allclose(two_steps, last @ delta @ delta)  # a scan dropped in between
+
+
+# Keyframes round the 10 m loop 1.1 m apart (rigid scans, as a LiDAR-inertial front-end writes them), 12 of them,
+# then 12 more after a dropped stretch of 5: a jump of 6.1 m where KISS-ICP guesses 1.1 m.
+KEYFRAMES = {"num_scans": 60, "trajectory_radius_m": 10.0, "max_range_m": 40.0, "gt_map_points": 0}
+BEFORE_JUMP, DROPPED = 12, 5
+
+
+def _jumped(before: list, after: list) -> list:
+    """The first BEFORE_JUMP scans of `before`, then those of `after` from DROPPED further on: 2 x BEFORE_JUMP."""
+    return before[:BEFORE_JUMP] + after[BEFORE_JUMP + DROPPED : 2 * BEFORE_JUMP + DROPPED]
+
+
+def _step_error_m(poses: np.ndarray, truth: np.ndarray, i: int) -> float:
+    """How far poses [S, 4, 4] put scan i from scan i - 1 against truth [S, 4, 4]: metres."""
+    step, true_step = (np.linalg.inv(p[i - 1]) @ p[i] for p in (poses, truth))
+    return float(np.linalg.norm(step[:3, 3] - true_step[:3, 3]))
+
+
+def test_a_dropped_stretch_of_keyframes_is_bridged_and_another_place_is_refused(caplog):
+    loop = make_sequence({**KEYFRAMES, "seed": 0})
+    scans = _jumped(loop.scans, loop.scans)
+    picked = list(range(BEFORE_JUMP)) + list(range(BEFORE_JUMP + DROPPED, 2 * BEFORE_JUMP + DROPPED))
+    truth, labels = loop.gt_poses[picked], [f"s{i}" for i in range(len(scans))]
+    with caplog.at_level(logging.INFO, logger="neld_jax.frontend.odometry"):
+        poses, _, _ = odometry.kiss_icp_odometry(scans, None, labels, (0.5, 40.0))
+    alone = _kiss_icp_alone(scans, 40.0)
+    assert f"s{BEFORE_JUMP}: KISS-ICP lost track (" in caplog.text and "registered again:" in caplog.text
+    assert _step_error_m(alone, truth, BEFORE_JUMP) > 2.0  # KISS-ICP by itself falls short of the jump
+    assert _step_error_m(poses, truth, BEFORE_JUMP) < 0.2, _step_error_m(poses, truth, BEFORE_JUMP)
+    # the same jump into another courtyard (another seed's scene): nothing registers, the scan is named
+    elsewhere = _jumped(loop.scans, make_sequence({**KEYFRAMES, "seed": 7}).scans)
+    with pytest.raises(DataError, match=rf"^s{BEFORE_JUMP}: KISS-ICP lost track here"):
+        odometry.kiss_icp_odometry(elsewhere, None, labels, (0.5, 40.0))
 
 
 def test_a_gap_in_the_stamps_is_named(caplog):

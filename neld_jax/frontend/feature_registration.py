@@ -20,11 +20,14 @@ def fpfh_features(cloud, voxel_m: float, radius_m: float):
     return coarse, features
 
 
-def ransac_alignment(source_features, target_features, voxel_m: float, iterations: int, seed: int) -> np.ndarray:
+def ransac_alignment(
+    source_features, target_features, voxel_m: float, iterations: int, seed: int, confidence: float = 0.999
+) -> np.ndarray:
     """The transform [4, 4] mapping the source cloud into the target's frame that RANSAC finds from their
     (coarse cloud, FPFH features) (fpfh_features, both at voxel_m): three mutual feature matches a draw, checked by
-    edge length and by distance (1.5 voxels), at most `iterations` draws (99.9 % confidence stops it earlier),
-    Open3D's random draws seeded by `seed`. Coarse: ICP refines it."""
+    edge length and by distance (1.5 voxels), at most `iterations` draws (`confidence` stops it earlier; 1: never),
+    Open3D's random draws seeded by `seed` (its threads still make it vary from run to run). Coarse: ICP refines
+    it."""
     import open3d as o3d
 
     registration = o3d.pipelines.registration
@@ -44,7 +47,7 @@ def ransac_alignment(source_features, target_features, voxel_m: float, iteration
             registration.CorrespondenceCheckerBasedOnEdgeLength(0.9),
             registration.CorrespondenceCheckerBasedOnDistance(distance),
         ],
-        registration.RANSACConvergenceCriteria(iterations, 0.999),
+        registration.RANSACConvergenceCriteria(iterations, confidence),
     )
     return np.asarray(ransac.transformation, dtype=np.float64)
 

@@ -86,6 +86,7 @@ from neld_jax.data.scan_source import LazyScans, lazy
 from neld_jax.data.sequence import Sequence
 from neld_jax.errors import DataError
 from neld_jax.frontend import odometry_check
+from neld_jax.geometry import rotation_angles_deg
 
 logger = logging.getLogger(__name__)
 
@@ -331,12 +332,8 @@ def turned_more(step: np.ndarray, motion: np.ndarray) -> bool:
     """Whether the recovered step [4, 4] turned TURN_DEG more than the motion [4, 4] before it would over the step's
     length (a longer step along a bend turns as much more as it is longer): a turn, not a jump along the way."""
     lengths = np.linalg.norm(step[:3, 3]), np.linalg.norm(motion[:3, 3])
-    return angle_deg(step) > angle_deg(motion) * max(1.0, lengths[0] / max(lengths[1], 1e-9)) + TURN_DEG
-
-
-def angle_deg(transform: np.ndarray) -> float:
-    """The rotation angle [deg] of transform [4, 4]."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(transform[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+    step_deg, motion_deg = rotation_angles_deg(np.stack([step[:3, :3], motion[:3, :3]]))
+    return step_deg > motion_deg * max(1.0, lengths[0] / max(lengths[1], 1e-9)) + TURN_DEG
 
 
 def recent_overlap(overlaps: np.ndarray) -> float:

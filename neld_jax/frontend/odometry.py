@@ -46,28 +46,14 @@ features of the last OVERLAP_SCANS scans, RECOVERY_SEEDS runs, and from four mot
 and KISS-ICP goes on from there, its motion model the motion of the last sweep it tracked itself (a jump or a dropped
 stretch is no new velocity) unless the recovered step turned TURN_DEG more than that motion would over its length (a
 handheld sensor turned: turned_more); only when no start brings the overlap back to the recent range does the load
-stop, with one line naming the scan. Measured on the synthetic handheld walk (2 Hz, 40-50 degree turns between scans),
-which KISS-ICP alone loses at its first turn: 1.6-1.7 m ATE over 18 scans alone, 4-5 cm recovered. Measured on the
-FAST-LIO2 keyframes of a real car drive (new_Riverside02, Ouster OS1-64, 281 keyframes 5-9 m apart along a road whose
-kerbs and walls run with it, voxel 0.93 m): keyframe 109 lies 13.1 m past 108 (a dropped keyframe, global registration
-of the pair 0.66 fitness); KISS-ICP's constant-velocity guess (8.7 m) left it at 0.33 of the previous scan (0.74 the
-median), 0.45 of the last five (0.90). Against the previous scan alone, features on KISS-ICP's grid and the three
-guesses then, the recovery found 0.35 and the load stopped; recovered as here, 0.68 at 13.1 m. The next scans match
-their predecessors poorly at any shift along the road (0.38-0.49), and where the motion model took the recovered 13 m
-as its velocity the next recoveries settled near no motion and the path shrank (740 m against KISS-ICP's 1009 m): the
-every-scan map's entropy (judge.every_scan_crispness, the odometry alone) -2.97 nats (-3.00 with the motion before the
-gap as a fifth guess), against -3.30 keeping that motion (the local map rebuilt from 20 scans; -3.24 from
-RECENT_FRAMES) and -3.13 for KISS-ICP's own pipeline. On HKU_1 (FAST-LIO2 keyframes of a handheld walk, voxel 0.5 m;
-recovered at scan 26, a 13 degree turn, which turned_more keeps as the motion) -3.05, as before the local map (-3.07;
-keeping the motion before the turn there took it to -2.75 to -2.79). Re-registering every scan below 0.7 of the median
-rather than 0.5 (from 20 scans): -3.31 on Riverside02 but -2.55 on HKU_1. Measured sweep to sweep (one scan, before
-OVERLAP_SCANS): synthetic 10 Hz sweeps (32 beams, 60 m range, voxel 0.6 m) overlap 0.78-0.90, 0.20 after a jump into
-another courtyard (0.24 of the median), 0.23 after a 2 s gap; FAST-LIO2's keyframes of four real handheld recordings
-(5 Hz, gaps up to 6 s, 40 m, voxel 0.4 m) 0.61-0.69 in the median, and no tracked step below 0.71 of its median, while
-an absolute threshold of 0.5 would have stopped HKU_2 at a tracked step (0.49). What the share cannot see: ICP that
-slides along the scene and keeps the overlap (on those keyframes, which are not KISS-ICP's input, it went 0.5-2 m
-wrong on single steps with overlaps like the tracked steps'; the rule fired at that step on the main building, 60-200
-keyframes later on the other three): odometry_check.py sees it. A gap of GAP_WARNING_PERIODS sweep periods or more in
+stop, with one line naming the scan. Measured (docs/datasets.md, "A lost track", with the figures behind each
+choice): the synthetic handheld walk that KISS-ICP alone loses at its first turn, 1.6-1.7 m ATE alone and 4-5 cm
+recovered; the bare keyframes of a real car drive (Riverside02) whose dropped keyframe 13.1 m past the last stopped
+the load, now posed to the end; what a sweep overlaps on synthetic sweeps and on real keyframes, and why the rule is
+relative to the recent median. What the share cannot see: ICP that slides along the scene and keeps the overlap (on
+FAST-LIO2's keyframes of four handheld recordings, which are not KISS-ICP's input, it went 0.5-2 m wrong on single
+steps with overlaps like the tracked steps'; the rule fired at that step on the main building, 60-200 keyframes later
+on the other three): odometry_check.py sees it. A gap of GAP_WARNING_PERIODS sweep periods or more in
 the stamps is warned about, naming the scan: after a 1 s gap the synthetic overlap stays at 0.71 but the trajectory's
 error doubled.
 """
